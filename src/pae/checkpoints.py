@@ -1,0 +1,89 @@
+"""Loading pae checkpoints safely (weights_only) with clear one-line errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import torch
+from hydra.utils import instantiate
+from torch import nn
+
+from pae.models.base import PoseRegressor
+from pae.models.pae import PoseAutoEncoder
+
+
+class CheckpointError(RuntimeError):
+    """A missing, unreadable, wrong-kind or mismatched checkpoint; the message names the file."""
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """torch.load with weights_only=True: no pickled code is ever executed."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: checkpoint not found")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # torch raises several types for corrupt/unsafe files
+        first_line = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise CheckpointError(f"{path}: not a readable checkpoint ({first_line})") from None
+
+
+def _hparam(checkpoint: dict[str, Any], key: str, path: Path, kind: str) -> Any:
+    hparams = checkpoint.get("hyper_parameters") or {}
+    if key not in hparams:
+        raise CheckpointError(
+            f"{path}: not a {kind} checkpoint (no '{key}' in its hyper-parameters)"
+        )
+    return hparams[key]
+
+
+def _load_submodule(model: nn.Module, checkpoint: dict[str, Any], prefix: str, path: Path) -> None:
+    state = {
+        k.removeprefix(prefix): v
+        for k, v in checkpoint.get("state_dict", {}).items()
+        if k.startswith(prefix)
+    }
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as err:
+        detail = " ".join(str(err).split())[:300]
+        raise CheckpointError(f"{path}: weights do not match the model ({detail})") from None
+
+
+class LoadedTeacher(NamedTuple):
+    """A teacher rebuilt from a checkpoint: model (eval mode), its scenes and architecture."""
+
+    model: PoseRegressor
+    scene_names: list[str]
+    config: dict[str, Any]
+
+
+class LoadedPAE(NamedTuple):
+    """A PAE rebuilt from a student checkpoint: model (eval mode), its scenes and architecture."""
+
+    model: PoseAutoEncoder
+    scene_names: list[str]
+    config: dict[str, Any]
+
+
+def load_teacher(path: str | Path) -> LoadedTeacher:
+    """A teacher or student checkpoint (students hold a copy of their teacher) -> its teacher."""
+    path = Path(path)
+    checkpoint = read_checkpoint(path)
+    config = dict(_hparam(checkpoint, "teacher_config", path, "teacher"))
+    teacher = instantiate(config)
+    _load_submodule(teacher, checkpoint, "teacher.", path)
+    scenes = list(_hparam(checkpoint, "scene_names", path, "teacher"))
+    return LoadedTeacher(teacher.eval(), scenes, config)
+
+
+def load_pae(path: str | Path) -> LoadedPAE:
+    """A student checkpoint -> its PoseAutoEncoder."""
+    path = Path(path)
+    checkpoint = read_checkpoint(path)
+    config = dict(_hparam(checkpoint, "pae_config", path, "student"))
+    pae = instantiate(config)
+    _load_submodule(pae, checkpoint, "pae.", path)
+    scenes = list(_hparam(checkpoint, "scene_names", path, "student"))
+    return LoadedPAE(pae.eval(), scenes, config)

@@ -1,0 +1,132 @@
+"""LightningDataModule over label files: train / val / test splits of one or more scenes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor
+from torch.utils.data import DataLoader, Dataset, WeightedRandomSampler
+
+from pae.data.dataset import PoseDataset, collate_batch
+from pae.data.labels import LabelError, LabelTable, read_labels
+from pae.data.transforms import ImageTransform
+
+
+class PoseDataModule(L.LightningDataModule):
+    """Pose-labelled images from label files (DESIGN §2) under `root`.
+
+    `val_labels` defaults to `test_labels` (the benchmarks have no validation split).
+    Augmentation (random crop + colour jitter) runs batched on the device after transfer,
+    for training batches only when `augment` is true; evaluation uses the centre crop.
+    `balance_scenes` samples scenes equally often in multi-scene training.
+    """
+
+    def __init__(
+        self,
+        root: str,
+        train_labels: str,
+        test_labels: str,
+        val_labels: str | None = None,
+        shorter_edge: int = 256,
+        crop: int = 224,
+        color_jitter: tuple[float, float, float, float] = (0.5, 0.5, 0.5, 0.2),
+        augment: bool = True,
+        batch_size: int = 32,
+        eval_batch_size: int = 128,
+        num_workers: int = 0,
+        cache_images: bool = False,
+        balance_scenes: bool = False,
+    ) -> None:
+        super().__init__()
+        self.root = Path(root)
+        self.label_paths = {"train": train_labels, "val": val_labels or test_labels}
+        self.label_paths["test"] = test_labels
+        self.shorter_edge = shorter_edge
+        self.batch_size = batch_size
+        self.eval_batch_size = eval_batch_size
+        self.num_workers = num_workers
+        self.cache_images = cache_images
+        self.balance_scenes = balance_scenes
+        self.augment = augment
+        self.train_transform = ImageTransform(crop, train=True, color_jitter=tuple(color_jitter))
+        self.eval_transform = ImageTransform(crop, train=False)
+        self.tables: dict[str, LabelTable] = {}
+        self.datasets: dict[str, PoseDataset] = {}
+        self.scene_names: list[str] = []
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.datasets:
+            return
+        self.tables = {split: read_labels(path) for split, path in self.label_paths.items()}
+        self.scene_names = self.tables["train"].scene_names
+        for split, table in self.tables.items():
+            unknown = sorted(set(table.scene_names) - set(self.scene_names))
+            if unknown:
+                raise LabelError(
+                    f"{table.source}: scenes {unknown} do not occur in the train labels "
+                    f"{self.tables['train'].source}"
+                )
+        cached: dict[str, PoseDataset] = {}
+        for split, path in self.label_paths.items():
+            if path not in cached:
+                cached[path] = PoseDataset(
+                    self.tables[split],
+                    self.root,
+                    self.scene_names,
+                    self.shorter_edge,
+                    cache=self.cache_images,
+                )
+            self.datasets[split] = cached[path]
+
+    @property
+    def n_scenes(self) -> int:
+        return len(self.scene_names)
+
+    def train_poses(self) -> tuple[Tensor, Tensor]:
+        """The train poses [N, 7] and scene ids [N] (the store for pose retrieval)."""
+        dataset = self.datasets["train"]
+        return dataset.poses, dataset.scenes
+
+    def _loader(self, dataset: Dataset, batch_size: int, **kwargs: Any) -> DataLoader:
+        return DataLoader(
+            dataset,
+            batch_size=batch_size,
+            num_workers=self.num_workers,
+            collate_fn=collate_batch,
+            persistent_workers=self.num_workers > 0,
+            **kwargs,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        dataset = self.datasets["train"]
+        if self.balance_scenes and self.n_scenes > 1:
+            counts = torch.bincount(dataset.scenes, minlength=self.n_scenes).float()
+            weights = (1.0 / counts)[dataset.scenes]
+            sampler = WeightedRandomSampler(weights, num_samples=len(dataset))
+            return self._loader(dataset, self.batch_size, sampler=sampler, drop_last=True)
+        return self._loader(dataset, self.batch_size, shuffle=True, drop_last=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader(self.datasets["val"], self.eval_batch_size)
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader(self.datasets["test"], self.eval_batch_size)
+
+    def train_eval_dataloader(self) -> DataLoader:
+        """The train split in order, for evaluation-style passes (latent caching)."""
+        return self._loader(self.datasets["train"], self.eval_batch_size)
+
+    def preprocess(self, images: Tensor, train: bool) -> Tensor:
+        """uint8 [B, 3, H, W] -> network input [B, 3, crop, crop] (see ImageTransform)."""
+        transform = self.train_transform if train and self.augment else self.eval_transform
+        return transform.to(images.device)(images)
+
+    def on_after_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
+        if isinstance(batch, dict) and batch.get("image") is not None:
+            if batch["image"].dtype == torch.uint8:
+                training = self.trainer is not None and self.trainer.training
+                batch = {**batch, "image": self.preprocess(batch["image"], training)}
+        return batch

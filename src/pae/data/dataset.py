@@ -1,0 +1,77 @@
+"""Image + pose datasets over label tables, with an optional in-memory image cache."""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+from torch.utils.data import Dataset, default_collate
+
+from pae.data.labels import LabelTable
+from pae.data.transforms import load_image
+
+
+class PoseDataset(Dataset):
+    """Rows of a label table: `{"image": uint8 [3, H, W], "pose": [7], "scene": long, "index"}`.
+
+    Images are read with OpenCV relative to `root` and resized so their shorter edge is
+    `shorter_edge` px. With cache=True all images are decoded once into one uint8 tensor and a
+    batch is a single indexing operation (`__getitems__`).
+    """
+
+    def __init__(
+        self,
+        table: LabelTable,
+        root: str | Path,
+        scene_names: list[str],
+        shorter_edge: int,
+        cache: bool = False,
+        workers: int = 2,
+    ) -> None:
+        self.table = table
+        self.root = Path(root)
+        self.shorter_edge = shorter_edge
+        self.poses = torch.as_tensor(table.poses, dtype=torch.float32)
+        self.scenes = torch.as_tensor(table.scene_ids(scene_names), dtype=torch.long)
+        self.paths = [str(self.root / p) for p in table.img_path]
+        self.images: Tensor | None = None
+        if cache:
+            with ThreadPoolExecutor(max(1, workers)) as pool:
+                arrays = list(pool.map(self._load, self.paths))
+            self.images = torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous()
+
+    def _load(self, path: str) -> np.ndarray:
+        return load_image(path, self.shorter_edge)
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def _image(self, index: int) -> Tensor:
+        if self.images is not None:
+            return self.images[index]
+        return torch.from_numpy(self._load(self.paths[index])).permute(2, 0, 1)
+
+    def __getitem__(self, index: int) -> dict[str, Tensor]:
+        return {
+            "image": self._image(index),
+            "pose": self.poses[index],
+            "scene": self.scenes[index],
+            "index": torch.tensor(index),
+        }
+
+    def __getitems__(self, indices: list[int]) -> dict[str, Tensor]:
+        idx = torch.as_tensor(indices, dtype=torch.long)
+        if self.images is not None:
+            images = self.images[idx]
+        else:
+            images = torch.stack([self._image(i) for i in indices])
+        return {"image": images, "pose": self.poses[idx], "scene": self.scenes[idx], "index": idx}
+
+
+def collate_batch(batch: Any) -> Any:
+    """Collate for datasets that may already return whole batches from `__getitems__`."""
+    return batch if isinstance(batch, dict) else default_collate(batch)

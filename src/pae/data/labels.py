@@ -1,0 +1,370 @@
+"""Label files: one row per image with its scene, split, sequence, path and camera pose.
+
+The format is the one of the public MS-Transformer / PAE code::
+
+    scene,split,seq,img_path,t1,t2,t3,q1,q2,q3,q4
+    chess,test,seq-03,chess/seq-03/frame-000000.color.png,-0.0513658,...
+
+``img_path`` is relative to a dataset root, ``t1..t3`` is the camera position in metres (world
+frame) and ``q1..q4`` the camera-to-world orientation as a quaternion with the scalar part
+first (``q1``). Columns are found by name, so their order does not matter and extra columns are
+ignored.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import uuid
+import warnings
+from collections.abc import Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "LABEL_COLUMNS",
+    "LabelError",
+    "LabelTable",
+    "LabelWarning",
+    "find_image_problems",
+    "read_labels",
+    "read_labels_lenient",
+    "write_labels",
+]
+
+LABEL_COLUMNS: tuple[str, ...] = (
+    "scene",
+    "split",
+    "seq",
+    "img_path",
+    "t1",
+    "t2",
+    "t3",
+    "q1",
+    "q2",
+    "q3",
+    "q4",
+)
+TEXT_COLUMNS = LABEL_COLUMNS[:4]
+POSE_COLUMNS = LABEL_COLUMNS[4:]
+REQUIRED_TEXT_COLUMNS = ("scene", "split", "img_path")
+
+ZERO_QUATERNION_NORM = 1e-8
+"""Quaternions with a smaller norm carry no orientation and are rejected."""
+NON_UNIT_TOLERANCE = 1e-3
+"""Quaternions whose norm differs from 1 by more than this are reported when normalised."""
+_RENORMALISE_TOLERANCE = 1e-12
+"""Norms closer to 1 are left as read, so that read → write → read is exact."""
+
+
+class LabelError(ValueError):
+    """A problem in a label or raw pose file; ``str()`` is one line ``FILE:LINE: problem``."""
+
+    def __init__(self, path: str | os.PathLike[str], line: int | None, problem: str) -> None:
+        self.path = str(path)
+        self.line = line
+        self.problem = " ".join(problem.split())
+        where = self.path if line is None else f"{self.path}:{line}"
+        super().__init__(f"{where}: {self.problem}")
+
+
+class LabelWarning(UserWarning):
+    """Label values that were repaired while reading (e.g. quaternions normalised)."""
+
+
+@dataclass(frozen=True, eq=False)
+class LabelTable:
+    """Rows of a label file.
+
+    ``poses`` is ``[N, 7]`` float64 (``x, y, z`` in metres, then ``qw, qx, qy, qz``).
+    ``source`` names the file the rows came from and ``lines`` ``[N]`` holds each row's 1-based
+    line number in it (the header is line 1; default: row ``i`` on line ``i + 2``); both serve
+    error messages only.
+    """
+
+    scene: list[str]
+    split: list[str]
+    seq: list[str]
+    img_path: list[str]
+    poses: np.ndarray
+    source: str = ""
+    lines: np.ndarray | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        poses = np.asarray(self.poses, dtype=np.float64).reshape(-1, 7)
+        object.__setattr__(self, "poses", poses)
+        for name in TEXT_COLUMNS:
+            object.__setattr__(self, name, list(getattr(self, name)))
+            if len(getattr(self, name)) != len(poses):
+                raise ValueError(
+                    f"LabelTable: column {name} has {len(getattr(self, name))} rows, "
+                    f"poses have {len(poses)}"
+                )
+        if self.lines is None:
+            lines = np.arange(len(poses), dtype=np.int64) + 2
+        else:
+            lines = np.asarray(self.lines, dtype=np.int64).reshape(-1)
+            if len(lines) != len(poses):
+                raise ValueError(f"LabelTable: {len(lines)} line numbers for {len(poses)} rows")
+        object.__setattr__(self, "lines", lines)
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    def __repr__(self) -> str:
+        return f"LabelTable({len(self)} rows, scenes={self.scene_names}, source={self.source!r})"
+
+    @property
+    def scene_names(self) -> list[str]:
+        """Sorted unique scene names."""
+        return sorted(set(self.scene))
+
+    def scene_ids(self, scene_names: Sequence[str] | None = None) -> np.ndarray:
+        """Index ``[N]`` (int64) of each row's scene in ``scene_names`` (default: sorted names)."""
+        names = self.scene_names if scene_names is None else list(scene_names)
+        index = {name: i for i, name in enumerate(names)}
+        unknown = sorted(set(self.scene) - index.keys())
+        if unknown:
+            raise ValueError(f"scenes {unknown} are not among the given scene names {names}")
+        return np.fromiter((index[s] for s in self.scene), dtype=np.int64, count=len(self))
+
+    def file_line(self, i: int) -> int:
+        """1-based line number of row ``i`` in ``source`` (header = line 1)."""
+        return int(self.lines[i])
+
+    def select(self, indices: np.ndarray | Sequence[int]) -> LabelTable:
+        """Rows at ``indices`` (integer indices or a boolean mask ``[N]``), in that order."""
+        idx = np.asarray(indices)
+        idx = np.flatnonzero(idx) if idx.dtype == bool else idx.astype(np.int64).reshape(-1)
+        return LabelTable(
+            scene=[self.scene[i] for i in idx],
+            split=[self.split[i] for i in idx],
+            seq=[self.seq[i] for i in idx],
+            img_path=[self.img_path[i] for i in idx],
+            poses=self.poses[idx],
+            source=self.source,
+            lines=self.lines[idx],
+        )
+
+    @classmethod
+    def concat(cls, tables: Iterable[LabelTable]) -> LabelTable:
+        """Rows of all ``tables`` in order; ``source`` is kept only if they all share it."""
+        tables = list(tables)
+        sources = {t.source for t in tables}
+        source = sources.pop() if len(sources) == 1 else ""
+        lines = np.concatenate([t.lines for t in tables]) if tables and source else None
+        return cls(
+            scene=[s for t in tables for s in t.scene],
+            split=[s for t in tables for s in t.split],
+            seq=[s for t in tables for s in t.seq],
+            img_path=[s for t in tables for s in t.img_path],
+            poses=np.concatenate([t.poses for t in tables]) if tables else np.zeros((0, 7)),
+            source=source,
+            lines=lines,
+        )
+
+
+def read_labels(path: str | os.PathLike[str]) -> LabelTable:
+    """Read a label file; raise :class:`LabelError` at the first bad row.
+
+    Every returned quaternion is unit norm with ``qw >= 0``. Quaternions whose norm differs
+    from 1 by more than ``NON_UNIT_TOLERANCE`` are normalised and counted in one
+    :class:`LabelWarning` per file.
+    """
+    table, errors = read_labels_lenient(path)
+    if errors:
+        raise errors[0]
+    return table
+
+
+def read_labels_lenient(path: str | os.PathLike[str]) -> tuple[LabelTable, list[LabelError]]:
+    """Read a label file, skipping bad rows: the table of good rows and one error per bad row.
+
+    Problems with the file as a whole (missing, empty, no data rows, missing column) raise
+    :class:`LabelError`.
+    """
+    path_text = str(path)
+    if not os.path.exists(path):
+        raise LabelError(path_text, None, "file not found")
+    if os.path.isdir(path):
+        raise LabelError(path_text, None, "is a directory, not a label file")
+    with open(path, newline="", encoding="utf-8-sig") as handle:
+        try:
+            reader = csv.reader(handle)
+            header = next(reader, None)
+            if header is None:
+                raise LabelError(
+                    path_text, None, f"empty file (expected the header {','.join(LABEL_COLUMNS)})"
+                )
+            names = [name.strip() for name in header]
+            missing = [c for c in LABEL_COLUMNS if c not in names]
+            if missing:
+                raise LabelError(
+                    path_text,
+                    1,
+                    f"missing column{'s' if len(missing) > 1 else ''} {', '.join(missing)} "
+                    f"(header: {','.join(names)})",
+                )
+            text_at = [names.index(c) for c in TEXT_COLUMNS]
+            pose_at = [names.index(c) for c in POSE_COLUMNS]
+            texts: list[list[str]] = []
+            values: list[list[float]] = []
+            lines: list[int] = []
+            errors: list[LabelError] = []
+            for row in reader:
+                line = reader.line_num
+                if not row or (len(row) == 1 and not row[0].strip()):
+                    continue
+                try:
+                    text, pose = _parse_row(row, len(names), text_at, pose_at)
+                except ValueError as error:
+                    errors.append(LabelError(path_text, line, str(error)))
+                    continue
+                texts.append(text)
+                values.append(pose)
+                lines.append(line)
+        except (csv.Error, UnicodeDecodeError) as error:
+            raise LabelError(
+                path_text, reader.line_num or None, f"not a CSV file: {error}"
+            ) from None
+    if not texts and not errors:
+        raise LabelError(path_text, 1, "no data rows after the header")
+
+    poses = np.asarray(values, dtype=np.float64).reshape(-1, 7)
+    poses[:, 3:], non_unit = _unit_canonical_quaternions(poses[:, 3:])
+    if non_unit:
+        warnings.warn(
+            f"{non_unit} quaternions in {path_text} were not unit norm and were normalised",
+            LabelWarning,
+            stacklevel=3,
+        )
+    columns = list(zip(*texts, strict=True)) if texts else [(), (), (), ()]
+    table = LabelTable(
+        scene=list(columns[0]),
+        split=list(columns[1]),
+        seq=list(columns[2]),
+        img_path=list(columns[3]),
+        poses=poses,
+        source=path_text,
+        lines=np.asarray(lines, dtype=np.int64),
+    )
+    return table, errors
+
+
+def _parse_row(
+    row: list[str], n_fields: int, text_at: list[int], pose_at: list[int]
+) -> tuple[list[str], list[float]]:
+    """Text fields and the 7 pose values of one row; ``ValueError`` naming the bad column."""
+    if len(row) != n_fields:
+        raise ValueError(f"expected {n_fields} fields, got {len(row)}")
+    text = [row[i].strip() for i in text_at]
+    for name, value in zip(TEXT_COLUMNS, text, strict=True):
+        if name in REQUIRED_TEXT_COLUMNS and not value:
+            raise ValueError(f"column {name} is empty")
+    pose = []
+    for name, i in zip(POSE_COLUMNS, pose_at, strict=True):
+        raw = row[i].strip()
+        try:
+            value = float(raw)
+        except ValueError:
+            raise ValueError(f"column {name} is not a number: {raw!r}") from None
+        if not np.isfinite(value):
+            raise ValueError(f"column {name} is not finite: {raw!r}")
+        pose.append(value)
+    if np.linalg.norm(pose[3:]) < ZERO_QUATERNION_NORM:
+        raise ValueError(f"quaternion (q1..q4) has zero norm: {pose[3:]}")
+    return text, pose
+
+
+def _unit_canonical_quaternions(q: np.ndarray) -> tuple[np.ndarray, int]:
+    """Quaternions ``[N, 4]`` normalised and sign-flipped to ``qw >= 0``; count of non-unit ones.
+
+    Norms within ``_RENORMALISE_TOLERANCE`` of 1 are kept as they are, so normalising is
+    idempotent and written files read back bit for bit.
+    """
+    norms = np.linalg.norm(q, axis=1, keepdims=True)
+    off = np.abs(norms - 1.0)
+    q = np.where(off > _RENORMALISE_TOLERANCE, q / norms, q)
+    q = np.where(q[:, :1] < 0, -q, q)
+    return q, int(np.count_nonzero(off > NON_UNIT_TOLERANCE))
+
+
+def write_labels(path: str | os.PathLike[str], table: LabelTable) -> None:
+    """Write ``table`` to ``path`` atomically, creating parent folders.
+
+    Numbers are written with Python's shortest round-trip representation, so reading the file
+    gives back exactly ``table.poses``. Values are written as they are (no normalisation).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    try:
+        with open(temporary, "x", newline="", encoding="utf-8") as handle:
+            writer = csv.writer(handle, lineterminator="\n")
+            writer.writerow(LABEL_COLUMNS)
+            poses = table.poses.tolist()
+            for i in range(len(table)):
+                writer.writerow(
+                    [
+                        table.scene[i],
+                        table.split[i],
+                        table.seq[i],
+                        table.img_path[i],
+                        *(repr(v + 0.0) for v in poses[i]),
+                    ]
+                )
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+
+
+def find_image_problems(
+    table: LabelTable, root: str | os.PathLike[str], workers: int | None = None
+) -> list[str]:
+    """One message per row whose image is outside ``root``, missing or not decodable.
+
+    Paths are resolved lexically (``..`` and absolute paths), so symbolic links inside ``root``
+    are allowed. Images are fully decoded with OpenCV, on ``workers`` threads.
+    """
+    root_abs = os.path.abspath(root)
+    if not os.path.isdir(root_abs):
+        raise LabelError(str(root), None, "image root is not a directory")
+    resolved = []
+    problems: dict[int, str] = {}
+    for i, img_path in enumerate(table.img_path):
+        full = os.path.normpath(os.path.join(root_abs, img_path))
+        if os.path.commonpath((root_abs, full)) != root_abs:
+            problems[i] = f"image path escapes the root {root}: {img_path!r}"
+        else:
+            resolved.append((i, full))
+    with ThreadPoolExecutor(max_workers=workers or min(8, os.cpu_count() or 1)) as pool:
+        outcomes = pool.map(_image_problem, (full for _, full in resolved))
+        for (i, _), outcome in zip(resolved, outcomes, strict=True):
+            if outcome:
+                problems[i] = f"{outcome}: {table.img_path[i]!r}"
+    location = table.source or "row"
+    return [f"{location}:{table.file_line(i)}: {problems[i]}" for i in sorted(problems)]
+
+
+def _image_problem(path: str) -> str:
+    """Why the image at ``path`` cannot be used, or ``""`` if it decodes."""
+    import cv2
+
+    if not os.path.exists(path):
+        return "image not found"
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as error:
+        return f"image unreadable ({error.strerror or error})"
+    if data.size == 0:
+        return "image file is empty"
+    try:
+        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        image = None
+    return "image is corrupt (cannot be decoded)" if image is None else ""

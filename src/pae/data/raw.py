@@ -1,0 +1,246 @@
+"""Readers for the raw layouts of Cambridge Landmarks and 7-Scenes, and their conversion to label
+files.
+
+Cambridge Landmarks (one folder per scene)::
+
+    KingsCollege/dataset_train.txt      3 header lines, then
+                                        seq1/frame00001.png X Y Z W P Q R   (W: scalar part)
+    KingsCollege/dataset_test.txt
+    KingsCollege/seq1/frame00001.png
+
+7-Scenes (one folder per scene)::
+
+    chess/TrainSplit.txt                sequence1, sequence2, ... (one per line)
+    chess/TestSplit.txt
+    chess/seq-01/frame-000000.color.png
+    chess/seq-01/frame-000000.pose.txt  4×4 camera-to-world matrix (metres)
+
+:func:`convert_raw` writes ``<scene>_{train,test}.csv`` and ``all_{train,test}.csv`` whose
+``img_path`` is ``<scene>/<frame path>``, i.e. relative to the raw root: point ``data.root`` at
+the raw root when training on the converted files.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Callable
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from pae.data.labels import ZERO_QUATERNION_NORM, LabelError, LabelTable, write_labels
+
+__all__ = [
+    "CAMBRIDGE_SPLIT_FILES",
+    "SEVEN_SCENES_SPLIT_FILES",
+    "convert_raw",
+    "read_cambridge_scene",
+    "read_seven_scenes_scene",
+]
+
+SPLITS = ("train", "test")
+CAMBRIDGE_SPLIT_FILES = {"train": "dataset_train.txt", "test": "dataset_test.txt"}
+SEVEN_SCENES_SPLIT_FILES = {"train": "TrainSplit.txt", "test": "TestSplit.txt"}
+CAMBRIDGE_HEADER_LINES = 3
+_SEQUENCE_NAME = re.compile(r"sequence\s*(\d+)", re.IGNORECASE)
+
+
+def _check_split(split: str) -> None:
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+
+
+def _read_lines(path: Path) -> list[str]:
+    """Lines of a text file; :class:`LabelError` if it is missing."""
+    if not path.is_file():
+        raise LabelError(path, None, "file not found")
+    return path.read_text(encoding="utf-8", errors="replace").splitlines()
+
+
+def _parse_numbers(tokens: list[str], path: Path, line: int) -> list[float]:
+    """Finite floats of ``tokens``; :class:`LabelError` naming ``path:line`` otherwise."""
+    numbers = []
+    for token in tokens:
+        try:
+            value = float(token)
+        except ValueError:
+            raise LabelError(path, line, f"not a number: {token!r}") from None
+        if not np.isfinite(value):
+            raise LabelError(path, line, f"not a finite number: {token!r}")
+        numbers.append(value)
+    return numbers
+
+
+def read_cambridge_scene(scene_dir: str | os.PathLike[str], split: str) -> LabelTable:
+    """Rows of ``<scene_dir>/dataset_<split>.txt`` with the raw numbers kept as they are.
+
+    Only the sign of a whole quaternion is flipped where ``W < 0``; quaternions are not
+    normalised (reading the written label file normalises them).
+    """
+    _check_split(split)
+    scene_dir = Path(scene_dir)
+    scene = scene_dir.name
+    path = scene_dir / CAMBRIDGE_SPLIT_FILES[split]
+    seqs: list[str] = []
+    img_paths: list[str] = []
+    poses: list[list[float]] = []
+    lines: list[int] = []
+    for line, text in enumerate(_read_lines(path), start=1):
+        tokens = text.split()
+        if line <= CAMBRIDGE_HEADER_LINES or not tokens:
+            continue
+        if len(tokens) != 8:
+            raise LabelError(
+                path, line, f"expected 'IMAGE X Y Z W P Q R' (8 fields), got {len(tokens)} fields"
+            )
+        frame = Path(tokens[0]).as_posix()
+        if Path(frame).is_absolute() or ".." in Path(frame).parts:
+            raise LabelError(path, line, f"image path must be relative to the scene: {frame!r}")
+        pose = _parse_numbers(tokens[1:], path, line)
+        if np.linalg.norm(pose[3:]) < ZERO_QUATERNION_NORM:
+            raise LabelError(path, line, "quaternion (W P Q R) has zero norm")
+        seqs.append(Path(frame).parts[0] if len(Path(frame).parts) > 1 else "")
+        img_paths.append(f"{scene}/{frame}")
+        poses.append(pose)
+        lines.append(line)
+    if not poses:
+        raise LabelError(path, None, "no frames listed")
+    pose_array = np.asarray(poses, dtype=np.float64)
+    flip = pose_array[:, 3:4] < 0
+    pose_array[:, 3:] = np.where(flip, -pose_array[:, 3:], pose_array[:, 3:])
+    return LabelTable(
+        scene=[scene] * len(poses),
+        split=[split] * len(poses),
+        seq=seqs,
+        img_path=img_paths,
+        poses=pose_array,
+        source=str(path),
+        lines=np.asarray(lines),
+    )
+
+
+def _read_pose_matrix(path: Path) -> np.ndarray:
+    """The 4×4 matrix of a 7-Scenes ``frame-*.pose.txt`` file."""
+    rows = [(line, text.split()) for line, text in enumerate(_read_lines(path), start=1)]
+    rows = [(line, tokens) for line, tokens in rows if tokens]
+    if len(rows) != 4:
+        raise LabelError(path, None, f"expected a 4×4 matrix (4 rows), got {len(rows)} rows")
+    matrix = []
+    for line, tokens in rows:
+        if len(tokens) != 4:
+            raise LabelError(path, line, f"expected 4 numbers, got {len(tokens)}")
+        matrix.append(_parse_numbers(tokens, path, line))
+    return np.asarray(matrix, dtype=np.float64)
+
+
+def read_seven_scenes_scene(scene_dir: str | os.PathLike[str], split: str) -> LabelTable:
+    """Rows of the sequences listed in ``<scene_dir>/{Train,Test}Split.txt``.
+
+    Frames are the ``frame-*.pose.txt`` files of each sequence folder, in name order; the
+    position is the last column of the matrix and the quaternion that of its rotation part
+    (float64, canonicalised to ``qw >= 0``).
+    """
+    import torch
+
+    from pae.geometry import matrix_to_quaternion
+
+    _check_split(split)
+    scene_dir = Path(scene_dir)
+    scene = scene_dir.name
+    split_path = scene_dir / SEVEN_SCENES_SPLIT_FILES[split]
+    seqs: list[str] = []
+    img_paths: list[str] = []
+    pose_files: list[Path] = []
+    matrices: list[np.ndarray] = []
+    for line, text in enumerate(_read_lines(split_path), start=1):
+        name = text.strip()
+        if not name:
+            continue
+        match = _SEQUENCE_NAME.fullmatch(name)
+        if match is None:
+            raise LabelError(split_path, line, f"expected 'sequenceN', got {name!r}")
+        seq = f"seq-{int(match.group(1)):02d}"
+        seq_dir = scene_dir / seq
+        if not seq_dir.is_dir():
+            raise LabelError(split_path, line, f"sequence folder not found: {seq_dir}")
+        frames = sorted(seq_dir.glob("frame-*.pose.txt"))
+        if not frames:
+            raise LabelError(split_path, line, f"no frame-*.pose.txt files in {seq_dir}")
+        for pose_file in frames:
+            stem = pose_file.name.removesuffix(".pose.txt")
+            seqs.append(seq)
+            img_paths.append(f"{scene}/{seq}/{stem}.color.png")
+            pose_files.append(pose_file)
+            matrices.append(_read_pose_matrix(pose_file))
+    if not matrices:
+        raise LabelError(split_path, None, "no sequences listed")
+    stacked = np.stack(matrices)
+    determinants = np.linalg.det(stacked[:, :3, :3])
+    bad = np.flatnonzero(np.abs(determinants - 1.0) > 0.01)
+    if bad.size:
+        raise LabelError(
+            pose_files[bad[0]], None, f"rotation part has determinant {determinants[bad[0]]:.4g}"
+        )
+    quaternions = matrix_to_quaternion(torch.from_numpy(stacked[:, :3, :3])).numpy()
+    poses = np.concatenate([stacked[:, :3, 3], quaternions], axis=1)
+    return LabelTable(
+        scene=[scene] * len(poses),
+        split=[split] * len(poses),
+        seq=seqs,
+        img_path=img_paths,
+        poses=poses,
+        source=str(split_path),
+    )
+
+
+_READERS: dict[str, tuple[Callable[[Path, str], LabelTable], dict[str, str]]] = {
+    "cambridge": (read_cambridge_scene, CAMBRIDGE_SPLIT_FILES),
+    "7scenes": (read_seven_scenes_scene, SEVEN_SCENES_SPLIT_FILES),
+}
+
+
+def convert_raw(
+    dataset: Literal["cambridge", "7scenes"],
+    raw_root: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+) -> dict[str, int]:
+    """Convert every scene folder directly under ``raw_root`` into label files in ``out_dir``.
+
+    A scene folder is one holding a split file (``dataset_train.txt`` / ``TrainSplit.txt``,
+    or the test one); both splits must be present. Everything is read before anything is
+    written. Returns the number of rows per written file name, e.g. ``{"chess_train.csv": 4000,
+    ..., "all_test.csv": 17000}``. Image paths are relative to ``raw_root``.
+    """
+    if dataset not in _READERS:
+        raise ValueError(f"dataset must be one of {sorted(_READERS)}, got {dataset!r}")
+    read_scene, split_files = _READERS[dataset]
+    raw_root = Path(raw_root)
+    if not raw_root.is_dir():
+        raise ValueError(f"{raw_root}: raw dataset root is not a directory")
+    scene_dirs = sorted(
+        child
+        for child in raw_root.iterdir()
+        if child.is_dir() and any((child / name).is_file() for name in split_files.values())
+    )
+    if not scene_dirs:
+        raise ValueError(
+            f"{raw_root}: no {dataset} scene folders found "
+            f"(sub-folders holding {' / '.join(split_files.values())})"
+        )
+    tables = {
+        (scene_dir.name, split): read_scene(scene_dir, split)
+        for scene_dir in scene_dirs
+        for split in SPLITS
+    }
+    out_dir = Path(out_dir)
+    written: dict[str, int] = {}
+    for (scene, split), table in tables.items():
+        write_labels(out_dir / f"{scene}_{split}.csv", table)
+        written[f"{scene}_{split}.csv"] = len(table)
+    for split in SPLITS:
+        combined = LabelTable.concat(t for (_, s), t in tables.items() if s == split)
+        write_labels(out_dir / f"all_{split}.csv", combined)
+        written[f"all_{split}.csv"] = len(combined)
+    return written

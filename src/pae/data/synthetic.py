@@ -1,0 +1,891 @@
+"""Embedded synthetic localisation benchmark: textured rooms seen by moving pinhole cameras.
+
+Each scene is a room (an axis-aligned box seen from inside, a few metres wide like the
+7-Scenes rooms) holding a few axis-aligned boxes and thin panels. Every face carries its own
+procedural texture: large coloured gradients and shapes (so a 64 px view tells where the
+camera is and where it looks) plus finer detail. Images are ray cast exactly in numpy,
+with a point light and 2×2 supersampling, then pass through a per-sequence camera response
+(gain, bias, tint, gamma, sensor noise). The pose can only be learnt from what the camera sees.
+
+Conventions:
+
+- World frame: metres, ``z`` up, floor at ``z = 0``, room centred on ``x = y = 0``.
+- Poses ``[7]`` = ``x, y, z, qw, qx, qy, qz``, camera-to-world, ``qw >= 0``.
+- Camera frame (OpenCV): ``x`` right, ``y`` down, looking along ``+z``.
+- Pixels: the centre of pixel ``(u, v)`` (column, row) lies at integer coordinates ``(u, v)``;
+  the principal point is the image centre ``((W - 1) / 2, (H - 1) / 2)`` and
+  ``fx = fy = (W / 2) / tan(fov / 2)`` for the horizontal field of view ``fov``.
+- Textures: texel ``(row i, column j)`` of a face covers face coordinates
+  ``a ∈ [j·s, (j+1)·s)``, ``b ∈ [i·s, (i+1)·s)`` (texel size ``s`` metres); its centre is at
+  ``((j + 0.5)·s, (i + 0.5)·s)``. Textures are sampled bilinearly between texel centres.
+
+Layout written by :func:`write_synthetic_dataset` (label format of :mod:`pae.data.labels`)::
+
+    OUT/labels/scene00_train.csv  OUT/labels/scene00_test.csv  ...  OUT/labels/all_{train,test}.csv
+    OUT/scene00/seq-01/frame-000000.png  ...
+"""
+
+from __future__ import annotations
+
+import colorsys
+import functools
+import math
+import os
+import time
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from pae.data.labels import LabelTable, write_labels
+from pae.geometry import matrix_to_quaternion, quaternion_to_matrix
+
+__all__ = [
+    "DEFAULT_FOV_DEG",
+    "DEFAULT_SCENES",
+    "DEFAULT_SIZE",
+    "DEFAULT_TEST_FRAMES",
+    "DEFAULT_TRAIN_FRAMES",
+    "Appearance",
+    "Box",
+    "CameraSequence",
+    "FaceTexture",
+    "PinholeCamera",
+    "SyntheticScene",
+    "SyntheticSummary",
+    "make_scene",
+    "make_sequences",
+    "measure_render_speed",
+    "render",
+    "render_batch",
+    "scene_name",
+    "world_to_camera",
+    "write_synthetic_dataset",
+]
+
+DEFAULT_SCENES = 2
+DEFAULT_TRAIN_FRAMES = 800
+"""Training frames per scene."""
+DEFAULT_TEST_FRAMES = 250
+"""Test frames per scene."""
+DEFAULT_SIZE = 64
+"""Image width and height in pixels."""
+DEFAULT_FOV_DEG = 65.0
+"""Horizontal field of view in degrees."""
+
+TRAIN_SEQUENCES = 3
+TEST_SEQUENCES = 2
+TEXEL_SIZE_M = 0.02
+SUPERSAMPLE = 2
+"""Rays per pixel along each image axis (``SUPERSAMPLE²`` rays are averaged per pixel)."""
+RAYS_PER_CHUNK = 1 << 17
+"""Rays cast at once: bounds memory (about 100 bytes per ray) and keeps arrays cache-friendly."""
+_EPS_DIRECTION = 1e-9
+
+
+# --------------------------------------------------------------------------------- camera
+
+
+@dataclass(frozen=True)
+class PinholeCamera:
+    """Square pinhole camera of ``size × size`` pixels with horizontal field of view ``fov_deg``."""
+
+    size: int
+    fov_deg: float = DEFAULT_FOV_DEG
+
+    @property
+    def focal_px(self) -> float:
+        """Focal length ``fx = fy`` in pixels."""
+        return (self.size / 2) / math.tan(math.radians(self.fov_deg) / 2)
+
+    @property
+    def principal_point(self) -> float:
+        """``cx = cy`` in pixels (pixel centres at integer coordinates)."""
+        return (self.size - 1) / 2
+
+    def intrinsics(self) -> np.ndarray:
+        """Calibration matrix ``K`` ``[3, 3]`` float64."""
+        f, c = self.focal_px, self.principal_point
+        return np.array([[f, 0.0, c], [0.0, f, c], [0.0, 0.0, 1.0]])
+
+    def project(self, points_world: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """Pixel coordinates ``[N, 2]`` (u = column, v = row) of world points ``[N, 3]``.
+
+        Points behind the camera get meaningless coordinates; check their depth with
+        :func:`world_to_camera`.
+        """
+        points_camera = world_to_camera(points_world, pose)
+        projected = points_camera @ self.intrinsics().T
+        return projected[:, :2] / projected[:, 2:3]
+
+    def ray_directions(self, supersample: int = 1) -> np.ndarray:
+        """Camera-frame ray directions ``[S², H, W, 3]`` (``z = 1``) of ``S × S`` sub-pixel samples.
+
+        Sample ``k = sy·S + sx`` of pixel ``(u, v)`` passes through
+        ``(u + (sx + 0.5)/S − 0.5, v + (sy + 0.5)/S − 0.5)``.
+        """
+        offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
+        pixels = np.arange(self.size, dtype=np.float64)
+        f, c = self.focal_px, self.principal_point
+        directions = np.empty((supersample, supersample, self.size, self.size, 3))
+        for sy, dy in enumerate(offsets):
+            for sx, dx in enumerate(offsets):
+                directions[sy, sx, :, :, 0] = ((pixels + dx - c) / f)[None, :]
+                directions[sy, sx, :, :, 1] = ((pixels + dy - c) / f)[:, None]
+                directions[sy, sx, :, :, 2] = 1.0
+        return directions.reshape(supersample * supersample, self.size, self.size, 3)
+
+
+def pose_rotation_translation(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-to-world rotations ``[..., 3, 3]`` and positions ``[..., 3]`` of poses [..., 7]."""
+    poses = np.asarray(poses, dtype=np.float64)
+    rotations = quaternion_to_matrix(torch.from_numpy(poses[..., 3:])).numpy()
+    return rotations, poses[..., :3]
+
+
+def world_to_camera(points_world: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """World points ``[N, 3]`` in the camera frame of ``pose [7]``: ``[N, 3]``, z = depth (m)."""
+    rotation, position = pose_rotation_translation(pose)
+    return (np.asarray(points_world, dtype=np.float64) - position) @ rotation
+
+
+def _look_rotations(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    """Camera-to-world rotations ``[N, 3, 3]`` from yaw about world ``z``, pitch and roll (rad).
+
+    At zero angles the camera looks along world ``+x`` with its ``y`` (down) along world
+    ``−z``; positive pitch looks up, roll turns about the optical axis.
+    """
+    level = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    cr, sr = np.cos(roll), np.sin(roll)
+    zero, one = np.zeros_like(yaw), np.ones_like(yaw)
+    about_up = np.stack([cy, -sy, zero, sy, cy, zero, zero, zero, one], -1).reshape(-1, 3, 3)
+    about_x = np.stack([one, zero, zero, zero, cp, -sp, zero, sp, cp], -1).reshape(-1, 3, 3)
+    about_axis = np.stack([cr, -sr, zero, sr, cr, zero, zero, zero, one], -1).reshape(-1, 3, 3)
+    return about_up @ level @ about_x @ about_axis
+
+
+# --------------------------------------------------------------------------------- scenes
+
+
+@dataclass(frozen=True, eq=False)
+class FaceTexture:
+    """Texture of one face: ``image`` ``[rows, cols, 3]`` float32 linear RGB in ``[0, 1]``.
+
+    Row index grows with face coordinate ``b``, column index with ``a`` (see module doc).
+    """
+
+    image: np.ndarray
+    texel_size: float = TEXEL_SIZE_M
+
+
+@dataclass(frozen=True, eq=False)
+class Box:
+    """Axis-aligned box from corner ``lo`` ``[3]`` to ``hi`` ``[3]`` (m) with 6 face textures.
+
+    Face ``f`` lies on axis ``f // 2`` at ``lo`` (``f`` even) or ``hi`` (``f`` odd). Its face
+    coordinates ``(a, b)`` run from ``lo`` along the two other axes in increasing order
+    (x-faces: ``(y, z)``, y-faces: ``(x, z)``, z-faces: ``(x, y)``).
+    """
+
+    lo: np.ndarray
+    hi: np.ndarray
+    textures: tuple[FaceTexture, ...]
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "lo", np.asarray(self.lo, dtype=np.float64))
+        object.__setattr__(self, "hi", np.asarray(self.hi, dtype=np.float64))
+        if len(self.textures) != 6:
+            raise ValueError(f"a box needs 6 face textures, got {len(self.textures)}")
+
+    @staticmethod
+    def face_axes(face: int) -> tuple[int, int, int]:
+        """``(normal axis, a axis, b axis)`` of ``face``."""
+        axis = face // 2
+        a_axis, b_axis = (k for k in range(3) if k != axis)
+        return axis, a_axis, b_axis
+
+    def face_extent(self, face: int) -> tuple[float, float]:
+        """Size ``(along a, along b)`` of ``face`` in metres."""
+        _, a_axis, b_axis = self.face_axes(face)
+        size = self.hi - self.lo
+        return float(size[a_axis]), float(size[b_axis])
+
+    def face_point(self, face: int, ab: np.ndarray) -> np.ndarray:
+        """World points ``[N, 3]`` at face coordinates ``ab`` ``[N, 2]`` (m) on ``face``."""
+        axis, a_axis, b_axis = self.face_axes(face)
+        ab = np.asarray(ab, dtype=np.float64).reshape(-1, 2)
+        points = np.empty((len(ab), 3))
+        points[:, axis] = self.hi[axis] if face % 2 else self.lo[axis]
+        points[:, a_axis] = self.lo[a_axis] + ab[:, 0]
+        points[:, b_axis] = self.lo[b_axis] + ab[:, 1]
+        return points
+
+
+@dataclass(frozen=True, eq=False)
+class SyntheticScene:
+    """A room seen from inside, boxes inside it seen from outside, a point light and the
+    region ``[region_lo, region_hi]`` (``[3]`` each, m) the cameras move in."""
+
+    name: str
+    room: Box
+    boxes: tuple[Box, ...]
+    light_position: np.ndarray
+    region_lo: np.ndarray
+    region_hi: np.ndarray
+
+    @functools.cached_property
+    def _tables(self) -> _FaceTables:
+        return _FaceTables.build(self)
+
+
+@dataclass(frozen=True, eq=False)
+class _FaceTables:
+    """All face textures flattened into one ``[T, 3]`` array, with per-face lookup arrays
+    ``[F]``. Face ``6·k + f`` is face ``f`` of box ``k`` (box 0 is the room); its normal, facing
+    the free space, lies along axis ``f // 2`` with sign ``normal_sign``."""
+
+    texels: np.ndarray
+    offset: np.ndarray
+    cols: np.ndarray
+    rows: np.ndarray
+    inv_texel: np.ndarray
+    origin_a: np.ndarray
+    origin_b: np.ndarray
+    normal_sign: np.ndarray
+
+    @classmethod
+    def build(cls, scene: SyntheticScene) -> _FaceTables:
+        images, offset, cols, rows, inv_texel = [], [], [], [], []
+        origin_a, origin_b, normal_sign = [], [], []
+        start = 0
+        for index, box in enumerate((scene.room, *scene.boxes)):
+            for face, texture in enumerate(box.textures):
+                _, a_axis, b_axis = Box.face_axes(face)
+                image = np.asarray(texture.image, dtype=np.float32)
+                images.append(image.reshape(-1, 3))
+                offset.append(start)
+                start += image.shape[0] * image.shape[1]
+                rows.append(image.shape[0])
+                cols.append(image.shape[1])
+                inv_texel.append(1.0 / texture.texel_size)
+                origin_a.append(box.lo[a_axis])
+                origin_b.append(box.lo[b_axis])
+                outward = 1.0 if face % 2 else -1.0
+                normal_sign.append(-outward if index == 0 else outward)
+        return cls(
+            texels=np.concatenate(images),
+            offset=np.asarray(offset, dtype=np.int64),
+            cols=np.asarray(cols, dtype=np.int64),
+            rows=np.asarray(rows, dtype=np.int64),
+            inv_texel=np.asarray(inv_texel, dtype=np.float32),
+            origin_a=np.asarray(origin_a, dtype=np.float32),
+            origin_b=np.asarray(origin_b, dtype=np.float32),
+            normal_sign=np.asarray(normal_sign, dtype=np.float32),
+        )
+
+
+def scene_name(index: int) -> str:
+    """Name of scene ``index``: ``scene00``, ``scene01``, …"""
+    return f"scene{index:02d}"
+
+
+def _rgb(hue: float, saturation: float, value: float) -> tuple[float, float, float]:
+    return colorsys.hsv_to_rgb(hue % 1.0, float(np.clip(saturation, 0, 1)), float(value))
+
+
+def _texel_shape(width_m: float, height_m: float) -> tuple[int, int]:
+    """``(rows, cols)`` of a texture covering ``width_m × height_m``."""
+    return max(2, math.ceil(height_m / TEXEL_SIZE_M)), max(2, math.ceil(width_m / TEXEL_SIZE_M))
+
+
+def _smooth_field(
+    shape: tuple[int, int], cells: tuple[int, int], colours: np.ndarray
+) -> np.ndarray:
+    """Image ``[rows, cols, 3]`` interpolating a ``cells`` grid of ``colours`` ``[cy, cx, 3]``."""
+    rows, cols = shape
+    grid = np.asarray(colours, dtype=np.float32).reshape(cells[0], cells[1], 3)
+    return cv2.resize(grid, (cols, rows), interpolation=cv2.INTER_CUBIC)
+
+
+def _value_noise(rng: np.random.Generator, shape: tuple[int, int], scale: int) -> np.ndarray:
+    """Zero-mean smooth noise ``[rows, cols, 1]`` with features of about ``scale`` texels."""
+    rows, cols = shape
+    coarse = rng.random((max(2, rows // scale + 2), max(2, cols // scale + 2)), dtype=np.float32)
+    noise = cv2.resize(coarse - 0.5, (cols, rows), interpolation=cv2.INTER_CUBIC)
+    return noise[:, :, None]
+
+
+def _draw_shapes(
+    rng: np.random.Generator, image: np.ndarray, count: int, size_m: tuple[float, float]
+) -> None:
+    """Draw ``count`` random filled shapes (circles, rectangles, triangles, rings, striped and
+    checkered patches) of ``size_m`` (min, max) metres and random colours into ``image``."""
+    rows, cols = image.shape[:2]
+    shift = 4
+    scale = (1 << shift) / TEXEL_SIZE_M
+    for _ in range(count):
+        kind = rng.integers(6)
+        colour = _rgb(rng.random(), rng.uniform(0.5, 1.0), rng.uniform(0.3, 1.0))
+        size = rng.uniform(*size_m)
+        centre_m = np.array([rng.uniform(0, cols), rng.uniform(0, rows)]) * TEXEL_SIZE_M
+        centre = tuple(int(v) for v in centre_m * scale)
+        half = int(size / 2 * scale)
+        if kind == 0:
+            cv2.circle(image, centre, half, colour, -1, cv2.LINE_AA, shift)
+        elif kind == 1:
+            cv2.circle(
+                image,
+                centre,
+                half,
+                colour,
+                max(1, int(0.25 * half) >> shift) * 2,
+                cv2.LINE_AA,
+                shift,
+            )
+        elif kind == 2:
+            angles = rng.uniform(0, 2 * np.pi) + np.array([0, 2.1, 4.2]) + rng.normal(0, 0.2, 3)
+            corners = np.stack([np.cos(angles), np.sin(angles)], -1) * half + centre
+            cv2.fillPoly(image, [corners.astype(np.int32)], colour, cv2.LINE_AA, shift)
+        else:
+            aspect = rng.uniform(0.4, 1.0)
+            half_w, half_h = (
+                (half, int(half * aspect)) if rng.random() < 0.5 else (int(half * aspect), half)
+            )
+            top_left = (centre[0] - half_w, centre[1] - half_h)
+            bottom_right = (centre[0] + half_w, centre[1] + half_h)
+            cv2.rectangle(image, top_left, bottom_right, colour, -1, cv2.LINE_AA, shift)
+            if kind >= 4:
+                _pattern_patch(rng, image, centre_m, half_w / scale, half_h / scale, kind == 4)
+
+
+def _pattern_patch(
+    rng: np.random.Generator,
+    image: np.ndarray,
+    centre_m: np.ndarray,
+    half_w_m: float,
+    half_h_m: float,
+    stripes: bool,
+) -> None:
+    """Overlay stripes or a checkerboard (second colour) on a rectangle of the texture."""
+    rows, cols = image.shape[:2]
+    half = np.array([half_w_m, half_h_m])
+    c0, r0 = (centre_m - half) / TEXEL_SIZE_M
+    c1, r1 = (centre_m + half) / TEXEL_SIZE_M
+    c0, r0 = max(0, int(c0)), max(0, int(r0))
+    c1, r1 = min(cols, int(c1)), min(rows, int(r1))
+    if c1 <= c0 or r1 <= r0:
+        return
+    period = rng.uniform(0.08, 0.25) / TEXEL_SIZE_M
+    jj, ii = np.meshgrid(np.arange(c0, c1), np.arange(r0, r1))
+    if stripes:
+        angle = rng.choice([0.0, np.pi / 2, np.pi / 4, -np.pi / 4])
+        phase = (np.cos(angle) * jj + np.sin(angle) * ii) / period
+        mask = (np.sin(2 * np.pi * phase) > 0).astype(np.float32)
+    else:
+        mask = ((jj // (period / 2) + ii // (period / 2)) % 2).astype(np.float32)
+    colour = np.array(
+        _rgb(rng.random(), rng.uniform(0.3, 1.0), rng.uniform(0.2, 1.0)), dtype=np.float32
+    )
+    patch = image[r0:r1, c0:c1]
+    patch += mask[:, :, None] * (colour - patch)
+
+
+def _finish(rng: np.random.Generator, image: np.ndarray) -> FaceTexture:
+    """Add fine detail, band-limit to a few centimetres, clip to ``[0, 1]``."""
+    shape = image.shape[:2]
+    image = image * (1.0 + 0.25 * _value_noise(rng, shape, 3))
+    image = image + 0.08 * _value_noise(rng, shape, 12)
+    image = cv2.GaussianBlur(image, (0, 0), 1.0)
+    return FaceTexture(np.clip(image, 0.0, 1.0).astype(np.float32))
+
+
+def _wall_texture(
+    rng: np.random.Generator, width_m: float, height_m: float, hue: float
+) -> FaceTexture:
+    """Wall with a dominant ``hue``: colour gradients, a dado band, big shapes and detail."""
+    shape = _texel_shape(width_m, height_m)
+    cells = (2, max(2, round(width_m / 1.5)))
+    colours = [
+        _rgb(hue + rng.normal(0, 0.05), rng.uniform(0.3, 0.8), rng.uniform(0.35, 0.9))
+        for _ in range(cells[0] * cells[1])
+    ]
+    image = _smooth_field(shape, cells, np.array(colours))
+    band_lo, band_hi = sorted(rng.uniform(0.3, 1.2, 2))
+    band = slice(int(band_lo / TEXEL_SIZE_M), int(band_hi / TEXEL_SIZE_M) + 2)
+    image[band] = 0.5 * image[band] + 0.5 * np.float32(_rgb(hue + 0.5, 0.6, rng.uniform(0.2, 0.8)))
+    _draw_shapes(rng, image, 3 + int(width_m * height_m / 1.5), (0.3, 1.1))
+    _draw_shapes(rng, image, int(width_m * height_m), (0.08, 0.3))
+    return _finish(rng, image)
+
+
+def _floor_texture(rng: np.random.Generator, width_m: float, depth_m: float) -> FaceTexture:
+    """Tiled floor shaded by a gradient, with a few rugs."""
+    rows, cols = _texel_shape(width_m, depth_m)
+    hue = rng.random()
+    colours = [
+        _rgb(hue + rng.normal(0, 0.08), rng.uniform(0.2, 0.6), rng.uniform(0.4, 0.9))
+        for _ in range(9)
+    ]
+    image = _smooth_field((rows, cols), (3, 3), np.array(colours))
+    tile = int(rng.uniform(0.4, 0.7) / TEXEL_SIZE_M)
+    jj, ii = np.meshgrid(np.arange(cols), np.arange(rows))
+    checker = ((jj // tile + ii // tile) % 2).astype(np.float32)[:, :, None]
+    image *= 1.0 - 0.3 * checker
+    _draw_shapes(rng, image, 3 + int(width_m * depth_m / 8), (0.8, 2.0))
+    return _finish(rng, image)
+
+
+def _ceiling_texture(rng: np.random.Generator, width_m: float, depth_m: float) -> FaceTexture:
+    """Pale ceiling with a grid of light panels and a few shapes."""
+    rows, cols = _texel_shape(width_m, depth_m)
+    hue = rng.random()
+    colours = [
+        _rgb(hue + rng.normal(0, 0.1), rng.uniform(0.05, 0.4), rng.uniform(0.6, 0.95))
+        for _ in range(4)
+    ]
+    image = _smooth_field((rows, cols), (2, 2), np.array(colours))
+    spacing = rng.uniform(1.2, 2.0) / TEXEL_SIZE_M
+    panel = int(0.25 / TEXEL_SIZE_M)
+    for r in np.arange(spacing / 2, rows, spacing):
+        for c in np.arange(spacing / 2, cols, spacing):
+            image[
+                max(0, int(r) - panel) : int(r) + panel,
+                max(0, int(c) - 2 * panel) : int(c) + 2 * panel,
+            ] = 1.0
+    _draw_shapes(rng, image, 2 + int(width_m * depth_m / 10), (0.3, 1.0))
+    return _finish(rng, image)
+
+
+def _box_textures(
+    rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray
+) -> tuple[FaceTexture, ...]:
+    """Six textures of a box: one base colour, a pattern and a shape or two per face."""
+    hue = rng.random()
+    textures = []
+    for face in range(6):
+        _, a_axis, b_axis = Box.face_axes(face)
+        width_m, height_m = hi[a_axis] - lo[a_axis], hi[b_axis] - lo[b_axis]
+        shape = _texel_shape(width_m, height_m)
+        base = _rgb(hue + rng.normal(0, 0.04), rng.uniform(0.4, 0.9), rng.uniform(0.3, 0.9))
+        image = np.empty((*shape, 3), dtype=np.float32)
+        image[:] = base
+        centre = np.array([width_m, height_m]) / 2
+        _pattern_patch(rng, image, centre, width_m / 2, height_m / 2, bool(rng.random() < 0.5))
+        image = 0.6 * image + 0.4 * np.float32(base)
+        _draw_shapes(rng, image, 1 + int(width_m * height_m), (0.15, 0.5))
+        textures.append(_finish(rng, image))
+    return tuple(textures)
+
+
+def _overlaps(
+    lo: np.ndarray, hi: np.ndarray, other_lo: np.ndarray, other_hi: np.ndarray, margin: float
+) -> bool:
+    """Whether two boxes' ``xy`` footprints come closer than ``margin``."""
+    return bool(np.all(lo[:2] < other_hi[:2] + margin) and np.all(other_lo[:2] < hi[:2] + margin))
+
+
+def make_scene(index: int, seed: int = 0) -> SyntheticScene:
+    """Scene ``index`` of the benchmark with ``seed``: room, furniture, textures, camera region."""
+    rng = np.random.default_rng([seed, index, 0])
+    size = np.array([rng.uniform(6.0, 8.0), rng.uniform(5.5, 7.0), rng.uniform(2.6, 3.2)])
+    room_lo = np.array([-size[0] / 2, -size[1] / 2, 0.0])
+    room_hi = room_lo + size
+    hue0 = rng.random()
+    wall_hues = hue0 + np.array([0.0, 0.25, 0.5, 0.75]) + rng.normal(0, 0.03, 4)
+    room_textures = (
+        _wall_texture(rng, size[1], size[2], wall_hues[0]),
+        _wall_texture(rng, size[1], size[2], wall_hues[1]),
+        _wall_texture(rng, size[0], size[2], wall_hues[2]),
+        _wall_texture(rng, size[0], size[2], wall_hues[3]),
+        _floor_texture(rng, size[0], size[1]),
+        _ceiling_texture(rng, size[0], size[1]),
+    )
+    room = Box(room_lo, room_hi, room_textures)
+
+    centre = np.array([*rng.uniform(-0.3, 0.3, 2), 1.4])
+    half = np.array([rng.uniform(1.2, 1.6), rng.uniform(1.0, 1.4), 0.3])
+    region_lo, region_hi = centre - half, centre + half
+
+    boxes: list[Box] = []
+    keep_out = 0.6
+    for _attempt in range(200):
+        if len(boxes) >= 5:
+            break
+        panel = rng.random() < 0.3
+        footprint = rng.uniform(0.4, 1.2, 2)
+        if panel:
+            footprint[rng.integers(2)] = 0.06
+        height = rng.uniform(1.8, 2.3) if panel else rng.uniform(0.5, 2.2)
+        lo = np.array([*rng.uniform(room_lo[:2] + 0.05, room_hi[:2] - footprint - 0.05), 0.0])
+        hi = lo + np.array([*footprint, height])
+        if _overlaps(lo, hi, region_lo, region_hi, keep_out) or any(
+            _overlaps(lo, hi, b.lo, b.hi, 0.1) for b in boxes
+        ):
+            continue
+        boxes.append(Box(lo, hi, _box_textures(rng, lo, hi)))
+
+    light = np.array([*rng.uniform(-1.0, 1.0, 2), size[2] - 0.5])
+    return SyntheticScene(scene_name(index), room, tuple(boxes), light, region_lo, region_hi)
+
+
+# ----------------------------------------------------------------------------- appearance
+
+
+@dataclass(frozen=True)
+class Appearance:
+    """Lighting and camera response of one sequence.
+
+    The shaded linear colour ``c`` becomes ``clip(c·tint·gain + bias)^gamma + noise``;
+    ``ambient`` is the share of light not coming from the scene's point light.
+    """
+
+    gain: float = 1.0
+    bias: float = 0.0
+    tint: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    gamma: float = 1.0
+    noise_std: float = 0.0
+    ambient: float = 0.45
+
+    @classmethod
+    def random(cls, rng: np.random.Generator) -> Appearance:
+        """A random appearance: gain 0.7–1.3, bias ±0.06, tint ±15 %, gamma 0.75–1.35,
+        noise 0.005–0.025 (std of values in ``[0, 1]``), ambient 0.3–0.6."""
+        return cls(
+            gain=float(rng.uniform(0.7, 1.3)),
+            bias=float(rng.uniform(-0.06, 0.06)),
+            tint=tuple(float(v) for v in rng.uniform(0.85, 1.15, 3)),
+            gamma=float(rng.uniform(0.75, 1.35)),
+            noise_std=float(rng.uniform(0.005, 0.025)),
+            ambient=float(rng.uniform(0.3, 0.6)),
+        )
+
+
+# ------------------------------------------------------------------------------ rendering
+
+
+def _cast(
+    scene: SyntheticScene, origins: np.ndarray, directions: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest hits of rays with origins ``[3, B, 1]`` inside the room and directions
+    ``[3, B, R]`` (axis first): face index ``[B, R]`` (see :class:`_FaceTables`) and the
+    distance ``[B, R]`` along each direction, in units of its length."""
+    directions = np.where(np.abs(directions) < _EPS_DIRECTION, _EPS_DIRECTION, directions)
+    inverse = 1.0 / directions
+    positive = directions > 0
+    lo, hi = scene.room.lo.astype(np.float32), scene.room.hi.astype(np.float32)
+    t_exit = [(np.where(positive[k], hi[k], lo[k]) - origins[k]) * inverse[k] for k in range(3)]
+    t_best = np.minimum(np.minimum(t_exit[0], t_exit[1]), t_exit[2])
+    face = np.where(
+        t_exit[0] == t_best,
+        positive[0].astype(np.int64),
+        np.where(t_exit[1] == t_best, 2 + positive[1], 4 + positive[2]),
+    )
+    for index, box in enumerate(scene.boxes, start=1):
+        lo, hi = box.lo.astype(np.float32), box.hi.astype(np.float32)
+        near, far = [], []
+        for k in range(3):
+            t_lo = (lo[k] - origins[k]) * inverse[k]
+            t_hi = (hi[k] - origins[k]) * inverse[k]
+            near.append(np.minimum(t_lo, t_hi))
+            far.append(np.maximum(t_lo, t_hi))
+        t_near = np.maximum(np.maximum(near[0], near[1]), near[2])
+        t_far = np.minimum(np.minimum(far[0], far[1]), far[2])
+        hit = (t_near <= t_far) & (t_near > 0) & (t_near < t_best)
+        if not hit.any():
+            continue
+        t_hit = t_near[hit]
+        axis = np.where(near[0][hit] == t_hit, 0, np.where(near[1][hit] == t_hit, 1, 2))
+        entered_hi = ~positive[:, hit][axis, np.arange(len(axis))]
+        t_best[hit] = t_hit
+        face[hit] = 6 * index + 2 * axis + entered_hi
+    return face, t_best
+
+
+def _shade(
+    scene: SyntheticScene, origins: np.ndarray, directions: np.ndarray, ambient: float
+) -> np.ndarray:
+    """Linear colours ``[B, R, 3]`` float32 of rays (origins ``[3, B, 1]``, directions
+    ``[3, B, R]``): bilinearly sampled texture × (ambient + point light)."""
+    tables = scene._tables
+    face, t = _cast(scene, origins, directions)
+    x, y, z = (origins[k] + t * directions[k] for k in range(3))
+    normal_axis = (face % 6) // 2
+    a = np.where(normal_axis == 0, y, x) - tables.origin_a[face]
+    b = np.where(normal_axis == 2, y, z) - tables.origin_b[face]
+    col = a * tables.inv_texel[face] - 0.5
+    row = b * tables.inv_texel[face] - 0.5
+    col0, row0 = np.floor(col), np.floor(row)
+    frac_c, frac_r = (col - col0)[..., None], (row - row0)[..., None]
+    cols, rows, offset = tables.cols[face], tables.rows[face], tables.offset[face]
+    col0, row0 = col0.astype(np.int64), row0.astype(np.int64)
+    c0, c1 = np.clip(col0, 0, cols - 1), np.clip(col0 + 1, 0, cols - 1)
+    r0 = np.clip(row0, 0, rows - 1) * cols + offset
+    r1 = np.clip(row0 + 1, 0, rows - 1) * cols + offset
+    texels = tables.texels
+    top = texels[r0 + c0] * (1 - frac_c) + texels[r0 + c1] * frac_c
+    bottom = texels[r1 + c0] * (1 - frac_c) + texels[r1 + c1] * frac_c
+    colour = top * (1 - frac_r) + bottom * frac_r
+
+    light = scene.light_position.astype(np.float32)
+    to_light = (light[0] - x, light[1] - y, light[2] - z)
+    distance_sq = to_light[0] ** 2 + to_light[1] ** 2 + to_light[2] ** 2
+    along_normal = np.where(
+        normal_axis == 0, to_light[0], np.where(normal_axis == 1, to_light[1], to_light[2])
+    )
+    cosine = along_normal * tables.normal_sign[face] / np.sqrt(distance_sq)
+    direct = np.maximum(cosine, 0.0) * 2.2 / (1.0 + distance_sq / 6.0)
+    return colour * (ambient + (1.0 - ambient) * direct)[..., None]
+
+
+def render_batch(
+    scene: SyntheticScene,
+    poses: np.ndarray,
+    camera: PinholeCamera,
+    appearance: Appearance | None = None,
+    rng: np.random.Generator | None = None,
+    supersample: int = SUPERSAMPLE,
+) -> np.ndarray:
+    """Images ``[B, H, W, 3]`` uint8 RGB of ``scene`` from camera-to-world ``poses`` ``[B, 7]``.
+
+    ``rng`` draws the sensor noise (``appearance.noise_std``); ``None`` renders without noise.
+    """
+    appearance = appearance or Appearance()
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 7)
+    rotations, positions = pose_rotation_translation(poses)
+    local = camera.ray_directions(supersample).reshape(-1, 3)
+    size = camera.size
+    frames_per_chunk = max(1, RAYS_PER_CHUNK // len(local))
+    images = np.empty((len(poses), size, size, 3), dtype=np.uint8)
+    tint = np.asarray(appearance.tint, dtype=np.float32) * np.float32(appearance.gain)
+    for start in range(0, len(poses), frames_per_chunk):
+        stop = min(start + frames_per_chunk, len(poses))
+        directions = np.einsum("bij,nj->ibn", rotations[start:stop], local).astype(np.float32)
+        origins = positions[start:stop].T[:, :, None].astype(np.float32)
+        colour = _shade(scene, origins, directions, appearance.ambient)
+        colour = colour.reshape(stop - start, supersample * supersample, size, size, 3).mean(1)
+        colour = np.clip(colour * tint + np.float32(appearance.bias), 0.0, 1.0)
+        colour **= np.float32(appearance.gamma)
+        if rng is not None and appearance.noise_std > 0:
+            colour += np.float32(appearance.noise_std) * rng.standard_normal(
+                colour.shape, dtype=np.float32
+            )
+        images[start:stop] = np.clip(np.rint(colour * 255.0), 0, 255).astype(np.uint8)
+    return images
+
+
+def render(
+    scene: SyntheticScene,
+    pose: np.ndarray,
+    camera: PinholeCamera,
+    appearance: Appearance | None = None,
+    rng: np.random.Generator | None = None,
+) -> np.ndarray:
+    """Image ``[H, W, 3]`` uint8 RGB of ``scene`` from camera-to-world ``pose`` ``[7]``."""
+    return render_batch(scene, np.asarray(pose)[None], camera, appearance, rng)[0]
+
+
+# ---------------------------------------------------------------------------- trajectories
+
+
+@dataclass(frozen=True, eq=False)
+class CameraSequence:
+    """One recorded sequence: ``name`` (``seq-01``…), ``split``, poses ``[n, 7]`` and its
+    appearance; ``noise_seed`` seeds its sensor noise."""
+
+    name: str
+    split: str
+    poses: np.ndarray
+    appearance: Appearance
+    noise_seed: tuple[int, ...]
+
+
+def _split_counts(total: int, parts: int) -> list[int]:
+    """``total`` frames over ``min(parts, total)`` sequences, as evenly as possible."""
+    parts = min(parts, total)
+    return [total // parts + (1 if i < total % parts else 0) for i in range(parts)]
+
+
+def _trajectory(scene: SyntheticScene, frames: int, rng: np.random.Generator) -> np.ndarray:
+    """Smooth camera path of ``frames`` poses ``[frames, 7]`` over the scene's camera region.
+
+    Positions follow a Lissajous-like curve (two harmonics per axis) filling the region; yaw
+    turns 1–2 times around with a wobble, pitch and roll stay within about ±12° and ±5°.
+    """
+    t = np.arange(frames) / max(frames, 1)
+    centre = (scene.region_lo + scene.region_hi) / 2
+    half = (scene.region_hi - scene.region_lo) / 2
+
+    def wave(low: float, high: float, weights: tuple[float, float]) -> np.ndarray:
+        f1, f2 = rng.uniform(low, high), rng.uniform(2 * high, 3 * high)
+        p1, p2 = rng.uniform(0, 2 * np.pi, 2)
+        return weights[0] * np.sin(2 * np.pi * f1 * t + p1) + weights[1] * np.sin(
+            2 * np.pi * f2 * t + p2
+        )
+
+    position = np.stack(
+        [
+            centre[0] + half[0] * wave(1.0, 2.2, (0.8, 0.2)),
+            centre[1] + half[1] * wave(1.0, 2.2, (0.8, 0.2)),
+            centre[2] + half[2] * wave(0.5, 1.5, (0.8, 0.2)),
+        ],
+        axis=1,
+    )
+    turns = rng.choice([-1.0, 1.0]) * rng.uniform(1.0, 2.0)
+    yaw = rng.uniform(0, 2 * np.pi) + 2 * np.pi * turns * t + 0.6 * wave(0.5, 1.5, (0.8, 0.2))
+    pitch = np.radians(-3.0) + np.radians(9.0) * wave(1.0, 3.0, (0.8, 0.2))
+    roll = np.radians(4.0) * wave(1.0, 3.0, (0.7, 0.3))
+    rotations = _look_rotations(yaw, pitch, roll)
+    quaternions = matrix_to_quaternion(torch.from_numpy(rotations)).numpy()
+    return np.concatenate([position, quaternions], axis=1)
+
+
+def make_sequences(
+    scene_index: int, scene: SyntheticScene, train_frames: int, test_frames: int, seed: int = 0
+) -> list[CameraSequence]:
+    """Train sequences ``seq-01…`` then test sequences (numbered on) of scene ``scene_index``.
+
+    Up to 3 train and 2 test sequences share the frames of each split; each has its own path
+    over the scene's camera region and its own :class:`Appearance`.
+    """
+    splits = [("train", n) for n in _split_counts(train_frames, TRAIN_SEQUENCES)]
+    splits += [("test", n) for n in _split_counts(test_frames, TEST_SEQUENCES)]
+    sequences = []
+    for number, (split, frames) in enumerate(splits, start=1):
+        rng = np.random.default_rng([seed, scene_index, 1, number])
+        poses = _trajectory(scene, frames, rng)
+        appearance = Appearance.random(rng)
+        sequences.append(
+            CameraSequence(
+                f"seq-{number:02d}", split, poses, appearance, (seed, scene_index, 2, number)
+            )
+        )
+    return sequences
+
+
+# -------------------------------------------------------------------------------- writing
+
+
+@dataclass(frozen=True)
+class SyntheticSummary:
+    """What :func:`write_synthetic_dataset` wrote and how fast."""
+
+    root: str
+    scenes: list[str]
+    train_frames: int
+    """Training frames over all scenes."""
+    test_frames: int
+    """Test frames over all scenes."""
+    size: int
+    seconds: float
+    frames_per_second: float
+
+    def summary(self) -> str:
+        """Short human-readable multi-line summary."""
+        return "\n".join(
+            [
+                f"synthetic dataset at {self.root}",
+                f"  scenes: {len(self.scenes)} ({', '.join(self.scenes)})",
+                f"  frames: {self.train_frames} train, {self.test_frames} test "
+                f"({self.size}x{self.size} px)",
+                f"  time:   {self.seconds:.1f} s ({self.frames_per_second:.1f} frames/s)",
+            ]
+        )
+
+
+def _write_png(path: Path, image_rgb: np.ndarray) -> None:
+    """Write an RGB image as PNG via a temporary file, so ``path`` is never half-written."""
+    ok, encoded = cv2.imencode(".png", cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise OSError(f"could not encode {path}")
+    temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    try:
+        temporary.write_bytes(encoded.tobytes())
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+
+
+def write_synthetic_dataset(
+    out: Path | str,
+    scenes: int = DEFAULT_SCENES,
+    train_frames: int = DEFAULT_TRAIN_FRAMES,
+    test_frames: int = DEFAULT_TEST_FRAMES,
+    size: int = DEFAULT_SIZE,
+    seed: int = 0,
+) -> SyntheticSummary:
+    """Render the benchmark into ``out``: images first, label files last.
+
+    ``train_frames`` and ``test_frames`` are per scene. The same arguments give byte-identical
+    files.
+    """
+    for name, value, low in (
+        ("scenes", scenes, 1),
+        ("train_frames", train_frames, 1),
+        ("test_frames", test_frames, 1),
+        ("size", size, 8),
+        ("seed", seed, 0),
+    ):
+        if int(value) != value or value < low:
+            raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+    out = Path(out)
+    started = time.perf_counter()
+    camera = PinholeCamera(size)
+    tables: dict[tuple[str, str], LabelTable] = {}
+    for index in range(scenes):
+        scene = make_scene(index, seed)
+        rows: dict[str, list[tuple[str, str, np.ndarray]]] = {"train": [], "test": []}
+        for sequence in make_sequences(index, scene, train_frames, test_frames, seed):
+            folder = out / scene.name / sequence.name
+            folder.mkdir(parents=True, exist_ok=True)
+            noise = np.random.default_rng(list(sequence.noise_seed))
+            images = render_batch(scene, sequence.poses, camera, sequence.appearance, noise)
+            for frame, (image, pose) in enumerate(zip(images, sequence.poses, strict=True)):
+                relative = f"{scene.name}/{sequence.name}/frame-{frame:06d}.png"
+                _write_png(out / relative, image)
+                rows[sequence.split].append((sequence.name, relative, pose))
+        for split, split_rows in rows.items():
+            tables[scene.name, split] = LabelTable(
+                scene=[scene.name] * len(split_rows),
+                split=[split] * len(split_rows),
+                seq=[r[0] for r in split_rows],
+                img_path=[r[1] for r in split_rows],
+                poses=np.array([r[2] for r in split_rows]),
+                source=f"synthetic seed={seed}",
+            )
+    labels = out / "labels"
+    for (name, split), table in tables.items():
+        write_labels(labels / f"{name}_{split}.csv", table)
+    for split in ("train", "test"):
+        write_labels(
+            labels / f"all_{split}.csv",
+            LabelTable.concat(t for (_, s), t in tables.items() if s == split),
+        )
+    seconds = time.perf_counter() - started
+    frames = scenes * (train_frames + test_frames)
+    return SyntheticSummary(
+        root=str(out),
+        scenes=[scene_name(i) for i in range(scenes)],
+        train_frames=scenes * train_frames,
+        test_frames=scenes * test_frames,
+        size=size,
+        seconds=seconds,
+        frames_per_second=frames / seconds,
+    )
+
+
+def measure_render_speed(frames: int = 200, size: int = DEFAULT_SIZE, seed: int = 0) -> float:
+    """Frames per second of rendering ``frames`` training frames of scene 0 (no file I/O)."""
+    scene = make_scene(0, seed)
+    rng = np.random.default_rng([seed, 0, 3])
+    poses = _trajectory(scene, frames, rng)
+    appearance = Appearance.random(rng)
+    camera = PinholeCamera(size)
+    render_batch(scene, poses[:1], camera, appearance, rng)
+    started = time.perf_counter()
+    render_batch(scene, poses, camera, appearance, rng)
+    return frames / (time.perf_counter() - started)

@@ -1,0 +1,123 @@
+"""Batched image pre-processing on uint8 batches, run on the batch's device.
+
+Per-sample random crops and colour jitter are drawn with tensor ops over the whole batch,
+so augmentation costs no Python loop per image.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+class ImageError(OSError):
+    """A missing or unreadable image; the message names the file."""
+
+
+def load_image(path: str, shorter_edge: int) -> np.ndarray:
+    """Read an image with OpenCV (BGR -> RGB) and resize its shorter edge -> uint8 [H, W, 3]."""
+    image = cv2.imread(path, cv2.IMREAD_COLOR)
+    if image is None:
+        raise ImageError(f"{path}: missing or unreadable image")
+    h, w = image.shape[:2]
+    scale = shorter_edge / min(h, w)
+    if scale != 1.0:
+        size = (max(shorter_edge, round(w * scale)), max(shorter_edge, round(h * scale)))
+        interpolation = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
+        image = cv2.resize(image, size, interpolation=interpolation)
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def _gray(images: Tensor) -> Tensor:
+    """[B, 3, H, W] -> luma [B, 1, H, W] (ITU-R 601)."""
+    r, g, b = images.unbind(1)
+    return (0.299 * r + 0.587 * g + 0.114 * b).unsqueeze(1)
+
+
+def _rotate_hue(images: Tensor, turns: Tensor) -> Tensor:
+    """Rotate the chroma of [B, 3, H, W] RGB images by `turns` [B] of a full turn (YIQ space)."""
+    to_yiq = images.new_tensor(
+        [[0.299, 0.587, 0.114], [0.596, -0.274, -0.322], [0.211, -0.523, 0.312]]
+    )
+    from_yiq = torch.linalg.inv(to_yiq)
+    angle = 2 * math.pi * turns
+    cos, sin = angle.cos(), angle.sin()
+    one, zero = torch.ones_like(cos), torch.zeros_like(cos)
+    rotation = torch.stack(
+        [
+            torch.stack([one, zero, zero], -1),
+            torch.stack([zero, cos, -sin], -1),
+            torch.stack([zero, sin, cos], -1),
+        ],
+        -2,
+    )  # [B, 3, 3]
+    matrix = from_yiq @ rotation @ to_yiq
+    return torch.einsum("bij,bjhw->bihw", matrix, images)
+
+
+class ImageTransform(nn.Module):
+    """uint8 [B, 3, H, W] -> normalised float [B, 3, crop, crop].
+
+    train=True: random crop plus per-image colour jitter (brightness, contrast, saturation
+    factors drawn from [1 - j, 1 + j], hue shift from [-j_h, j_h] turns); train=False: centre
+    crop only (the paper's test pre-processing, also used to train PAEs).
+    """
+
+    def __init__(
+        self,
+        crop: int,
+        train: bool = False,
+        color_jitter: tuple[float, float, float, float] = (0.5, 0.5, 0.5, 0.2),
+    ) -> None:
+        super().__init__()
+        self.crop = crop
+        self.train_mode = train
+        self.color_jitter = tuple(float(v) for v in color_jitter)
+        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), False)
+        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), False)
+
+    def _crop(self, images: Tensor) -> Tensor:
+        b, _, h, w = images.shape
+        if min(h, w) < self.crop:
+            raise ImageError(f"images of {h}x{w} px are smaller than the {self.crop} px crop")
+        if not self.train_mode:
+            top, left = (h - self.crop) // 2, (w - self.crop) // 2
+            return images[:, :, top : top + self.crop, left : left + self.crop]
+        top = torch.randint(0, h - self.crop + 1, (b,), device=images.device)
+        left = torch.randint(0, w - self.crop + 1, (b,), device=images.device)
+        offsets = torch.arange(self.crop, device=images.device)
+        rows = (top[:, None] + offsets)[:, :, None]  # [B, crop, 1]
+        cols = (left[:, None] + offsets)[:, None, :]  # [B, 1, crop]
+        batch = torch.arange(b, device=images.device)[:, None, None]
+        return images.permute(0, 2, 3, 1)[batch, rows, cols].permute(0, 3, 1, 2)
+
+    def _jitter(self, images: Tensor) -> Tensor:
+        b = images.shape[0]
+        brightness, contrast, saturation, hue = self.color_jitter
+
+        def factor(strength: float) -> Tensor:
+            low = max(0.0, 1 - strength)
+            return torch.empty(b, 1, 1, 1, device=images.device).uniform_(low, 1 + strength)
+
+        images = (images * factor(brightness)).clamp(0, 1)
+        mean_gray = _gray(images).mean(dim=(2, 3), keepdim=True)
+        images = (mean_gray + factor(contrast) * (images - mean_gray)).clamp(0, 1)
+        gray = _gray(images)
+        images = (gray + factor(saturation) * (images - gray)).clamp(0, 1)
+        if hue > 0:
+            turns = torch.empty(b, device=images.device).uniform_(-hue, hue)
+            images = _rotate_hue(images, turns).clamp(0, 1)
+        return images
+
+    def forward(self, images: Tensor) -> Tensor:
+        images = self._crop(images).float() / 255.0
+        if self.train_mode:
+            images = self._jitter(images)
+        return (images - self.mean) / self.std

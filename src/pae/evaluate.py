@@ -1,0 +1,30 @@
+"""`pae-eval`: evaluate trained checkpoints with test-time refinement (Hydra; conf/eval.yaml)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import hydra
+import lightning as L
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+
+from pae import CONFIG_DIR
+from pae.pipeline import evaluate_checkpoints
+from pae.reporting import format_results_table, reporting_errors, write_json_atomic
+
+
+@hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="eval")
+def main(cfg: DictConfig) -> float | None:
+    with reporting_errors("pae-eval"):
+        L.seed_everything(cfg.seed, verbose=False)
+        run_dir = Path(HydraConfig.get().runtime.output_dir)
+        metrics = evaluate_checkpoints(cfg, run_dir)
+        write_json_atomic(run_dir / "metrics.json", metrics)
+        print(format_results_table(metrics))
+        print(f"metrics: {run_dir / 'metrics.json'}")
+        return metrics.get("test/refined/pos_median_m")
+
+
+if __name__ == "__main__":
+    main()

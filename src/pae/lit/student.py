@@ -1,0 +1,175 @@
+"""LightningModule that trains a student PAE against a frozen teacher APR."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor
+
+from pae.geometry import normalize_quaternion
+from pae.lit.evaluation import PoseEvaluation
+from pae.lit.teacher import OptimizerFactory, SchedulerFactory
+from pae.losses import LearnedPoseLoss, latent_distance
+from pae.metrics import mean_pose_per_scene
+from pae.models.base import Latents, PoseRegressor
+from pae.models.pae import PoseAutoEncoder
+
+STUDENT_METHODS = ["teacher", "student", "student_gt", "mean_pose"]
+
+
+def unit_pose(pose: Tensor) -> Tensor:
+    """[B, 7] with the quaternion normalised."""
+    return torch.cat([pose[:, :3], normalize_quaternion(pose[:, 3:])], dim=-1)
+
+
+class StudentModule(L.LightningModule):
+    """L = latent(z_x, ẑ_x) + latent(z_q, ẑ_q) + L_p(teacher.regress(ẑ), p_gt).
+
+    The teacher is frozen (eval mode, no parameter gradients) but its heads stay in the graph,
+    so the pose loss trains the PAE through them. Batches either carry cached teacher outputs
+    (`z_x`, `z_q`, `teacher_pose`) or images, in which case the teacher runs on them.
+    `pae_input` is "gt" (the ground-truth pose, paper) or "teacher" (the teacher's estimate).
+    During evaluation the module keeps every query's teacher latents and estimate in
+    `eval_outputs` for the test-time refinement callback.
+    """
+
+    def __init__(
+        self,
+        teacher: PoseRegressor,
+        pae: PoseAutoEncoder,
+        loss: LearnedPoseLoss,
+        optimizer: OptimizerFactory,
+        scene_names: list[str],
+        teacher_config: dict[str, Any],
+        pae_config: dict[str, Any],
+        scheduler: SchedulerFactory | None = None,
+        latent_loss: str = "l2",
+        pae_input: str = "gt",
+    ) -> None:
+        super().__init__()
+        if pae.latent_dim != teacher.latent_dim:
+            raise ValueError(
+                f"pae.latent_dim={pae.latent_dim} does not match the teacher's latent size "
+                f"{teacher.latent_dim}"
+            )
+        if pae_input not in ("gt", "teacher"):
+            raise ValueError(f"unknown student.pae_input {pae_input!r}; choose 'gt' or 'teacher'")
+        latent_distance(torch.zeros(1, 1), torch.zeros(1, 1), latent_loss)
+        self.save_hyperparameters(
+            {
+                "teacher_config": teacher_config,
+                "pae_config": pae_config,
+                "scene_names": list(scene_names),
+                "latent_loss": latent_loss,
+                "pae_input": pae_input,
+            }
+        )
+        self.scene_names = list(scene_names)
+        self.teacher = teacher.eval().requires_grad_(False)
+        self.pae = pae
+        self.loss = loss
+        self.optimizer_factory = optimizer
+        self.scheduler_factory = scheduler
+        self.latent_loss = latent_loss
+        self.pae_input = pae_input
+        self.evaluation = PoseEvaluation(STUDENT_METHODS, scene_names)
+        self.register_buffer("mean_poses", torch.zeros(len(scene_names), 7))
+        self.eval_outputs: list[dict[str, Tensor]] = []
+
+    def train(self, mode: bool = True) -> StudentModule:
+        super().train(mode)
+        self.teacher.eval()
+        return self
+
+    def on_fit_start(self) -> None:
+        self._set_mean_poses()
+
+    def on_test_start(self) -> None:
+        self._set_mean_poses()
+
+    def _set_mean_poses(self) -> None:
+        poses, scenes = self.trainer.datamodule.train_poses()
+        self.mean_poses.copy_(mean_pose_per_scene(poses, scenes, len(self.mean_poses)))
+
+    def student_loss(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        """Loss terms for a cached-latent or image batch."""
+        if "z_x" in batch:
+            target = Latents(batch["z_x"], batch["z_q"])
+            teacher_pose = batch["teacher_pose"]
+        else:
+            with torch.no_grad():
+                teacher_pose, target = self.teacher(batch["image"])
+        source = batch["pose"] if self.pae_input == "gt" else unit_pose(teacher_pose)
+        latents = self.pae(source, batch["scene"])
+        pred = self.teacher.regress(latents)
+        terms = self.loss(pred, batch["pose"])
+        latent_x = latent_distance(latents.x, target.x, self.latent_loss)
+        latent_q = latent_distance(latents.q, target.q, self.latent_loss)
+        return {
+            "loss": latent_x + latent_q + terms.total,
+            "latent_x": latent_x,
+            "latent_q": latent_q,
+            "pose": terms.total,
+            "pos_loss": terms.position,
+            "rot_loss": terms.orientation,
+        }
+
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        terms = self.student_loss(batch)
+        self.log_dict({f"train/{k}": v for k, v in terms.items()})
+        self.log_dict({"train/s_x": self.loss.s_x, "train/s_q": self.loss.s_q})
+        return terms["loss"]
+
+    def _evaluate(self, batch: dict[str, Tensor], split: str) -> None:
+        images, gt, scene = batch["image"], batch["pose"], batch["scene"]
+        teacher_pose, latents = self.teacher(images)
+        scene_estimate = (
+            latents.scene_logits.argmax(-1) if latents.scene_logits is not None else scene
+        )
+        estimate = unit_pose(teacher_pose)
+        student_pose = self.teacher.regress(self.pae(estimate, scene_estimate))
+        student_gt_pose = self.teacher.regress(self.pae(gt, scene))
+        predictions = {
+            "teacher": teacher_pose,
+            "student": student_pose,
+            "student_gt": student_gt_pose,
+            "mean_pose": self.mean_poses[scene],
+        }
+        for method, pred in predictions.items():
+            self.evaluation.update(split, method, pred, gt, scene)
+        self.eval_outputs.append(
+            {
+                "z": latents.joint(),
+                "estimate": estimate,
+                "pose": gt,
+                "scene": scene,
+                "scene_estimate": scene_estimate,
+            }
+        )
+
+    def on_validation_epoch_start(self) -> None:
+        self.eval_outputs = []
+
+    def on_test_epoch_start(self) -> None:
+        self.eval_outputs = []
+
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._evaluate(batch, "val")
+
+    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._evaluate(batch, "test")
+
+    def on_validation_epoch_end(self) -> None:
+        self.evaluation.log(self, "val")
+
+    def on_test_epoch_end(self) -> None:
+        self.evaluation.log(self, "test")
+
+    def configure_optimizers(self) -> Any:
+        params = list(self.pae.parameters()) + list(self.loss.parameters())
+        optimizer = self.optimizer_factory(params=params)
+        if self.scheduler_factory is None:
+            return optimizer
+        return {"optimizer": optimizer, "lr_scheduler": self.scheduler_factory(optimizer=optimizer)}

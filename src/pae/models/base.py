@@ -1,0 +1,43 @@
+"""The interface every teacher implements, so students, refinement and RPR work with any teacher."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+
+class Latents(NamedTuple):
+    """Latent pose codes of a batch.
+
+    x: [B, d] position latent; q: [B, d] orientation latent;
+    scene_logits: [B, n_scenes] for multi-scene teachers, else None.
+    """
+
+    x: Tensor
+    q: Tensor
+    scene_logits: Tensor | None = None
+
+    def joint(self) -> Tensor:
+        """[B, 2d] concatenation [x, q], the vector refinement matches."""
+        return torch.cat([self.x, self.q], dim=-1)
+
+
+class PoseRegressor(nn.Module):
+    """An APR split into encoders (image -> latents) and heads (latents -> pose)."""
+
+    latent_dim: int
+
+    def encode(self, images: Tensor, scene: Tensor | None = None) -> Latents:
+        """images [B, 3, H, W] normalised -> Latents with x, q of [B, latent_dim]."""
+        raise NotImplementedError
+
+    def regress(self, latents: Latents) -> Tensor:
+        """Latents -> pose [B, 7] = x, y, z (m), qw, qx, qy, qz (not normalised)."""
+        raise NotImplementedError
+
+    def forward(self, images: Tensor, scene: Tensor | None = None) -> tuple[Tensor, Latents]:
+        """images -> (pose [B, 7], latents)."""
+        latents = self.encode(images, scene)
+        return self.regress(latents), latents

@@ -1,0 +1,84 @@
+"""The camera pose auto-encoder: pose (+ scene index) -> latents matching a teacher APR's."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from pae.models.base import Latents
+
+
+class FourierFeatures(nn.Module):
+    """gamma(p) = (p, sin(2^0 p), cos(2^0 p), ..., sin(2^{L-1} p), cos(2^{L-1} p)) per coordinate.
+
+    [..., d0] -> [..., d0 * (2L + 1)] with the input included, [..., d0 * 2L] without;
+    L = 0 returns the raw input.
+    """
+
+    def __init__(self, L: int = 6, include_input: bool = True) -> None:
+        super().__init__()
+        if L < 0:
+            raise ValueError(f"FourierFeatures: L must be >= 0, got {L}")
+        if L == 0 and not include_input:
+            raise ValueError("FourierFeatures: L=0 needs include_input=True")
+        self.L = L
+        self.include_input = include_input
+        self.register_buffer("frequencies", 2.0 ** torch.arange(L), persistent=False)
+
+    def out_dim(self, in_dim: int) -> int:
+        return in_dim * (2 * self.L + int(self.include_input))
+
+    def forward(self, p: Tensor) -> Tensor:
+        parts = [p] if self.include_input else []
+        if self.L:
+            angles = p.unsqueeze(-1) * self.frequencies  # [..., d0, L]
+            sin_cos = torch.stack([angles.sin(), angles.cos()], dim=-1)  # [..., d0, L, 2]
+            parts.append(sin_cos.transpose(-3, -2).flatten(-3))  # ordered by band, then sin/cos
+        return torch.cat(parts, dim=-1)
+
+
+def mlp(in_dim: int, hidden: Sequence[int], out_dim: int) -> nn.Sequential:
+    """Linear+ReLU layers through `hidden`, then a linear output layer."""
+    layers: list[nn.Module] = []
+    for width in hidden:
+        layers += [nn.Linear(in_dim, width), nn.ReLU()]
+        in_dim = width
+    layers.append(nn.Linear(in_dim, out_dim))
+    return nn.Sequential(*layers)
+
+
+class PoseAutoEncoder(nn.Module):
+    """Two MLP branches: x [B, 3] -> z_x [B, d] and q [B, 4] -> z_q [B, d].
+
+    With n_scenes > 1 the scene index [B] is Fourier-encoded like the pose and concatenated
+    to each branch's input.
+    """
+
+    def __init__(
+        self,
+        latent_dim: int = 256,
+        hidden: Sequence[int] = (64, 128, 256),
+        L: int = 6,
+        n_scenes: int = 1,
+    ) -> None:
+        super().__init__()
+        self.latent_dim = latent_dim
+        self.n_scenes = n_scenes
+        self.fourier = FourierFeatures(L)
+        scene_dim = self.fourier.out_dim(1) if n_scenes > 1 else 0
+        self.branch_x = mlp(self.fourier.out_dim(3) + scene_dim, hidden, latent_dim)
+        self.branch_q = mlp(self.fourier.out_dim(4) + scene_dim, hidden, latent_dim)
+
+    def forward(self, poses: Tensor, scene: Tensor | None = None) -> Latents:
+        """poses [B, 7] (m, unit quaternion), scene [B] long -> Latents(z_x, z_q) [B, d]."""
+        enc_x = self.fourier(poses[..., :3])
+        enc_q = self.fourier(poses[..., 3:])
+        if self.n_scenes > 1:
+            if scene is None:
+                raise ValueError("a multi-scene PoseAutoEncoder needs the scene index")
+            enc_s = self.fourier(scene.to(poses.dtype).unsqueeze(-1))
+            enc_x = torch.cat([enc_x, enc_s], dim=-1)
+            enc_q = torch.cat([enc_q, enc_s], dim=-1)
+        return Latents(self.branch_x(enc_x), self.branch_q(enc_q))

@@ -1,0 +1,221 @@
+"""The steps a run executes: fit a teacher, fit a student, evaluate checkpoints.
+
+Each step writes into its own directory: checkpoints/, TensorBoard event files, and the
+figures it measured; the entry points merge them into the run's metrics.json.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from hydra.utils import instantiate
+from lightning.pytorch.loggers import Logger, TensorBoardLogger
+from omegaconf import DictConfig, OmegaConf
+
+from pae.callbacks.refinement import TestTimeRefinement
+from pae.checkpoints import CheckpointError, load_pae, load_teacher
+from pae.data.datamodule import PoseDataModule
+from pae.data.latents import TeacherLatentDataModule
+from pae.lit.student import StudentModule
+from pae.lit.teacher import TeacherModule
+from pae.losses import LearnedPoseLoss
+from pae.models.base import PoseRegressor
+from pae.models.pae import PoseAutoEncoder
+from pae.reporting import ConfigError
+
+Metrics = dict[str, float]
+
+
+def build_data(cfg: DictConfig, **overrides: Any) -> PoseDataModule:
+    """Instantiate and set up the configured data module (renders synthetic data if needed)."""
+    data = instantiate(cfg.data, **overrides)
+    data.setup()
+    return data
+
+
+def _loggers(cfg: DictConfig, step_dir: Path) -> list[Logger]:
+    return [instantiate(c, save_dir=str(step_dir)) for c in (cfg.get("logger") or {}).values()]
+
+
+def build_trainer(
+    cfg: DictConfig, step_dir: Path, max_epochs: int, callbacks: list[L.Callback]
+) -> L.Trainer:
+    """Trainer from cfg.trainer with the run's loggers, checkpointing into step_dir/checkpoints."""
+    configured = []
+    for name, c in (cfg.get("callbacks") or {}).items():
+        extra = {"dirpath": str(step_dir / "checkpoints")} if name == "model_checkpoint" else {}
+        configured.append(instantiate(c, **extra))
+    loggers = _loggers(cfg, step_dir)
+    return instantiate(
+        cfg.trainer,
+        max_epochs=max_epochs,
+        logger=loggers or False,
+        callbacks=configured + callbacks,
+        default_root_dir=str(step_dir),
+    )
+
+
+def _resume_path(cfg: DictConfig, step_dir: Path) -> str | None:
+    last = step_dir / "checkpoints" / "last.ckpt"
+    return str(last) if cfg.get("resume") and last.is_file() else None
+
+
+def collect_metrics(trainer: L.Trainer, prefixes: tuple[str, ...] = ("test/",)) -> Metrics:
+    return {
+        key: float(value)
+        for key, value in trainer.callback_metrics.items()
+        if key.startswith(prefixes)
+    }
+
+
+def log_hparams(trainer: L.Trainer, cfg: DictConfig, metrics: Metrics) -> None:
+    """Hyper-parameters with the final figures (TensorBoard HParams tab, comparable in sweeps)."""
+    flat: dict[str, Any] = {}
+
+    def walk(node: Any, prefix: str) -> None:
+        if isinstance(node, dict):
+            for key, value in node.items():
+                walk(value, f"{prefix}{key}/" if prefix or key else key)
+        else:
+            flat[prefix.rstrip("/")] = (
+                node if isinstance(node, int | float | str | bool) else str(node)
+            )
+
+    walk(OmegaConf.to_container(cfg, resolve=False), "")
+    for logger in trainer.loggers:
+        if isinstance(logger, TensorBoardLogger):
+            logger.log_hyperparams(flat, metrics={f"hparams/{k}": v for k, v in metrics.items()})
+        else:
+            logger.log_hyperparams(flat)
+
+
+def _teacher_config(cfg: DictConfig, n_scenes: int) -> dict[str, Any]:
+    """The teacher's architecture as stored in its checkpoint (weights come from the state dict)."""
+    config = OmegaConf.to_container(cfg.teacher.model, resolve=True)
+    config["n_scenes"] = n_scenes
+    config["backbone"]["pretrained"] = False
+    config["backbone"]["weights_path"] = None
+    return config
+
+
+def fit_teacher(cfg: DictConfig, step_dir: Path) -> tuple[Metrics, Path]:
+    """Train and test a teacher APR -> (metrics, path of its last checkpoint)."""
+    data = build_data(cfg)
+    teacher = instantiate(cfg.teacher.model, n_scenes=data.n_scenes)
+    module = TeacherModule(
+        teacher,
+        loss=instantiate(cfg.teacher.loss),
+        optimizer=instantiate(cfg.teacher.optimizer),
+        scheduler=instantiate(cfg.teacher.scheduler) if cfg.teacher.get("scheduler") else None,
+        scene_names=data.scene_names,
+        teacher_config=_teacher_config(cfg, data.n_scenes),
+        scene_loss_weight=cfg.teacher.scene_loss_weight,
+    )
+    trainer = build_trainer(cfg, step_dir, cfg.teacher.max_epochs, [])
+    start = time.perf_counter()
+    trainer.fit(module, datamodule=data, ckpt_path=_resume_path(cfg, step_dir))
+    fit_s = time.perf_counter() - start
+    trainer.test(module, datamodule=data, verbose=False)
+    metrics = collect_metrics(trainer)
+    metrics["bench/teacher/fit_s"] = fit_s
+    log_hparams(trainer, cfg, metrics)
+    return metrics, step_dir / "checkpoints" / "last.ckpt"
+
+
+def _check_scenes(path: str | Path, ckpt_scenes: list[str], data_scenes: list[str]) -> None:
+    if ckpt_scenes != data_scenes:
+        raise CheckpointError(
+            f"{path}: trained on scenes {ckpt_scenes}, but the data has scenes {data_scenes}"
+        )
+
+
+def refinement_callbacks(cfg: DictConfig) -> list[L.Callback]:
+    """The configured test-time refinement callback (none for refine=none)."""
+    refine = cfg.refine
+    if refine.method == "none":
+        return []
+    if refine.method != "knn_affine":
+        raise ConfigError(f"unknown refine.method {refine.method!r}; choose 'none' or 'knn_affine'")
+    options = OmegaConf.to_container(refine, resolve=True)
+    options.pop("method")
+    return [TestTimeRefinement(**options)]
+
+
+def _student_module(
+    cfg: DictConfig,
+    teacher: PoseRegressor,
+    pae: PoseAutoEncoder,
+    scene_names: list[str],
+    teacher_config: dict[str, Any],
+    pae_config: dict[str, Any],
+) -> StudentModule:
+    student = cfg.student
+    return StudentModule(
+        teacher,
+        pae,
+        loss=instantiate(student.loss),
+        optimizer=instantiate(student.optimizer),
+        scheduler=instantiate(student.scheduler) if student.get("scheduler") else None,
+        scene_names=scene_names,
+        teacher_config=teacher_config,
+        pae_config=pae_config,
+        latent_loss=student.latent_loss,
+        pae_input=student.input,
+    )
+
+
+def fit_student(cfg: DictConfig, step_dir: Path, teacher_ckpt: str | Path | None) -> Metrics:
+    """Distil a PAE from a frozen teacher checkpoint, then test it (with refinement)."""
+    if teacher_ckpt is None:
+        raise ConfigError("stage=student needs teacher_ckpt=PATH (a checkpoint of stage=teacher)")
+    teacher = load_teacher(teacher_ckpt)
+    data = build_data(cfg, augment=False)
+    _check_scenes(teacher_ckpt, teacher.scene_names, data.scene_names)
+    pae_config = OmegaConf.to_container(cfg.pae, resolve=True)
+    pae_config["n_scenes"] = data.n_scenes
+    pae = instantiate(pae_config)
+    module = _student_module(cfg, teacher.model, pae, data.scene_names, teacher.config, pae_config)
+    cached = cfg.student.cache_latents
+    train_data = TeacherLatentDataModule(data, teacher.model) if cached else data
+    trainer = build_trainer(cfg, step_dir, cfg.student.max_epochs, refinement_callbacks(cfg))
+    start = time.perf_counter()
+    trainer.fit(module, datamodule=train_data, ckpt_path=_resume_path(cfg, step_dir))
+    fit_s = time.perf_counter() - start
+    trainer.test(module, datamodule=train_data, verbose=False)
+    metrics = collect_metrics(trainer)
+    metrics["bench/student/fit_s"] = fit_s
+    log_hparams(trainer, cfg, metrics)
+    return metrics
+
+
+def evaluate_checkpoints(cfg: DictConfig, run_dir: Path) -> Metrics:
+    """Test a student checkpoint (and optionally another teacher) with the configured refinement."""
+    teacher_path = cfg.teacher_ckpt or cfg.pae_ckpt
+    teacher = load_teacher(teacher_path)
+    pae = load_pae(cfg.pae_ckpt)
+    data = build_data(cfg, augment=False)
+    _check_scenes(teacher_path, teacher.scene_names, data.scene_names)
+    _check_scenes(cfg.pae_ckpt, pae.scene_names, data.scene_names)
+    if pae.model.latent_dim != teacher.model.latent_dim:
+        raise CheckpointError(
+            f"{cfg.pae_ckpt}: PAE latent size {pae.model.latent_dim} does not match the "
+            f"teacher's {teacher.model.latent_dim} ({teacher_path})"
+        )
+    module = StudentModule(
+        teacher.model,
+        pae.model,
+        loss=LearnedPoseLoss(),
+        optimizer=torch.optim.Adam,
+        scene_names=data.scene_names,
+        teacher_config=teacher.config,
+        pae_config=pae.config,
+    )
+    trainer = build_trainer(cfg, run_dir, 0, refinement_callbacks(cfg))
+    trainer.test(module, datamodule=data, verbose=False)
+    metrics = collect_metrics(trainer)
+    log_hparams(trainer, cfg, metrics)
+    return metrics

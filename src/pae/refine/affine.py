@@ -1,0 +1,587 @@
+"""Test-time position refinement: the query's latent as an affine combination of the latents
+of its nearest train poses (paper §3.3).
+
+Given the query latent ``z`` [D] (D = 2d, ``Latents.joint()``) and the PAE encodings ``ẑᵢ`` of
+its k nearest train poses, weights ``a`` with ``Σ aᵢ = 1`` are fitted so that ``Σ aᵢ ẑᵢ ≈ z``,
+and the refined position is ``Σ aᵢ xᵢ``. Three weight models:
+
+- ``"mlp"``: the public code's weight regressor, an MLP over the k concatenated encodings
+  (k·D → 64k → 32k → 16k → k, ReLU) whose softmax gives ``a``; freshly initialised for every
+  query and optimised with AdamW for ``iterations`` steps;
+- ``"softmax_logits"``: free logits per query (softmax gives ``a``), optimised the same way;
+- ``"closed_form"``: the exact equality-constrained least-squares solution (weights may be
+  negative, so the position may leave the neighbours' convex hull).
+
+``refine_affine`` optimises every query of a batch at once with per-query parameter tensors;
+``refine_affine_per_query`` is the reference that follows the public code (one query at a time,
+a fresh ``nn.Module`` and optimiser per query). For the same initial parameters both give the
+same result, since the batch objective is the sum of the per-query objectives and AdamW updates
+each element independently.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable, Sequence
+from typing import Literal, NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from pae.geometry import average_quaternions, canonicalize_quaternion, normalize_quaternion
+from pae.models.base import Latents
+from pae.refine.index import PoseIndex
+
+WeightModel = Literal["softmax_logits", "mlp", "closed_form"]
+OrientationMode = Literal["teacher", "affine", "markley"]
+Objective = Literal["l2", "mse"]
+LayerParams = tuple[Tensor, Tensor]
+"""One batched linear layer: weight [B, in, out] (applied as ``h @ W``) and bias [B, out]."""
+InitParams = Tensor | Sequence[LayerParams]
+"""Initial parameters: logits [B, k] for ``softmax_logits``, the MLP layers for ``mlp``."""
+PoseEncoder = Callable[[Tensor, Tensor | None], Latents]
+
+WEIGHT_MODELS: tuple[str, ...] = ("softmax_logits", "mlp", "closed_form")
+ORIENTATION_MODES: tuple[str, ...] = ("teacher", "affine", "markley")
+
+
+class AffineFit(NamedTuple):
+    """weights [B, k] (Σ = 1) and the refined positions [B, 3] = Σ aᵢ xᵢ (m)."""
+
+    weights: Tensor
+    positions: Tensor
+
+
+class RefinementResult(NamedTuple):
+    """poses [B, 7] refined; weights [B, k]; neighbour_indices [B, k] into the pose index."""
+
+    poses: Tensor
+    weights: Tensor
+    neighbour_indices: Tensor
+
+
+def regressor_hidden_sizes(k: int) -> tuple[int, ...]:
+    """Hidden widths of the public code's weight regressor for k neighbours."""
+    return (64 * k, 32 * k, 16 * k)
+
+
+def init_weight_regressor(
+    batch: int,
+    k: int,
+    latent_dim: int,
+    *,
+    hidden: Sequence[int] | None = None,
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str | None = None,
+) -> list[LayerParams]:
+    """Independent weight-regressor parameters for ``batch`` queries.
+
+    latent_dim is D, the size of one neighbour encoding (the input has k·D features).
+    Every weight and bias is drawn from U(−1/√fan_in, 1/√fan_in), the bounds of
+    ``nn.Linear``'s default initialisation. Random numbers come from ``generator`` (on its
+    device) and are then moved to ``device``.
+    """
+    sizes = [k * latent_dim, *(regressor_hidden_sizes(k) if hidden is None else hidden), k]
+    draw_device = generator.device if generator is not None else device
+
+    def uniform(shape: tuple[int, ...], bound: float) -> Tensor:
+        values = torch.rand(shape, generator=generator, dtype=dtype, device=draw_device)
+        return ((2.0 * values - 1.0) * bound).to(device)
+
+    layers: list[LayerParams] = []
+    for fan_in, fan_out in itertools.pairwise(sizes):
+        bound = 1.0 / math.sqrt(fan_in)
+        layers.append((uniform((batch, fan_in, fan_out), bound), uniform((batch, fan_out), bound)))
+    return layers
+
+
+def closed_form_weights(
+    query_latent: Tensor, neighbour_latents: Tensor, ridge: float = 1e-6
+) -> Tensor:
+    """Affine weights [B, k] minimising ‖z − Σ aᵢ ẑᵢ‖₂ subject to Σ aᵢ = 1, exactly.
+
+    Solves the KKT system of the equality-constrained least squares, batched, on latents
+    centred at the neighbours' mean (which leaves the objective unchanged when Σ a = 1 and
+    improves conditioning). A ridge of ``ridge`` × (mean squared centred norm) on ``a`` keeps
+    the system solvable when neighbours coincide; it favours equal weights. Weights may be
+    negative.
+    """
+    centre = neighbour_latents.mean(dim=1, keepdim=True)
+    centred = neighbour_latents - centre  # [B, k, D]
+    target = (query_latent.unsqueeze(1) - centre).transpose(1, 2)  # [B, D, 1]
+    gram = centred @ centred.transpose(1, 2)  # [B, k, k]
+    rhs = (centred @ target).squeeze(-1)  # [B, k]
+    batch, k, _ = gram.shape
+    scale = gram.diagonal(dim1=1, dim2=2).mean(dim=1)
+    scale = torch.where(scale > 0, scale, torch.ones_like(scale))
+    eye = torch.eye(k, dtype=gram.dtype, device=gram.device)
+    ones = torch.ones(batch, k, 1, dtype=gram.dtype, device=gram.device)
+    top = torch.cat([gram + ridge * scale[:, None, None] * eye, ones], dim=2)
+    bottom = torch.cat([ones.transpose(1, 2), torch.zeros_like(ones[:, :1])], dim=2)
+    kkt = torch.cat([top, bottom], dim=1)  # [B, k+1, k+1]
+    solution = torch.linalg.solve(kkt, torch.cat([rhs, ones[:, :1, 0]], dim=1))
+    return solution[:, :k]
+
+
+def _objective(
+    query_latent: Tensor, neighbour_latents: Tensor, weights: Tensor, objective: Objective
+) -> Tensor:
+    """Sum over queries of the per-query matching loss (so each query's gradient is its own)."""
+    combined = (weights.unsqueeze(1) @ neighbour_latents).squeeze(1)
+    residual = query_latent - combined
+    if objective == "l2":
+        return torch.linalg.vector_norm(residual, dim=-1).sum()
+    return residual.pow(2).mean(dim=-1).sum()
+
+
+def _regressor_weights(layers: Sequence[LayerParams], neighbour_latents: Tensor) -> Tensor:
+    """Batched weight regressor: neighbour latents [B, k, D] -> softmax weights [B, k]."""
+    hidden = neighbour_latents.reshape(neighbour_latents.shape[0], 1, -1)
+    for position, (weight, bias) in enumerate(layers):
+        hidden = torch.baddbmm(bias.unsqueeze(1), hidden, weight)
+        if position < len(layers) - 1:
+            hidden = torch.relu(hidden)
+    return torch.softmax(hidden.squeeze(1), dim=-1)
+
+
+def _check_inputs(
+    query_latent: Tensor,
+    neighbour_latents: Tensor,
+    neighbour_poses: Tensor,
+    weight_model: str,
+    objective: str,
+) -> None:
+    if weight_model not in WEIGHT_MODELS:
+        raise ValueError(f"weight_model must be one of {WEIGHT_MODELS}, got {weight_model!r}")
+    if objective not in ("l2", "mse"):
+        raise ValueError(f"objective must be 'l2' or 'mse', got {objective!r}")
+    if query_latent.ndim != 2:
+        raise ValueError(f"query_latent must be [B, D], got {tuple(query_latent.shape)}")
+    batch, dim = query_latent.shape
+    if (
+        neighbour_latents.ndim != 3
+        or neighbour_latents.shape[0] != batch
+        or neighbour_latents.shape[2] != dim
+    ):
+        raise ValueError(
+            f"neighbour_latents must be [B, k, D] = [{batch}, k, {dim}], "
+            f"got {tuple(neighbour_latents.shape)}"
+        )
+    k = neighbour_latents.shape[1]
+    if neighbour_poses.shape[:2] != (batch, k) or neighbour_poses.shape[2] not in (3, 7):
+        raise ValueError(
+            f"neighbour_poses must be [B, k, 7] = [{batch}, {k}, 7], "
+            f"got {tuple(neighbour_poses.shape)}"
+        )
+
+
+def _check_logits_init(init: InitParams, batch: int, k: int) -> Tensor:
+    if not isinstance(init, Tensor) or init.shape != (batch, k):
+        shape = tuple(init.shape) if isinstance(init, Tensor) else type(init).__name__
+        raise ValueError(f"softmax_logits init must be logits [B, k] = [{batch}, {k}], got {shape}")
+    return init
+
+
+def _check_mlp_init(init: InitParams, batch: int, k: int, dim: int) -> Sequence[LayerParams]:
+    if isinstance(init, Tensor) or len(init) == 0:
+        raise ValueError(
+            "mlp init must be a sequence of (weight [B, in, out], bias [B, out]) pairs"
+        )
+    fan_in = k * dim
+    for weight, bias in init:
+        if (
+            weight.ndim != 3
+            or weight.shape[:2] != (batch, fan_in)
+            or bias.shape != (batch, weight.shape[2])
+        ):
+            raise ValueError(
+                f"mlp init layer shapes {tuple(weight.shape)}, {tuple(bias.shape)} do not chain "
+                f"from input [{batch}, {fan_in}]"
+            )
+        fan_in = weight.shape[2]
+    if fan_in != k:
+        raise ValueError(f"mlp init must end with k={k} outputs, got {fan_in}")
+    return init
+
+
+def _positions(weights: Tensor, neighbour_poses: Tensor) -> Tensor:
+    return (weights.unsqueeze(1) @ neighbour_poses[..., :3].to(weights.dtype)).squeeze(1)
+
+
+def refine_affine(
+    query_latent: Tensor,
+    neighbour_latents: Tensor,
+    neighbour_poses: Tensor,
+    *,
+    weight_model: WeightModel = "mlp",
+    iterations: int = 3,
+    lr: float = 1e-3,
+    weight_decay: float = 0.01,
+    objective: Objective = "l2",
+    hidden: Sequence[int] | None = None,
+    generator: torch.Generator | None = None,
+    init: InitParams | None = None,
+    chunk_size: int = 128,
+    ridge: float = 1e-6,
+) -> AffineFit:
+    """Affine weights for every query at once.
+
+    query_latent [B, D]; neighbour_latents [B, k, D]; neighbour_poses [B, k, 7] (or [B, k, 3]),
+    positions in metres. The iterative models take ``iterations`` AdamW steps (``lr``,
+    ``weight_decay``) on the summed per-query loss ‖z − Σ aᵢ ẑᵢ‖₂ (``objective="l2"``, the
+    paper) or its mean square (``"mse"``, the public code); the returned weights are those of
+    the parameters after the last step. ``init`` gives the initial parameters (see
+    ``InitParams``); without it logits start at zero (uniform weights) and the MLP is drawn by
+    ``init_weight_regressor`` from ``generator``. The MLP path runs ``chunk_size`` queries at a
+    time to bound memory (each query owns ~1.3 MB of parameters for k=3, D=512), which does not
+    change the result. Works under ``torch.no_grad`` and ``torch.inference_mode``; the outputs
+    carry no autograd graph.
+    """
+    _check_inputs(query_latent, neighbour_latents, neighbour_poses, weight_model, objective)
+    if iterations < 0:
+        raise ValueError(f"iterations must be >= 0, got {iterations}")
+    batch, k, dim = neighbour_latents.shape
+    with torch.inference_mode(False), torch.enable_grad():
+        query = query_latent.detach().clone()
+        neighbours = neighbour_latents.detach().to(query.dtype).clone()
+        if weight_model == "closed_form":
+            with torch.no_grad():
+                weights = closed_form_weights(query, neighbours, ridge)
+        elif weight_model == "softmax_logits":
+            logits = (
+                torch.zeros(batch, k, dtype=query.dtype, device=query.device)
+                if init is None
+                else _check_logits_init(init, batch, k).to(query)
+            )
+            logits = logits.detach().clone().requires_grad_(True)
+            _optimise(
+                [logits],
+                lambda: torch.softmax(logits, dim=-1),
+                query,
+                neighbours,
+                iterations,
+                lr,
+                weight_decay,
+                objective,
+            )
+            with torch.no_grad():
+                weights = torch.softmax(logits, dim=-1)
+        else:
+            layers = (
+                init_weight_regressor(
+                    batch,
+                    k,
+                    dim,
+                    hidden=hidden,
+                    generator=generator,
+                    dtype=query.dtype,
+                    device=query.device,
+                )
+                if init is None
+                else _check_mlp_init(init, batch, k, dim)
+            )
+            chunks = []
+            for start in range(0, batch, chunk_size):
+                rows = slice(start, start + chunk_size)
+                params = [
+                    tensor[rows].detach().to(query).clone().requires_grad_(True)
+                    for layer in layers
+                    for tensor in layer
+                ]
+                chunk_layers = list(zip(params[0::2], params[1::2], strict=True))
+                chunk_neighbours = neighbours[rows]
+
+                def chunk_weights(
+                    chunk_layers: list[LayerParams] = chunk_layers,
+                    chunk_neighbours: Tensor = chunk_neighbours,
+                ) -> Tensor:
+                    return _regressor_weights(chunk_layers, chunk_neighbours)
+
+                _optimise(
+                    params,
+                    chunk_weights,
+                    query[rows],
+                    chunk_neighbours,
+                    iterations,
+                    lr,
+                    weight_decay,
+                    objective,
+                )
+                with torch.no_grad():
+                    chunks.append(chunk_weights())
+            weights = torch.cat(chunks, dim=0)
+        weights = weights.detach()
+        return AffineFit(weights, _positions(weights, neighbour_poses.detach()))
+
+
+def _optimise(
+    params: list[Tensor],
+    weights_fn: Callable[[], Tensor],
+    query: Tensor,
+    neighbours: Tensor,
+    iterations: int,
+    lr: float,
+    weight_decay: float,
+    objective: Objective,
+) -> None:
+    optimiser = torch.optim.AdamW(params, lr=lr, weight_decay=weight_decay)
+    for _ in range(iterations):
+        optimiser.zero_grad(set_to_none=True)
+        _objective(query, neighbours, weights_fn(), objective).backward()
+        optimiser.step()
+
+
+class _WeightRegressor(nn.Module):
+    """One query's weight regressor: k encodings [k, D] -> softmax weights [k]."""
+
+    def __init__(self, k: int, latent_dim: int, hidden: Sequence[int]) -> None:
+        super().__init__()
+        sizes = [k * latent_dim, *hidden, k]
+        layers: list[nn.Module] = []
+        for fan_in, fan_out in itertools.pairwise(sizes):
+            layers += [nn.Linear(fan_in, fan_out), nn.ReLU()]
+        self.net = nn.Sequential(*layers[:-1])
+
+    def load_batched(self, layers: Sequence[LayerParams], row: int) -> None:
+        """Copy the parameters of query ``row`` from batched layers (weights are transposed)."""
+        linears = [m for m in self.net if isinstance(m, nn.Linear)]
+        with torch.no_grad():
+            for linear, (weight, bias) in zip(linears, layers, strict=True):
+                linear.weight.copy_(weight[row].T)
+                linear.bias.copy_(bias[row])
+
+    def forward(self, neighbour_latents: Tensor) -> Tensor:
+        return F.softmax(self.net(neighbour_latents.reshape(1, -1)), dim=1).squeeze(0)
+
+
+class _FreeLogits(nn.Module):
+    """One query's free logits [k] -> softmax weights [k]."""
+
+    def __init__(self, logits: Tensor) -> None:
+        super().__init__()
+        self.logits = nn.Parameter(logits.detach().clone())
+
+    def forward(self, neighbour_latents: Tensor) -> Tensor:
+        return F.softmax(self.logits, dim=0)
+
+
+def refine_affine_per_query(
+    query_latent: Tensor,
+    neighbour_latents: Tensor,
+    neighbour_poses: Tensor,
+    *,
+    weight_model: WeightModel = "mlp",
+    iterations: int = 3,
+    lr: float = 1e-3,
+    weight_decay: float = 0.01,
+    objective: Objective = "l2",
+    hidden: Sequence[int] | None = None,
+    generator: torch.Generator | None = None,
+    init: InitParams | None = None,
+    chunk_size: int = 128,
+    ridge: float = 1e-6,
+) -> AffineFit:
+    """Reference for ``refine_affine`` that processes one query at a time, as the public code.
+
+    Same arguments and result. Each query gets a fresh ``nn.Module`` (MLP or logits) and its
+    own AdamW, and is optimised with batch size 1. Without ``init`` or ``generator`` the MLP
+    keeps ``nn.Linear``'s default initialisation (global RNG); with ``generator`` each query's
+    parameters are drawn by ``init_weight_regressor``. ``chunk_size`` is accepted for a common
+    signature and unused.
+    """
+    _check_inputs(query_latent, neighbour_latents, neighbour_poses, weight_model, objective)
+    batch, k, dim = neighbour_latents.shape
+    hidden_sizes = regressor_hidden_sizes(k) if hidden is None else tuple(hidden)
+    if init is not None and weight_model == "mlp":
+        _check_mlp_init(init, batch, k, dim)
+    if init is not None and weight_model == "softmax_logits":
+        _check_logits_init(init, batch, k)
+    with torch.inference_mode(False), torch.enable_grad():
+        query = query_latent.detach().clone()
+        neighbours = neighbour_latents.detach().to(query.dtype).clone()
+        rows = []
+        for row in range(batch):
+            if weight_model == "closed_form":
+                rows.append(
+                    closed_form_weights(query[row : row + 1], neighbours[row : row + 1], ridge)[0]
+                )
+                continue
+            model: nn.Module
+            if weight_model == "softmax_logits":
+                logits = (
+                    torch.zeros(k, dtype=query.dtype, device=query.device)
+                    if init is None
+                    else init[row]
+                )
+                model = _FreeLogits(logits.to(query))
+            else:
+                regressor = _WeightRegressor(k, dim, hidden_sizes).to(query)
+                if init is not None:
+                    regressor.load_batched(init, row)
+                elif generator is not None:
+                    drawn = init_weight_regressor(
+                        1,
+                        k,
+                        dim,
+                        hidden=hidden_sizes,
+                        generator=generator,
+                        dtype=query.dtype,
+                        device=query.device,
+                    )
+                    regressor.load_batched(drawn, 0)
+                model = regressor
+            optimiser = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
+            for _ in range(iterations):
+                optimiser.zero_grad(set_to_none=True)
+                weights = model(neighbours[row])
+                loss = _objective(
+                    query[row : row + 1], neighbours[row : row + 1], weights.unsqueeze(0), objective
+                )
+                loss.backward()
+                optimiser.step()
+            with torch.no_grad():
+                rows.append(model(neighbours[row]))
+        weights = torch.stack(rows).detach()
+        return AffineFit(weights, _positions(weights, neighbour_poses.detach()))
+
+
+def combine_orientations(
+    neighbour_q: Tensor, weights: Tensor, initial_q: Tensor, mode: OrientationMode = "teacher"
+) -> Tensor:
+    """Orientation [B, 4] (unit, qw >= 0) of the refined pose.
+
+    neighbour_q [B, k, 4]; weights [B, k]; initial_q [B, 4] (the teacher's estimate).
+    ``"teacher"``: the initial estimate (the paper). ``"affine"``: normalised Σ aᵢ qᵢ after
+    flipping each neighbour onto the hemisphere of the first (the weighted average the
+    supplementary evaluates). ``"markley"``: the weighted quaternion average of Markley et al.;
+    negative weights (possible with ``closed_form``) are clamped to 0 since the average needs
+    non-negative weights — Σ a = 1 guarantees at least one positive weight.
+    """
+    if mode not in ORIENTATION_MODES:
+        raise ValueError(f"orientation mode must be one of {ORIENTATION_MODES}, got {mode!r}")
+    if mode == "teacher":
+        return canonicalize_quaternion(initial_q)
+    neighbour_q = normalize_quaternion(neighbour_q)
+    weights = weights.to(neighbour_q.dtype)
+    if mode == "affine":
+        alignment = (neighbour_q * neighbour_q[:, :1]).sum(dim=-1, keepdim=True)
+        aligned = torch.where(alignment < 0, -neighbour_q, neighbour_q)
+        return canonicalize_quaternion((weights.unsqueeze(-1) * aligned).sum(dim=1))
+    return average_quaternions(neighbour_q, weights.clamp(min=0.0))
+
+
+def perturb_positions(
+    poses: Tensor, sigma_m: float, generator: torch.Generator | None = None
+) -> Tensor:
+    """poses [B, 7] with N(0, sigma_m²) noise (m) added to each position coordinate.
+
+    The orientation is kept: the random-guess check of the paper's supplementary (§1.4).
+    """
+    draw_device = generator.device if generator is not None else poses.device
+    noise = torch.randn(
+        poses.shape[0], 3, generator=generator, device=draw_device, dtype=poses.dtype
+    )
+    perturbed = poses.clone()
+    perturbed[:, :3] += sigma_m * noise.to(poses.device)
+    return perturbed
+
+
+class PositionRefiner:
+    """Test-time position refinement of APR estimates with a PAE and a store of train poses.
+
+    For each query: retrieve the k nearest train poses of the initial estimate in its scene,
+    encode them with the PAE (one batched call, no gradients), fit affine weights so that the
+    combined encodings match the query's latent, and return Σ aᵢ xᵢ with the orientation
+    chosen by ``orientation``. Defaults follow the paper and its public code: k=3, 3 AdamW
+    iterations, the MLP weight regressor, the teacher's orientation. ``lr`` defaults to 1e-3.
+
+    A plain class (not an ``nn.Module``) so the PAE it uses is not registered twice in a
+    LightningModule that owns both.
+    """
+
+    def __init__(
+        self,
+        index: PoseIndex,
+        pae: PoseEncoder,
+        *,
+        k: int = 3,
+        iterations: int = 3,
+        lr: float = 1e-3,
+        weight_decay: float = 0.01,
+        weight_model: WeightModel = "mlp",
+        orientation: OrientationMode = "teacher",
+        objective: Objective = "l2",
+        hidden: Sequence[int] | None = None,
+        chunk_size: int = 128,
+        seed: int = 0,
+    ) -> None:
+        if weight_model not in WEIGHT_MODELS:
+            raise ValueError(f"weight_model must be one of {WEIGHT_MODELS}, got {weight_model!r}")
+        if orientation not in ORIENTATION_MODES:
+            raise ValueError(f"orientation must be one of {ORIENTATION_MODES}, got {orientation!r}")
+        if k < 1:
+            raise ValueError(f"k must be >= 1, got {k}")
+        self.index = index
+        self.pae = pae
+        self.k = k
+        self.iterations = iterations
+        self.lr = lr
+        self.weight_decay = weight_decay
+        self.weight_model: WeightModel = weight_model
+        self.orientation: OrientationMode = orientation
+        self.objective: Objective = objective
+        self.hidden = hidden
+        self.chunk_size = chunk_size
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def __call__(
+        self, query_latents: Latents, initial_poses: Tensor, scenes: Tensor | None = None
+    ) -> RefinementResult:
+        """query_latents: the APR's latents (x, q of [B, d]); initial_poses [B, 7]: its
+        estimates; scenes [B] long or None. With several scenes in the index and no
+        ``scenes``, the argmax of ``query_latents.scene_logits`` is used.
+        """
+        if (
+            scenes is None
+            and len(self.index.scene_ids) > 1
+            and query_latents.scene_logits is not None
+        ):
+            scenes = query_latents.scene_logits.argmax(dim=-1)
+        with torch.inference_mode(False):
+            device = initial_poses.device
+            initial = initial_poses.detach().clone()
+            indices, _ = self.index.query(initial, scenes, self.k)
+            batch = initial.shape[0]
+            neighbour_poses = self.index.poses[indices.to(self.index.device)].to(
+                device
+            )  # [B, k, 7]
+            neighbour_scenes = (
+                None if scenes is None else scenes.detach().clone().repeat_interleave(self.k)
+            )
+            with torch.no_grad():
+                encoded = self.pae(neighbour_poses.reshape(batch * self.k, 7), neighbour_scenes)
+            query = query_latents.joint().detach().clone()
+            neighbour_latents = encoded.joint().detach().clone().reshape(batch, self.k, -1)
+            fit = refine_affine(
+                query,
+                neighbour_latents,
+                neighbour_poses,
+                weight_model=self.weight_model,
+                iterations=self.iterations,
+                lr=self.lr,
+                weight_decay=self.weight_decay,
+                objective=self.objective,
+                hidden=self.hidden,
+                generator=self.generator,
+                chunk_size=self.chunk_size,
+            )
+            orientation = combine_orientations(
+                neighbour_poses[..., 3:], fit.weights, initial[:, 3:], self.orientation
+            )
+            poses = torch.cat(
+                [fit.positions.to(initial.dtype), orientation.to(initial.dtype)], dim=1
+            )
+        return RefinementResult(poses, fit.weights, indices)

@@ -1,0 +1,105 @@
+"""Run outputs: atomic metrics.json, the results table, and one-line errors for entry points."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import tempfile
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from pathlib import Path
+
+from hydra.errors import HydraException, InstantiationException
+from omegaconf.errors import OmegaConfBaseException
+
+from pae.checkpoints import CheckpointError
+from pae.data.labels import LabelError
+from pae.data.transforms import ImageError
+from pae.models.backbones import BackboneError
+
+METHOD_ORDER = (
+    "teacher",
+    "student",
+    "student_gt",
+    "refined",
+    "vrpr",
+    "guess_initial",
+    "guess_refined",
+    "mean_pose",
+)
+
+
+class ConfigError(ValueError):
+    """A configuration value that cannot work; the message names the key."""
+
+
+USER_ERRORS = (
+    ConfigError,
+    LabelError,
+    ImageError,
+    CheckpointError,
+    BackboneError,
+    OmegaConfBaseException,
+    HydraException,
+)
+
+
+def write_json_atomic(path: str | Path, payload: Mapping[str, object]) -> None:
+    """Write JSON to a temporary file beside `path`, then rename it over `path`."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as handle:
+            json.dump(dict(payload), handle, indent=2, sort_keys=True)
+            handle.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def format_results_table(metrics: Mapping[str, float], split: str = "test") -> str:
+    """Paper-style table: median position / orientation error per method, overall and per scene."""
+    methods = [m for m in METHOD_ORDER if f"{split}/{m}/pos_median_m" in metrics]
+    scenes = sorted(
+        {
+            key.split("/")[2]
+            for key in metrics
+            if key.startswith(f"{split}/") and key.count("/") == 3
+        }
+    )
+    columns = ["overall", *scenes]
+    header = f"{'method':<15}" + "".join(f"{c:>18}" for c in columns)
+    lines = [f"median position [m] / orientation [deg] on the {split} split", header]
+    lines.append("-" * len(header))
+    for method in methods:
+        cells = []
+        for column in columns:
+            prefix = f"{split}/{method}/" if column == "overall" else f"{split}/{method}/{column}/"
+            pos, rot = metrics.get(prefix + "pos_median_m"), metrics.get(prefix + "rot_median_deg")
+            cells.append("-" if pos is None else f"{pos:.3f} / {rot:.2f}")
+        lines.append(f"{method:<15}" + "".join(f"{c:>18}" for c in cells))
+    return "\n".join(lines)
+
+
+def _first_line(err: BaseException) -> str:
+    cause = err
+    while isinstance(cause, InstantiationException) and cause.__cause__ is not None:
+        cause = cause.__cause__
+    text = " ".join(str(cause).split())
+    return text or type(cause).__name__
+
+
+@contextmanager
+def reporting_errors(program: str) -> Iterator[None]:
+    """Turn user errors (bad labels, images, checkpoints, config) into one line and exit 1."""
+    try:
+        yield
+    except InstantiationException as err:
+        print(f"{program}: error: {_first_line(err)}", file=sys.stderr)
+        raise SystemExit(1) from None
+    except USER_ERRORS as err:
+        print(f"{program}: error: {_first_line(err)}", file=sys.stderr)
+        raise SystemExit(1) from None

@@ -1,0 +1,50 @@
+"""`pae-train`: train a teacher APR, a student PAE, or both (Hydra; see conf/train.yaml)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import hydra
+import lightning as L
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+
+from pae import CONFIG_DIR
+from pae.pipeline import fit_student, fit_teacher
+from pae.reporting import ConfigError, format_results_table, reporting_errors, write_json_atomic
+
+STEPS = ("teacher", "student")
+
+
+def run(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
+    """Run the stage's steps; metrics.json is rewritten atomically after each finished step."""
+    unknown = [step for step in cfg.stage.steps if step not in STEPS]
+    if unknown:
+        raise ConfigError(f"unknown stage.steps {unknown}; choose from {list(STEPS)}")
+    L.seed_everything(cfg.seed, workers=True, verbose=False)
+    metrics: dict[str, float] = {}
+    teacher_ckpt = cfg.teacher_ckpt
+    several = len(cfg.stage.steps) > 1
+    for step in cfg.stage.steps:
+        step_dir = run_dir / step if several else run_dir
+        if step == "teacher":
+            step_metrics, teacher_ckpt = fit_teacher(cfg, step_dir)
+        else:
+            step_metrics = fit_student(cfg, step_dir, teacher_ckpt)
+        metrics |= step_metrics
+        write_json_atomic(run_dir / "metrics.json", metrics)
+    return metrics
+
+
+@hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="train")
+def main(cfg: DictConfig) -> float | None:
+    with reporting_errors("pae-train"):
+        run_dir = Path(HydraConfig.get().runtime.output_dir)
+        metrics = run(cfg, run_dir)
+        print(format_results_table(metrics))
+        print(f"metrics: {run_dir / 'metrics.json'}")
+        return metrics.get("test/student/pos_median_m", metrics.get("test/teacher/pos_median_m"))
+
+
+if __name__ == "__main__":
+    main()
