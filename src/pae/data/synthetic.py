@@ -51,6 +51,7 @@ __all__ = [
     "DEFAULT_TRAIN_FRAMES",
     "Appearance",
     "Box",
+    "CameraRoute",
     "CameraSequence",
     "FaceTexture",
     "PinholeCamera",
@@ -59,6 +60,7 @@ __all__ = [
     "make_scene",
     "make_sequences",
     "measure_render_speed",
+    "pose_rotation_translation",
     "render",
     "render_batch",
     "scene_name",
@@ -227,16 +229,73 @@ class Box:
 
 
 @dataclass(frozen=True, eq=False)
+class CameraRoute:
+    """Closed walk through a scene that all its sequences follow, each with its own deviations.
+
+    At route time ``tau`` (period 1) the position is ``centre + half · w(tau)`` per axis, with
+    ``w`` a sum of two sines of integer ``cycles`` ``[3, 2]``, ``weights`` ``[2]`` (summing to
+    1) and ``phases`` ``[3, 2]``; the yaw turns ``yaw_turns`` times around per period from
+    ``yaw_start`` with a wobble of ``yaw_wobble`` rad and ``wobble_cycles`` per period.
+    """
+
+    centre: np.ndarray
+    half: np.ndarray
+    cycles: np.ndarray
+    weights: np.ndarray
+    phases: np.ndarray
+    yaw_start: float
+    yaw_turns: int
+    yaw_wobble: float
+    wobble_cycles: int
+    wobble_phase: float
+
+    @classmethod
+    def random(cls, rng: np.random.Generator, centre: np.ndarray, half: np.ndarray) -> CameraRoute:
+        """A route filling the box ``centre ± half`` (m): Lissajous-like over ``x, y``."""
+        first = rng.permutation([2, 3])
+        cycles = np.array(
+            [
+                [first[0], rng.integers(5, 8)],
+                [first[1], rng.integers(5, 8)],
+                [rng.integers(1, 4), rng.integers(4, 7)],
+            ]
+        )
+        return cls(
+            centre=np.asarray(centre, dtype=np.float64),
+            half=np.asarray(half, dtype=np.float64),
+            cycles=cycles,
+            weights=np.array([0.8, 0.2]),
+            phases=rng.uniform(0, 2 * np.pi, (3, 2)),
+            yaw_start=float(rng.uniform(0, 2 * np.pi)),
+            yaw_turns=int(rng.choice([-1, 1])),
+            yaw_wobble=float(rng.uniform(0.3, 0.7)),
+            wobble_cycles=int(rng.integers(1, 3)),
+            wobble_phase=float(rng.uniform(0, 2 * np.pi)),
+        )
+
+    def at(self, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions ``[n, 3]`` (m) and yaw angles ``[n]`` (rad) at route times ``tau`` ``[n]``."""
+        angles = 2 * np.pi * self.cycles[None] * np.asarray(tau)[:, None, None] + self.phases
+        position = self.centre + self.half * (np.sin(angles) @ self.weights)
+        yaw = (
+            self.yaw_start
+            + 2 * np.pi * self.yaw_turns * tau
+            + self.yaw_wobble * np.sin(2 * np.pi * self.wobble_cycles * tau + self.wobble_phase)
+        )
+        return position, yaw
+
+
+@dataclass(frozen=True, eq=False)
 class SyntheticScene:
-    """A room seen from inside, boxes inside it seen from outside, a point light and the
-    region ``[region_lo, region_hi]`` (``[3]`` each, m) the cameras move in."""
+    """A room seen from inside, boxes inside it seen from outside, a point light ``[3]`` and
+    the route the cameras walk, which stays within ``route.centre ± route.half`` (m) and
+    sequences leave by at most 0.35 m."""
 
     name: str
     room: Box
     boxes: tuple[Box, ...]
     light_position: np.ndarray
-    region_lo: np.ndarray
-    region_hi: np.ndarray
+    route: CameraRoute
 
     @functools.cached_property
     def _tables(self) -> _FaceTables:
@@ -509,6 +568,7 @@ def make_scene(index: int, seed: int = 0) -> SyntheticScene:
 
     centre = np.array([*rng.uniform(-0.3, 0.3, 2), 1.4])
     half = np.array([rng.uniform(1.2, 1.6), rng.uniform(1.0, 1.4), 0.3])
+    route = CameraRoute.random(rng, centre, half)
     region_lo, region_hi = centre - half, centre + half
 
     boxes: list[Box] = []
@@ -530,7 +590,7 @@ def make_scene(index: int, seed: int = 0) -> SyntheticScene:
         boxes.append(Box(lo, hi, _box_textures(rng, lo, hi)))
 
     light = np.array([*rng.uniform(-1.0, 1.0, 2), size[2] - 0.5])
-    return SyntheticScene(scene_name(index), room, tuple(boxes), light, region_lo, region_hi)
+    return SyntheticScene(scene_name(index), room, tuple(boxes), light, route)
 
 
 # ----------------------------------------------------------------------------- appearance
@@ -710,35 +770,44 @@ def _split_counts(total: int, parts: int) -> list[int]:
     return [total // parts + (1 if i < total % parts else 0) for i in range(parts)]
 
 
-def _trajectory(scene: SyntheticScene, frames: int, rng: np.random.Generator) -> np.ndarray:
-    """Smooth camera path of ``frames`` poses ``[frames, 7]`` over the scene's camera region.
+def _smooth_wave(
+    rng: np.random.Generator,
+    t: np.ndarray,
+    cycles: tuple[float, float],
+    weights: tuple[float, float],
+) -> np.ndarray:
+    """Sum of two sines of ``t`` ``[n]`` with random phases and frequencies: ``cycles`` bounds
+    the first one's cycles per unit of ``t``, the second is 2–3 times faster."""
+    f1 = rng.uniform(*cycles)
+    f2 = rng.uniform(2 * cycles[1], 3 * cycles[1])
+    p1, p2 = rng.uniform(0, 2 * np.pi, 2)
+    return weights[0] * np.sin(2 * np.pi * f1 * t + p1) + weights[1] * np.sin(
+        2 * np.pi * f2 * t + p2
+    )
 
-    Positions follow a Lissajous-like curve (two harmonics per axis) filling the region; yaw
-    turns 1–2 times around with a wobble, pitch and roll stay within about ±12° and ±5°.
+
+def _trajectory(
+    scene: SyntheticScene, frames: int, start: float, rng: np.random.Generator
+) -> np.ndarray:
+    """Smooth camera path of ``frames`` poses ``[frames, 7]`` along the scene's route.
+
+    The sequence walks 75–100 % of the route from route time ``start``, straying from it by up
+    to 0.35 m and about 30° of yaw; pitch stays within about −14…+8° and roll within ±5°.
     """
     t = np.arange(frames) / max(frames, 1)
-    centre = (scene.region_lo + scene.region_hi) / 2
-    half = (scene.region_hi - scene.region_lo) / 2
-
-    def wave(low: float, high: float, weights: tuple[float, float]) -> np.ndarray:
-        f1, f2 = rng.uniform(low, high), rng.uniform(2 * high, 3 * high)
-        p1, p2 = rng.uniform(0, 2 * np.pi, 2)
-        return weights[0] * np.sin(2 * np.pi * f1 * t + p1) + weights[1] * np.sin(
-            2 * np.pi * f2 * t + p2
-        )
-
-    position = np.stack(
+    tau = start + rng.uniform(0.75, 1.0) * t
+    route_position, route_yaw = scene.route.at(tau)
+    position = route_position + np.stack(
         [
-            centre[0] + half[0] * wave(1.0, 2.2, (0.8, 0.2)),
-            centre[1] + half[1] * wave(1.0, 2.2, (0.8, 0.2)),
-            centre[2] + half[2] * wave(0.5, 1.5, (0.8, 0.2)),
+            0.35 * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3)),
+            0.35 * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3)),
+            0.1 * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3)),
         ],
         axis=1,
     )
-    turns = rng.choice([-1.0, 1.0]) * rng.uniform(1.0, 2.0)
-    yaw = rng.uniform(0, 2 * np.pi) + 2 * np.pi * turns * t + 0.6 * wave(0.5, 1.5, (0.8, 0.2))
-    pitch = np.radians(-3.0) + np.radians(9.0) * wave(1.0, 3.0, (0.8, 0.2))
-    roll = np.radians(4.0) * wave(1.0, 3.0, (0.7, 0.3))
+    yaw = route_yaw + 0.5 * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3))
+    pitch = np.radians(-3.0) + np.radians(11.0) * _smooth_wave(rng, t, (0.5, 1.5), (0.8, 0.2))
+    roll = np.radians(5.0) * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3))
     rotations = _look_rotations(yaw, pitch, roll)
     quaternions = matrix_to_quaternion(torch.from_numpy(rotations)).numpy()
     return np.concatenate([position, quaternions], axis=1)
@@ -749,15 +818,19 @@ def make_sequences(
 ) -> list[CameraSequence]:
     """Train sequences ``seq-01…`` then test sequences (numbered on) of scene ``scene_index``.
 
-    Up to 3 train and 2 test sequences share the frames of each split; each has its own path
-    over the scene's camera region and its own :class:`Appearance`.
+    Up to 3 train and 2 test sequences share the frames of each split. Each walks most of the
+    scene's route with its own deviations and :class:`Appearance`; the sequences of a split
+    start at staggered route times, so that together they cover the whole route.
     """
-    splits = [("train", n) for n in _split_counts(train_frames, TRAIN_SEQUENCES)]
-    splits += [("test", n) for n in _split_counts(test_frames, TEST_SEQUENCES)]
+    train_counts = _split_counts(train_frames, TRAIN_SEQUENCES)
+    test_counts = _split_counts(test_frames, TEST_SEQUENCES)
+    splits = [("train", i, len(train_counts), n) for i, n in enumerate(train_counts)]
+    splits += [("test", i, len(test_counts), n) for i, n in enumerate(test_counts)]
     sequences = []
-    for number, (split, frames) in enumerate(splits, start=1):
+    for number, (split, index_in_split, count, frames) in enumerate(splits, start=1):
         rng = np.random.default_rng([seed, scene_index, 1, number])
-        poses = _trajectory(scene, frames, rng)
+        start = (index_in_split + rng.uniform(0, 0.3)) / count
+        poses = _trajectory(scene, frames, start, rng)
         appearance = Appearance.random(rng)
         sequences.append(
             CameraSequence(
@@ -882,7 +955,7 @@ def measure_render_speed(frames: int = 200, size: int = DEFAULT_SIZE, seed: int 
     """Frames per second of rendering ``frames`` training frames of scene 0 (no file I/O)."""
     scene = make_scene(0, seed)
     rng = np.random.default_rng([seed, 0, 3])
-    poses = _trajectory(scene, frames, rng)
+    poses = _trajectory(scene, frames, 0.0, rng)
     appearance = Appearance.random(rng)
     camera = PinholeCamera(size)
     render_batch(scene, poses[:1], camera, appearance, rng)

@@ -90,9 +90,14 @@ class Backbone(nn.Module):
         state = torch.load(path, map_location="cpu", weights_only=True)
         prefix = "features."
         own = {k.removeprefix(prefix): v for k, v in state.items() if k.startswith(prefix)}
-        result = self.features.load_state_dict(own or state, strict=False)
-        if len(result.missing_keys) == len(self.features.state_dict()):
+        weights = own or state
+        if not set(weights) & set(self.features.state_dict()):
             raise BackboneError(f"backbone.weights_path {path} holds no weights for {self.name}")
+        try:
+            self.features.load_state_dict(weights)
+        except RuntimeError as err:
+            detail = " ".join(str(err).split())[:200]
+            raise BackboneError(f"backbone.weights_path {path} does not fit {self.name}: {detail}")
 
     def forward(self, images: Tensor) -> Tensor:
         """images [B, 3, H, W] -> features [B, out_dim]."""

@@ -1,0 +1,61 @@
+"""Shared fixtures: a tiny synthetic dataset and a composed training config over it."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig, open_dict
+
+from pae import CONFIG_DIR
+
+REFERENCE_LABELS = Path(__file__).resolve().parents[2] / "shared" / "reference" / "labels"
+
+TINY = {"scenes": 2, "train_frames": 24, "test_frames": 12, "size": 32}
+
+
+@pytest.fixture(scope="session")
+def tiny_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 2-scene synthetic dataset of 32 px frames, rendered once per test session."""
+    from pae.data.synthetic import write_synthetic_dataset
+
+    root = tmp_path_factory.mktemp("tiny_synthetic")
+    write_synthetic_dataset(root, seed=0, **TINY)
+    return root
+
+
+def tiny_overrides(root: Path) -> list[str]:
+    """Overrides that point the default config at the tiny dataset with 1-2 epoch runs."""
+    return [
+        f"data.root={root}",
+        f"data.scenes={TINY['scenes']}",
+        f"data.train_frames={TINY['train_frames']}",
+        f"data.test_frames={TINY['test_frames']}",
+        f"data.size={TINY['size']}",
+        "data.crop=28",
+        "data.batch_size=8",
+        "teacher.max_epochs=2",
+        "student.max_epochs=2",
+        "trainer.check_val_every_n_epoch=1",
+        "callbacks=minimal",
+        "+trainer.enable_progress_bar=false",
+    ]
+
+
+@pytest.fixture
+def compose_train(tiny_root: Path) -> Callable[..., DictConfig]:
+    """compose_train(*overrides, run_dir=...) -> the train config over the tiny dataset."""
+
+    def make(*overrides: str, run_dir: Path | None = None) -> DictConfig:
+        with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+            cfg = compose(
+                "train", overrides=[*tiny_overrides(tiny_root), *overrides], return_hydra_config=True
+            )
+        if run_dir is not None:
+            with open_dict(cfg):
+                cfg.hydra.runtime.output_dir = str(run_dir)
+        return cfg
+
+    return make

@@ -1,0 +1,105 @@
+"""Short teacher -> student -> evaluation runs on the tiny synthetic dataset."""
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from pae.checkpoints import CheckpointError, load_pae, load_teacher
+from pae.pipeline import evaluate_checkpoints
+from pae.reporting import ConfigError
+from pae.train import run
+
+EXPECTED_METHODS = ("teacher", "student", "student_gt", "mean_pose", "refined", "guess_initial", "guess_refined")
+
+
+@pytest.fixture(scope="module")
+def pipeline_run(tmp_path_factory: pytest.TempPathFactory, tiny_root: Path) -> Path:
+    from hydra import compose, initialize_config_dir
+    from omegaconf import open_dict
+
+    from pae import CONFIG_DIR
+    from tests.conftest import tiny_overrides
+
+    run_dir = tmp_path_factory.mktemp("pipeline")
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("train", overrides=[*tiny_overrides(tiny_root), "stage=pipeline"], return_hydra_config=True)
+    with open_dict(cfg):
+        cfg.hydra.runtime.output_dir = str(run_dir)
+    run(cfg, run_dir)
+    return run_dir
+
+
+def test_pipeline_writes_metrics_checkpoints_and_events(pipeline_run: Path) -> None:
+    metrics = json.loads((pipeline_run / "metrics.json").read_text())
+    for method in EXPECTED_METHODS:
+        for figure in ("pos_median_m", "rot_median_deg", "pos_mean_m", "rot_mean_deg"):
+            value = metrics[f"test/{method}/{figure}"]
+            assert value >= 0 and value == value
+        assert f"test/{method}/scene00/pos_median_m" in metrics
+    assert metrics["bench/teacher/fit_s"] > 0 and metrics["bench/student/fit_s"] > 0
+    for step in ("teacher", "student"):
+        assert (pipeline_run / step / "checkpoints" / "last.ckpt").is_file()
+        assert list((pipeline_run / step).glob("events.out.tfevents.*"))
+
+
+def test_checkpoints_reload_with_weights_only(pipeline_run: Path) -> None:
+    teacher = load_teacher(pipeline_run / "teacher" / "checkpoints" / "last.ckpt")
+    pae = load_pae(pipeline_run / "student" / "checkpoints" / "last.ckpt")
+    assert teacher.scene_names == ["scene00", "scene01"] == pae.scene_names
+    assert pae.model.latent_dim == teacher.model.latent_dim
+    poses = torch.zeros(2, 7)
+    poses[:, 3] = 1
+    assert teacher.model.regress(pae.model(poses, torch.tensor([0, 1]))).shape == (2, 7)
+
+
+def test_bad_checkpoints_give_clear_errors(pipeline_run: Path, tmp_path: Path) -> None:
+    teacher_ckpt = pipeline_run / "teacher" / "checkpoints" / "last.ckpt"
+    with pytest.raises(CheckpointError, match="not a student checkpoint"):
+        load_pae(teacher_ckpt)
+    with pytest.raises(CheckpointError, match="checkpoint not found"):
+        load_teacher(tmp_path / "nope.ckpt")
+    corrupt = tmp_path / "corrupt.ckpt"
+    corrupt.write_bytes(b"not a checkpoint at all")
+    with pytest.raises(CheckpointError, match="corrupt.ckpt: not a readable checkpoint"):
+        load_teacher(corrupt)
+
+
+def test_evaluate_checkpoints_with_each_weight_model(pipeline_run: Path, compose_train, tmp_path: Path) -> None:
+    from hydra import compose, initialize_config_dir
+
+    from pae import CONFIG_DIR
+    from tests.conftest import TINY
+
+    student_ckpt = pipeline_run / "student" / "checkpoints" / "last.ckpt"
+    root = compose_train().data.root
+    for weight_model in ("softmax_logits", "closed_form"):
+        with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+            cfg = compose("eval", overrides=[
+                f"pae_ckpt={student_ckpt}", f"data.root={root}", f"data.size={TINY['size']}",
+                f"data.train_frames={TINY['train_frames']}", f"data.test_frames={TINY['test_frames']}",
+                "data.crop=28", f"refine.weight_model={weight_model}", "refine.orientation=markley",
+                "+trainer.enable_progress_bar=false",
+            ])
+        metrics = evaluate_checkpoints(cfg, tmp_path / weight_model)
+        assert metrics["test/refined/pos_median_m"] >= 0
+        assert "test/teacher/pos_median_m" in metrics
+
+
+def test_student_without_teacher_checkpoint_is_a_config_error(compose_train, tmp_path: Path) -> None:
+    cfg = compose_train("stage=student", run_dir=tmp_path)
+    with pytest.raises(ConfigError, match="teacher_ckpt=PATH"):
+        run(cfg, tmp_path)
+
+
+def test_student_on_other_scenes_is_rejected(pipeline_run: Path, compose_train, tmp_path: Path, tiny_root: Path) -> None:
+    one_scene = tmp_path / "one"
+    shutil.copytree(tiny_root, one_scene)
+    for split in ("train", "test"):
+        shutil.copy(one_scene / "labels" / f"scene00_{split}.csv", one_scene / "labels" / f"all_{split}.csv")
+    teacher_ckpt = pipeline_run / "teacher" / "checkpoints" / "last.ckpt"
+    cfg = compose_train("stage=student", f"teacher_ckpt={teacher_ckpt}", f"data.root={one_scene}", run_dir=tmp_path)
+    with pytest.raises(CheckpointError, match="trained on scenes"):
+        run(cfg, tmp_path / "run")

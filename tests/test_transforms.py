@@ -1,0 +1,65 @@
+import numpy as np
+import pytest
+import torch
+
+from pae.data.transforms import IMAGENET_MEAN, IMAGENET_STD, ImageError, ImageTransform, load_image
+
+
+def _batch(b: int = 6, h: int = 40, w: int = 48) -> torch.Tensor:
+    return torch.randint(0, 256, (b, 3, h, w), dtype=torch.uint8)
+
+
+def test_eval_transform_is_centre_crop_and_normalisation() -> None:
+    images = _batch()
+    out = ImageTransform(32, train=False)(images)
+    top, left = (40 - 32) // 2, (48 - 32) // 2
+    crop = images[:, :, top : top + 32, left : left + 32].float() / 255
+    mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
+    std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
+    assert torch.allclose(out, (crop - mean) / std)
+
+
+def test_train_crops_are_per_image_windows_of_the_input() -> None:
+    torch.manual_seed(0)
+    images = _batch(b=16)
+    transform = ImageTransform(32, train=True, color_jitter=(0.0, 0.0, 0.0, 0.0))
+    out = transform(images)
+    assert out.shape == (16, 3, 32, 32)
+    pixels = out * transform.std + transform.mean
+    offsets = set()
+    for b in range(16):  # each crop must be some 32x32 window of its own image
+        windows = images[b].float().unfold(1, 32, 1).unfold(2, 32, 1) / 255  # [3, 9, 17, 32, 32]
+        diff = (windows - pixels[b][:, None, None]).abs().amax(dim=(0, 3, 4))
+        match = (diff < 1e-5).nonzero()
+        assert len(match) >= 1
+        offsets.add(tuple(match[0].tolist()))
+    assert len(offsets) > 1, "crop offsets must differ between images"
+
+
+def test_colour_jitter_differs_per_image() -> None:
+    torch.manual_seed(0)
+    one = _batch(b=1)
+    images = one.repeat(8, 1, 1, 1)
+    out = ImageTransform(40, train=True)(images)
+    assert out.shape == (8, 3, 40, 40)
+    per_image_mean = out.mean(dim=(1, 2, 3))
+    assert per_image_mean.std() > 0.01
+
+
+def test_crop_larger_than_image_is_a_clear_error() -> None:
+    with pytest.raises(ImageError, match="smaller than the 64 px crop"):
+        ImageTransform(64)(_batch())
+
+
+def test_load_image_resizes_shorter_edge_and_converts_to_rgb(tmp_path) -> None:
+    import cv2
+
+    bgr = np.zeros((60, 90, 3), np.uint8)
+    bgr[..., 0] = 255  # blue in OpenCV's BGR order
+    path = tmp_path / "a.png"
+    cv2.imwrite(str(path), bgr)
+    rgb = load_image(str(path), 30)
+    assert rgb.shape == (30, 45, 3)
+    assert rgb[..., 2].min() == 255 and rgb[..., 0].max() == 0
+    with pytest.raises(ImageError, match="missing.png"):
+        load_image(str(tmp_path / "missing.png"), 30)
