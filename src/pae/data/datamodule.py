@@ -66,8 +66,10 @@ class PoseDataModule(L.LightningDataModule):
             unknown = sorted(set(table.scene_names) - set(self.scene_names))
             if unknown:
                 raise LabelError(
-                    f"{table.source}: scenes {unknown} do not occur in the train labels "
-                    f"{self.tables['train'].source}"
+                    table.source,
+                    None,
+                    f"scenes {unknown} do not occur in the train labels "
+                    f"{self.tables['train'].source}",
                 )
         cached: dict[str, PoseDataset] = {}
         for split, path in self.label_paths.items():

@@ -255,8 +255,8 @@ class CameraRoute:
         first = rng.permutation([2, 3])
         cycles = np.array(
             [
-                [first[0], rng.integers(5, 8)],
-                [first[1], rng.integers(5, 8)],
+                [first[0], rng.integers(4, 6)],
+                [first[1], rng.integers(4, 6)],
                 [rng.integers(1, 4), rng.integers(4, 7)],
             ]
         )
@@ -791,11 +791,11 @@ def _trajectory(
 ) -> np.ndarray:
     """Smooth camera path of ``frames`` poses ``[frames, 7]`` along the scene's route.
 
-    The sequence walks 75–100 % of the route from route time ``start``, straying from it by up
+    The sequence walks 55–75 % of the route from route time ``start``, straying from it by up
     to 0.35 m and about 30° of yaw; pitch stays within about −14…+8° and roll within ±5°.
     """
     t = np.arange(frames) / max(frames, 1)
-    tau = start + rng.uniform(0.75, 1.0) * t
+    tau = start + rng.uniform(0.55, 0.75) * t
     route_position, route_yaw = scene.route.at(tau)
     position = route_position + np.stack(
         [

@@ -43,6 +43,12 @@ InitParams = Tensor | Sequence[LayerParams]
 """Initial parameters: logits [B, k] for ``softmax_logits``, the MLP layers for ``mlp``."""
 PoseEncoder = Callable[[Tensor, Tensor | None], Latents]
 
+ADAM_BETAS = (0.9, 0.999)
+ADAM_EPS = 1e-8
+SERIES_RATIO = {torch.float64: 1e3, torch.float32: 30.0}
+"""Per working dtype, the aᵢ·s / eps above which ``_FirstLayerGain`` uses its series: the
+truncation error, below ratio⁻⁵, is under the dtype's rounding (1e-15; 4e-8)."""
+_BAND_TERMS = 1 << 20
 WEIGHT_MODELS: tuple[str, ...] = ("softmax_logits", "mlp", "closed_form")
 ORIENTATION_MODES: tuple[str, ...] = ("teacher", "affine", "markley")
 
@@ -67,6 +73,32 @@ def regressor_hidden_sizes(k: int) -> tuple[int, ...]:
     return (64 * k, 32 * k, 16 * k)
 
 
+def _draw(
+    sampler: Callable[..., Tensor],
+    shape: tuple[int, ...],
+    generator: torch.Generator | None,
+    like: Tensor,
+) -> Tensor:
+    """``sampler(shape)`` (torch.rand / torch.randn) from ``generator`` on its own device,
+    returned with the dtype and device of ``like``."""
+    device = generator.device if generator is not None else like.device
+    values = sampler(shape, generator=generator, dtype=like.dtype, device=device)
+    return values.to(like.device)
+
+
+def _uniform_layers(
+    batch: int, sizes: Sequence[int], generator: torch.Generator | None, like: Tensor
+) -> list[LayerParams]:
+    """Batched linear layers ``sizes[0] -> sizes[1] -> …`` drawn as ``nn.Linear`` does."""
+    layers: list[LayerParams] = []
+    for fan_in, fan_out in itertools.pairwise(sizes):
+        bound = 1.0 / math.sqrt(fan_in)
+        weight = _draw(torch.rand, (batch, fan_in, fan_out), generator, like)
+        bias = _draw(torch.rand, (batch, fan_out), generator, like)
+        layers.append((bound * (2.0 * weight - 1.0), bound * (2.0 * bias - 1.0)))
+    return layers
+
+
 def init_weight_regressor(
     batch: int,
     k: int,
@@ -77,25 +109,15 @@ def init_weight_regressor(
     dtype: torch.dtype = torch.float32,
     device: torch.device | str | None = None,
 ) -> list[LayerParams]:
-    """Independent weight-regressor parameters for ``batch`` queries.
+    """Independent weight-regressor parameters for ``batch`` queries, stored in full.
 
     latent_dim is D, the size of one neighbour encoding (the input has k·D features).
     Every weight and bias is drawn from U(−1/√fan_in, 1/√fan_in), the bounds of
-    ``nn.Linear``'s default initialisation. Random numbers come from ``generator`` (on its
-    device) and are then moved to ``device``.
+    ``nn.Linear``'s default initialisation, from ``generator`` (on its device).
     """
     sizes = [k * latent_dim, *(regressor_hidden_sizes(k) if hidden is None else hidden), k]
-    draw_device = generator.device if generator is not None else device
-
-    def uniform(shape: tuple[int, ...], bound: float) -> Tensor:
-        values = torch.rand(shape, generator=generator, dtype=dtype, device=draw_device)
-        return ((2.0 * values - 1.0) * bound).to(device)
-
-    layers: list[LayerParams] = []
-    for fan_in, fan_out in itertools.pairwise(sizes):
-        bound = 1.0 / math.sqrt(fan_in)
-        layers.append((uniform((batch, fan_in, fan_out), bound), uniform((batch, fan_out), bound)))
-    return layers
+    like = torch.empty(0, dtype=dtype, device=device)
+    return _uniform_layers(batch, sizes, generator, like)
 
 
 def closed_form_weights(
@@ -126,25 +148,19 @@ def closed_form_weights(
     return solution[:, :k]
 
 
+def _combine(weights: Tensor, vectors: Tensor) -> Tensor:
+    """Σᵢ weights[b, i] · vectors[b, i] -> [B, D]; weights [B, k], vectors [B, k, D]."""
+    return (weights.unsqueeze(-1) * vectors).sum(dim=1)
+
+
 def _objective(
     query_latent: Tensor, neighbour_latents: Tensor, weights: Tensor, objective: Objective
 ) -> Tensor:
     """Sum over queries of the per-query matching loss (so each query's gradient is its own)."""
-    combined = (weights.unsqueeze(1) @ neighbour_latents).squeeze(1)
-    residual = query_latent - combined
+    residual = query_latent - _combine(weights, neighbour_latents)
     if objective == "l2":
         return torch.linalg.vector_norm(residual, dim=-1).sum()
     return residual.pow(2).mean(dim=-1).sum()
-
-
-def _regressor_weights(layers: Sequence[LayerParams], neighbour_latents: Tensor) -> Tensor:
-    """Batched weight regressor: neighbour latents [B, k, D] -> softmax weights [B, k]."""
-    hidden = neighbour_latents.reshape(neighbour_latents.shape[0], 1, -1)
-    for position, (weight, bias) in enumerate(layers):
-        hidden = torch.baddbmm(bias.unsqueeze(1), hidden, weight)
-        if position < len(layers) - 1:
-            hidden = torch.relu(hidden)
-    return torch.softmax(hidden.squeeze(1), dim=-1)
 
 
 def _check_inputs(
@@ -153,11 +169,14 @@ def _check_inputs(
     neighbour_poses: Tensor,
     weight_model: str,
     objective: str,
+    iterations: int,
 ) -> None:
     if weight_model not in WEIGHT_MODELS:
         raise ValueError(f"weight_model must be one of {WEIGHT_MODELS}, got {weight_model!r}")
     if objective not in ("l2", "mse"):
         raise ValueError(f"objective must be 'l2' or 'mse', got {objective!r}")
+    if iterations < 0:
+        raise ValueError(f"iterations must be >= 0, got {iterations}")
     if query_latent.ndim != 2:
         raise ValueError(f"query_latent must be [B, D], got {tuple(query_latent.shape)}")
     batch, dim = query_latent.shape
@@ -186,9 +205,9 @@ def _check_logits_init(init: InitParams, batch: int, k: int) -> Tensor:
 
 
 def _check_mlp_init(init: InitParams, batch: int, k: int, dim: int) -> Sequence[LayerParams]:
-    if isinstance(init, Tensor) or len(init) == 0:
+    if isinstance(init, Tensor) or len(init) < 2:
         raise ValueError(
-            "mlp init must be a sequence of (weight [B, in, out], bias [B, out]) pairs"
+            "mlp init must be a sequence of at least two (weight [B, in, out], bias [B, out]) pairs"
         )
     fan_in = k * dim
     for weight, bias in init:
@@ -207,8 +226,149 @@ def _check_mlp_init(init: InitParams, batch: int, k: int, dim: int) -> Sequence[
     return init
 
 
+class _FirstLayerGain:
+    """S[b, j] = Σᵢ aᵢ² / (aᵢ·s[b, j] + eps) for fixed a = |x| [b, n] and any s [b, h] >= 0.
+
+    Evaluated in float64. Terms with aᵢ·s >= ratio·eps are summed with the series
+    (aᵢ/s)·Σₚ₌₀⁴ (−eps/(aᵢ s))ᵖ (relative error below ratio⁻⁵) from suffix
+    sums of aᵢ^(1−p) over the sorted inputs, prepared once; the others (aᵢ near 0) are summed
+    term by term, at most ``_BAND_TERMS`` at a time. Zero inputs add nothing; rows with
+    s = 0 give 0.
+    """
+
+    def __init__(self, abs_inputs: Tensor, eps: float, ratio: float) -> None:
+        a = abs_inputs.to(torch.float64).sort(dim=1).values
+        positive = a > 0
+        inverse = torch.where(positive, 1.0 / torch.where(positive, a, 1.0), 0.0)
+        powers = torch.stack(
+            [a, positive.to(a.dtype), inverse, inverse.square(), inverse.square() * inverse],
+            dim=-1,
+        )
+        self.sorted = a
+        self.suffix = torch.cat(
+            [powers.flip(1).cumsum(1).flip(1), torch.zeros_like(powers[:, :1])], dim=1
+        )  # [b, n + 1, 5]: sums over sorted positions >= c
+        self.first_positive = (~positive).sum(dim=1, keepdim=True)
+        self.eps = eps
+        self.ratio = ratio
+        self.exponents = torch.arange(5, dtype=a.dtype, device=a.device)
+
+    def __call__(self, scale: Tensor) -> Tensor:
+        a, eps = self.sorted, self.eps
+        s = scale.to(torch.float64)
+        rows, n = a.shape
+        active = s > 0
+        safe_scale = torch.where(active, s, 1.0)
+        threshold = torch.where(active, self.ratio * eps / safe_scale, math.inf)
+        series_start = torch.searchsorted(a, threshold)  # [b, h]: first a >= threshold
+        tails = torch.gather(self.suffix, 1, series_start.unsqueeze(-1).expand(-1, -1, 5))
+        coefficients = (-eps) ** self.exponents / safe_scale.unsqueeze(-1) ** (self.exponents + 1)
+        series = torch.where(series_start < n, (tails * coefficients).sum(dim=-1), 0.0)
+
+        band = torch.where(active, (series_start - self.first_positive).clamp(min=0), 0)
+        band_sum = torch.zeros_like(s)
+        row_terms = band.sum(dim=1).tolist()
+        row = 0
+        while row < rows:
+            end, terms = row + 1, row_terms[row]
+            while end < rows and terms + row_terms[end] <= _BAND_TERMS:
+                terms += row_terms[end]
+                end += 1
+            if terms:
+                band_sum[row:end] = _band_sum(
+                    a[row:end], s[row:end], self.first_positive[row:end, 0], band[row:end], eps
+                )
+            row = end
+        return series + band_sum
+
+
+def _band_sum(a: Tensor, s: Tensor, first: Tensor, counts: Tensor, eps: float) -> Tensor:
+    """Σ over sorted positions first[r] .. first[r] + counts[r, j] − 1 of a² / (a·s[r, j] + eps)."""
+    rows, width = s.shape
+    flat_counts = counts.flatten()
+    total = int(flat_counts.sum())
+    unit = torch.repeat_interleave(
+        torch.arange(rows * width, device=a.device), flat_counts, output_size=total
+    )
+    starts = torch.repeat_interleave(
+        flat_counts.cumsum(0) - flat_counts, flat_counts, output_size=total
+    )
+    row = torch.div(unit, width, rounding_mode="floor")
+    values = a[row, first[row] + torch.arange(total, device=a.device) - starts]
+    terms = values.square() / (values * s.flatten()[unit] + eps)
+    return (
+        torch.zeros(rows * width, dtype=a.dtype, device=a.device)
+        .index_add_(0, unit, terms)
+        .view(rows, width)
+    )
+
+
+def _fit_regressor(
+    query: Tensor,
+    neighbours: Tensor,
+    first_preactivation: Tensor,
+    first_bias: Tensor,
+    layers: Sequence[LayerParams],
+    iterations: int,
+    lr: float,
+    weight_decay: float,
+    objective: Objective,
+) -> Tensor:
+    """Optimise a batch of weight regressors; returns their final softmax weights [b, k].
+
+    The first layer's weight W₁ [b, n, h] (n = k·D) is never stored. Its input x is the same
+    at every step, so its gradient is x ⊗ δ (δ = ∂L/∂(xW₁), equal to the first bias'
+    gradient) and AdamW's moments stay x ⊗ μ and x² ⊗ ν with μ, ν [b, h] updated by the
+    same rules. One AdamW step therefore changes xW₁ to
+    ``(1 − lr·wd)·xW₁ − lr/(1 − β₁ᵗ) · μ ⊙ S(√(ν/(1 − β₂ᵗ)))`` with ``S`` from
+    ``_FirstLayerGain``: the same arithmetic as a stored W₁, at O(b·h·n) per step instead
+    of the many passes over 4 tensors of that size. first_preactivation [b, h] is x·W₁ at
+    the start; the other parameters are ordinary tensors optimised by ``torch.optim.AdamW``.
+    """
+    beta1, beta2 = ADAM_BETAS
+    inputs = neighbours.reshape(neighbours.shape[0], -1)
+    gain = _FirstLayerGain(inputs.abs(), ADAM_EPS, SERIES_RATIO.get(query.dtype, 1e3))
+    projected = first_preactivation.detach().clone()
+    first_avg = torch.zeros_like(projected)
+    first_avg_sq = torch.zeros_like(projected)
+    bias = first_bias.detach().clone().requires_grad_(True)
+    params = [tensor.detach().clone().requires_grad_(True) for layer in layers for tensor in layer]
+    rest = list(zip(params[0::2], params[1::2], strict=True))
+    fused = True if query.device.type in ("cpu", "cuda") else None
+    optimiser = torch.optim.AdamW(
+        [bias, *params],
+        lr=lr,
+        betas=ADAM_BETAS,
+        eps=ADAM_EPS,
+        weight_decay=weight_decay,
+        fused=fused,
+    )
+
+    def weights_now() -> Tensor:
+        hidden = torch.relu(projected + bias)
+        for position, (weight, layer_bias) in enumerate(rest):
+            hidden = torch.baddbmm(layer_bias.unsqueeze(1), hidden.unsqueeze(1), weight).squeeze(1)
+            if position < len(rest) - 1:
+                hidden = torch.relu(hidden)
+        return torch.softmax(hidden, dim=-1)
+
+    for step in range(1, iterations + 1):
+        optimiser.zero_grad(set_to_none=True)
+        _objective(query, neighbours, weights_now(), objective).backward()
+        optimiser.step()
+        with torch.no_grad():
+            delta = bias.grad
+            first_avg.lerp_(delta, 1.0 - beta1)
+            first_avg_sq.mul_(beta2).addcmul_(delta, delta, value=1.0 - beta2)
+            scale = first_avg_sq.sqrt() / math.sqrt(1.0 - beta2**step)
+            projected.mul_(1.0 - lr * weight_decay)
+            projected.sub_(lr / (1.0 - beta1**step) * first_avg * gain(scale).to(projected))
+    with torch.no_grad():
+        return weights_now()
+
+
 def _positions(weights: Tensor, neighbour_poses: Tensor) -> Tensor:
-    return (weights.unsqueeze(1) @ neighbour_poses[..., :3].to(weights.dtype)).squeeze(1)
+    return _combine(weights, neighbour_poses[..., :3].to(weights.dtype))
 
 
 def refine_affine(
@@ -224,26 +384,29 @@ def refine_affine(
     hidden: Sequence[int] | None = None,
     generator: torch.Generator | None = None,
     init: InitParams | None = None,
-    chunk_size: int = 128,
+    chunk_size: int = 256,
     ridge: float = 1e-6,
 ) -> AffineFit:
     """Affine weights for every query at once.
 
     query_latent [B, D]; neighbour_latents [B, k, D]; neighbour_poses [B, k, 7] (or [B, k, 3]),
     positions in metres. The iterative models take ``iterations`` AdamW steps (``lr``,
-    ``weight_decay``) on the summed per-query loss ‖z − Σ aᵢ ẑᵢ‖₂ (``objective="l2"``, the
-    paper) or its mean square (``"mse"``, the public code); the returned weights are those of
-    the parameters after the last step. ``init`` gives the initial parameters (see
-    ``InitParams``); without it logits start at zero (uniform weights) and the MLP is drawn by
-    ``init_weight_regressor`` from ``generator``. The MLP path runs ``chunk_size`` queries at a
-    time to bound memory (each query owns ~1.3 MB of parameters for k=3, D=512), which does not
-    change the result. Works under ``torch.no_grad`` and ``torch.inference_mode``; the outputs
-    carry no autograd graph.
+    ``weight_decay``, betas (0.9, 0.999), eps 1e-8) on the summed per-query loss
+    ‖z − Σ aᵢ ẑᵢ‖₂ (``objective="l2"``, the paper) or its mean square (``"mse"``, the public
+    code); the returned weights are those of the parameters after the last step.
+
+    ``init`` gives the initial parameters (see ``InitParams``). Without it logits start at
+    zero (uniform weights), and each query's MLP is drawn from ``generator``: biases and
+    later layers as ``nn.Linear`` does (U(±1/√fan_in)); the first layer's weights as
+    N(0, 1/(3·fan_in)), the same variance, which lets x·W₁ be drawn directly (see
+    ``_fit_regressor``). The MLP path runs ``chunk_size`` queries at a time to bound memory,
+    which does not change the result. Works under ``torch.no_grad`` and
+    ``torch.inference_mode``; the outputs carry no autograd graph.
     """
-    _check_inputs(query_latent, neighbour_latents, neighbour_poses, weight_model, objective)
-    if iterations < 0:
-        raise ValueError(f"iterations must be >= 0, got {iterations}")
-    batch, k, dim = neighbour_latents.shape
+    _check_inputs(
+        query_latent, neighbour_latents, neighbour_poses, weight_model, objective, iterations
+    )
+    batch, k, _ = neighbour_latents.shape
     with torch.inference_mode(False), torch.enable_grad():
         query = query_latent.detach().clone()
         neighbours = neighbour_latents.detach().to(query.dtype).clone()
@@ -251,87 +414,84 @@ def refine_affine(
             with torch.no_grad():
                 weights = closed_form_weights(query, neighbours, ridge)
         elif weight_model == "softmax_logits":
-            logits = (
+            start = (
                 torch.zeros(batch, k, dtype=query.dtype, device=query.device)
                 if init is None
                 else _check_logits_init(init, batch, k).to(query)
             )
-            logits = logits.detach().clone().requires_grad_(True)
-            _optimise(
-                [logits],
-                lambda: torch.softmax(logits, dim=-1),
+            logits = start.detach().clone().requires_grad_(True)
+            optimiser = torch.optim.AdamW(
+                [logits], lr=lr, betas=ADAM_BETAS, eps=ADAM_EPS, weight_decay=weight_decay
+            )
+            for _ in range(iterations):
+                optimiser.zero_grad(set_to_none=True)
+                _objective(query, neighbours, torch.softmax(logits, dim=-1), objective).backward()
+                optimiser.step()
+            with torch.no_grad():
+                weights = torch.softmax(logits, dim=-1)
+        else:
+            weights = _refine_mlp(
                 query,
                 neighbours,
                 iterations,
                 lr,
                 weight_decay,
                 objective,
+                hidden,
+                generator,
+                init,
+                chunk_size,
             )
-            with torch.no_grad():
-                weights = torch.softmax(logits, dim=-1)
-        else:
-            layers = (
-                init_weight_regressor(
-                    batch,
-                    k,
-                    dim,
-                    hidden=hidden,
-                    generator=generator,
-                    dtype=query.dtype,
-                    device=query.device,
-                )
-                if init is None
-                else _check_mlp_init(init, batch, k, dim)
-            )
-            chunks = []
-            for start in range(0, batch, chunk_size):
-                rows = slice(start, start + chunk_size)
-                params = [
-                    tensor[rows].detach().to(query).clone().requires_grad_(True)
-                    for layer in layers
-                    for tensor in layer
-                ]
-                chunk_layers = list(zip(params[0::2], params[1::2], strict=True))
-                chunk_neighbours = neighbours[rows]
-
-                def chunk_weights(
-                    chunk_layers: list[LayerParams] = chunk_layers,
-                    chunk_neighbours: Tensor = chunk_neighbours,
-                ) -> Tensor:
-                    return _regressor_weights(chunk_layers, chunk_neighbours)
-
-                _optimise(
-                    params,
-                    chunk_weights,
-                    query[rows],
-                    chunk_neighbours,
-                    iterations,
-                    lr,
-                    weight_decay,
-                    objective,
-                )
-                with torch.no_grad():
-                    chunks.append(chunk_weights())
-            weights = torch.cat(chunks, dim=0)
         weights = weights.detach()
         return AffineFit(weights, _positions(weights, neighbour_poses.detach()))
 
 
-def _optimise(
-    params: list[Tensor],
-    weights_fn: Callable[[], Tensor],
+def _refine_mlp(
     query: Tensor,
     neighbours: Tensor,
     iterations: int,
     lr: float,
     weight_decay: float,
     objective: Objective,
-) -> None:
-    optimiser = torch.optim.AdamW(params, lr=lr, weight_decay=weight_decay)
-    for _ in range(iterations):
-        optimiser.zero_grad(set_to_none=True)
-        _objective(query, neighbours, weights_fn(), objective).backward()
-        optimiser.step()
+    hidden: Sequence[int] | None,
+    generator: torch.Generator | None,
+    init: InitParams | None,
+    chunk_size: int,
+) -> Tensor:
+    batch, k, dim = neighbours.shape
+    fan_in = k * dim
+    if init is None:
+        sizes = [fan_in, *(regressor_hidden_sizes(k) if hidden is None else hidden), k]
+        width = sizes[1]
+        bound = 1.0 / math.sqrt(fan_in)
+        norms = torch.linalg.vector_norm(neighbours.reshape(batch, -1), dim=-1, keepdim=True)
+        first_preactivation = (
+            _draw(torch.randn, (batch, width), generator, query) * norms * (bound / math.sqrt(3.0))
+        )
+        first_bias = bound * (2.0 * _draw(torch.rand, (batch, width), generator, query) - 1.0)
+        layers = _uniform_layers(batch, sizes[1:], generator, query)
+    else:
+        (first_weight, first_bias), *layers = _check_mlp_init(init, batch, k, dim)
+        first_preactivation = torch.einsum(
+            "bi,bio->bo", neighbours.reshape(batch, -1), first_weight.to(query)
+        )
+    chunks = []
+    for start in range(0, batch, chunk_size):
+        rows = slice(start, start + chunk_size)
+        chunks.append(
+            _fit_regressor(
+                query[rows],
+                neighbours[rows],
+                first_preactivation[rows],
+                first_bias[rows].to(query),
+                [(weight[rows].to(query), bias[rows].to(query)) for weight, bias in layers],
+                iterations,
+                lr,
+                weight_decay,
+                objective,
+            )
+        )
+    return torch.cat(chunks, dim=0)
 
 
 class _WeightRegressor(nn.Module):
@@ -381,7 +541,7 @@ def refine_affine_per_query(
     hidden: Sequence[int] | None = None,
     generator: torch.Generator | None = None,
     init: InitParams | None = None,
-    chunk_size: int = 128,
+    chunk_size: int = 256,
     ridge: float = 1e-6,
 ) -> AffineFit:
     """Reference for ``refine_affine`` that processes one query at a time, as the public code.
@@ -392,7 +552,9 @@ def refine_affine_per_query(
     parameters are drawn by ``init_weight_regressor``. ``chunk_size`` is accepted for a common
     signature and unused.
     """
-    _check_inputs(query_latent, neighbour_latents, neighbour_poses, weight_model, objective)
+    _check_inputs(
+        query_latent, neighbour_latents, neighbour_poses, weight_model, objective, iterations
+    )
     batch, k, dim = neighbour_latents.shape
     hidden_sizes = regressor_hidden_sizes(k) if hidden is None else tuple(hidden)
     if init is not None and weight_model == "mlp":
@@ -433,7 +595,9 @@ def refine_affine_per_query(
                     )
                     regressor.load_batched(drawn, 0)
                 model = regressor
-            optimiser = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
+            optimiser = torch.optim.AdamW(
+                model.parameters(), lr=lr, betas=ADAM_BETAS, eps=ADAM_EPS, weight_decay=weight_decay
+            )
             for _ in range(iterations):
                 optimiser.zero_grad(set_to_none=True)
                 weights = model(neighbours[row])

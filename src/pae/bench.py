@@ -1,0 +1,117 @@
+"""`make bench`: speed and size figures, each ratio measured side by side in one run.
+
+Prints one JSON object of `bench/...` keys. Inputs are the synthetic benchmark and, where
+present, the real label files in ../shared/reference/labels (poses only).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from pae.data.datamodule import PoseDataModule
+from pae.data.latents import TeacherLatentDataModule
+from pae.data.synthetic import measure_render_speed, write_synthetic_dataset
+from pae.lit.student import StudentModule
+from pae.losses import LearnedPoseLoss
+from pae.models.backbones import Backbone
+from pae.models.pae import PoseAutoEncoder
+from pae.models.posenet import PoseNet
+from pae.refine.benchmarks import bench_index, bench_refinement
+
+REFERENCE_LABELS = Path(__file__).resolve().parents[3] / "shared" / "reference" / "labels"
+
+
+def _student_epoch_seconds(module: StudentModule, loader, preprocess=None) -> float:
+    optimizer = torch.optim.Adam(module.pae.parameters(), lr=1e-3)
+    start = time.perf_counter()
+    for batch in loader:
+        if preprocess is not None:
+            batch = {**batch, "image": preprocess(batch["image"], train=False)}
+        loss = module.student_loss(batch)["loss"]
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    return time.perf_counter() - start
+
+
+def bench_student_cache(root: Path, frames: int) -> dict[str, float]:
+    """One student epoch over the same train images: cached teacher latents vs the teacher
+    running on every batch (images already decoded in memory in both cases)."""
+    data = PoseDataModule(
+        root=str(root),
+        train_labels=str(root / "labels" / "all_train.csv"),
+        test_labels=str(root / "labels" / "all_test.csv"),
+        shorter_edge=64,
+        crop=56,
+        augment=False,
+        batch_size=64,
+        cache_images=True,
+    )
+    data.setup()
+    teacher = PoseNet(Backbone("small_cnn", pool="flatten", spatial=2), n_scenes=data.n_scenes)
+    pae = PoseAutoEncoder(n_scenes=data.n_scenes)
+    module = StudentModule(
+        teacher, pae, LearnedPoseLoss(), torch.optim.Adam, data.scene_names, {}, {}
+    )
+    module.train()
+    start = time.perf_counter()
+    cached = TeacherLatentDataModule(data, teacher)
+    cached.setup("fit")
+    cache_s = time.perf_counter() - start
+    cached_s = _student_epoch_seconds(module, cached.train_dataloader())
+    uncached_s = _student_epoch_seconds(module, data.train_dataloader(), data.preprocess)
+    return {
+        "bench/student/cache_build_s": cache_s,
+        "bench/student/epoch_cached_s": cached_s,
+        "bench/student/epoch_uncached_s": uncached_s,
+        "bench/student/cache_speedup": uncached_s / cached_s,
+        "bench/student/train_frames": float(frames),
+    }
+
+
+def bench_pae(n_scenes: int = 2, repeats: int = 200) -> dict[str, float]:
+    """Paper Table 5: latency of one PAE forward pass (batch 1, CPU) and its weight size."""
+    pae = PoseAutoEncoder(n_scenes=n_scenes).eval()
+    pose = torch.tensor([[0.1, 0.2, 0.3, 1.0, 0.0, 0.0, 0.0]])
+    scene = torch.tensor([1])
+    with torch.no_grad():
+        for _ in range(20):
+            pae(pose, scene)
+        start = time.perf_counter()
+        for _ in range(repeats):
+            pae(pose, scene)
+    latency = (time.perf_counter() - start) / repeats
+    size = sum(p.numel() * p.element_size() for p in pae.parameters())
+    return {"bench/pae/latency_ms": 1000 * latency, "bench/pae/size_mb": size / 1e6}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="pae-bench", description=__doc__)
+    parser.add_argument("--train-frames", type=int, default=400, help="per scene, student bench")
+    parser.add_argument("--queries", type=int, default=500, help="refinement bench queries")
+    parser.add_argument("--labels", type=Path, default=REFERENCE_LABELS)
+    args = parser.parse_args(argv)
+    torch.manual_seed(0)
+    figures: dict[str, float] = {}
+    figures["bench/synthetic/frames_per_s"] = measure_render_speed()
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        write_synthetic_dataset(root, scenes=2, train_frames=args.train_frames, test_frames=20)
+        figures |= bench_student_cache(root, 2 * args.train_frames)
+    figures |= bench_refinement(n_queries=args.queries)
+    figures |= bench_pae()
+    train_files = sorted(args.labels.glob("*/*_train.csv")) if args.labels.is_dir() else []
+    if train_files:
+        figures |= bench_index(train_files)
+    print(json.dumps({k: round(v, 4) for k, v in figures.items()}, indent=2, sort_keys=True))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
