@@ -278,6 +278,8 @@ def test_rendered_dots_land_where_the_camera_projects_them() -> None:
             label = labels[round(v), round(u)]
             assert label > 0, f"no dot rendered at projected pixel {(u, v)}"
             rows, cols = np.nonzero(labels == label)
+            if min(rows.min(), cols.min()) == 0 or max(rows.max(), cols.max()) == size - 1:
+                continue  # cut by the image border: its centroid is not the dot's
             w = weight[rows, cols]
             centroid = np.array([np.sum(cols * w), np.sum(rows * w)]) / w.sum()
             errors.append(np.linalg.norm(centroid - pixels[i]))
@@ -285,7 +287,7 @@ def test_rendered_dots_land_where_the_camera_projects_them() -> None:
     errors = np.array(errors)
     assert len(errors) >= 20
     assert errors.max() < 1.0, errors.max()
-    assert np.median(errors) < 0.3
+    assert np.median(errors) < 0.1
 
 
 def test_measure_render_speed() -> None:

@@ -83,6 +83,8 @@ TEST_SEQUENCES = 2
 TEXEL_SIZE_M = 0.02
 SUPERSAMPLE = 2
 """Rays per pixel along each image axis (``SUPERSAMPLE²`` rays are averaged per pixel)."""
+FRAMES_PER_WRITE = 64
+"""Frames rendered before they are written, bounding memory for large images."""
 RAYS_PER_CHUNK = 1 << 17
 """Rays cast at once: bounds memory (about 100 bytes per ray) and keeps arrays cache-friendly."""
 _EPS_DIRECTION = 1e-9
@@ -287,9 +289,9 @@ class CameraRoute:
 
 @dataclass(frozen=True, eq=False)
 class SyntheticScene:
-    """A room seen from inside, boxes inside it seen from outside, a point light ``[3]`` and
-    the route the cameras walk, which stays within ``route.centre ± route.half`` (m) and
-    sequences leave by at most 0.35 m."""
+    """A room seen from inside, boxes inside it seen from outside, a point light ``[3]`` (m)
+    and the route the cameras walk: within ``route.centre ± route.half``, which the boxes keep
+    0.6 m away from; sequences stray from the route by at most 0.35 m."""
 
     name: str
     room: Box
@@ -397,15 +399,8 @@ def _draw_shapes(
         if kind == 0:
             cv2.circle(image, centre, half, colour, -1, cv2.LINE_AA, shift)
         elif kind == 1:
-            cv2.circle(
-                image,
-                centre,
-                half,
-                colour,
-                max(1, int(0.25 * half) >> shift) * 2,
-                cv2.LINE_AA,
-                shift,
-            )
+            ring_width = max(2, round(0.12 * size / TEXEL_SIZE_M))
+            cv2.circle(image, centre, half, colour, ring_width, cv2.LINE_AA, shift)
         elif kind == 2:
             angles = rng.uniform(0, 2 * np.pi) + np.array([0, 2.1, 4.2]) + rng.normal(0, 0.2, 3)
             corners = np.stack([np.cos(angles), np.sin(angles)], -1) * half + centre
@@ -549,7 +544,7 @@ def _overlaps(
 
 
 def make_scene(index: int, seed: int = 0) -> SyntheticScene:
-    """Scene ``index`` of the benchmark with ``seed``: room, furniture, textures, camera region."""
+    """Scene ``index`` of the benchmark with ``seed``: room, furniture, textures, camera route."""
     rng = np.random.default_rng([seed, index, 0])
     size = np.array([rng.uniform(6.0, 8.0), rng.uniform(5.5, 7.0), rng.uniform(2.6, 3.2)])
     room_lo = np.array([-size[0] / 2, -size[1] / 2, 0.0])
@@ -908,7 +903,7 @@ def write_synthetic_dataset(
     out = Path(out)
     started = time.perf_counter()
     camera = PinholeCamera(size)
-    tables: dict[tuple[str, str], LabelTable] = {}
+    label_tables: dict[tuple[str, str], LabelTable] = {}
     for index in range(scenes):
         scene = make_scene(index, seed)
         rows: dict[str, list[tuple[str, str, np.ndarray]]] = {"train": [], "test": []}
@@ -916,13 +911,15 @@ def write_synthetic_dataset(
             folder = out / scene.name / sequence.name
             folder.mkdir(parents=True, exist_ok=True)
             noise = np.random.default_rng(list(sequence.noise_seed))
-            images = render_batch(scene, sequence.poses, camera, sequence.appearance, noise)
-            for frame, (image, pose) in enumerate(zip(images, sequence.poses, strict=True)):
-                relative = f"{scene.name}/{sequence.name}/frame-{frame:06d}.png"
-                _write_png(out / relative, image)
-                rows[sequence.split].append((sequence.name, relative, pose))
+            for start in range(0, len(sequence.poses), FRAMES_PER_WRITE):
+                poses = sequence.poses[start : start + FRAMES_PER_WRITE]
+                images = render_batch(scene, poses, camera, sequence.appearance, noise)
+                for frame, (image, pose) in enumerate(zip(images, poses, strict=True), start):
+                    relative = f"{scene.name}/{sequence.name}/frame-{frame:06d}.png"
+                    _write_png(out / relative, image)
+                    rows[sequence.split].append((sequence.name, relative, pose))
         for split, split_rows in rows.items():
-            tables[scene.name, split] = LabelTable(
+            label_tables[scene.name, split] = LabelTable(
                 scene=[scene.name] * len(split_rows),
                 split=[split] * len(split_rows),
                 seq=[r[0] for r in split_rows],
@@ -931,12 +928,12 @@ def write_synthetic_dataset(
                 source=f"synthetic seed={seed}",
             )
     labels = out / "labels"
-    for (name, split), table in tables.items():
+    for (name, split), table in label_tables.items():
         write_labels(labels / f"{name}_{split}.csv", table)
     for split in ("train", "test"):
         write_labels(
             labels / f"all_{split}.csv",
-            LabelTable.concat(t for (_, s), t in tables.items() if s == split),
+            LabelTable.concat(t for (_, s), t in label_tables.items() if s == split),
         )
     seconds = time.perf_counter() - started
     frames = scenes * (train_frames + test_frames)
@@ -952,7 +949,7 @@ def write_synthetic_dataset(
 
 
 def measure_render_speed(frames: int = 200, size: int = DEFAULT_SIZE, seed: int = 0) -> float:
-    """Frames per second of rendering ``frames`` training frames of scene 0 (no file I/O)."""
+    """Rendering speed (frames/s) for ``frames`` poses along scene 0's route, without file I/O."""
     scene = make_scene(0, seed)
     rng = np.random.default_rng([seed, 0, 3])
     poses = _trajectory(scene, frames, 0.0, rng)

@@ -48,7 +48,8 @@ class PoseIndex:
     ``‖Δx‖`` (m) and the orientation distance (rotation angle between the quaternions, deg):
 
     - ``"normalized"``: each of the two is divided by its maximum over the stored poses of
-      the query's scene, then they are summed (dimensionless, the public PAE code's rule);
+      the query's scene, then they are summed (dimensionless; the public PAE code's rule,
+      which measures orientation by ‖q − q'‖ instead, a distance that depends on the signs);
     - ``"fixed"``: ``‖Δx‖ + rot_weight · angle`` with ``rot_weight`` in metres per degree.
 
     Distances are computed in float64 over ``chunk_size`` queries at a time, so memory
@@ -97,7 +98,10 @@ class PoseIndex:
             int(s): (int(e - c), int(e)) for s, c, e in zip(scene_ids, counts, ends, strict=True)
         }
         self._sorted_positions = self._poses[self._order, :3].double()
-        self._sorted_quaternions = self._poses[self._order, 3:].double()
+        # Renormalised in float64: a float32 norm error of 1e-7 would otherwise read as an
+        # angle of ~0.03° through acos near 1.
+        sorted_quaternions = self._poses[self._order, 3:].double()
+        self._sorted_quaternions = sorted_quaternions / sorted_quaternions.norm(dim=1, keepdim=True)
 
     @property
     def poses(self) -> Tensor:
