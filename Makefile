@@ -19,7 +19,8 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)  ## create .venv and install pae with its dev tools
 
 demo: $(STAMP)  ## full pipeline on the embedded synthetic benchmark, prints the results table
-	$(PY) -m pae.demo
+	@start=$$(date +%s); $(VENV)/bin/pae-train experiment=demo && \
+	  echo "demo finished in $$(( $$(date +%s) - start )) s; outputs/demo holds metrics.json, checkpoints and TensorBoard logs"
 
 test: $(STAMP)  ## fast test suite (slow end-to-end tests: make test-all)
 	$(PY) -m pytest -q

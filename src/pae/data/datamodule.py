@@ -22,6 +22,8 @@ class PoseDataModule(L.LightningDataModule):
     Augmentation (random crop + colour jitter) runs batched on the device after transfer,
     for training batches only when `augment` is true; evaluation uses the centre crop.
     `balance_scenes` samples scenes equally often in multi-scene training.
+    `pose_loss_init` records the initial s_x, s_q of the learned pose loss that suit the
+    dataset's error scale (the configs of the pose losses read it).
     """
 
     def __init__(
@@ -39,6 +41,7 @@ class PoseDataModule(L.LightningDataModule):
         num_workers: int = 0,
         cache_images: bool = False,
         balance_scenes: bool = False,
+        pose_loss_init: dict[str, float] | None = None,
     ) -> None:
         super().__init__()
         self.root = Path(root)
@@ -51,6 +54,7 @@ class PoseDataModule(L.LightningDataModule):
         self.cache_images = cache_images
         self.balance_scenes = balance_scenes
         self.augment = augment
+        self.pose_loss_init = dict(pose_loss_init or {})
         self.train_transform = ImageTransform(crop, train=True, color_jitter=tuple(color_jitter))
         self.eval_transform = ImageTransform(crop, train=False)
         self.tables: dict[str, LabelTable] = {}

@@ -69,7 +69,7 @@ __all__ = [
 ]
 
 DEFAULT_SCENES = 2
-DEFAULT_TRAIN_FRAMES = 800
+DEFAULT_TRAIN_FRAMES = 1600
 """Training frames per scene."""
 DEFAULT_TEST_FRAMES = 250
 """Test frames per scene."""
@@ -78,7 +78,7 @@ DEFAULT_SIZE = 64
 DEFAULT_FOV_DEG = 65.0
 """Horizontal field of view in degrees."""
 
-TRAIN_SEQUENCES = 3
+TRAIN_SEQUENCES = 6
 TEST_SEQUENCES = 2
 TEXEL_SIZE_M = 0.02
 SUPERSAMPLE = 2
@@ -813,7 +813,7 @@ def make_sequences(
 ) -> list[CameraSequence]:
     """Train sequences ``seq-01…`` then test sequences (numbered on) of scene ``scene_index``.
 
-    Up to 3 train and 2 test sequences share the frames of each split. Each walks most of the
+    Up to 6 train and 2 test sequences share the frames of each split. Each walks most of the
     scene's route with its own deviations and :class:`Appearance`; the sequences of a split
     start at staggered route times, so that together they cover the whole route.
     """

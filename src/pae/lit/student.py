@@ -10,7 +10,7 @@ from torch import Tensor
 
 from pae.geometry import normalize_quaternion
 from pae.lit.evaluation import PoseEvaluation
-from pae.lit.teacher import OptimizerFactory, SchedulerFactory
+from pae.lit.teacher import OptimizerFactory, SchedulerFactory, step_scheduler
 from pae.losses import LearnedPoseLoss, latent_distance
 from pae.metrics import mean_pose_per_scene
 from pae.models.base import Latents, PoseRegressor
@@ -172,4 +172,4 @@ class StudentModule(L.LightningModule):
         optimizer = self.optimizer_factory(params=params)
         if self.scheduler_factory is None:
             return optimizer
-        return {"optimizer": optimizer, "lr_scheduler": self.scheduler_factory(optimizer=optimizer)}
+        return {"optimizer": optimizer, "lr_scheduler": step_scheduler(self, optimizer)}

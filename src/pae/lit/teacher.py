@@ -18,6 +18,13 @@ OptimizerFactory = Callable[..., torch.optim.Optimizer]
 SchedulerFactory = Callable[..., Any]
 
 
+def step_scheduler(module: L.LightningModule, optimizer: torch.optim.Optimizer) -> dict[str, Any]:
+    """The module's scheduler factory over all of the run's optimiser steps (e.g. OneCycleLR)."""
+    total_steps = int(module.trainer.estimated_stepping_batches)
+    scheduler = module.scheduler_factory(optimizer=optimizer, total_steps=total_steps)
+    return {"scheduler": scheduler, "interval": "step"}
+
+
 class TeacherModule(L.LightningModule):
     """Wires a PoseRegressor, LearnedPoseLoss (+ scene cross-entropy for multi-scene teachers),
     the optimiser and pose-error metrics for `teacher` and the `mean_pose` baseline."""
@@ -96,4 +103,4 @@ class TeacherModule(L.LightningModule):
         optimizer = self.optimizer_factory(params=self.parameters())
         if self.scheduler_factory is None:
             return optimizer
-        return {"optimizer": optimizer, "lr_scheduler": self.scheduler_factory(optimizer=optimizer)}
+        return {"optimizer": optimizer, "lr_scheduler": step_scheduler(self, optimizer)}
