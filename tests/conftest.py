@@ -51,7 +51,9 @@ def compose_train(tiny_root: Path) -> Callable[..., DictConfig]:
     def make(*overrides: str, run_dir: Path | None = None) -> DictConfig:
         with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
             cfg = compose(
-                "train", overrides=[*tiny_overrides(tiny_root), *overrides], return_hydra_config=True
+                "train",
+                overrides=[*tiny_overrides(tiny_root), *overrides],
+                return_hydra_config=True,
             )
         if run_dir is not None:
             with open_dict(cfg):

@@ -12,8 +12,19 @@ from pae import CONFIG_DIR
 
 GROUPS = {
     name: sorted(p.stem for p in (Path(CONFIG_DIR) / name).glob("*.yaml"))
-    for name in ("data", "backbone", "teacher", "pae", "student", "refine", "trainer",
-                 "logger", "callbacks", "stage", "experiment")
+    for name in (
+        "data",
+        "backbone",
+        "teacher",
+        "pae",
+        "student",
+        "refine",
+        "trainer",
+        "logger",
+        "callbacks",
+        "stage",
+        "experiment",
+    )
 }
 
 
@@ -46,7 +57,7 @@ def test_backbone_options_instantiate(option: str) -> None:
     assert instantiate(cfg.backbone).out_dim > 0
 
 
-def test_pae_L_override_reaches_the_model() -> None:
+def test_pae_bands_override_reaches_the_model() -> None:
     cfg = _compose("train", ["pae.L=3"])
     assert instantiate(cfg.pae).fourier.L == 3
 
@@ -59,7 +70,9 @@ def test_eval_config_composes() -> None:
 def test_unknown_group_option_lists_valid_choices(tmp_path: Path) -> None:
     result = subprocess.run(
         [sys.executable, "-m", "pae.train", "pae=transformer", f"hydra.run.dir={tmp_path}"],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert result.returncode != 0
     assert "fourier_mlp4" in result.stderr and "mlp2" in result.stderr

@@ -55,7 +55,9 @@ def test_balanced_sampling_equalises_scenes(tiny_root: Path, tmp_path: Path) -> 
     table = read_labels(tiny_root / "labels" / "all_train.csv")
     keep = [i for i, s in enumerate(table.scene) if s == "scene00" or i % 6 == 0]
     write_labels(tmp_path / "labels" / "all_train.csv", table.select(keep))
-    write_labels(tmp_path / "labels" / "all_test.csv", read_labels(tiny_root / "labels" / "all_test.csv"))
+    write_labels(
+        tmp_path / "labels" / "all_test.csv", read_labels(tiny_root / "labels" / "all_test.csv")
+    )
     for scene in ("scene00", "scene01"):
         (tmp_path / scene).symlink_to(tiny_root / scene)
     data = _data(tmp_path, balance_scenes=True)
@@ -70,8 +72,10 @@ def test_balanced_sampling_equalises_scenes(tiny_root: Path, tmp_path: Path) -> 
 def test_test_scene_missing_from_train_is_an_error(tiny_root: Path, tmp_path: Path) -> None:
     train = read_labels(tiny_root / "labels" / "scene00_train.csv")
     write_labels(tmp_path / "labels" / "all_train.csv", train)
-    write_labels(tmp_path / "labels" / "all_test.csv", read_labels(tiny_root / "labels" / "all_test.csv"))
-    with pytest.raises(LabelError, match="scene01.*do not occur in the train labels"):
+    write_labels(
+        tmp_path / "labels" / "all_test.csv", read_labels(tiny_root / "labels" / "all_test.csv")
+    )
+    with pytest.raises(LabelError, match=r"scene01.*do not occur in the train labels"):
         _data(tmp_path)
 
 

@@ -8,7 +8,9 @@ from pae.models.pae import FourierFeatures, PoseAutoEncoder
 from pae.models.posenet import PoseNet
 
 
-@pytest.mark.parametrize(("L", "include_input", "expected"), [(0, True, 3), (3, True, 21), (6, True, 39), (6, False, 36)])
+@pytest.mark.parametrize(
+    ("L", "include_input", "expected"), [(0, True, 3), (3, True, 21), (6, True, 39), (6, False, 36)]
+)
 def test_fourier_feature_dimensions(L: int, include_input: bool, expected: int) -> None:
     features = FourierFeatures(L, include_input)
     out = features(torch.randn(5, 3))
@@ -18,7 +20,13 @@ def test_fourier_feature_dimensions(L: int, include_input: bool, expected: int) 
 def test_fourier_features_values() -> None:
     p = torch.tensor([[0.5]])
     out = FourierFeatures(2)(p)[0]
-    expected = [0.5, torch.sin(torch.tensor(0.5)), torch.cos(torch.tensor(0.5)), torch.sin(torch.tensor(1.0)), torch.cos(torch.tensor(1.0))]
+    expected = [
+        0.5,
+        torch.sin(torch.tensor(0.5)),
+        torch.cos(torch.tensor(0.5)),
+        torch.sin(torch.tensor(1.0)),
+        torch.cos(torch.tensor(1.0)),
+    ]
     assert torch.allclose(out, torch.tensor(expected))
 
 
@@ -55,7 +63,10 @@ def test_posenet_interface_and_scene_logits() -> None:
     assert latents.scene_logits is not None and latents.scene_logits.shape == (4, 3)
     pose, _ = model(images)
     assert pose.shape == (4, 7)
-    assert PoseNet(Backbone("small_cnn", pool="flatten", spatial=2), 16).encode(images).scene_logits is None
+    assert (
+        PoseNet(Backbone("small_cnn", pool="flatten", spatial=2), 16).encode(images).scene_logits
+        is None
+    )
 
 
 @pytest.mark.parametrize("name", ["mobilenet_v2", "efficientnet_b0"])

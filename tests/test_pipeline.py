@@ -12,7 +12,15 @@ from pae.pipeline import evaluate_checkpoints
 from pae.reporting import ConfigError
 from pae.train import run
 
-EXPECTED_METHODS = ("teacher", "student", "student_gt", "mean_pose", "refined", "guess_initial", "guess_refined")
+EXPECTED_METHODS = (
+    "teacher",
+    "student",
+    "student_gt",
+    "mean_pose",
+    "refined",
+    "guess_initial",
+    "guess_refined",
+)
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +33,11 @@ def pipeline_run(tmp_path_factory: pytest.TempPathFactory, tiny_root: Path) -> P
 
     run_dir = tmp_path_factory.mktemp("pipeline")
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
-        cfg = compose("train", overrides=[*tiny_overrides(tiny_root), "stage=pipeline"], return_hydra_config=True)
+        cfg = compose(
+            "train",
+            overrides=[*tiny_overrides(tiny_root), "stage=pipeline"],
+            return_hydra_config=True,
+        )
     with open_dict(cfg):
         cfg.hydra.runtime.output_dir = str(run_dir)
     run(cfg, run_dir)
@@ -63,11 +75,13 @@ def test_bad_checkpoints_give_clear_errors(pipeline_run: Path, tmp_path: Path) -
         load_teacher(tmp_path / "nope.ckpt")
     corrupt = tmp_path / "corrupt.ckpt"
     corrupt.write_bytes(b"not a checkpoint at all")
-    with pytest.raises(CheckpointError, match="corrupt.ckpt: not a readable checkpoint"):
+    with pytest.raises(CheckpointError, match=r"corrupt\.ckpt: not a readable checkpoint"):
         load_teacher(corrupt)
 
 
-def test_evaluate_checkpoints_with_each_weight_model(pipeline_run: Path, compose_train, tmp_path: Path) -> None:
+def test_evaluate_checkpoints_with_each_weight_model(
+    pipeline_run: Path, compose_train, tmp_path: Path
+) -> None:
     from hydra import compose, initialize_config_dir
 
     from pae import CONFIG_DIR
@@ -77,29 +91,45 @@ def test_evaluate_checkpoints_with_each_weight_model(pipeline_run: Path, compose
     root = compose_train().data.root
     for weight_model in ("softmax_logits", "closed_form"):
         with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
-            cfg = compose("eval", overrides=[
-                f"pae_ckpt={student_ckpt}", f"data.root={root}", f"data.size={TINY['size']}",
-                f"data.train_frames={TINY['train_frames']}", f"data.test_frames={TINY['test_frames']}",
-                "data.crop=28", f"refine.weight_model={weight_model}", "refine.orientation=markley",
-                "+trainer.enable_progress_bar=false",
-            ])
+            cfg = compose(
+                "eval",
+                overrides=[
+                    f"pae_ckpt={student_ckpt}",
+                    f"data.root={root}",
+                    f"data.size={TINY['size']}",
+                    f"data.train_frames={TINY['train_frames']}",
+                    f"data.test_frames={TINY['test_frames']}",
+                    "data.crop=28",
+                    f"refine.weight_model={weight_model}",
+                    "refine.orientation=markley",
+                    "+trainer.enable_progress_bar=false",
+                ],
+            )
         metrics = evaluate_checkpoints(cfg, tmp_path / weight_model)
         assert metrics["test/refined/pos_median_m"] >= 0
         assert "test/teacher/pos_median_m" in metrics
 
 
-def test_student_without_teacher_checkpoint_is_a_config_error(compose_train, tmp_path: Path) -> None:
+def test_student_without_teacher_checkpoint_is_a_config_error(
+    compose_train, tmp_path: Path
+) -> None:
     cfg = compose_train("stage=student", run_dir=tmp_path)
-    with pytest.raises(ConfigError, match="teacher_ckpt=PATH"):
+    with pytest.raises(ConfigError, match=r"teacher_ckpt=PATH"):
         run(cfg, tmp_path)
 
 
-def test_student_on_other_scenes_is_rejected(pipeline_run: Path, compose_train, tmp_path: Path, tiny_root: Path) -> None:
+def test_student_on_other_scenes_is_rejected(
+    pipeline_run: Path, compose_train, tmp_path: Path, tiny_root: Path
+) -> None:
     one_scene = tmp_path / "one"
     shutil.copytree(tiny_root, one_scene)
     for split in ("train", "test"):
-        shutil.copy(one_scene / "labels" / f"scene00_{split}.csv", one_scene / "labels" / f"all_{split}.csv")
+        shutil.copy(
+            one_scene / "labels" / f"scene00_{split}.csv", one_scene / "labels" / f"all_{split}.csv"
+        )
     teacher_ckpt = pipeline_run / "teacher" / "checkpoints" / "last.ckpt"
-    cfg = compose_train("stage=student", f"teacher_ckpt={teacher_ckpt}", f"data.root={one_scene}", run_dir=tmp_path)
+    cfg = compose_train(
+        "stage=student", f"teacher_ckpt={teacher_ckpt}", f"data.root={one_scene}", run_dir=tmp_path
+    )
     with pytest.raises(CheckpointError, match="trained on scenes"):
         run(cfg, tmp_path / "run")

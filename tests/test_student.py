@@ -1,3 +1,4 @@
+import pytest
 import torch
 
 from pae.lit.student import StudentModule
@@ -5,15 +6,12 @@ from pae.losses import LearnedPoseLoss
 from pae.models.backbones import Backbone
 from pae.models.pae import PoseAutoEncoder
 from pae.models.posenet import PoseNet
-import pytest
 
 
 def _student(latent_dim: int = 16, pae_dim: int = 16) -> StudentModule:
     teacher = PoseNet(Backbone("small_cnn", pool="flatten", spatial=2), latent_dim=latent_dim)
     pae = PoseAutoEncoder(latent_dim=pae_dim, hidden=(32,), L=2)
-    return StudentModule(
-        teacher, pae, LearnedPoseLoss(), torch.optim.Adam, ["scene"], {}, {}
-    )
+    return StudentModule(teacher, pae, LearnedPoseLoss(), torch.optim.Adam, ["scene"], {}, {})
 
 
 def _batch(b: int = 4, d: int = 16) -> dict[str, torch.Tensor]:

@@ -61,5 +61,5 @@ def test_load_image_resizes_shorter_edge_and_converts_to_rgb(tmp_path) -> None:
     rgb = load_image(str(path), 30)
     assert rgb.shape == (30, 45, 3)
     assert rgb[..., 2].min() == 255 and rgb[..., 0].max() == 0
-    with pytest.raises(ImageError, match="missing.png"):
+    with pytest.raises(ImageError, match=r"missing\.png"):
         load_image(str(tmp_path / "missing.png"), 30)

@@ -9,7 +9,7 @@ from torch import Tensor, nn
 
 
 class PoseLossTerms(NamedTuple):
-    """total (scalar) and its parts: position L_x (m), orientation L_q (unitless), both batch means."""
+    """total (scalar) and its parts: position L_x (m) and orientation L_q, both batch means."""
 
     total: Tensor
     position: Tensor

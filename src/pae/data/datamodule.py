@@ -66,7 +66,7 @@ class PoseDataModule(L.LightningDataModule):
             return
         self.tables = {split: read_labels(path) for split, path in self.label_paths.items()}
         self.scene_names = self.tables["train"].scene_names
-        for split, table in self.tables.items():
+        for table in self.tables.values():
             unknown = sorted(set(table.scene_names) - set(self.scene_names))
             if unknown:
                 raise LabelError(
@@ -131,8 +131,8 @@ class PoseDataModule(L.LightningDataModule):
         return transform.to(images.device)(images)
 
     def on_after_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
-        if isinstance(batch, dict) and batch.get("image") is not None:
-            if batch["image"].dtype == torch.uint8:
-                training = self.trainer is not None and self.trainer.training
-                batch = {**batch, "image": self.preprocess(batch["image"], training)}
+        image = batch.get("image") if isinstance(batch, dict) else None
+        if image is not None and image.dtype == torch.uint8:
+            training = self.trainer is not None and self.trainer.training
+            batch = {**batch, "image": self.preprocess(image, training)}
         return batch

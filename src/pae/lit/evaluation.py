@@ -1,4 +1,4 @@
-"""Shared evaluation wiring: pose-error metrics per split and method, logged under DESIGN §4 keys."""
+"""Evaluation wiring: pose-error metrics per split and method, logged as `{split}/{method}/...`."""
 
 from __future__ import annotations
 

@@ -97,7 +97,9 @@ class Backbone(nn.Module):
             self.features.load_state_dict(weights)
         except RuntimeError as err:
             detail = " ".join(str(err).split())[:200]
-            raise BackboneError(f"backbone.weights_path {path} does not fit {self.name}: {detail}")
+            raise BackboneError(
+                f"backbone.weights_path {path} does not fit {self.name}: {detail}"
+            ) from None
 
     def forward(self, images: Tensor) -> Tensor:
         """images [B, 3, H, W] -> features [B, out_dim]."""
