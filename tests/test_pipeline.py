@@ -52,9 +52,21 @@ def test_pipeline_writes_metrics_checkpoints_and_events(pipeline_run: Path) -> N
             assert value >= 0 and value == value
         assert f"test/{method}/scene00/pos_median_m" in metrics
     assert metrics["bench/teacher/fit_s"] > 0 and metrics["bench/student/fit_s"] > 0
+    assert metrics["test/diagnostics/gt_to_train_m"] >= 0
+    assert metrics["test/diagnostics/estimate_to_train_m"] >= 0
     for step in ("teacher", "student"):
         assert (pipeline_run / step / "checkpoints" / "last.ckpt").is_file()
         assert list((pipeline_run / step).glob("events.out.tfevents.*"))
+
+
+def test_tensorboard_gets_trajectory_plot_and_hparams(pipeline_run: Path) -> None:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(pipeline_run / "student"))
+    events.Reload()
+    assert "test/trajectory" in events.Tags()["images"]
+    assert "val/refined/pos_median_m" in events.Tags()["scalars"]
+    assert "hparams/test/refined/pos_median_m" in events.Tags()["scalars"]
 
 
 def test_checkpoints_reload_with_weights_only(pipeline_run: Path) -> None:

@@ -81,6 +81,18 @@ def format_results_table(metrics: Mapping[str, float], split: str = "test") -> s
             pos, rot = metrics.get(prefix + "pos_median_m"), metrics.get(prefix + "rot_median_deg")
             cells.append("-" if pos is None else f"{pos:.3f} / {rot:.2f}")
         lines.append(f"{method:<15}" + "".join(f"{c:>18}" for c in cells))
+    diagnostics = {
+        key.rsplit("/", 1)[1]: value
+        for key, value in metrics.items()
+        if key.startswith(f"{split}/diagnostics/")
+    }
+    if diagnostics:
+        lines.append(
+            "median distance to the nearest train position [m]: "
+            + ", ".join(
+                f"{name.removesuffix('_m')} {value:.3f}" for name, value in diagnostics.items()
+            )
+        )
     return "\n".join(lines)
 
 

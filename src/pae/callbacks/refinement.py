@@ -25,6 +25,11 @@ class TestTimeRefinement(L.Callback):
     `every_n_val_epochs`-th validation and of every test. With `guess_sigma_m` set, also runs
     the random-guess check: the ground-truth position plus Gaussian noise (σ m), encoded by the
     PAE, is the query (`{split}/guess_initial/...` vs `{split}/guess_refined/...`).
+
+    Diagnostics `{split}/diagnostics/{estimate,gt}_to_train_m`: median distance (m) from the
+    teacher's estimates and from the true positions to the nearest train position of their
+    scene. Retrieval can only pull an estimate back towards the train poses: when estimates
+    already lie as close to them as the truth does, refinement has little to correct.
     """
 
     def __init__(
@@ -56,6 +61,7 @@ class TestTimeRefinement(L.Callback):
         self.seed = seed
         self.trajectory_plot = trajectory_plot
         self.index: PoseIndex | None = None
+        self.position_index: PoseIndex | None = None
         self._val_runs = 0
         if weight_model not in WEIGHT_MODELS:
             raise ValueError(
@@ -71,6 +77,7 @@ class TestTimeRefinement(L.Callback):
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         poses, scenes = trainer.datamodule.train_poses()
         self.index = PoseIndex(poses, scenes, distance=self.distance, rot_weight=self.rot_weight)
+        self.position_index = PoseIndex(poses, scenes, distance="fixed", rot_weight=0.0)
 
     def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._val_runs += 1
@@ -100,6 +107,9 @@ class TestTimeRefinement(L.Callback):
         elapsed = time.perf_counter() - start
         gt, scene = outputs["pose"], outputs["scene"]
         figures = self._figures(split, "refined", result.poses, gt, scene, names)
+        figures |= self._store_distances(
+            split, outputs["estimate"], outputs["scene_estimate"], gt, scene
+        )
         if split == "test":
             figures["bench/refine/callback_ms_per_query"] = torch.tensor(1000 * elapsed / len(gt))
         if self.guess_sigma_m:
@@ -113,6 +123,17 @@ class TestTimeRefinement(L.Callback):
         pl_module.log_dict(figures)
         if self.trajectory_plot:
             self._plot(trainer, split, gt, outputs["estimate"], result.poses, scene)
+
+    def _store_distances(
+        self, split: str, estimate: Tensor, estimate_scene: Tensor, gt: Tensor, scene: Tensor
+    ) -> dict[str, Tensor]:
+        assert self.position_index is not None
+        _, to_estimate = self.position_index.query(estimate, estimate_scene, 1)
+        _, to_gt = self.position_index.query(gt, scene, 1)
+        return {
+            f"{split}/diagnostics/estimate_to_train_m": to_estimate.median(),
+            f"{split}/diagnostics/gt_to_train_m": to_gt.median(),
+        }
 
     @staticmethod
     def _figures(
