@@ -145,3 +145,46 @@ def test_student_on_other_scenes_is_rejected(
     )
     with pytest.raises(CheckpointError, match="trained on scenes"):
         run(cfg, tmp_path / "run")
+
+
+def test_report_tables_a_run_and_rejects_an_empty_directory(
+    pipeline_run: Path, tmp_path: Path, capsys
+) -> None:
+    from pae.reporting import main as report
+
+    assert report([str(pipeline_run)]) == 0
+    table = capsys.readouterr().out.splitlines()
+    assert table[0].startswith("| job | teacher | student | student_gt | refined")
+    assert len(table) == 3 and table[2].count("/") >= 7
+    assert report([str(tmp_path)]) == 1
+    assert "no metrics.json" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_multirun_sweep_writes_one_metrics_file_per_job(
+    pipeline_run: Path, tiny_root: Path, tmp_path: Path
+) -> None:
+    import subprocess
+    import sys
+
+    from tests.conftest import tiny_overrides
+
+    teacher_ckpt = pipeline_run / "teacher" / "checkpoints" / "last.ckpt"
+    command = [
+        sys.executable,
+        "-m",
+        "pae.train",
+        "-m",
+        "stage=student",
+        f"teacher_ckpt={teacher_ckpt}",
+        "pae.L=0,3",
+        "student.max_epochs=1",
+        f"hydra.sweep.dir={tmp_path}",
+        *tiny_overrides(tiny_root),
+    ]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-2000:]
+    files = sorted(tmp_path.glob("*/metrics.json"))
+    assert len(files) == 2
+    figures = [json.loads(f.read_text())["test/student/pos_median_m"] for f in files]
+    assert all(f >= 0 for f in figures)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import sys
@@ -11,6 +12,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from hydra.errors import HydraException, InstantiationException
+from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from pae.checkpoints import CheckpointError
@@ -115,3 +117,59 @@ def reporting_errors(program: str) -> Iterator[None]:
     except USER_ERRORS as err:
         print(f"{program}: error: {_first_line(err)}", file=sys.stderr)
         raise SystemExit(1) from None
+
+
+def _job_name(run_dir: Path, root: Path) -> str:
+    overrides_file = run_dir / ".hydra" / "overrides.yaml"
+    if not overrides_file.is_file():
+        return str(run_dir.relative_to(root)) or "."
+    overrides = [str(o) for o in OmegaConf.load(overrides_file)]
+    shown = [o for o in overrides if not o.startswith(("hydra.", "+trainer.", "trainer."))]
+    shown = [o for o in shown if not o.startswith(("teacher_ckpt=", "pae_ckpt="))]
+    return " ".join(shown) or "(defaults)"
+
+
+def sweep_table(root: str | Path, split: str = "test") -> str:
+    """Markdown table of every metrics.json under `root` (a run or a multirun directory):
+    one row per job, named by its command-line overrides; cells are median position [m] /
+    orientation [deg] per method."""
+    root = Path(root)
+    jobs = []
+    for path in sorted(root.rglob("metrics.json")):
+        metrics = json.loads(path.read_text())
+        jobs.append((_job_name(path.parent, root), metrics))
+    if not jobs:
+        raise FileNotFoundError(f"{root}: no metrics.json below this directory")
+    methods = [
+        m for m in METHOD_ORDER if any(f"{split}/{m}/pos_median_m" in job for _, job in jobs)
+    ]
+    lines = [
+        "| job | " + " | ".join(methods) + " |",
+        "|---|" + "---|" * len(methods),
+    ]
+    for name, metrics in jobs:
+        cells = []
+        for method in methods:
+            pos = metrics.get(f"{split}/{method}/pos_median_m")
+            rot = metrics.get(f"{split}/{method}/rot_median_deg")
+            cells.append("-" if pos is None else f"{pos:.3f} / {rot:.2f}")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`pae-report DIR`: the results of a run or a sweep as a markdown table."""
+    parser = argparse.ArgumentParser(prog="pae-report", description=sweep_table.__doc__)
+    parser.add_argument("directory", type=Path)
+    parser.add_argument("--split", default="test", choices=("test", "val"))
+    args = parser.parse_args(argv)
+    try:
+        print(sweep_table(args.directory, args.split))
+    except (OSError, ValueError) as err:
+        print(f"pae-report: error: {err}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
