@@ -188,3 +188,76 @@ def test_multirun_sweep_writes_one_metrics_file_per_job(
     assert len(files) == 2
     figures = [json.loads(f.read_text())["test/student/pos_median_m"] for f in files]
     assert all(f >= 0 for f in figures)
+
+
+def _raw_seven_scenes_copy(synthetic_root: Path, raw_root: Path) -> None:
+    """Rewrite a synthetic dataset in the raw 7-Scenes layout (colour PNG + 4x4 pose file)."""
+    from pae.data.labels import read_labels
+    from pae.geometry import quaternion_to_matrix
+
+    for split, split_file in (("train", "TrainSplit.txt"), ("test", "TestSplit.txt")):
+        table = read_labels(synthetic_root / "labels" / f"all_{split}.csv")
+        rotations = quaternion_to_matrix(torch.from_numpy(table.poses[:, 3:])).numpy()
+        sequences: dict[tuple[str, str], int] = {}
+        for i, (scene, seq) in enumerate(zip(table.scene, table.seq, strict=True)):
+            frame = sequences.setdefault((scene, seq), 0)
+            sequences[(scene, seq)] += 1
+            folder = raw_root / scene / seq
+            folder.mkdir(parents=True, exist_ok=True)
+            shutil.copy(synthetic_root / table.img_path[i], folder / f"frame-{frame:06d}.color.png")
+            matrix = torch.eye(4, dtype=torch.float64).numpy()
+            matrix[:3, :3], matrix[:3, 3] = rotations[i], table.poses[i, :3]
+            lines = "\n".join(" ".join(f"{v:.9e}" for v in row) for row in matrix)
+            (folder / f"frame-{frame:06d}.pose.txt").write_text(lines + "\n")
+        for scene in {s for s, _ in sequences}:
+            numbers = sorted(int(q.split("-")[1]) for s, q in sequences if s == scene)
+            (raw_root / scene / split_file).write_text("".join(f"sequence{n}\n" for n in numbers))
+
+
+def test_real_data_layout_trains_end_to_end(tiny_root: Path, tmp_path: Path) -> None:
+    from hydra import compose, initialize_config_dir
+    from omegaconf import open_dict
+
+    from pae import CONFIG_DIR
+    from pae.data.cli import main as pae_data
+
+    raw = tmp_path / "7Scenes"
+    _raw_seven_scenes_copy(tiny_root, raw)
+    assert pae_data(["convert", "7scenes", str(raw), str(raw / "labels")]) == 0
+    overrides = [
+        "data=seven_scenes",
+        f"data.root={raw}",
+        "data.scenes=[scene01]",
+        "data.shorter_edge=32",
+        "data.crop=28",
+        "data.batch_size=8",
+        "data.num_workers=0",
+        "teacher.max_epochs=1",
+        "trainer.check_val_every_n_epoch=1",
+        "callbacks=minimal",
+        "logger=csv",
+        "+trainer.enable_progress_bar=false",
+    ]
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("train", overrides=overrides, return_hydra_config=True)
+    with open_dict(cfg):
+        cfg.hydra.runtime.output_dir = str(tmp_path / "run")
+    metrics = run(cfg, tmp_path / "run")
+    assert metrics["test/teacher/pos_median_m"] >= 0
+    assert "test/teacher/scene00/pos_median_m" not in metrics, "only the chosen scene is used"
+    assert (tmp_path / "run" / "metrics.csv").is_file()
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("refine.weight_model=lstsq", "unknown refine.weight_model 'lstsq'"),
+        ("refine.orientation=slerp", "unknown refine.orientation 'slerp'"),
+        ("refine.method=icp", "unknown refine.method 'icp'"),
+    ],
+)
+def test_bad_refine_options_name_the_key(compose_train, override: str, message: str) -> None:
+    from pae.pipeline import refinement_callbacks
+
+    with pytest.raises(ConfigError, match=message):
+        refinement_callbacks(compose_train(override))

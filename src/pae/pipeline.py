@@ -142,7 +142,10 @@ def refinement_callbacks(cfg: DictConfig) -> list[L.Callback]:
         raise ConfigError(f"unknown refine.method {refine.method!r}; choose 'none' or 'knn_affine'")
     options = OmegaConf.to_container(refine, resolve=True)
     options.pop("method")
-    return [TestTimeRefinement(**options)]
+    try:
+        return [TestTimeRefinement(**options)]
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"refine: {err}") from None
 
 
 def _student_module(

@@ -23,7 +23,8 @@ class PoseDataModule(L.LightningDataModule):
     for training batches only when `augment` is true; evaluation uses the centre crop.
     `balance_scenes` samples scenes equally often in multi-scene training.
     `pose_loss_init` records the initial s_x, s_q of the learned pose loss that suit the
-    dataset's error scale (the configs of the pose losses read it).
+    dataset's error scale (the configs of the pose losses read it). `scenes` keeps only
+    those scenes of the label files (None: all).
     """
 
     def __init__(
@@ -42,6 +43,7 @@ class PoseDataModule(L.LightningDataModule):
         cache_images: bool = False,
         balance_scenes: bool = False,
         pose_loss_init: dict[str, float] | None = None,
+        scenes: list[str] | None = None,
     ) -> None:
         super().__init__()
         self.root = Path(root)
@@ -55,6 +57,7 @@ class PoseDataModule(L.LightningDataModule):
         self.balance_scenes = balance_scenes
         self.augment = augment
         self.pose_loss_init = dict(pose_loss_init or {})
+        self.keep_scenes = list(scenes) if scenes else None
         self.train_transform = ImageTransform(crop, train=True, color_jitter=tuple(color_jitter))
         self.eval_transform = ImageTransform(crop, train=False)
         self.tables: dict[str, LabelTable] = {}
@@ -64,7 +67,9 @@ class PoseDataModule(L.LightningDataModule):
     def setup(self, stage: str | None = None) -> None:
         if self.datasets:
             return
-        self.tables = {split: read_labels(path) for split, path in self.label_paths.items()}
+        self.tables = {
+            split: self._keep_scenes(read_labels(path)) for split, path in self.label_paths.items()
+        }
         self.scene_names = self.tables["train"].scene_names
         for table in self.tables.values():
             unknown = sorted(set(table.scene_names) - set(self.scene_names))
@@ -86,6 +91,16 @@ class PoseDataModule(L.LightningDataModule):
                     cache=self.cache_images,
                 )
             self.datasets[split] = cached[path]
+
+    def _keep_scenes(self, table: LabelTable) -> LabelTable:
+        if self.keep_scenes is None:
+            return table
+        missing = sorted(set(self.keep_scenes) - set(table.scene_names))
+        if missing:
+            raise LabelError(
+                table.source, None, f"no rows of scenes {missing} (it has {table.scene_names})"
+            )
+        return table.select([i for i, s in enumerate(table.scene) if s in self.keep_scenes])
 
     @property
     def n_scenes(self) -> int:
