@@ -95,3 +95,14 @@ def test_backbone_loads_local_weights(tmp_path: Path) -> None:
     loaded = Backbone("small_cnn", weights_path=str(path), pool="flatten", spatial=2).eval()
     images = torch.randn(2, 3, 32, 32)
     assert torch.allclose(loaded(images), source.eval()(images))
+
+
+def test_unreachable_imagenet_weights_are_one_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    import torchvision
+
+    def offline(weights=None):
+        raise OSError("<urlopen error [Errno -2] Name or service not known>")
+
+    monkeypatch.setattr(torchvision.models, "mobilenet_v2", offline)
+    with pytest.raises(BackboneError, match=r"ImageNet weights could not be loaded.*weights_path"):
+        Backbone("mobilenet_v2", pretrained=True)

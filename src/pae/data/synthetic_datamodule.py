@@ -5,6 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from lightning.pytorch.utilities import rank_zero_info
+
 from pae.data.datamodule import PoseDataModule
 
 
@@ -41,7 +43,7 @@ class SyntheticDataModule(PoseDataModule):
             return
         from pae.data.synthetic import write_synthetic_dataset
 
-        write_synthetic_dataset(self.root, **self.render_args)
+        rank_zero_info(write_synthetic_dataset(self.root, **self.render_args).summary())
 
     def setup(self, stage: str | None = None) -> None:
         self.prepare_data()
