@@ -38,6 +38,8 @@ def tiny_overrides(root: Path) -> list[str]:
         "data.batch_size=8",
         "teacher.max_epochs=2",
         "student.max_epochs=2",
+        "decoder.max_epochs=1",
+        "rpr.max_epochs=1",
         "trainer.check_val_every_n_epoch=1",
         "callbacks=minimal",
         "+trainer.enable_progress_bar=false",

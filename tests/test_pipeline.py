@@ -35,7 +35,7 @@ def pipeline_run(tmp_path_factory: pytest.TempPathFactory, tiny_root: Path) -> P
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
         cfg = compose(
             "train",
-            overrides=[*tiny_overrides(tiny_root), "stage=pipeline"],
+            overrides=[*tiny_overrides(tiny_root), "stage=full"],
             return_hydra_config=True,
         )
     with open_dict(cfg):
@@ -54,7 +54,13 @@ def test_pipeline_writes_metrics_checkpoints_and_events(pipeline_run: Path) -> N
     assert metrics["bench/teacher/fit_s"] > 0 and metrics["bench/student/fit_s"] > 0
     assert metrics["test/diagnostics/gt_to_train_m"] >= 0
     assert metrics["test/diagnostics/estimate_to_train_m"] >= 0
-    for step in ("teacher", "student"):
+    assert metrics["test/decoder/l1"] > 0
+    for figure in ("pos_median_m", "rot_median_deg"):
+        assert metrics[f"test/vrpr/{figure}"] >= 0
+    assert metrics["test/vrpr/rot_median_deg"] == pytest.approx(
+        metrics["test/teacher/rot_median_deg"]
+    )
+    for step in ("teacher", "student", "decoder", "rpr"):
         assert (pipeline_run / step / "checkpoints" / "last.ckpt").is_file()
         assert list((pipeline_run / step).glob("events.out.tfevents.*"))
 
@@ -67,6 +73,9 @@ def test_tensorboard_gets_trajectory_plot_and_hparams(pipeline_run: Path) -> Non
     assert "test/trajectory" in events.Tags()["images"]
     assert "val/refined/pos_median_m" in events.Tags()["scalars"]
     assert "hparams/test/refined/pos_median_m" in events.Tags()["scalars"]
+    decoder_events = EventAccumulator(str(pipeline_run / "decoder"))
+    decoder_events.Reload()
+    assert "test/reconstructions" in decoder_events.Tags()["images"]
 
 
 def test_checkpoints_reload_with_weights_only(pipeline_run: Path) -> None:

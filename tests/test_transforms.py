@@ -25,7 +25,7 @@ def test_train_crops_are_per_image_windows_of_the_input() -> None:
     transform = ImageTransform(32, train=True, color_jitter=(0.0, 0.0, 0.0, 0.0))
     out = transform(images)
     assert out.shape == (16, 3, 32, 32)
-    pixels = out * transform.std + transform.mean
+    pixels = ImageTransform.unnormalize_batch(out)
     offsets = set()
     for b in range(16):  # each crop must be some 32x32 window of its own image
         windows = images[b].float().unfold(1, 32, 1).unfold(2, 32, 1) / 255  # [3, 9, 17, 32, 32]

@@ -11,6 +11,7 @@ from hydra.utils import instantiate
 from torch import nn
 
 from pae.models.base import PoseRegressor
+from pae.models.decoder import ImageDecoder
 from pae.models.pae import PoseAutoEncoder
 
 
@@ -93,3 +94,22 @@ def load_pae(path: str | Path) -> LoadedPAE:
     _load_submodule(pae, checkpoint, "pae.", path)
     scenes = list(_hparam(checkpoint, "scene_names", path, "student"))
     return LoadedPAE(pae.eval(), scenes, config)
+
+
+class LoadedDecoder(NamedTuple):
+    """An image decoder rebuilt from a decoder checkpoint, with its scenes and architecture."""
+
+    model: ImageDecoder
+    scene_names: list[str]
+    config: dict[str, Any]
+
+
+def load_decoder(path: str | Path) -> LoadedDecoder:
+    """A decoder checkpoint (stage=decoder) -> its ImageDecoder."""
+    path = Path(path)
+    checkpoint = read_checkpoint(path)
+    config = dict(_hparam(checkpoint, "decoder_config", path, "decoder"))
+    decoder = instantiate(config)
+    _load_submodule(decoder, checkpoint, "decoder.", path)
+    scenes = list(_hparam(checkpoint, "scene_names", path, "decoder"))
+    return LoadedDecoder(decoder.eval(), scenes, config)

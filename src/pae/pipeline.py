@@ -7,6 +7,7 @@ figures it measured; the entry points merge them into the run's metrics.json.
 from __future__ import annotations
 
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -17,9 +18,11 @@ from lightning.pytorch.loggers import Logger, TensorBoardLogger
 from omegaconf import DictConfig, OmegaConf
 
 from pae.callbacks.refinement import TestTimeRefinement
-from pae.checkpoints import CheckpointError, load_pae, load_teacher
+from pae.checkpoints import CheckpointError, load_decoder, load_pae, load_teacher
 from pae.data.datamodule import PoseDataModule
 from pae.data.latents import TeacherLatentDataModule
+from pae.lit.decoder import DecoderModule
+from pae.lit.rpr import RPRModule
 from pae.lit.student import StudentModule
 from pae.lit.teacher import TeacherModule
 from pae.losses import LearnedPoseLoss
@@ -28,6 +31,9 @@ from pae.models.pae import PoseAutoEncoder
 from pae.reporting import ConfigError
 
 Metrics = dict[str, float]
+
+# frozen teachers, PAEs and decoders stay in eval mode inside the modules that train on them
+warnings.filterwarnings("ignore", message=r".*module\(s\) in eval mode", category=UserWarning)
 
 
 def build_data(cfg: DictConfig, **overrides: Any) -> PoseDataModule:
@@ -102,6 +108,27 @@ def _teacher_config(cfg: DictConfig, n_scenes: int) -> dict[str, Any]:
     return config
 
 
+def _fit_and_test(
+    cfg: DictConfig,
+    step_dir: Path,
+    name: str,
+    module: L.LightningModule,
+    data: L.LightningDataModule,
+    epochs: int,
+    callbacks: list[L.Callback] | None = None,
+) -> tuple[Metrics, Path]:
+    """Fit, test, record `bench/{name}/fit_s` -> (metrics, path of the last checkpoint)."""
+    trainer = build_trainer(cfg, step_dir, epochs, callbacks or [])
+    start = time.perf_counter()
+    trainer.fit(module, datamodule=data, ckpt_path=_resume_path(cfg, step_dir))
+    fit_s = time.perf_counter() - start
+    trainer.test(module, datamodule=data, verbose=False)
+    metrics = collect_metrics(trainer)
+    metrics[f"bench/{name}/fit_s"] = fit_s
+    log_hparams(trainer, cfg, metrics)
+    return metrics, step_dir / "checkpoints" / "last.ckpt"
+
+
 def fit_teacher(cfg: DictConfig, step_dir: Path) -> tuple[Metrics, Path]:
     """Train and test a teacher APR -> (metrics, path of its last checkpoint)."""
     data = build_data(cfg)
@@ -115,15 +142,7 @@ def fit_teacher(cfg: DictConfig, step_dir: Path) -> tuple[Metrics, Path]:
         teacher_config=_teacher_config(cfg, data.n_scenes),
         scene_loss_weight=cfg.teacher.scene_loss_weight,
     )
-    trainer = build_trainer(cfg, step_dir, cfg.teacher.max_epochs, [])
-    start = time.perf_counter()
-    trainer.fit(module, datamodule=data, ckpt_path=_resume_path(cfg, step_dir))
-    fit_s = time.perf_counter() - start
-    trainer.test(module, datamodule=data, verbose=False)
-    metrics = collect_metrics(trainer)
-    metrics["bench/teacher/fit_s"] = fit_s
-    log_hparams(trainer, cfg, metrics)
-    return metrics, step_dir / "checkpoints" / "last.ckpt"
+    return _fit_and_test(cfg, step_dir, "teacher", module, data, cfg.teacher.max_epochs)
 
 
 def _check_scenes(path: str | Path, ckpt_scenes: list[str], data_scenes: list[str]) -> None:
@@ -171,10 +190,11 @@ def _student_module(
     )
 
 
-def fit_student(cfg: DictConfig, step_dir: Path, teacher_ckpt: str | Path | None) -> Metrics:
+def fit_student(
+    cfg: DictConfig, step_dir: Path, teacher_ckpt: str | Path | None
+) -> tuple[Metrics, Path]:
     """Distil a PAE from a frozen teacher checkpoint, then test it (with refinement)."""
-    if teacher_ckpt is None:
-        raise ConfigError("stage=student needs teacher_ckpt=PATH (a checkpoint of stage=teacher)")
+    teacher_ckpt = _required(teacher_ckpt, "teacher_ckpt", "student")
     teacher = load_teacher(teacher_ckpt)
     data = build_data(cfg, augment=False)
     _check_scenes(teacher_ckpt, teacher.scene_names, data.scene_names)
@@ -184,15 +204,69 @@ def fit_student(cfg: DictConfig, step_dir: Path, teacher_ckpt: str | Path | None
     module = _student_module(cfg, teacher.model, pae, data.scene_names, teacher.config, pae_config)
     cached = cfg.student.cache_latents
     train_data = TeacherLatentDataModule(data, teacher.model) if cached else data
-    trainer = build_trainer(cfg, step_dir, cfg.student.max_epochs, refinement_callbacks(cfg))
-    start = time.perf_counter()
-    trainer.fit(module, datamodule=train_data, ckpt_path=_resume_path(cfg, step_dir))
-    fit_s = time.perf_counter() - start
-    trainer.test(module, datamodule=train_data, verbose=False)
-    metrics = collect_metrics(trainer)
-    metrics["bench/student/fit_s"] = fit_s
-    log_hparams(trainer, cfg, metrics)
-    return metrics
+    epochs = cfg.student.max_epochs
+    return _fit_and_test(
+        cfg, step_dir, "student", module, train_data, epochs, refinement_callbacks(cfg)
+    )
+
+
+def _required(path: str | Path | None, key: str, stage: str) -> str | Path:
+    if path is None:
+        raise ConfigError(f"stage={stage} needs {key}=PATH")
+    return path
+
+
+def fit_decoder(
+    cfg: DictConfig, step_dir: Path, pae_ckpt: str | Path | None
+) -> tuple[Metrics, Path]:
+    """Train an image decoder on a frozen PAE (from a student checkpoint), then test it."""
+    pae_ckpt = _required(pae_ckpt, "pae_ckpt", "decoder")
+    pae = load_pae(pae_ckpt)
+    data = build_data(cfg, augment=False)
+    _check_scenes(pae_ckpt, pae.scene_names, data.scene_names)
+    decoder_config = OmegaConf.to_container(cfg.decoder.model, resolve=True)
+    module = DecoderModule(
+        pae.model,
+        instantiate(decoder_config),
+        optimizer=instantiate(cfg.decoder.optimizer),
+        scheduler=instantiate(cfg.decoder.scheduler) if cfg.decoder.get("scheduler") else None,
+        scene_names=data.scene_names,
+        pae_config=pae.config,
+        decoder_config=decoder_config,
+    )
+    return _fit_and_test(cfg, step_dir, "decoder", module, data, cfg.decoder.max_epochs)
+
+
+def fit_rpr(
+    cfg: DictConfig, step_dir: Path, pae_ckpt: str | Path | None, decoder_ckpt: str | Path | None
+) -> tuple[Metrics, Path]:
+    """Train the Siamese RPR on virtual references, then test virtual RPR (`test/vrpr/...`)."""
+    pae_ckpt = _required(pae_ckpt, "pae_ckpt", "rpr")
+    decoder_ckpt = _required(decoder_ckpt, "decoder_ckpt", "rpr")
+    teacher, pae, decoder = load_teacher(pae_ckpt), load_pae(pae_ckpt), load_decoder(decoder_ckpt)
+    data = build_data(cfg)
+    for path, loaded in ((pae_ckpt, pae), (decoder_ckpt, decoder)):
+        _check_scenes(path, loaded.scene_names, data.scene_names)
+    rpr_config = OmegaConf.to_container(cfg.rpr.model, resolve=True)
+    rpr_config["backbone"]["pretrained"] = False
+    module = RPRModule(
+        instantiate(cfg.rpr.model),
+        teacher.model,
+        pae.model,
+        decoder.model,
+        loss=instantiate(cfg.rpr.loss),
+        optimizer=instantiate(cfg.rpr.optimizer),
+        scheduler=instantiate(cfg.rpr.scheduler) if cfg.rpr.get("scheduler") else None,
+        scene_names=data.scene_names,
+        configs={
+            "teacher_config": teacher.config,
+            "pae_config": pae.config,
+            "decoder_config": decoder.config,
+            "rpr_config": rpr_config,
+        },
+        pair_k=cfg.rpr.pair_k,
+    )
+    return _fit_and_test(cfg, step_dir, "rpr", module, data, cfg.rpr.max_epochs)
 
 
 def evaluate_checkpoints(cfg: DictConfig, run_dir: Path) -> Metrics:

@@ -10,10 +10,10 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from pae import CONFIG_DIR
-from pae.pipeline import fit_student, fit_teacher
+from pae.pipeline import fit_decoder, fit_rpr, fit_student, fit_teacher
 from pae.reporting import ConfigError, format_results_table, reporting_errors, write_json_atomic
 
-STEPS = ("teacher", "student")
+STEPS = ("teacher", "student", "decoder", "rpr")
 
 
 def run(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
@@ -23,14 +23,18 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
         raise ConfigError(f"unknown stage.steps {unknown}; choose from {list(STEPS)}")
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     metrics: dict[str, float] = {}
-    teacher_ckpt = cfg.teacher_ckpt
+    ckpt = {"teacher": cfg.teacher_ckpt, "pae": cfg.pae_ckpt, "decoder": cfg.decoder_ckpt}
     several = len(cfg.stage.steps) > 1
     for step in cfg.stage.steps:
         step_dir = run_dir / step if several else run_dir
         if step == "teacher":
-            step_metrics, teacher_ckpt = fit_teacher(cfg, step_dir)
+            step_metrics, ckpt["teacher"] = fit_teacher(cfg, step_dir)
+        elif step == "student":
+            step_metrics, ckpt["pae"] = fit_student(cfg, step_dir, ckpt["teacher"])
+        elif step == "decoder":
+            step_metrics, ckpt["decoder"] = fit_decoder(cfg, step_dir, ckpt["pae"])
         else:
-            step_metrics = fit_student(cfg, step_dir, teacher_ckpt)
+            step_metrics, _ = fit_rpr(cfg, step_dir, ckpt["pae"], ckpt["decoder"])
         metrics |= step_metrics
         write_json_atomic(run_dir / "metrics.json", metrics)
     return metrics

@@ -80,8 +80,6 @@ class ImageTransform(nn.Module):
         self.crop = crop
         self.train_mode = train
         self.color_jitter = tuple(float(v) for v in color_jitter)
-        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), False)
-        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), False)
 
     def _crop(self, images: Tensor) -> Tensor:
         b, _, h, w = images.shape
@@ -116,8 +114,22 @@ class ImageTransform(nn.Module):
             images = _rotate_hue(images, turns).clamp(0, 1)
         return images
 
+    @staticmethod
+    def unnormalize_batch(images: Tensor) -> Tensor:
+        """Network input [B, 3, h, w] -> RGB in [0, 1]."""
+        mean = images.new_tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
+        std = images.new_tensor(IMAGENET_STD).view(1, 3, 1, 1)
+        return (images * std + mean).clamp(0, 1)
+
+    @staticmethod
+    def normalize_batch(images: Tensor) -> Tensor:
+        """RGB in [0, 1] [B, 3, h, w] -> network input."""
+        mean = images.new_tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
+        std = images.new_tensor(IMAGENET_STD).view(1, 3, 1, 1)
+        return (images - mean) / std
+
     def forward(self, images: Tensor) -> Tensor:
         images = self._crop(images).float() / 255.0
         if self.train_mode:
             images = self._jitter(images)
-        return (images - self.mean) / self.std
+        return self.normalize_batch(images)

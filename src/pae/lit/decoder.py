@@ -1,0 +1,105 @@
+"""LightningModule that trains an image decoder on the encodings of a frozen PAE."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import lightning as L
+import torch
+import torchvision
+from lightning.pytorch.loggers import TensorBoardLogger
+from torch import Tensor, nn
+
+from pae.data.transforms import ImageTransform
+from pae.lit.teacher import OptimizerFactory, SchedulerFactory, step_scheduler
+from pae.models.decoder import ImageDecoder
+from pae.models.pae import PoseAutoEncoder
+
+
+def image_targets(images: Tensor, size: int) -> Tensor:
+    """Network-input images [B, 3, h, w] -> RGB in [0, 1] resized to [B, 3, size, size]."""
+    rgb = ImageTransform.unnormalize_batch(images)
+    return nn.functional.interpolate(rgb, size=(size, size), mode="area")
+
+
+class DecoderModule(L.LightningModule):
+    """L1 between the image and the decoding of the PAE encoding of its ground-truth pose.
+
+    The PAE is frozen. Logs `{split}/decoder/l1` and a gallery (top: images, bottom:
+    reconstructions) to TensorBoard.
+    """
+
+    def __init__(
+        self,
+        pae: PoseAutoEncoder,
+        decoder: ImageDecoder,
+        optimizer: OptimizerFactory,
+        scene_names: list[str],
+        pae_config: dict[str, Any],
+        decoder_config: dict[str, Any],
+        scheduler: SchedulerFactory | None = None,
+        gallery_size: int = 8,
+    ) -> None:
+        super().__init__()
+        if pae.latent_dim != decoder.latent_dim:
+            raise ValueError(
+                f"decoder latent_dim={decoder.latent_dim} does not match the PAE's {pae.latent_dim}"
+            )
+        self.save_hyperparameters(
+            {
+                "pae_config": pae_config,
+                "decoder_config": decoder_config,
+                "scene_names": list(scene_names),
+            }
+        )
+        self.pae = pae.eval().requires_grad_(False)
+        self.decoder = decoder
+        self.optimizer_factory = optimizer
+        self.scheduler_factory = scheduler
+        self.gallery_size = gallery_size
+
+    def train(self, mode: bool = True) -> DecoderModule:
+        super().train(mode)
+        self.pae.eval()
+        return self
+
+    def reconstruct(self, poses: Tensor, scenes: Tensor) -> Tensor:
+        """poses [B, 7], scenes [B] -> decoded images [B, 3, s, s] in [0, 1]."""
+        with torch.no_grad():
+            encoding = self.pae(poses, scenes).joint()
+        return self.decoder(encoding)
+
+    def _l1(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+        target = image_targets(batch["image"], self.decoder.size)
+        recon = self.reconstruct(batch["pose"], batch["scene"])
+        return nn.functional.l1_loss(recon, target), target, recon
+
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        loss, _, _ = self._l1(batch)
+        self.log("train/decoder_l1", loss)
+        return loss
+
+    def _evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
+        loss, target, recon = self._l1(batch)
+        self.log(f"{split}/decoder/l1", loss, batch_size=len(target))
+        if batch_idx == 0:
+            self._gallery(f"{split}/reconstructions", target, recon)
+
+    def _gallery(self, tag: str, target: Tensor, recon: Tensor) -> None:
+        n = min(self.gallery_size, len(target))
+        grid = torchvision.utils.make_grid(torch.cat([target[:n], recon[:n]]), nrow=n)
+        for logger in self.loggers:
+            if isinstance(logger, TensorBoardLogger):
+                logger.experiment.add_image(tag, grid, self.global_step)
+
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._evaluate(batch, batch_idx, "val")
+
+    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._evaluate(batch, batch_idx, "test")
+
+    def configure_optimizers(self) -> Any:
+        optimizer = self.optimizer_factory(params=self.decoder.parameters())
+        if self.scheduler_factory is None:
+            return optimizer
+        return {"optimizer": optimizer, "lr_scheduler": step_scheduler(self, optimizer)}

@@ -1,0 +1,137 @@
+"""LightningModule for virtual relative pose regression (paper §3.3): a Siamese RPR between
+the query image and an image decoded from a train pose's PAE encoding."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor, nn
+
+from pae.data.transforms import ImageTransform
+from pae.geometry import quaternion_conjugate, quaternion_multiply
+from pae.lit.evaluation import PoseEvaluation
+from pae.lit.student import unit_pose
+from pae.lit.teacher import OptimizerFactory, SchedulerFactory, step_scheduler
+from pae.losses import LearnedPoseLoss
+from pae.models.base import PoseRegressor
+from pae.models.decoder import ImageDecoder
+from pae.models.pae import PoseAutoEncoder
+from pae.models.rpr import SiameseRPR
+from pae.refine.index import PoseIndex
+
+
+def relative_target(query: Tensor, reference: Tensor) -> Tensor:
+    """[B, 7] poses -> [B, 7]: world-frame translation query − reference (m) and the rotation
+    conj(q_ref)·q_query."""
+    rotation = quaternion_multiply(quaternion_conjugate(reference[:, 3:]), query[:, 3:])
+    return torch.cat([query[:, :3] - reference[:, :3], rotation], dim=-1)
+
+
+class RPRModule(L.LightningModule):
+    """Trains a SiameseRPR on (query image, decoded image of a nearby train pose) pairs.
+
+    Training references: one of the `pair_k` nearest train poses of the query's true pose
+    (never the query's own row), decoded by the frozen PAE + decoder — the same kind of
+    reference the RPR sees at test time. Evaluation: the teacher estimates the pose, the
+    nearest train pose of the estimate is decoded, and the RPR's translation moves that
+    reference position: `vrpr` position = reference + translation (orientation: teacher's).
+    """
+
+    def __init__(
+        self,
+        rpr: SiameseRPR,
+        teacher: PoseRegressor,
+        pae: PoseAutoEncoder,
+        decoder: ImageDecoder,
+        loss: LearnedPoseLoss,
+        optimizer: OptimizerFactory,
+        scene_names: list[str],
+        configs: dict[str, Any],
+        scheduler: SchedulerFactory | None = None,
+        pair_k: int = 5,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters({**configs, "scene_names": list(scene_names)})
+        self.rpr = rpr
+        self.teacher = teacher.eval().requires_grad_(False)
+        self.pae = pae.eval().requires_grad_(False)
+        self.decoder = decoder.eval().requires_grad_(False)
+        self.loss = loss
+        self.optimizer_factory = optimizer
+        self.scheduler_factory = scheduler
+        self.pair_k = pair_k
+        self.evaluation = PoseEvaluation(["teacher", "vrpr"], scene_names)
+        self.index: PoseIndex | None = None
+        self.pair_count = pair_k + 1
+
+    def train(self, mode: bool = True) -> RPRModule:
+        super().train(mode)
+        for frozen in (self.teacher, self.pae, self.decoder):
+            frozen.eval()
+        return self
+
+    def setup(self, stage: str) -> None:
+        poses, scenes = self.trainer.datamodule.train_poses()
+        self.index = PoseIndex(poses, scenes)
+        self.pair_count = min(self.pair_k + 1, int(torch.bincount(scenes).min()))
+
+    def virtual_reference(self, poses: Tensor, scenes: Tensor, crop: int) -> Tensor:
+        """Decoded images of poses [B, 7] as network input [B, 3, crop, crop]."""
+        with torch.no_grad():
+            images = self.decoder(self.pae(poses, scenes).joint())
+        images = nn.functional.interpolate(images, size=(crop, crop), mode="bilinear")
+        return ImageTransform.normalize_batch(images)
+
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        assert self.index is not None
+        pose, scene = batch["pose"], batch["scene"]
+        indices, _ = self.index.query(pose, scene, self.pair_count)
+        candidates = indices.to(pose.device)
+        own = candidates == batch["index"].unsqueeze(1)
+        choice = torch.rand(candidates.shape, device=pose.device).masked_fill(own, -1).argmax(1)
+        reference = self.index.poses.to(pose.device)[candidates.gather(1, choice[:, None])[:, 0]]
+        images = self.virtual_reference(reference, scene, batch["image"].shape[-1])
+        terms = self.loss(self.rpr(batch["image"], images), relative_target(pose, reference))
+        self.log_dict(
+            {"train/loss": terms.total, "train/pos_loss": terms.position},
+            batch_size=len(pose),
+        )
+        return terms.total
+
+    def _evaluate(self, batch: dict[str, Tensor], split: str) -> None:
+        assert self.index is not None
+        images, gt, scene = batch["image"], batch["pose"], batch["scene"]
+        teacher_pose, latents = self.teacher(images)
+        scene_estimate = (
+            latents.scene_logits.argmax(-1) if latents.scene_logits is not None else scene
+        )
+        estimate = unit_pose(teacher_pose)
+        nearest, _ = self.index.query(estimate, scene_estimate, 1)
+        reference = self.index.poses.to(gt.device)[nearest[:, 0].to(gt.device)]
+        relative = self.rpr(
+            images, self.virtual_reference(reference, scene_estimate, images.shape[-1])
+        )
+        vrpr = torch.cat([reference[:, :3] + relative[:, :3], estimate[:, 3:]], dim=-1)
+        self.evaluation.update(split, "teacher", teacher_pose, gt, scene)
+        self.evaluation.update(split, "vrpr", vrpr, gt, scene)
+
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._evaluate(batch, "val")
+
+    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._evaluate(batch, "test")
+
+    def on_validation_epoch_end(self) -> None:
+        self.evaluation.log(self, "val")
+
+    def on_test_epoch_end(self) -> None:
+        self.evaluation.log(self, "test")
+
+    def configure_optimizers(self) -> Any:
+        params = list(self.rpr.parameters()) + list(self.loss.parameters())
+        optimizer = self.optimizer_factory(params=params)
+        if self.scheduler_factory is None:
+            return optimizer
+        return {"optimizer": optimizer, "lr_scheduler": step_scheduler(self, optimizer)}
