@@ -270,3 +270,20 @@ def test_bad_refine_options_name_the_key(compose_train, override: str, message: 
 
     with pytest.raises(ConfigError, match=message):
         refinement_callbacks(compose_train(override))
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("student.input=image", "unknown student.pae_input 'image'"),
+        ("student.latent_loss=cosine", "unknown student.latent_loss 'cosine'"),
+        ("pae.latent_dim=64", "pae.latent_dim=64 does not match the teacher's latent size 256"),
+    ],
+)
+def test_bad_student_options_name_the_key(
+    pipeline_run: Path, compose_train, tmp_path: Path, override: str, message: str
+) -> None:
+    teacher_ckpt = pipeline_run / "teacher" / "checkpoints" / "last.ckpt"
+    cfg = compose_train("stage=student", f"teacher_ckpt={teacher_ckpt}", override, run_dir=tmp_path)
+    with pytest.raises(ConfigError, match=message):
+        run(cfg, tmp_path)

@@ -42,10 +42,13 @@ class LearnedPoseLoss(nn.Module):
         return PoseLossTerms(total, position, orientation)
 
 
+LATENT_LOSSES = ("l2", "mse")
+
+
 def latent_distance(pred: Tensor, target: Tensor, kind: str = "l2") -> Tensor:
     """Batch-mean latent loss between [B, d] codes: "l2" = ‖·‖₂ (paper), "mse" (public code)."""
     if kind == "l2":
         return torch.linalg.vector_norm(pred - target, dim=-1).mean()
     if kind == "mse":
         return nn.functional.mse_loss(pred, target)
-    raise ValueError(f"unknown latent loss {kind!r}; choose 'l2' or 'mse'")
+    raise ValueError(f"unknown latent loss {kind!r}; choose one of {LATENT_LOSSES}")

@@ -176,18 +176,21 @@ def _student_module(
     pae_config: dict[str, Any],
 ) -> StudentModule:
     student = cfg.student
-    return StudentModule(
-        teacher,
-        pae,
-        loss=instantiate(student.loss),
-        optimizer=instantiate(student.optimizer),
-        scheduler=instantiate(student.scheduler) if student.get("scheduler") else None,
-        scene_names=scene_names,
-        teacher_config=teacher_config,
-        pae_config=pae_config,
-        latent_loss=student.latent_loss,
-        pae_input=student.input,
-    )
+    try:
+        return StudentModule(
+            teacher,
+            pae,
+            loss=instantiate(student.loss),
+            optimizer=instantiate(student.optimizer),
+            scheduler=instantiate(student.scheduler) if student.get("scheduler") else None,
+            scene_names=scene_names,
+            teacher_config=teacher_config,
+            pae_config=pae_config,
+            latent_loss=student.latent_loss,
+            pae_input=student.input,
+        )
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
 
 
 def fit_student(

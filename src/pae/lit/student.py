@@ -11,7 +11,7 @@ from torch import Tensor
 from pae.geometry import normalize_quaternion
 from pae.lit.evaluation import PoseEvaluation
 from pae.lit.teacher import OptimizerFactory, SchedulerFactory, step_scheduler
-from pae.losses import LearnedPoseLoss, latent_distance
+from pae.losses import LATENT_LOSSES, LearnedPoseLoss, latent_distance
 from pae.metrics import mean_pose_per_scene
 from pae.models.base import Latents, PoseRegressor
 from pae.models.pae import PoseAutoEncoder
@@ -56,7 +56,10 @@ class StudentModule(L.LightningModule):
             )
         if pae_input not in ("gt", "teacher"):
             raise ValueError(f"unknown student.pae_input {pae_input!r}; choose 'gt' or 'teacher'")
-        latent_distance(torch.zeros(1, 1), torch.zeros(1, 1), latent_loss)
+        if latent_loss not in LATENT_LOSSES:
+            raise ValueError(
+                f"unknown student.latent_loss {latent_loss!r}; choose one of {LATENT_LOSSES}"
+            )
         self.save_hyperparameters(
             {
                 "teacher_config": teacher_config,
