@@ -287,3 +287,35 @@ def test_bad_student_options_name_the_key(
     cfg = compose_train("stage=student", f"teacher_ckpt={teacher_ckpt}", override, run_dir=tmp_path)
     with pytest.raises(ConfigError, match=message):
         run(cfg, tmp_path)
+
+
+def test_resume_continues_an_interrupted_run(
+    compose_train, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import lightning as L
+
+    import pae.pipeline
+    from pae.checkpoints import read_checkpoint
+
+    class Interrupt(L.Callback):
+        def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+            if trainer.current_epoch == 1:
+                raise RuntimeError("interrupted")
+
+    build_trainer = pae.pipeline.build_trainer
+    with monkeypatch.context() as patch:
+        patch.setattr(
+            pae.pipeline,
+            "build_trainer",
+            lambda cfg, step_dir, epochs, callbacks: build_trainer(
+                cfg, step_dir, epochs, [*callbacks, Interrupt()]
+            ),
+        )
+        with pytest.raises(RuntimeError, match="interrupted"):
+            run(compose_train(run_dir=tmp_path), tmp_path)
+    last = tmp_path / "checkpoints" / "last.ckpt"
+    steps_per_epoch = read_checkpoint(last)["global_step"]
+    assert steps_per_epoch > 0 and not (tmp_path / "metrics.json").exists()
+    metrics = run(compose_train("resume=true", run_dir=tmp_path), tmp_path)
+    assert read_checkpoint(last)["global_step"] == 2 * steps_per_epoch
+    assert json.loads((tmp_path / "metrics.json").read_text()) == pytest.approx(metrics)
