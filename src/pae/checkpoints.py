@@ -10,10 +10,6 @@ import torch
 from hydra.utils import instantiate
 from torch import nn
 
-from pae.models.base import PoseRegressor
-from pae.models.decoder import ImageDecoder
-from pae.models.pae import PoseAutoEncoder
-
 
 class CheckpointError(RuntimeError):
     """A missing, unreadable, wrong-kind or mismatched checkpoint; the message names the file."""
@@ -58,58 +54,36 @@ def _load_submodule(model: nn.Module, checkpoint: dict[str, Any], prefix: str, p
         raise CheckpointError(f"{path}: weights do not match the model ({detail})") from None
 
 
-class LoadedTeacher(NamedTuple):
-    """A teacher rebuilt from a checkpoint: model (eval mode), its scenes and architecture."""
+class LoadedModel(NamedTuple):
+    """A model rebuilt from a checkpoint: the model (eval mode), its scenes and architecture."""
 
-    model: PoseRegressor
+    model: nn.Module
     scene_names: list[str]
     config: dict[str, Any]
 
 
-class LoadedPAE(NamedTuple):
-    """A PAE rebuilt from a student checkpoint: model (eval mode), its scenes and architecture."""
-
-    model: PoseAutoEncoder
-    scene_names: list[str]
-    config: dict[str, Any]
-
-
-def load_teacher(path: str | Path) -> LoadedTeacher:
-    """A teacher or student checkpoint (students hold a copy of their teacher) -> its teacher."""
+def _load_model(path: str | Path, name: str, kind: str) -> LoadedModel:
+    """Rebuild submodule `name` of a checkpoint from its `{name}_config` hyper-parameter."""
     path = Path(path)
     checkpoint = read_checkpoint(path)
-    config = dict(_hparam(checkpoint, "teacher_config", path, "teacher"))
-    teacher = instantiate(config)
-    _load_submodule(teacher, checkpoint, "teacher.", path)
-    scenes = list(_hparam(checkpoint, "scene_names", path, "teacher"))
-    return LoadedTeacher(teacher.eval(), scenes, config)
+    config = dict(_hparam(checkpoint, f"{name}_config", path, kind))
+    model = instantiate(config)
+    _load_submodule(model, checkpoint, f"{name}.", path)
+    scenes = list(_hparam(checkpoint, "scene_names", path, kind))
+    return LoadedModel(model.eval(), scenes, config)
 
 
-def load_pae(path: str | Path) -> LoadedPAE:
+def load_teacher(path: str | Path) -> LoadedModel:
+    """A teacher or student checkpoint (students hold a copy of their teacher) -> the teacher
+    (a PoseRegressor)."""
+    return _load_model(path, "teacher", "teacher")
+
+
+def load_pae(path: str | Path) -> LoadedModel:
     """A student checkpoint -> its PoseAutoEncoder."""
-    path = Path(path)
-    checkpoint = read_checkpoint(path)
-    config = dict(_hparam(checkpoint, "pae_config", path, "student"))
-    pae = instantiate(config)
-    _load_submodule(pae, checkpoint, "pae.", path)
-    scenes = list(_hparam(checkpoint, "scene_names", path, "student"))
-    return LoadedPAE(pae.eval(), scenes, config)
+    return _load_model(path, "pae", "student")
 
 
-class LoadedDecoder(NamedTuple):
-    """An image decoder rebuilt from a decoder checkpoint, with its scenes and architecture."""
-
-    model: ImageDecoder
-    scene_names: list[str]
-    config: dict[str, Any]
-
-
-def load_decoder(path: str | Path) -> LoadedDecoder:
+def load_decoder(path: str | Path) -> LoadedModel:
     """A decoder checkpoint (stage=decoder) -> its ImageDecoder."""
-    path = Path(path)
-    checkpoint = read_checkpoint(path)
-    config = dict(_hparam(checkpoint, "decoder_config", path, "decoder"))
-    decoder = instantiate(config)
-    _load_submodule(decoder, checkpoint, "decoder.", path)
-    scenes = list(_hparam(checkpoint, "scene_names", path, "decoder"))
-    return LoadedDecoder(decoder.eval(), scenes, config)
+    return _load_model(path, "decoder", "decoder")

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 from typing import Any
 
-import lightning as L
 import torch
 import torchvision
 from lightning.pytorch.loggers import TensorBoardLogger
 from torch import Tensor, nn
 
 from pae.data.transforms import ImageTransform
-from pae.lit.teacher import OptimizerFactory, SchedulerFactory, step_scheduler
+from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.models.decoder import ImageDecoder
 from pae.models.pae import PoseAutoEncoder
 
@@ -22,7 +21,7 @@ def image_targets(images: Tensor, size: int) -> Tensor:
     return nn.functional.interpolate(rgb, size=(size, size), mode="area")
 
 
-class DecoderModule(L.LightningModule):
+class DecoderModule(PaeModule):
     """L1 between the image and the decoding of the PAE encoding of its ground-truth pose.
 
     The PAE is frozen. Logs `{split}/decoder/l1` and a gallery (top: images, bottom:
@@ -40,7 +39,7 @@ class DecoderModule(L.LightningModule):
         scheduler: SchedulerFactory | None = None,
         gallery_size: int = 8,
     ) -> None:
-        super().__init__()
+        super().__init__(optimizer, scheduler)
         if pae.latent_dim != decoder.latent_dim:
             raise ValueError(
                 f"decoder latent_dim={decoder.latent_dim} does not match the PAE's {pae.latent_dim}"
@@ -54,8 +53,6 @@ class DecoderModule(L.LightningModule):
         )
         self.pae = pae.eval().requires_grad_(False)
         self.decoder = decoder
-        self.optimizer_factory = optimizer
-        self.scheduler_factory = scheduler
         self.gallery_size = gallery_size
 
     def train(self, mode: bool = True) -> DecoderModule:
@@ -79,7 +76,10 @@ class DecoderModule(L.LightningModule):
         self.log("train/decoder_l1", loss)
         return loss
 
-    def _evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
+    def trainable_parameters(self) -> list[nn.Parameter]:
+        return list(self.decoder.parameters())
+
+    def evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
         loss, target, recon = self._l1(batch)
         self.log(f"{split}/decoder/l1", loss, batch_size=len(target))
         if batch_idx == 0:
@@ -91,15 +91,3 @@ class DecoderModule(L.LightningModule):
         for logger in self.loggers:
             if isinstance(logger, TensorBoardLogger):
                 logger.experiment.add_image(tag, grid, self.global_step)
-
-    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._evaluate(batch, batch_idx, "val")
-
-    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._evaluate(batch, batch_idx, "test")
-
-    def configure_optimizers(self) -> Any:
-        optimizer = self.optimizer_factory(params=self.decoder.parameters())
-        if self.scheduler_factory is None:
-            return optimizer
-        return {"optimizer": optimizer, "lr_scheduler": step_scheduler(self, optimizer)}

@@ -5,15 +5,14 @@ from __future__ import annotations
 
 from typing import Any
 
-import lightning as L
 import torch
 from torch import Tensor, nn
 
 from pae.data.transforms import ImageTransform
 from pae.geometry import quaternion_conjugate, quaternion_multiply
+from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import PoseEvaluation
 from pae.lit.student import unit_pose
-from pae.lit.teacher import OptimizerFactory, SchedulerFactory, step_scheduler
 from pae.losses import LearnedPoseLoss
 from pae.models.base import PoseRegressor
 from pae.models.decoder import ImageDecoder
@@ -29,7 +28,7 @@ def relative_target(query: Tensor, reference: Tensor) -> Tensor:
     return torch.cat([query[:, :3] - reference[:, :3], rotation], dim=-1)
 
 
-class RPRModule(L.LightningModule):
+class RPRModule(PaeModule):
     """Trains a SiameseRPR on (query image, decoded image of a nearby train pose) pairs.
 
     Training references: one of the `pair_k` nearest train poses of the query's true pose
@@ -52,15 +51,13 @@ class RPRModule(L.LightningModule):
         scheduler: SchedulerFactory | None = None,
         pair_k: int = 5,
     ) -> None:
-        super().__init__()
+        super().__init__(optimizer, scheduler)
         self.save_hyperparameters({**configs, "scene_names": list(scene_names)})
         self.rpr = rpr
         self.teacher = teacher.eval().requires_grad_(False)
         self.pae = pae.eval().requires_grad_(False)
         self.decoder = decoder.eval().requires_grad_(False)
         self.loss = loss
-        self.optimizer_factory = optimizer
-        self.scheduler_factory = scheduler
         self.pair_k = pair_k
         self.evaluation = PoseEvaluation(["teacher", "vrpr"], scene_names)
         self.index: PoseIndex | None = None
@@ -100,7 +97,10 @@ class RPRModule(L.LightningModule):
         )
         return terms.total
 
-    def _evaluate(self, batch: dict[str, Tensor], split: str) -> None:
+    def trainable_parameters(self) -> list[nn.Parameter]:
+        return list(self.rpr.parameters()) + list(self.loss.parameters())
+
+    def evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
         assert self.index is not None
         images, gt, scene = batch["image"], batch["pose"], batch["scene"]
         teacher_pose, latents = self.teacher(images)
@@ -116,22 +116,3 @@ class RPRModule(L.LightningModule):
         vrpr = torch.cat([reference[:, :3] + relative[:, :3], estimate[:, 3:]], dim=-1)
         self.evaluation.update(split, "teacher", teacher_pose, gt, scene)
         self.evaluation.update(split, "vrpr", vrpr, gt, scene)
-
-    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._evaluate(batch, "val")
-
-    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._evaluate(batch, "test")
-
-    def on_validation_epoch_end(self) -> None:
-        self.evaluation.log(self, "val")
-
-    def on_test_epoch_end(self) -> None:
-        self.evaluation.log(self, "test")
-
-    def configure_optimizers(self) -> Any:
-        params = list(self.rpr.parameters()) + list(self.loss.parameters())
-        optimizer = self.optimizer_factory(params=params)
-        if self.scheduler_factory is None:
-            return optimizer
-        return {"optimizer": optimizer, "lr_scheduler": step_scheduler(self, optimizer)}

@@ -4,15 +4,13 @@ from __future__ import annotations
 
 from typing import Any
 
-import lightning as L
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from pae.geometry import normalize_quaternion
+from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import PoseEvaluation
-from pae.lit.teacher import OptimizerFactory, SchedulerFactory, step_scheduler
 from pae.losses import LATENT_LOSSES, LearnedPoseLoss, latent_distance
-from pae.metrics import mean_pose_per_scene
 from pae.models.base import Latents, PoseRegressor
 from pae.models.pae import PoseAutoEncoder
 
@@ -24,7 +22,7 @@ def unit_pose(pose: Tensor) -> Tensor:
     return torch.cat([pose[:, :3], normalize_quaternion(pose[:, 3:])], dim=-1)
 
 
-class StudentModule(L.LightningModule):
+class StudentModule(PaeModule):
     """L = latent(z_x, ẑ_x) + latent(z_q, ẑ_q) + L_p(teacher.regress(ẑ), p_gt).
 
     The teacher is frozen (eval mode, no parameter gradients) but its heads stay in the graph,
@@ -48,7 +46,7 @@ class StudentModule(L.LightningModule):
         latent_loss: str = "l2",
         pae_input: str = "gt",
     ) -> None:
-        super().__init__()
+        super().__init__(optimizer, scheduler)
         if pae.latent_dim != teacher.latent_dim:
             raise ValueError(
                 f"pae.latent_dim={pae.latent_dim} does not match the teacher's latent size "
@@ -73,28 +71,16 @@ class StudentModule(L.LightningModule):
         self.teacher = teacher.eval().requires_grad_(False)
         self.pae = pae
         self.loss = loss
-        self.optimizer_factory = optimizer
-        self.scheduler_factory = scheduler
         self.latent_loss = latent_loss
         self.pae_input = pae_input
         self.evaluation = PoseEvaluation(STUDENT_METHODS, scene_names)
-        self.register_buffer("mean_poses", torch.zeros(len(scene_names), 7))
+        self.register_mean_pose_baseline(len(scene_names))
         self.eval_outputs: list[dict[str, Tensor]] = []
 
     def train(self, mode: bool = True) -> StudentModule:
         super().train(mode)
         self.teacher.eval()
         return self
-
-    def on_fit_start(self) -> None:
-        self._set_mean_poses()
-
-    def on_test_start(self) -> None:
-        self._set_mean_poses()
-
-    def _set_mean_poses(self) -> None:
-        poses, scenes = self.trainer.datamodule.train_poses()
-        self.mean_poses.copy_(mean_pose_per_scene(poses, scenes, len(self.mean_poses)))
 
     def student_loss(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         """Loss terms for a cached-latent or image batch."""
@@ -125,7 +111,16 @@ class StudentModule(L.LightningModule):
         self.log_dict({"train/s_x": self.loss.s_x, "train/s_q": self.loss.s_q})
         return terms["loss"]
 
-    def _evaluate(self, batch: dict[str, Tensor], split: str) -> None:
+    def on_validation_epoch_start(self) -> None:
+        self.eval_outputs = []
+
+    def on_test_epoch_start(self) -> None:
+        self.eval_outputs = []
+
+    def trainable_parameters(self) -> list[nn.Parameter]:
+        return list(self.pae.parameters()) + list(self.loss.parameters())
+
+    def evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
         images, gt, scene = batch["image"], batch["pose"], batch["scene"]
         teacher_pose, latents = self.teacher(images)
         scene_estimate = (
@@ -151,28 +146,3 @@ class StudentModule(L.LightningModule):
                 "scene_estimate": scene_estimate,
             }
         )
-
-    def on_validation_epoch_start(self) -> None:
-        self.eval_outputs = []
-
-    def on_test_epoch_start(self) -> None:
-        self.eval_outputs = []
-
-    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._evaluate(batch, "val")
-
-    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._evaluate(batch, "test")
-
-    def on_validation_epoch_end(self) -> None:
-        self.evaluation.log(self, "val")
-
-    def on_test_epoch_end(self) -> None:
-        self.evaluation.log(self, "test")
-
-    def configure_optimizers(self) -> Any:
-        params = list(self.pae.parameters()) + list(self.loss.parameters())
-        optimizer = self.optimizer_factory(params=params)
-        if self.scheduler_factory is None:
-            return optimizer
-        return {"optimizer": optimizer, "lr_scheduler": step_scheduler(self, optimizer)}

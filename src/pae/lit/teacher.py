@@ -2,30 +2,17 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any
 
-import lightning as L
-import torch
 from torch import Tensor, nn
 
+from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import PoseEvaluation
 from pae.losses import LearnedPoseLoss
-from pae.metrics import mean_pose_per_scene
 from pae.models.base import PoseRegressor
 
-OptimizerFactory = Callable[..., torch.optim.Optimizer]
-SchedulerFactory = Callable[..., Any]
 
-
-def step_scheduler(module: L.LightningModule, optimizer: torch.optim.Optimizer) -> dict[str, Any]:
-    """The module's scheduler factory over all of the run's optimiser steps (e.g. OneCycleLR)."""
-    total_steps = int(module.trainer.estimated_stepping_batches)
-    scheduler = module.scheduler_factory(optimizer=optimizer, total_steps=total_steps)
-    return {"scheduler": scheduler, "interval": "step"}
-
-
-class TeacherModule(L.LightningModule):
+class TeacherModule(PaeModule):
     """Wires a PoseRegressor, LearnedPoseLoss (+ scene cross-entropy for multi-scene teachers),
     the optimiser and pose-error metrics for `teacher` and the `mean_pose` baseline."""
 
@@ -39,27 +26,15 @@ class TeacherModule(L.LightningModule):
         scheduler: SchedulerFactory | None = None,
         scene_loss_weight: float = 1.0,
     ) -> None:
-        super().__init__()
+        super().__init__(optimizer, scheduler)
         self.save_hyperparameters(
             {"teacher_config": teacher_config, "scene_names": list(scene_names)}
         )
         self.teacher = teacher
         self.loss = loss
-        self.optimizer_factory = optimizer
-        self.scheduler_factory = scheduler
         self.scene_loss_weight = scene_loss_weight
         self.evaluation = PoseEvaluation(["teacher", "mean_pose"], scene_names)
-        self.register_buffer("mean_poses", torch.zeros(len(scene_names), 7))
-
-    def on_fit_start(self) -> None:
-        self._set_mean_poses()
-
-    def on_test_start(self) -> None:
-        self._set_mean_poses()
-
-    def _set_mean_poses(self) -> None:
-        poses, scenes = self.trainer.datamodule.train_poses()
-        self.mean_poses.copy_(mean_pose_per_scene(poses, scenes, len(self.mean_poses)))
+        self.register_mean_pose_baseline(len(scene_names))
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         pred, latents = self.teacher(batch["image"], batch["scene"])
@@ -81,26 +56,11 @@ class TeacherModule(L.LightningModule):
         )
         return loss
 
-    def _evaluate(self, batch: dict[str, Tensor], split: str) -> None:
+    def trainable_parameters(self) -> list[nn.Parameter]:
+        return list(self.parameters())
+
+    def evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
         pred, _ = self.teacher(batch["image"])
         self.evaluation.update(split, "teacher", pred, batch["pose"], batch["scene"])
         baseline = self.mean_poses[batch["scene"]]
         self.evaluation.update(split, "mean_pose", baseline, batch["pose"], batch["scene"])
-
-    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._evaluate(batch, "val")
-
-    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._evaluate(batch, "test")
-
-    def on_validation_epoch_end(self) -> None:
-        self.evaluation.log(self, "val")
-
-    def on_test_epoch_end(self) -> None:
-        self.evaluation.log(self, "test")
-
-    def configure_optimizers(self) -> Any:
-        optimizer = self.optimizer_factory(params=self.parameters())
-        if self.scheduler_factory is None:
-            return optimizer
-        return {"optimizer": optimizer, "lr_scheduler": step_scheduler(self, optimizer)}

@@ -1,0 +1,79 @@
+"""What every pae LightningModule shares: evaluation hooks and optimiser wiring."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor, nn
+
+from pae.lit.evaluation import PoseEvaluation
+from pae.metrics import mean_pose_per_scene
+
+OptimizerFactory = Callable[..., torch.optim.Optimizer]
+SchedulerFactory = Callable[..., Any]
+
+
+class PaeModule(L.LightningModule):
+    """Subclasses implement `trainable_parameters()` and `evaluate(batch, batch_idx, split)`;
+    pose metrics collected in a `self.evaluation` PoseEvaluation are logged after each epoch.
+    The scheduler factory gets the run's total optimiser steps (e.g. OneCycleLR)."""
+
+    def __init__(
+        self, optimizer: OptimizerFactory, scheduler: SchedulerFactory | None = None
+    ) -> None:
+        super().__init__()
+        self.optimizer_factory = optimizer
+        self.scheduler_factory = scheduler
+
+    def register_mean_pose_baseline(self, n_scenes: int) -> None:
+        """Keep `mean_poses` [n_scenes, 7], the mean train pose per scene (the `mean_pose`
+        baseline), filled from the data module when fitting or testing starts."""
+        self.register_buffer("mean_poses", torch.zeros(n_scenes, 7))
+
+    def _fill_mean_poses(self) -> None:
+        if hasattr(self, "mean_poses"):
+            poses, scenes = self.trainer.datamodule.train_poses()
+            self.mean_poses.copy_(mean_pose_per_scene(poses, scenes, len(self.mean_poses)))
+
+    def on_fit_start(self) -> None:
+        self._fill_mean_poses()
+
+    def on_test_start(self) -> None:
+        self._fill_mean_poses()
+
+    def trainable_parameters(self) -> Iterable[nn.Parameter]:
+        raise NotImplementedError
+
+    def evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
+        raise NotImplementedError
+
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self.evaluate(batch, batch_idx, "val")
+
+    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self.evaluate(batch, batch_idx, "test")
+
+    def _log_evaluation(self, split: str) -> None:
+        evaluation = getattr(self, "evaluation", None)
+        if isinstance(evaluation, PoseEvaluation):
+            evaluation.log(self, split)
+
+    def on_validation_epoch_end(self) -> None:
+        self._log_evaluation("val")
+
+    def on_test_epoch_end(self) -> None:
+        self._log_evaluation("test")
+
+    def configure_optimizers(self) -> Any:
+        optimizer = self.optimizer_factory(params=list(self.trainable_parameters()))
+        if self.scheduler_factory is None:
+            return optimizer
+        total_steps = int(self.trainer.estimated_stepping_batches)
+        scheduler = self.scheduler_factory(optimizer=optimizer, total_steps=total_steps)
+        return {
+            "optimizer": optimizer,
+            "lr_scheduler": {"scheduler": scheduler, "interval": "step"},
+        }
