@@ -18,6 +18,8 @@ GROUPS = {
         "teacher",
         "pae",
         "student",
+        "decoder",
+        "rpr",
         "refine",
         "trainer",
         "logger",
