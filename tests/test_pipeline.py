@@ -319,3 +319,19 @@ def test_resume_continues_an_interrupted_run(
     metrics = run(compose_train("resume=true", run_dir=tmp_path), tmp_path)
     assert read_checkpoint(last)["global_step"] == 2 * steps_per_epoch
     assert json.loads((tmp_path / "metrics.json").read_text()) == pytest.approx(metrics)
+
+
+@pytest.mark.parametrize(
+    "options",
+    [("student.input=teacher",), ("student.cache_latents=false", "student.latent_loss=mse")],
+)
+def test_student_variants_train(
+    pipeline_run: Path, compose_train, tmp_path: Path, options: tuple[str, ...]
+) -> None:
+    teacher_ckpt = pipeline_run / "teacher" / "checkpoints" / "last.ckpt"
+    cfg = compose_train(
+        "stage=student", f"teacher_ckpt={teacher_ckpt}", "refine=none", *options, run_dir=tmp_path
+    )
+    metrics = run(cfg, tmp_path)
+    assert metrics["test/student/pos_median_m"] >= 0
+    assert "test/refined/pos_median_m" not in metrics
