@@ -85,13 +85,14 @@ def log_hparams(trainer: L.Trainer, cfg: DictConfig, metrics: Metrics) -> None:
     def walk(node: Any, prefix: str) -> None:
         if isinstance(node, dict):
             for key, value in node.items():
-                walk(value, f"{prefix}{key}/" if prefix or key else key)
+                walk(value, f"{prefix}{key}/")
         else:
             flat[prefix.rstrip("/")] = (
                 node if isinstance(node, int | float | str | bool) else str(node)
             )
 
-    walk(OmegaConf.to_container(cfg, resolve=False), "")
+    run_config = OmegaConf.masked_copy(cfg, [key for key in cfg if key != "hydra"])
+    walk(OmegaConf.to_container(run_config, resolve=True), "")
     for logger in trainer.loggers:
         if isinstance(logger, TensorBoardLogger):
             logger.log_hyperparams(flat, metrics={f"hparams/{k}": v for k, v in metrics.items()})
