@@ -99,11 +99,15 @@ def format_results_table(metrics: Mapping[str, float], split: str = "test") -> s
 
 
 def _first_line(err: BaseException) -> str:
+    """The user-facing line of an error: the root of a Hydra instantiation error, and the
+    original message (not the worker traceback) of an error raised in a DataLoader worker."""
     cause = err
     while isinstance(cause, InstantiationException) and cause.__cause__ is not None:
         cause = cause.__cause__
-    text = " ".join(str(cause).split())
-    return text or type(cause).__name__
+    lines = [line.strip() for line in str(cause).strip().splitlines() if line.strip()]
+    if lines and lines[0].startswith("Caught ") and "Traceback" in str(cause):
+        lines = [lines[-1].split(": ", 1)[-1]]
+    return " ".join(" ".join(lines).split()) or type(cause).__name__
 
 
 @contextmanager

@@ -1,0 +1,56 @@
+import json
+from pathlib import Path
+
+import pytest
+
+from pae.data.transforms import ImageError
+from pae.reporting import ConfigError, format_results_table, reporting_errors, write_json_atomic
+
+
+def test_user_errors_become_one_line_and_exit_1(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_info, reporting_errors("pae-train"):
+        raise ConfigError("unknown refine.method 'icp'")
+    assert exit_info.value.code == 1
+    assert capsys.readouterr().err == "pae-train: error: unknown refine.method 'icp'\n"
+
+
+def test_worker_errors_show_the_original_message(capsys: pytest.CaptureFixture[str]) -> None:
+    message = (
+        "Caught ImageError in DataLoader worker process 0.\n"
+        "Original Traceback (most recent call last):\n"
+        '  File "worker.py", line 375, in _worker_loop\n'
+        "    data = fetcher.fetch(index)\n"
+        "pae.data.transforms.ImageError: /data/a.png: missing or unreadable image\n"
+    )
+    with pytest.raises(SystemExit), reporting_errors("pae-train"):
+        raise ImageError(message)
+    assert capsys.readouterr().err == "pae-train: error: /data/a.png: missing or unreadable image\n"
+
+
+def test_other_errors_are_not_swallowed() -> None:
+    with pytest.raises(ZeroDivisionError), reporting_errors("pae-train"):
+        _ = 1 / 0
+
+
+def test_metrics_json_is_replaced_atomically(tmp_path: Path) -> None:
+    path = tmp_path / "run" / "metrics.json"
+    write_json_atomic(path, {"test/teacher/pos_median_m": 1.5})
+    write_json_atomic(path, {"test/teacher/pos_median_m": 0.5})
+    assert json.loads(path.read_text()) == {"test/teacher/pos_median_m": 0.5}
+    assert [p.name for p in path.parent.iterdir()] == ["metrics.json"]
+
+
+def test_results_table_lists_methods_in_order_with_scenes() -> None:
+    metrics = {
+        f"test/{method}/{scene}pos_median_m": value
+        for method, value in (("teacher", 0.5), ("refined", 0.4))
+        for scene in ("", "a/", "b/")
+    } | {
+        f"test/{method}/{scene}rot_median_deg": 3.0
+        for method in ("teacher", "refined")
+        for scene in ("", "a/", "b/")
+    }
+    lines = format_results_table(metrics).splitlines()
+    assert lines[1].split() == ["method", "overall", "a", "b"]
+    assert lines[3].startswith("teacher") and lines[4].startswith("refined")
+    assert lines[3].count("0.500 / 3.00") == 3
