@@ -98,6 +98,8 @@ class TestTimeRefinement(L.Callback):
             key: torch.cat([batch[key] for batch in pl_module.eval_outputs])
             for key in pl_module.eval_outputs[0]
         }
+        if trainer.world_size > 1:  # every rank refines all queries of the split
+            outputs = {k: pl_module.all_gather(v).flatten(0, 1) for k, v in outputs.items()}
         names = pl_module.scene_names
         d = outputs["z"].shape[-1] // 2
         query = Latents(outputs["z"][:, :d], outputs["z"][:, d:])
