@@ -64,10 +64,6 @@ class TeacherLatentDataModule(L.LightningDataModule):
         self.batch_size = batch_size or images.batch_size
         self.latents: TeacherLatents | None = None
 
-    @property
-    def scene_names(self) -> list[str]:
-        return self.images.scene_names
-
     def setup(self, stage: str | None = None) -> None:
         self.images.setup(stage)
         if self.latents is None and stage in (None, "fit"):
