@@ -16,7 +16,7 @@ from pae.data.transforms import ImageTransform
 
 
 class PoseDataModule(L.LightningDataModule):
-    """Pose-labelled images from label files (DESIGN §2) under `root`.
+    """Pose-labelled images from label files (see README, "Data") under `root`.
 
     `val_labels` defaults to `test_labels` (the benchmarks have no validation split).
     Augmentation (random crop + colour jitter) runs batched on the device after transfer,
