@@ -19,8 +19,8 @@ class PoseDataset(Dataset):
     """Rows of a label table: `{"image": uint8 [3, H, W], "pose": [7], "scene": long, "index"}`.
 
     Images are read with OpenCV relative to `root` and resized so their shorter edge is
-    `shorter_edge` px. With cache=True all images are decoded once into one uint8 tensor and a
-    batch is a single indexing operation (`__getitems__`).
+    `shorter_edge` px, a batch at a time on `workers` threads. With cache=True all images are
+    decoded once into one uint8 tensor and a batch is a single indexing operation.
     """
 
     def __init__(
@@ -38,11 +38,16 @@ class PoseDataset(Dataset):
         self.poses = torch.as_tensor(table.poses, dtype=torch.float32)
         self.scenes = torch.as_tensor(table.scene_ids(scene_names), dtype=torch.long)
         self.paths = [str(self.root / p) for p in table.img_path]
+        self.workers = max(1, workers)
         self.images: Tensor | None = None
         if cache:
-            with ThreadPoolExecutor(max(1, workers)) as pool:
-                arrays = list(pool.map(self._load, self.paths))
-            self.images = torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous()
+            self.images = self._decode(self.paths)
+
+    def _decode(self, paths: list[str]) -> Tensor:
+        """Decode images on `workers` threads (OpenCV releases the GIL) -> uint8 [N, 3, H, W]."""
+        with ThreadPoolExecutor(self.workers) as pool:
+            arrays = list(pool.map(self._load, paths))
+        return torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous()
 
     def _load(self, path: str) -> np.ndarray:
         return load_image(path, self.shorter_edge)
@@ -68,7 +73,7 @@ class PoseDataset(Dataset):
         if self.images is not None:
             images = self.images[idx]
         else:
-            images = torch.stack([self._image(i) for i in indices])
+            images = self._decode([self.paths[i] for i in indices])
         return {"image": images, "pose": self.poses[idx], "scene": self.scenes[idx], "index": idx}
 
 
