@@ -106,3 +106,15 @@ def test_unreachable_imagenet_weights_are_one_clear_error(monkeypatch: pytest.Mo
     monkeypatch.setattr(torchvision.models, "mobilenet_v2", offline)
     with pytest.raises(BackboneError, match=r"ImageNet weights could not be loaded.*weights_path"):
         Backbone("mobilenet_v2", pretrained=True)
+
+
+def test_estimate_normalises_and_assigns_scenes() -> None:
+    images = torch.randn(3, 3, 32, 32)
+    given = torch.tensor([1, 1, 1])
+    multi = PoseNet(Backbone("small_cnn", pool="flatten", spatial=2), 8, n_scenes=3).eval()
+    answer = multi.estimate(images, given)
+    assert torch.allclose(answer.pose[:, 3:].norm(dim=-1), torch.ones(3))
+    assert torch.equal(answer.pose[:, :3], answer.raw_pose[:, :3])
+    assert torch.equal(answer.scene, answer.latents.scene_logits.argmax(-1))
+    single = PoseNet(Backbone("small_cnn", pool="flatten", spatial=2), 8).eval()
+    assert torch.equal(single.estimate(images, given).scene, given)

@@ -38,6 +38,11 @@ def normalize_quaternion(q: Tensor, eps: float = 1e-12) -> Tensor:
     return q / torch.linalg.vector_norm(q, dim=-1, keepdim=True).clamp_min(eps)
 
 
+def normalize_pose(pose: Tensor) -> Tensor:
+    """Poses ``[..., 7]`` with their quaternion part scaled to unit norm."""
+    return torch.cat([pose[..., :3], normalize_quaternion(pose[..., 3:])], dim=-1)
+
+
 def canonicalize_quaternion(q: Tensor) -> Tensor:
     """Unit quaternions ``[..., 4]`` with the sign chosen so that ``qw >= 0``."""
     q = normalize_quaternion(q)

@@ -12,7 +12,6 @@ from pae.data.transforms import ImageTransform
 from pae.geometry import quaternion_conjugate, quaternion_multiply
 from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import PoseEvaluation
-from pae.lit.student import unit_pose
 from pae.losses import LearnedPoseLoss
 from pae.models.base import PoseRegressor
 from pae.models.decoder import ImageDecoder
@@ -103,16 +102,12 @@ class RPRModule(PaeModule):
     def evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
         assert self.index is not None
         images, gt, scene = batch["image"], batch["pose"], batch["scene"]
-        teacher_pose, latents = self.teacher(images)
-        scene_estimate = (
-            latents.scene_logits.argmax(-1) if latents.scene_logits is not None else scene
-        )
-        estimate = unit_pose(teacher_pose)
-        nearest, _ = self.index.query(estimate, scene_estimate, 1)
+        answer = self.teacher.estimate(images, scene)
+        nearest, _ = self.index.query(answer.pose, answer.scene, 1)
         reference = self.index.poses.to(gt.device)[nearest[:, 0].to(gt.device)]
         relative = self.rpr(
-            images, self.virtual_reference(reference, scene_estimate, images.shape[-1])
+            images, self.virtual_reference(reference, answer.scene, images.shape[-1])
         )
-        vrpr = torch.cat([reference[:, :3] + relative[:, :3], estimate[:, 3:]], dim=-1)
-        self.evaluation.update(split, "teacher", teacher_pose, gt, scene)
+        vrpr = torch.cat([reference[:, :3] + relative[:, :3], answer.pose[:, 3:]], dim=-1)
+        self.evaluation.update(split, "teacher", answer.raw_pose, gt, scene)
         self.evaluation.update(split, "vrpr", vrpr, gt, scene)

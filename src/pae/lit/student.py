@@ -7,7 +7,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from pae.geometry import normalize_quaternion
+from pae.geometry import normalize_pose
 from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import PoseEvaluation
 from pae.losses import LATENT_LOSSES, LearnedPoseLoss, latent_distance
@@ -15,11 +15,6 @@ from pae.models.base import Latents, PoseRegressor
 from pae.models.pae import PoseAutoEncoder
 
 STUDENT_METHODS = ["teacher", "student", "student_gt", "mean_pose"]
-
-
-def unit_pose(pose: Tensor) -> Tensor:
-    """[B, 7] with the quaternion normalised."""
-    return torch.cat([pose[:, :3], normalize_quaternion(pose[:, 3:])], dim=-1)
 
 
 class StudentModule(PaeModule):
@@ -90,7 +85,7 @@ class StudentModule(PaeModule):
         else:
             with torch.no_grad():
                 teacher_pose, target = self.teacher(batch["image"])
-        source = batch["pose"] if self.pae_input == "gt" else unit_pose(teacher_pose)
+        source = batch["pose"] if self.pae_input == "gt" else normalize_pose(teacher_pose)
         latents = self.pae(source, batch["scene"])
         pred = self.teacher.regress(latents)
         terms = self.loss(pred, batch["pose"])
@@ -121,16 +116,12 @@ class StudentModule(PaeModule):
         return list(self.pae.parameters()) + list(self.loss.parameters())
 
     def evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
-        images, gt, scene = batch["image"], batch["pose"], batch["scene"]
-        teacher_pose, latents = self.teacher(images)
-        scene_estimate = (
-            latents.scene_logits.argmax(-1) if latents.scene_logits is not None else scene
-        )
-        estimate = unit_pose(teacher_pose)
-        student_pose = self.teacher.regress(self.pae(estimate, scene_estimate))
+        gt, scene = batch["pose"], batch["scene"]
+        answer = self.teacher.estimate(batch["image"], scene)
+        student_pose = self.teacher.regress(self.pae(answer.pose, answer.scene))
         student_gt_pose = self.teacher.regress(self.pae(gt, scene))
         predictions = {
-            "teacher": teacher_pose,
+            "teacher": answer.raw_pose,
             "student": student_pose,
             "student_gt": student_gt_pose,
             "mean_pose": self.mean_poses[scene],
@@ -139,10 +130,10 @@ class StudentModule(PaeModule):
             self.evaluation.update(split, method, pred, gt, scene)
         self.eval_outputs.append(
             {
-                "z": latents.joint(),
-                "estimate": estimate,
+                "z": answer.latents.joint(),
+                "estimate": answer.pose,
                 "pose": gt,
                 "scene": scene,
-                "scene_estimate": scene_estimate,
+                "scene_estimate": answer.scene,
             }
         )

@@ -7,6 +7,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
+from pae.geometry import normalize_pose
+
 
 class Latents(NamedTuple):
     """Latent pose codes of a batch.
@@ -22,6 +24,17 @@ class Latents(NamedTuple):
     def joint(self) -> Tensor:
         """[B, 2d] concatenation [x, q], the vector refinement matches."""
         return torch.cat([self.x, self.q], dim=-1)
+
+
+class TeacherEstimate(NamedTuple):
+    """A regressor's answer for a batch: pose [B, 7] as regressed, the same with a unit
+    quaternion, its latents, and the scene index [B] it assigns (its classifier's argmax, or
+    the given scene for single-scene regressors)."""
+
+    raw_pose: Tensor
+    pose: Tensor
+    latents: Latents
+    scene: Tensor
 
 
 class PoseRegressor(nn.Module):
@@ -41,3 +54,10 @@ class PoseRegressor(nn.Module):
         """images -> (pose [B, 7], latents)."""
         latents = self.encode(images, scene)
         return self.regress(latents), latents
+
+    def estimate(self, images: Tensor, scene: Tensor) -> TeacherEstimate:
+        """images [B, 3, H, W], scene [B] (used only when there is no scene classifier)."""
+        raw_pose, latents = self(images)
+        logits = latents.scene_logits
+        scene = scene if logits is None else logits.argmax(-1)
+        return TeacherEstimate(raw_pose, normalize_pose(raw_pose), latents, scene)
