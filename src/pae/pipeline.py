@@ -121,7 +121,7 @@ def _fit_and_test(
     """Fit, test, record `bench/{name}/fit_s` -> (metrics, path of the last checkpoint)."""
     trainer = build_trainer(cfg, step_dir, epochs, callbacks or [])
     start = time.perf_counter()
-    trainer.fit(module, datamodule=data, ckpt_path=_resume_path(cfg, step_dir))
+    trainer.fit(module, datamodule=data, ckpt_path=_resume_path(cfg, step_dir), weights_only=True)
     fit_s = time.perf_counter() - start
     trainer.test(module, datamodule=data, verbose=False)
     metrics = collect_metrics(trainer)
