@@ -14,3 +14,92 @@ def test_trajectory_image_draws_each_track_in_its_colour() -> None:
     assert {(255, 255, 255), (0, 160, 0), (220, 0, 0), (0, 0, 220)} <= colours
     # the first ground-truth point is the plot's lower-left corner (x min, y min)
     assert tuple(image[100 - 1 - 20, 20]) == (0, 160, 0)
+
+
+class _Recorder:
+    """The parts of a StudentModule and Trainer the refinement callback reads."""
+
+    def __init__(self, pae: torch.nn.Module, outputs: dict[str, torch.Tensor]) -> None:
+        self.pae = pae
+        self.scene_names = ["room"]
+        self.eval_outputs = [outputs]
+        self.logged: dict[str, float] = {}
+
+    def log_dict(self, figures: dict[str, torch.Tensor]) -> None:
+        self.logged |= {key: float(value) for key, value in figures.items()}
+
+
+class _Data:
+    def __init__(self, poses: torch.Tensor) -> None:
+        self.poses = poses
+
+    def train_poses(self) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.poses, torch.zeros(len(self.poses), dtype=torch.long)
+
+
+class _Trainer:
+    def __init__(self, poses: torch.Tensor) -> None:
+        self.datamodule = _Data(poses)
+        self.world_size = 1
+        self.loggers: list = []
+
+
+def _poses(n: int, offset: float, generator: torch.Generator) -> torch.Tensor:
+    positions = torch.rand(n, 3, generator=generator) * 4 + offset
+    quaternions = torch.nn.functional.normalize(torch.randn(n, 4, generator=generator), dim=1)
+    return torch.cat([positions, quaternions * quaternions[:, :1].sign()], dim=1)
+
+
+def _run(audit: bool) -> dict[str, float]:
+    """Queries whose estimate is their true pose; train poses shifted 0.3 m away from them."""
+    from pae.callbacks.refinement import TestTimeRefinement
+    from pae.models.pae import PoseAutoEncoder
+    from pae.refine import LatentRetrievalRefiner
+
+    generator = torch.Generator().manual_seed(0)
+    test = _poses(40, 0.0, generator)
+    train = test.clone()
+    train[:, 0] += 0.3
+    pae = PoseAutoEncoder(latent_dim=16, L=2)
+    with torch.no_grad():
+        latents = pae(test)
+    outputs = {
+        "z": latents.joint(),
+        "estimate": test,
+        "pose": test,
+        "scene": torch.zeros(40, dtype=torch.long),
+        "scene_estimate": torch.zeros(40, dtype=torch.long),
+    }
+    callback = TestTimeRefinement(
+        k=1,
+        guess_sigma_m=0.5,
+        trajectory_plot=False,
+        audit=audit,
+        alternatives={"latent_knn": lambda index, pae: LatentRetrievalRefiner(index, pae, k=1)},
+    )
+    trainer, module = _Trainer(train), _Recorder(pae, outputs)
+    callback.setup(trainer, module, "test")
+    callback.refine(trainer, module, "test")
+    return module.logged
+
+
+def test_test_store_retrieves_the_query_own_pose_and_the_train_store_never_does() -> None:
+    logged = _run(audit=True)
+    # k=1 in the evaluated split's own poses: the nearest is the query's own pose
+    assert logged["test/knn_mean_test_store/pos_median_m"] < 1e-5
+    assert logged["test/refined_test_store/pos_median_m"] < 1e-5
+    assert (
+        logged["test/guess_refined_test_store/pos_median_m"]
+        < logged["test/guess_initial/pos_median_m"]
+    )
+    # the train store holds no test pose: every train row is 0.3 m from its query
+    for method in ("knn_mean", "refined", "latent_knn"):
+        assert abs(logged[f"test/{method}/pos_median_m"] - 0.3) < 1e-4, method
+    assert abs(logged["test/diagnostics/gt_to_train_m"] - 0.3) < 1e-4
+    assert logged["test/diagnostics/estimate_to_train_per_error"] > 1e3
+
+
+def test_audit_false_skips_the_test_store_rows() -> None:
+    logged = _run(audit=False)
+    assert "test/refined/pos_median_m" in logged and "test/knn_mean/pos_median_m" in logged
+    assert not [key for key in logged if "_test_store" in key]

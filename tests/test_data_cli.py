@@ -324,15 +324,23 @@ def test_synth_passes_arguments_and_prints_summary(
 
     fake = types.ModuleType("pae.data.synthetic")
     fake.DEFAULT_SCENES, fake.DEFAULT_TRAIN_FRAMES, fake.DEFAULT_TEST_FRAMES = 3, 40, 20
-    fake.DEFAULT_SIZE = 64
+    fake.DEFAULT_SIZE, fake.DEFAULT_TEST_OFFSET_M = 64, 0.7
     fake.write_synthetic_dataset = write_synthetic_dataset
     monkeypatch.setitem(sys.modules, "pae.data.synthetic", fake)
     monkeypatch.setattr(pae.data, "synthetic", fake, raising=False)
 
     assert main(["synth", str(tmp_path / "a"), "--scenes", "2", "--size", "32", "--seed", "7"]) == 0
-    assert main(["synth", str(tmp_path / "b")]) == 0
+    assert main(["synth", str(tmp_path / "b"), "--test-offset", "0"]) == 0
     assert capsys.readouterr().out == "synthetic summary\n" * 2
     assert calls == [
-        (tmp_path / "a", dict(scenes=2, train_frames=40, test_frames=20, size=32, seed=7)),
-        (tmp_path / "b", dict(scenes=3, train_frames=40, test_frames=20, size=64, seed=0)),
+        (
+            tmp_path / "a",
+            dict(scenes=2, train_frames=40, test_frames=20, size=32, seed=7, test_offset_m=0.7),
+        ),
+        (
+            tmp_path / "b",
+            dict(scenes=3, train_frames=40, test_frames=20, size=64, seed=0, test_offset_m=0.0),
+        ),
     ]
+    assert main(["synth", str(tmp_path / "c"), "--poses", "x.csv", "--scenes", "2"]) == 1
+    assert "--poses renders the given rows only: drop --scenes" in capsys.readouterr().err

@@ -18,8 +18,15 @@ EXPECTED_METHODS = (
     "student_gt",
     "mean_pose",
     "refined",
+    "knn_mean",
+    "refined_test_store",
+    "knn_mean_test_store",
+    "closed_form_k10",
+    "latent_knn",
+    "pose_descent",
     "guess_initial",
     "guess_refined",
+    "guess_refined_test_store",
 )
 
 
@@ -54,6 +61,9 @@ def test_pipeline_writes_metrics_checkpoints_and_events(pipeline_run: Path) -> N
     assert metrics["bench/teacher/fit_s"] > 0 and metrics["bench/student/fit_s"] > 0
     assert metrics["test/diagnostics/gt_to_train_m"] >= 0
     assert metrics["test/diagnostics/estimate_to_train_m"] >= 0
+    assert metrics["test/diagnostics/gt_to_train_per_error"] == pytest.approx(
+        metrics["test/diagnostics/gt_to_train_m"] / metrics["test/teacher/pos_median_m"], rel=1e-5
+    )
     assert metrics["test/decoder/l1"] > 0
     for figure in ("pos_median_m", "rot_median_deg"):
         assert metrics[f"test/vrpr/{figure}"] >= 0

@@ -348,3 +348,48 @@ def test_bench_index_on_label_files(tmp_path: Path) -> None:
     figures = bench_index(files, n_queries=15, k=3)
     assert figures["bench/index/n_poses"] == 65
     assert figures["bench/index/memory_mb"] > 0 and figures["bench/index/ms_per_query"] > 0
+
+
+def test_latent_retrieval_finds_the_pose_that_encodes_the_query() -> None:
+    from pae.models.pae import PoseAutoEncoder
+    from pae.refine import LatentRetrievalRefiner
+
+    generator = torch.Generator().manual_seed(3)
+    store = random_poses(200, generator, spread_m=3.0).float()
+    scenes = torch.arange(200) % 2
+    pae = PoseAutoEncoder(latent_dim=32, L=3, n_scenes=2).eval()
+    picked = torch.tensor([5, 17, 80, 151])
+    with torch.no_grad():
+        query = pae(store[picked], scenes[picked])
+    far_estimates = store[picked].clone()
+    far_estimates[:, :3] += 5.0
+    refiner = LatentRetrievalRefiner(PoseIndex(store, scenes), pae, k=1)
+    result = refiner(query, far_estimates, scenes[picked])
+    assert torch.equal(result.neighbour_indices[:, 0], picked)
+    torch.testing.assert_close(result.poses[:, :3], store[picked, :3])
+    from pae.geometry import canonicalize_quaternion
+
+    torch.testing.assert_close(result.poses[:, 3:], canonicalize_quaternion(far_estimates[:, 3:]))
+
+
+@pytest.mark.parametrize("refine", ["position", "pose"])
+def test_pose_descent_moves_towards_the_encoded_pose(refine: str) -> None:
+    from pae.models.pae import PoseAutoEncoder
+    from pae.refine import PoseDescentRefiner
+
+    generator = torch.Generator().manual_seed(4)
+    truth = random_poses(16, generator, spread_m=2.0).float()
+    pae = PoseAutoEncoder(latent_dim=32, L=0).eval()
+    with torch.no_grad():
+        query = pae(truth)
+    start = truth.clone()
+    start[:, :3] += 0.3 * torch.randn(16, 3, generator=generator)
+    result = PoseDescentRefiner(None, pae, iterations=200, lr=0.01, refine=refine)(query, start)
+    before = (start[:, :3] - truth[:, :3]).norm(dim=1).median()
+    after = (result.poses[:, :3] - truth[:, :3]).norm(dim=1).median()
+    assert after < 0.5 * before
+    assert all(p.grad is None for p in pae.parameters())
+    if refine == "position":
+        assert torch.equal(result.poses[:, 3:], start[:, 3:])
+    else:
+        torch.testing.assert_close(result.poses[:, 3:].norm(dim=1), torch.ones(16))

@@ -44,7 +44,9 @@ class PoseErrorMetric(Metric):
 def summarise_errors(
     pos: Tensor, rot: Tensor, scene: Tensor, scene_names: list[str]
 ) -> dict[str, Tensor]:
-    """Errors [N] with scene ids [N] -> medians and means, per scene and averaged over scenes."""
+    """Errors [N] with scene ids [N] -> medians and means, per scene and averaged over scenes.
+
+    Medians are numpy's: the mean of the two middle values for an even count."""
     per_scene: dict[str, list[Tensor]] = {}
     out: dict[str, Tensor] = {}
     for index, name in enumerate(scene_names):
@@ -52,8 +54,8 @@ def summarise_errors(
         if not mask.any():
             continue
         figures = {
-            "pos_median_m": pos[mask].median(),
-            "rot_median_deg": rot[mask].median(),
+            "pos_median_m": pos[mask].quantile(0.5),
+            "rot_median_deg": rot[mask].quantile(0.5),
             "pos_mean_m": pos[mask].mean(),
             "rot_mean_deg": rot[mask].mean(),
         }

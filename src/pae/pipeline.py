@@ -28,7 +28,7 @@ from pae.lit.teacher import TeacherModule
 from pae.losses import LearnedPoseLoss
 from pae.models.base import PoseRegressor
 from pae.models.pae import PoseAutoEncoder
-from pae.reporting import ConfigError
+from pae.reporting import ConfigError, first_line
 
 Metrics = dict[str, float]
 
@@ -162,8 +162,14 @@ def refinement_callbacks(cfg: DictConfig) -> list[L.Callback]:
         raise ConfigError(f"unknown refine.method {refine.method!r}; choose 'none' or 'knn_affine'")
     options = OmegaConf.to_container(refine, resolve=True)
     options.pop("method")
+    alternatives = {}
+    for name, spec in (options.pop("alternatives", None) or {}).items():
+        try:
+            alternatives[name] = instantiate(spec, _partial_=True)
+        except Exception as err:  # a bad target or option: name the key
+            raise ConfigError(f"refine.alternatives.{name}: {first_line(err)}") from None
     try:
-        return [TestTimeRefinement(**options)]
+        return [TestTimeRefinement(**options, alternatives=alternatives)]
     except (TypeError, ValueError) as err:
         raise ConfigError(f"refine: {err}") from None
 

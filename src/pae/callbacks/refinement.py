@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import lightning as L
 import numpy as np
@@ -14,21 +15,51 @@ from pae.geometry import pose_errors
 from pae.metrics import summarise_errors
 from pae.models.base import Latents
 from pae.refine import PoseIndex, PositionRefiner, perturb_positions
-from pae.refine.affine import ORIENTATION_MODES, WEIGHT_MODELS
+from pae.refine.affine import ORIENTATION_MODES, WEIGHT_MODELS, RefinementResult
+
+Refiner = Callable[[Latents, Tensor, Tensor | None], RefinementResult]
+"""``(query_latents, initial_poses [B, 7], scenes [B]) -> RefinementResult``."""
+RESERVED_METHODS = (
+    "teacher",
+    "student",
+    "student_gt",
+    "mean_pose",
+    "refined",
+    "knn_mean",
+    "refined_test_store",
+    "knn_mean_test_store",
+    "guess_initial",
+    "guess_refined",
+    "guess_refined_test_store",
+    "diagnostics",
+)
+
+
+RefinerFactory = Callable[..., Refiner]
+"""Builds a refiner from keywords ``index`` (the train-pose store) and ``pae``."""
 
 
 class TestTimeRefinement(L.Callback):
-    """Refines every evaluated query of a StudentModule and logs `{split}/refined/...`.
+    """Refines every evaluated query of a StudentModule, in both retrieval protocols.
 
-    The store holds the data module's train poses. Runs at the end of every
-    `every_n_val_epochs`-th validation and of every test. With `guess_sigma_m` set, also runs
-    the random-guess check: the ground-truth position plus Gaussian noise (σ m), encoded by the
-    PAE, is the query (`{split}/guess_initial/...` vs `{split}/guess_refined/...`).
+    Logged for the same queries, after every ``every_n_val_epochs``-th validation and every
+    test (``{split}`` is val or test):
 
-    Diagnostics `{split}/diagnostics/{estimate,gt}_to_train_m`: median distance (m) from the
-    teacher's estimates and from the true positions to the nearest train position of their
-    scene. Retrieval can only pull an estimate back towards the train poses: when estimates
-    already lie as close to them as the truth does, refinement has little to correct.
+    - ``{split}/refined/...``: the paper's refinement, neighbours from the train poses;
+    - ``{split}/knn_mean/...``: the plain mean of the same k neighbours, no PAE;
+    - with ``audit``, the same two with neighbours from the evaluated split's own poses
+      (``refined_test_store``, ``knn_mean_test_store``): the protocol of the authors' public
+      scripts, which reads the test labels and can retrieve a query's own pose;
+    - with ``guess_sigma_m``, the random-guess check: the ground-truth position plus Gaussian
+      noise (σ m), encoded by the PAE, is the query (``guess_initial``, ``guess_refined``
+      and, with ``audit``, ``guess_refined_test_store``);
+    - ``{split}/<name>/...`` for every refiner of ``alternatives`` (train store only);
+    - diagnostics ``{split}/diagnostics/{estimate,gt}_to_train_m`` (median distance from the
+      teacher's estimates and from the true positions to the nearest train position of their
+      scene) and their ratios to the teacher's median position error,
+      ``{split}/diagnostics/{estimate,gt}_to_train_per_error``. Retrieval from the train poses
+      can only pull an estimate towards them: it helps when the truth lies nearer the train
+      poses than the estimate does.
     """
 
     def __init__(
@@ -44,6 +75,8 @@ class TestTimeRefinement(L.Callback):
         guess_sigma_m: float | None = 0.5,
         seed: int = 0,
         trajectory_plot: bool = True,
+        audit: bool = True,
+        alternatives: dict[str, RefinerFactory] | None = None,
     ) -> None:
         super().__init__()
         self.options = {
@@ -59,6 +92,8 @@ class TestTimeRefinement(L.Callback):
         self.guess_sigma_m = guess_sigma_m
         self.seed = seed
         self.trajectory_plot = trajectory_plot
+        self.audit = audit
+        self.alternatives = dict(alternatives or {})
         self.index: PoseIndex | None = None
         self.position_index: PoseIndex | None = None
         self._val_runs = 0
@@ -72,11 +107,17 @@ class TestTimeRefinement(L.Callback):
             )
         if distance not in ("normalized", "fixed"):
             raise ValueError(f"unknown refine.distance {distance!r}; choose normalized or fixed")
+        clashes = sorted(set(self.alternatives) & set(RESERVED_METHODS))
+        if clashes:
+            raise ValueError(f"refine.alternatives may not reuse the method names {clashes}")
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         poses, scenes = trainer.datamodule.train_poses()
-        self.index = PoseIndex(poses, scenes, distance=self.distance, rot_weight=self.rot_weight)
+        self.index = self._index(poses, scenes)
         self.position_index = PoseIndex(poses, scenes, distance="fixed", rot_weight=0.0)
+
+    def _index(self, poses: Tensor, scenes: Tensor) -> PoseIndex:
+        return PoseIndex(poses, scenes, distance=self.distance, rot_weight=self.rot_weight)
 
     def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._val_runs += 1
@@ -86,54 +127,95 @@ class TestTimeRefinement(L.Callback):
     def on_test_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self.refine(trainer, pl_module, "test")
 
-    def _refiner(self, pl_module: L.LightningModule) -> PositionRefiner:
-        assert self.index is not None
-        return PositionRefiner(self.index, pl_module.pae, seed=self.seed, **self.options)
+    def _refiner(self, pl_module: L.LightningModule, index: PoseIndex) -> PositionRefiner:
+        return PositionRefiner(index, pl_module.pae, seed=self.seed, **self.options)
+
+    def _refine_both(
+        self, refiner: PositionRefiner, query: Latents, initial: Tensor, scene: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """(refined poses, mean of the same neighbours) [B, 7] each."""
+        result = refiner(query, initial, scene)
+        return result.poses, refiner.neighbour_mean(result.neighbour_indices, initial)
 
     def refine(self, trainer: L.Trainer, pl_module: L.LightningModule, split: str) -> None:
-        """Refine all queries of the finished evaluation epoch in one batched call."""
+        """Refine all queries of the finished evaluation epoch in one batched call per method."""
         if not pl_module.eval_outputs:
             return
+        assert self.index is not None
         outputs = {
             key: torch.cat([batch[key] for batch in pl_module.eval_outputs])
             for key in pl_module.eval_outputs[0]
         }
         if trainer.world_size > 1:  # every rank refines all queries of the split
             outputs = {k: pl_module.all_gather(v).flatten(0, 1) for k, v in outputs.items()}
-        names = pl_module.scene_names
         d = outputs["z"].shape[-1] // 2
         query = Latents(outputs["z"][:, :d], outputs["z"][:, d:])
-        start = time.perf_counter()
-        result = self._refiner(pl_module)(query, outputs["estimate"], outputs["scene_estimate"])
-        elapsed = time.perf_counter() - start
+        estimate, estimate_scene = outputs["estimate"], outputs["scene_estimate"]
         gt, scene = outputs["pose"], outputs["scene"]
-        figures = self._figures(split, "refined", result.poses, gt, scene, names)
-        figures |= self._store_distances(
-            split, outputs["estimate"], outputs["scene_estimate"], gt, scene
+        stores = {"": self.index}
+        if self.audit:
+            stores["_test_store"] = self._index(gt, scene).to(self.index.device)
+
+        predictions: dict[str, Tensor] = {}
+        start = time.perf_counter()
+        predictions["refined"], predictions["knn_mean"] = self._refine_both(
+            self._refiner(pl_module, self.index), query, estimate, estimate_scene
         )
-        if split == "test":
-            figures["bench/refine/callback_ms_per_query"] = torch.tensor(1000 * elapsed / len(gt))
+        elapsed = time.perf_counter() - start
+        if self.audit:
+            refiner = self._refiner(pl_module, stores["_test_store"])
+            refined, knn_mean = self._refine_both(refiner, query, estimate, estimate_scene)
+            predictions["refined_test_store"], predictions["knn_mean_test_store"] = (
+                refined,
+                knn_mean,
+            )
+        for name, factory in self.alternatives.items():
+            refiner = factory(index=self.index, pae=pl_module.pae)
+            predictions[name] = refiner(query, estimate, estimate_scene).poses
         if self.guess_sigma_m:
             generator = torch.Generator().manual_seed(self.seed)
             guess = perturb_positions(gt.cpu(), self.guess_sigma_m, generator).to(gt.device)
             with torch.no_grad():
                 guess_latents = pl_module.pae(guess, scene)
-            refined_guess = self._refiner(pl_module)(guess_latents, guess, scene)
-            figures |= self._figures(split, "guess_initial", guess, gt, scene, names)
-            figures |= self._figures(split, "guess_refined", refined_guess.poses, gt, scene, names)
+            predictions["guess_initial"] = guess
+            for suffix, store in stores.items():
+                refiner = self._refiner(pl_module, store)
+                predictions[f"guess_refined{suffix}"] = refiner(guess_latents, guess, scene).poses
+
+        names = pl_module.scene_names
+        figures: dict[str, Tensor] = {}
+        for method, poses in predictions.items():
+            figures |= self._figures(split, method, poses, gt, scene, names)
+        teacher_error = summarise_errors(*pose_errors(estimate.float(), gt.float()), scene, names)[
+            "pos_median_m"
+        ]
+        figures |= self._store_distances(split, estimate, estimate_scene, gt, scene, teacher_error)
+        if split == "test":
+            figures["bench/refine/callback_ms_per_query"] = torch.tensor(1000 * elapsed / len(gt))
         pl_module.log_dict(figures)
         if self.trajectory_plot:
-            self._plot(trainer, split, gt, outputs["estimate"], result.poses, scene)
+            self._plot(trainer, split, gt, estimate, predictions["refined"], scene)
 
     def _store_distances(
-        self, split: str, estimate: Tensor, estimate_scene: Tensor, gt: Tensor, scene: Tensor
+        self,
+        split: str,
+        estimate: Tensor,
+        estimate_scene: Tensor,
+        gt: Tensor,
+        scene: Tensor,
+        teacher_error_m: Tensor,
     ) -> dict[str, Tensor]:
         assert self.position_index is not None
         _, to_estimate = self.position_index.query(estimate, estimate_scene, 1)
         _, to_gt = self.position_index.query(gt, scene, 1)
+        estimate_m, gt_m = to_estimate.quantile(0.5), to_gt.quantile(0.5)
+        error = teacher_error_m.clamp(min=1e-12)
+        prefix = f"{split}/diagnostics"
         return {
-            f"{split}/diagnostics/estimate_to_train_m": to_estimate.median(),
-            f"{split}/diagnostics/gt_to_train_m": to_gt.median(),
+            f"{prefix}/estimate_to_train_m": estimate_m,
+            f"{prefix}/gt_to_train_m": gt_m,
+            f"{prefix}/estimate_to_train_per_error": estimate_m / error,
+            f"{prefix}/gt_to_train_per_error": gt_m / error,
         }
 
     @staticmethod

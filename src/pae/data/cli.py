@@ -2,7 +2,9 @@
 
 ::
 
-    pae-data synth OUT [--scenes N --train-frames N --test-frames N --size PX --seed S]
+    pae-data synth OUT [--scenes N --train-frames N --test-frames N --test-offset M --size PX
+                        --seed S]
+    pae-data synth OUT --poses LABELS.csv [LABELS.csv ...] [--size PX --seed S]
     pae-data convert {cambridge,7scenes} RAW_ROOT OUT_DIR
     pae-data check LABELS.csv ROOT
 
@@ -25,17 +27,37 @@ PROG = "pae-data"
 def _synth(args: argparse.Namespace) -> int:
     from pae.data import synthetic
 
-    def chosen(value: int | None, default: int) -> int:
+    def chosen(value: int | float | None, default: int | float) -> int | float:
         return default if value is None else value
 
-    dataset = synthetic.write_synthetic_dataset(
-        args.out,
-        scenes=chosen(args.scenes, synthetic.DEFAULT_SCENES),
-        train_frames=chosen(args.train_frames, synthetic.DEFAULT_TRAIN_FRAMES),
-        test_frames=chosen(args.test_frames, synthetic.DEFAULT_TEST_FRAMES),
-        size=chosen(args.size, synthetic.DEFAULT_SIZE),
-        seed=args.seed,
-    )
+    if args.poses:
+        from pae.data.synthetic_poses import write_dataset_at_poses
+
+        ignored = [
+            flag
+            for flag, value in (
+                ("--scenes", args.scenes),
+                ("--train-frames", args.train_frames),
+                ("--test-frames", args.test_frames),
+                ("--test-offset", args.test_offset),
+            )
+            if value is not None
+        ]
+        if ignored:
+            raise ValueError(f"--poses renders the given rows only: drop {', '.join(ignored)}")
+        dataset = write_dataset_at_poses(
+            args.out, args.poses, size=chosen(args.size, synthetic.DEFAULT_SIZE), seed=args.seed
+        )
+    else:
+        dataset = synthetic.write_synthetic_dataset(
+            args.out,
+            scenes=chosen(args.scenes, synthetic.DEFAULT_SCENES),
+            train_frames=chosen(args.train_frames, synthetic.DEFAULT_TRAIN_FRAMES),
+            test_frames=chosen(args.test_frames, synthetic.DEFAULT_TEST_FRAMES),
+            size=chosen(args.size, synthetic.DEFAULT_SIZE),
+            seed=args.seed,
+            test_offset_m=chosen(args.test_offset, synthetic.DEFAULT_TEST_OFFSET_M),
+        )
     print(dataset.summary())
     return 0
 
@@ -86,6 +108,21 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--scenes", type=int, help="number of scenes (default: module default)")
     synth.add_argument("--train-frames", type=int, help="train frames per scene")
     synth.add_argument("--test-frames", type=int, help="test frames per scene")
+    synth.add_argument(
+        "--test-offset",
+        type=float,
+        metavar="M",
+        help="lateral offset of the test sequences from the train route in metres "
+        "(default: 0.7; 0 puts them on the route)",
+    )
+    synth.add_argument(
+        "--poses",
+        type=Path,
+        nargs="+",
+        metavar="LABELS.csv",
+        help="render one image per row of these label files, at exactly its pose, in a world "
+        "built around their camera positions (e.g. real Cambridge / 7-Scenes labels)",
+    )
     synth.add_argument("--size", type=int, metavar="PX", help="image side in pixels")
     synth.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     synth.set_defaults(run=_synth)

@@ -48,6 +48,7 @@ __all__ = [
     "DEFAULT_SCENES",
     "DEFAULT_SIZE",
     "DEFAULT_TEST_FRAMES",
+    "DEFAULT_TEST_OFFSET_M",
     "DEFAULT_TRAIN_FRAMES",
     "Appearance",
     "Box",
@@ -57,14 +58,18 @@ __all__ = [
     "PinholeCamera",
     "SyntheticScene",
     "SyntheticSummary",
+    "furnish",
     "make_scene",
     "make_sequences",
     "measure_render_speed",
     "pose_rotation_translation",
     "render",
     "render_batch",
+    "render_frames",
+    "room_textures",
     "scene_name",
     "world_to_camera",
+    "write_label_files",
     "write_synthetic_dataset",
 ]
 
@@ -77,6 +82,10 @@ DEFAULT_SIZE = 64
 """Image width and height in pixels."""
 DEFAULT_FOV_DEG = 65.0
 """Horizontal field of view in degrees."""
+DEFAULT_TEST_OFFSET_M = 0.7
+"""Lateral offset (m) of the test sequences from the route the train sequences walk: test
+cameras lie about as far from the nearest train camera, relative to an APR's error, as in
+Cambridge Landmarks and 7-Scenes (0 puts them on the train route)."""
 
 TRAIN_SEQUENCES = 6
 TEST_SEQUENCES = 2
@@ -291,13 +300,17 @@ class CameraRoute:
 class SyntheticScene:
     """A room seen from inside, boxes inside it seen from outside, a point light ``[3]`` (m)
     and the route the cameras walk: within ``route.centre ± route.half``, which the boxes keep
-    0.6 m away from; sequences stray from the route by at most 0.35 m."""
+    0.6 m (plus the test sequences' lateral offset) away from; sequences stray from the route
+    by at most 0.35 m. ``route`` is None for a world built around given poses.
+    ``scale`` is the world's size relative to a room (m per room metre): the point light's
+    fall-off distance grows with it."""
 
     name: str
     room: Box
     boxes: tuple[Box, ...]
     light_position: np.ndarray
-    route: CameraRoute
+    route: CameraRoute | None
+    scale: float = 1.0
 
     @functools.cached_property
     def _tables(self) -> _FaceTables:
@@ -543,15 +556,12 @@ def _overlaps(
     return bool(np.all(lo[:2] < other_hi[:2] + margin) and np.all(other_lo[:2] < hi[:2] + margin))
 
 
-def make_scene(index: int, seed: int = 0) -> SyntheticScene:
-    """Scene ``index`` of the benchmark with ``seed``: room, furniture, textures, camera route."""
-    rng = np.random.default_rng([seed, index, 0])
-    size = np.array([rng.uniform(6.0, 8.0), rng.uniform(5.5, 7.0), rng.uniform(2.6, 3.2)])
-    room_lo = np.array([-size[0] / 2, -size[1] / 2, 0.0])
-    room_hi = room_lo + size
+def room_textures(rng: np.random.Generator, size: np.ndarray) -> tuple[FaceTexture, ...]:
+    """The six face textures of a room of ``size`` ``[3]`` (m): four walls of hues a quarter
+    turn apart, a floor and a ceiling."""
     hue0 = rng.random()
     wall_hues = hue0 + np.array([0.0, 0.25, 0.5, 0.75]) + rng.normal(0, 0.03, 4)
-    room_textures = (
+    return (
         _wall_texture(rng, size[1], size[2], wall_hues[0]),
         _wall_texture(rng, size[1], size[2], wall_hues[1]),
         _wall_texture(rng, size[0], size[2], wall_hues[2]),
@@ -559,33 +569,57 @@ def make_scene(index: int, seed: int = 0) -> SyntheticScene:
         _floor_texture(rng, size[0], size[1]),
         _ceiling_texture(rng, size[0], size[1]),
     )
-    room = Box(room_lo, room_hi, room_textures)
 
-    centre = np.array([*rng.uniform(-0.3, 0.3, 2), 1.4])
-    half = np.array([rng.uniform(1.2, 1.6), rng.uniform(1.0, 1.4), 0.3])
-    route = CameraRoute.random(rng, centre, half)
-    region_lo, region_hi = centre - half, centre + half
 
+def furnish(
+    rng: np.random.Generator,
+    room: Box,
+    region_lo: np.ndarray,
+    region_hi: np.ndarray,
+    keep_out: float,
+    count: int = 5,
+) -> tuple[Box, ...]:
+    """Up to ``count`` boxes and thin panels standing on the floor of ``room``, their
+    footprints ``keep_out`` (m) clear of the camera region ``region_lo..region_hi`` ``[3]``
+    and 0.1 m clear of each other (200 random placements are tried)."""
     boxes: list[Box] = []
-    keep_out = 0.6
     for _attempt in range(200):
-        if len(boxes) >= 5:
+        if len(boxes) >= count:
             break
         panel = rng.random() < 0.3
         footprint = rng.uniform(0.4, 1.2, 2)
         if panel:
             footprint[rng.integers(2)] = 0.06
         height = rng.uniform(1.8, 2.3) if panel else rng.uniform(0.5, 2.2)
-        lo = np.array([*rng.uniform(room_lo[:2] + 0.05, room_hi[:2] - footprint - 0.05), 0.0])
+        lo = np.array(
+            [*rng.uniform(room.lo[:2] + 0.05, room.hi[:2] - footprint - 0.05), room.lo[2]]
+        )
         hi = lo + np.array([*footprint, height])
         if _overlaps(lo, hi, region_lo, region_hi, keep_out) or any(
             _overlaps(lo, hi, b.lo, b.hi, 0.1) for b in boxes
         ):
             continue
         boxes.append(Box(lo, hi, _box_textures(rng, lo, hi)))
+    return tuple(boxes)
 
+
+def make_scene(index: int, seed: int = 0, test_offset_m: float = 0.0) -> SyntheticScene:
+    """Scene ``index`` of the benchmark with ``seed``: room, furniture, textures, camera route.
+
+    ``test_offset_m`` is the lateral offset of the test sequences from the route (see
+    :func:`make_sequences`); the furniture keeps that much further away from the route.
+    """
+    rng = np.random.default_rng([seed, index, 0])
+    size = np.array([rng.uniform(6.0, 8.0), rng.uniform(5.5, 7.0), rng.uniform(2.6, 3.2)])
+    room_lo = np.array([-size[0] / 2, -size[1] / 2, 0.0])
+    room = Box(room_lo, room_lo + size, room_textures(rng, size))
+
+    centre = np.array([*rng.uniform(-0.3, 0.3, 2), 1.4])
+    half = np.array([rng.uniform(1.2, 1.6), rng.uniform(1.0, 1.4), 0.3])
+    route = CameraRoute.random(rng, centre, half)
+    boxes = furnish(rng, room, centre - half, centre + half, 0.6 + test_offset_m)
     light = np.array([*rng.uniform(-1.0, 1.0, 2), size[2] - 0.5])
-    return SyntheticScene(scene_name(index), room, tuple(boxes), light, route)
+    return SyntheticScene(scene_name(index), room, boxes, light, route)
 
 
 # ----------------------------------------------------------------------------- appearance
@@ -693,7 +727,7 @@ def _shade(
         normal_axis == 0, to_light[0], np.where(normal_axis == 1, to_light[1], to_light[2])
     )
     cosine = along_normal * tables.normal_sign[face] / np.sqrt(distance_sq)
-    direct = np.maximum(cosine, 0.0) * 2.2 / (1.0 + distance_sq / 6.0)
+    direct = np.maximum(cosine, 0.0) * 2.2 / (1.0 + distance_sq / (6.0 * scene.scale**2))
     return colour * (ambient + (1.0 - ambient) * direct)[..., None]
 
 
@@ -781,17 +815,35 @@ def _smooth_wave(
     )
 
 
+def _route_normals(route: CameraRoute, tau: np.ndarray) -> np.ndarray:
+    """Unit horizontal normals ``[n, 3]`` to the left of the route's direction at ``tau``."""
+    here, _ = route.at(tau)
+    ahead, _ = route.at(tau + 1e-4)
+    direction = ahead[:, :2] - here[:, :2]
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True).clip(min=1e-12)
+    return np.stack([-direction[:, 1], direction[:, 0], np.zeros(len(tau))], axis=1)
+
+
 def _trajectory(
-    scene: SyntheticScene, frames: int, start: float, rng: np.random.Generator
+    scene: SyntheticScene,
+    frames: int,
+    start: float,
+    rng: np.random.Generator,
+    offset_m: float = 0.0,
 ) -> np.ndarray:
     """Smooth camera path of ``frames`` poses ``[frames, 7]`` along the scene's route.
 
-    The sequence walks 55–75 % of the route from route time ``start``, straying from it by up
-    to 0.35 m and about 30° of yaw; pitch stays within about −14…+8° and roll within ±5°.
+    The sequence walks 55–75 % of the route from route time ``start``, ``offset_m`` to the
+    left of it (negative: to the right), straying from that path by up to 0.35 m and about
+    30° of yaw; pitch stays within about −14…+8° and roll within ±5°.
     """
+    if scene.route is None:
+        raise ValueError(f"scene {scene.name} has no camera route")
     t = np.arange(frames) / max(frames, 1)
     tau = start + rng.uniform(0.55, 0.75) * t
     route_position, route_yaw = scene.route.at(tau)
+    if offset_m:
+        route_position = route_position + offset_m * _route_normals(scene.route, tau)
     position = route_position + np.stack(
         [
             0.35 * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3)),
@@ -809,13 +861,20 @@ def _trajectory(
 
 
 def make_sequences(
-    scene_index: int, scene: SyntheticScene, train_frames: int, test_frames: int, seed: int = 0
+    scene_index: int,
+    scene: SyntheticScene,
+    train_frames: int,
+    test_frames: int,
+    seed: int = 0,
+    test_offset_m: float = 0.0,
 ) -> list[CameraSequence]:
     """Train sequences ``seq-01…`` then test sequences (numbered on) of scene ``scene_index``.
 
     Up to 6 train and 2 test sequences share the frames of each split. Each walks most of the
     scene's route with its own deviations and :class:`Appearance`; the sequences of a split
-    start at staggered route times, so that together they cover the whole route.
+    start at staggered route times, so that together they cover the whole route. Test
+    sequences walk ``test_offset_m`` beside the route, alternately to its left and right (0:
+    on the route, like the train sequences).
     """
     train_counts = _split_counts(train_frames, TRAIN_SEQUENCES)
     test_counts = _split_counts(test_frames, TEST_SEQUENCES)
@@ -825,7 +884,8 @@ def make_sequences(
     for number, (split, index_in_split, count, frames) in enumerate(splits, start=1):
         rng = np.random.default_rng([seed, scene_index, 1, number])
         start = (index_in_split + rng.uniform(0, 0.3)) / count
-        poses = _trajectory(scene, frames, start, rng)
+        offset = 0.0 if split == "train" else test_offset_m * (-1) ** index_in_split
+        poses = _trajectory(scene, frames, start, rng, offset)
         appearance = Appearance.random(rng)
         sequences.append(
             CameraSequence(
@@ -878,6 +938,39 @@ def _write_png(path: Path, image_rgb: np.ndarray) -> None:
         temporary.unlink(missing_ok=True)
 
 
+def render_frames(
+    out: Path,
+    paths: list[str],
+    scene: SyntheticScene,
+    poses: np.ndarray,
+    camera: PinholeCamera,
+    appearance: Appearance,
+    noise: np.random.Generator,
+) -> None:
+    """Render ``poses`` ``[n, 7]`` of one sequence and write them as PNGs at ``out / paths[i]``,
+    ``FRAMES_PER_WRITE`` frames at a time."""
+    for folder in sorted({(out / path).parent for path in paths}):
+        folder.mkdir(parents=True, exist_ok=True)
+    for start in range(0, len(poses), FRAMES_PER_WRITE):
+        images = render_batch(
+            scene, poses[start : start + FRAMES_PER_WRITE], camera, appearance, noise
+        )
+        for path, image in zip(paths[start : start + FRAMES_PER_WRITE], images, strict=True):
+            _write_png(out / path, image)
+
+
+def write_label_files(folder: Path, tables: dict[tuple[str, str], LabelTable]) -> None:
+    """``folder/<scene>_<split>.csv`` for each ``(scene, split)`` table, then
+    ``folder/all_<split>.csv`` for each split (the data modules read those last)."""
+    for (name, split), table in tables.items():
+        write_labels(folder / f"{name}_{split}.csv", table)
+    for split in dict.fromkeys(split for _, split in tables):
+        write_labels(
+            folder / f"all_{split}.csv",
+            LabelTable.concat(t for (_, s), t in tables.items() if s == split),
+        )
+
+
 def write_synthetic_dataset(
     out: Path | str,
     scenes: int = DEFAULT_SCENES,
@@ -885,11 +978,13 @@ def write_synthetic_dataset(
     test_frames: int = DEFAULT_TEST_FRAMES,
     size: int = DEFAULT_SIZE,
     seed: int = 0,
+    test_offset_m: float = DEFAULT_TEST_OFFSET_M,
 ) -> SyntheticSummary:
     """Render the benchmark into ``out``: images first, label files last.
 
-    ``train_frames`` and ``test_frames`` are per scene. The same arguments give byte-identical
-    files.
+    ``train_frames`` and ``test_frames`` are per scene; ``test_offset_m`` is the test
+    sequences' lateral offset from the train route (see :func:`make_sequences`). The same
+    arguments give byte-identical files.
     """
     for name, value, low in (
         ("scenes", scenes, 1),
@@ -900,24 +995,27 @@ def write_synthetic_dataset(
     ):
         if int(value) != value or value < low:
             raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+    if not (math.isfinite(test_offset_m) and 0 <= test_offset_m <= 1.0):
+        raise ValueError(f"test_offset_m must lie in [0, 1] m, got {test_offset_m!r}")
     out = Path(out)
     started = time.perf_counter()
     camera = PinholeCamera(size)
     label_tables: dict[tuple[str, str], LabelTable] = {}
     for index in range(scenes):
-        scene = make_scene(index, seed)
+        scene = make_scene(index, seed, test_offset_m)
         rows: dict[str, list[tuple[str, str, np.ndarray]]] = {"train": [], "test": []}
-        for sequence in make_sequences(index, scene, train_frames, test_frames, seed):
-            folder = out / scene.name / sequence.name
-            folder.mkdir(parents=True, exist_ok=True)
+        sequences = make_sequences(index, scene, train_frames, test_frames, seed, test_offset_m)
+        for sequence in sequences:
+            paths = [
+                f"{scene.name}/{sequence.name}/frame-{frame:06d}.png"
+                for frame in range(len(sequence.poses))
+            ]
             noise = np.random.default_rng(list(sequence.noise_seed))
-            for start in range(0, len(sequence.poses), FRAMES_PER_WRITE):
-                poses = sequence.poses[start : start + FRAMES_PER_WRITE]
-                images = render_batch(scene, poses, camera, sequence.appearance, noise)
-                for frame, (image, pose) in enumerate(zip(images, poses, strict=True), start):
-                    relative = f"{scene.name}/{sequence.name}/frame-{frame:06d}.png"
-                    _write_png(out / relative, image)
-                    rows[sequence.split].append((sequence.name, relative, pose))
+            render_frames(out, paths, scene, sequence.poses, camera, sequence.appearance, noise)
+            rows[sequence.split] += [
+                (sequence.name, path, pose)
+                for path, pose in zip(paths, sequence.poses, strict=True)
+            ]
         for split, split_rows in rows.items():
             label_tables[scene.name, split] = LabelTable(
                 scene=[scene.name] * len(split_rows),
@@ -927,14 +1025,7 @@ def write_synthetic_dataset(
                 poses=np.array([r[2] for r in split_rows]),
                 source=f"synthetic seed={seed}",
             )
-    labels = out / "labels"
-    for (name, split), table in label_tables.items():
-        write_labels(labels / f"{name}_{split}.csv", table)
-    for split in ("train", "test"):
-        write_labels(
-            labels / f"all_{split}.csv",
-            LabelTable.concat(t for (_, s), t in label_tables.items() if s == split),
-        )
+    write_label_files(out / "labels", label_tables)
     seconds = time.perf_counter() - started
     frames = scenes * (train_frames + test_frames)
     return SyntheticSummary(

@@ -2,27 +2,71 @@
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 from typing import Any
 
 from lightning.pytorch.utilities import rank_zero_info
 
 from pae.data.datamodule import PoseDataModule
+from pae.data.labels import LabelError
+
+RENDER_FOLDER = "data/synthetic"
+"""Where datasets without an explicit ``root`` are rendered (relative to the working dir)."""
+
+
+def default_root(
+    scenes: int,
+    train_frames: int,
+    test_frames: int,
+    size: int,
+    render_seed: int,
+    test_offset_m: float,
+    poses: list[str] | None,
+) -> str:
+    """The folder a synthetic dataset renders into: named by its settings, or, for
+    ``poses``, by a digest of the label files' contents (so edited files render anew)."""
+    if poses:
+        digest = hashlib.sha256()
+        for path in poses:
+            try:
+                digest.update(Path(path).read_bytes())
+            except OSError as err:
+                raise LabelError(path, None, f"data.poses: cannot read ({err.strerror})") from None
+        return f"{RENDER_FOLDER}/poses-{digest.hexdigest()[:12]}_px{size}_seed{render_seed}"
+    return (
+        f"{RENDER_FOLDER}/scenes{scenes}_train{train_frames}_test{test_frames}_px{size}"
+        f"_seed{render_seed}_offset{test_offset_m:g}"
+    )
 
 
 class SyntheticDataModule(PoseDataModule):
-    """Renders `pae-data synth` output into `root` when its label files are missing."""
+    """Renders `pae-data synth` output into `root` when its label files are missing.
+
+    Without ``poses``: the benchmark's rooms and routes (``scenes``, frames per scene, the
+    test sequences' lateral offset ``test_offset_m`` from the train route). With ``poses``
+    (label files, e.g. a real dataset's train and test labels): one image per row at that
+    row's pose, in a world built around them (``pae-data synth --poses``). ``root`` None
+    picks a folder under ``data/synthetic`` named by these settings.
+    """
 
     def __init__(
         self,
-        root: str,
+        root: str | None = None,
         scenes: int = 2,
         train_frames: int = 800,
         test_frames: int = 250,
         size: int = 64,
         render_seed: int = 0,
+        test_offset_m: float = 0.7,
+        poses: list[str] | None = None,
         **kwargs: Any,
     ) -> None:
+        poses = [str(p) for p in poses] if poses else None
+        if root is None:
+            root = default_root(
+                scenes, train_frames, test_frames, size, render_seed, test_offset_m, poses
+            )
         labels = Path(root) / "labels"
         super().__init__(
             root=root,
@@ -30,20 +74,36 @@ class SyntheticDataModule(PoseDataModule):
             test_labels=str(labels / "all_test.csv"),
             **kwargs,
         )
+        self.poses = poses
         self.render_args = {
             "scenes": scenes,
             "train_frames": train_frames,
             "test_frames": test_frames,
             "size": size,
             "seed": render_seed,
+            "test_offset_m": test_offset_m,
         }
 
     def prepare_data(self) -> None:
         if all(Path(p).is_file() for p in self.label_paths.values()):
             return
-        from pae.data.synthetic import write_synthetic_dataset
+        if self.poses:
+            from pae.data.synthetic_poses import write_dataset_at_poses
 
-        rank_zero_info(write_synthetic_dataset(self.root, **self.render_args).summary())
+            written = write_dataset_at_poses(
+                self.root, self.poses, self.render_args["size"], self.render_args["seed"]
+            )
+            if not (written.train_frames and written.test_frames):
+                raise LabelError(
+                    ", ".join(self.poses),
+                    None,
+                    "data.poses needs rows of both splits, train and test",
+                )
+        else:
+            from pae.data.synthetic import write_synthetic_dataset
+
+            written = write_synthetic_dataset(self.root, **self.render_args)
+        rank_zero_info(written.summary())
 
     def setup(self, stage: str | None = None) -> None:
         self.prepare_data()

@@ -13,9 +13,12 @@ from pae.refine.affine import (
     regressor_hidden_sizes,
 )
 from pae.refine.index import PoseIndex
+from pae.refine.latent import LatentRetrievalRefiner, PoseDescentRefiner
 
 __all__ = [
     "AffineFit",
+    "LatentRetrievalRefiner",
+    "PoseDescentRefiner",
     "PoseIndex",
     "PositionRefiner",
     "RefinementResult",

@@ -750,6 +750,18 @@ class PositionRefiner:
         self.chunk_size = chunk_size
         self.generator = torch.Generator().manual_seed(seed)
 
+    def neighbour_mean(self, neighbour_indices: Tensor, initial_poses: Tensor) -> Tensor:
+        """[B, 7]: the plain mean position of the retrieved neighbours ``[B, k]`` (indices into
+        the index), with the orientation of ``self.orientation`` under equal weights. The
+        PAE-free baseline of the same retrieval: what the affine weights add is the
+        difference to it."""
+        neighbours = self.index.poses[neighbour_indices.to(self.index.device)].to(initial_poses)
+        weights = torch.full(neighbours.shape[:2], 1.0 / neighbours.shape[1]).to(neighbours)
+        orientation = combine_orientations(
+            neighbours[..., 3:], weights, initial_poses[:, 3:], self.orientation
+        )
+        return torch.cat([neighbours[..., :3].mean(dim=1), orientation], dim=1)
+
     def __call__(
         self, query_latents: Latents, initial_poses: Tensor, scenes: Tensor | None = None
     ) -> RefinementResult:
