@@ -7,6 +7,7 @@
     pae-data synth OUT --poses LABELS.csv [LABELS.csv ...] [--size PX --seed S]
     pae-data convert {cambridge,7scenes} RAW_ROOT OUT_DIR
     pae-data check LABELS.csv ROOT
+    pae-data audit-guess --test TEST.csv [...] --train TRAIN.csv [...] [--sigma M --k K --seed S]
 
 Bad input ends with exit status 1 and a one-line ``pae-data: error: ...`` message on stderr.
 """
@@ -19,7 +20,14 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
-from pae.data.labels import LabelError, LabelWarning, find_image_problems, read_labels_lenient
+from pae.data.labels import (
+    LabelError,
+    LabelTable,
+    LabelWarning,
+    find_image_problems,
+    read_labels,
+    read_labels_lenient,
+)
 
 PROG = "pae-data"
 
@@ -31,8 +39,6 @@ def _synth(args: argparse.Namespace) -> int:
         return default if value is None else value
 
     if args.poses:
-        from pae.data.synthetic_poses import write_dataset_at_poses
-
         ignored = [
             flag
             for flag, value in (
@@ -45,6 +51,8 @@ def _synth(args: argparse.Namespace) -> int:
         ]
         if ignored:
             raise ValueError(f"--poses renders the given rows only: drop {', '.join(ignored)}")
+        from pae.data.synthetic_poses import write_dataset_at_poses
+
         dataset = write_dataset_at_poses(
             args.out, args.poses, size=chosen(args.size, synthetic.DEFAULT_SIZE), seed=args.seed
         )
@@ -91,6 +99,25 @@ def _check(args: argparse.Namespace) -> int:
         print(f"FAILED: {len(problems)} of {rows} rows in {args.labels} have problems")
         return 1
     print(f"OK: {rows} rows, {len(table.scene_names)} scenes")
+    return 0
+
+
+def _read_tables(paths: Sequence[Path]) -> LabelTable:
+    """The rows of all label files; repairs are reported as one warning line per file."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", LabelWarning)
+        table = LabelTable.concat(read_labels(path) for path in paths)
+    for warning in caught:
+        print(f"{PROG}: warning: {warning.message}", file=sys.stderr)
+    return table
+
+
+def _audit_guess(args: argparse.Namespace) -> int:
+    from pae.refine.audit import format_guess_audit, guess_audit
+
+    test, train = _read_tables(args.test), _read_tables(args.train)
+    rows = guess_audit(test, train, sigma_m=args.sigma, k=args.k, seed=args.seed)
+    print(format_guess_audit(rows, args.sigma, args.k))
     return 0
 
 
@@ -147,6 +174,20 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument("labels", type=Path, metavar="LABELS.csv")
     check.add_argument("root", type=Path, metavar="ROOT", help="dataset root of img_path")
     check.set_defaults(run=_check)
+
+    audit = commands.add_parser(
+        "audit-guess",
+        help="the random-guess check from label files alone (no images, no PAE)",
+        description="Per scene: a guess around each test pose (true position + Gaussian "
+        "noise, true orientation) and the mean of its k nearest poses, retrieved from the test "
+        "poses (the authors' public scripts) and from the train poses.",
+    )
+    audit.add_argument("--test", type=Path, nargs="+", required=True, metavar="TEST.csv")
+    audit.add_argument("--train", type=Path, nargs="+", required=True, metavar="TRAIN.csv")
+    audit.add_argument("--sigma", type=float, default=1.0, metavar="M", help="noise std (m)")
+    audit.add_argument("--k", type=int, default=3, help="neighbours (default: 3)")
+    audit.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    audit.set_defaults(run=_audit_guess)
     return parser
 
 
