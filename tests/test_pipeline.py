@@ -81,6 +81,8 @@ def test_tensorboard_gets_trajectory_plot_and_hparams(pipeline_run: Path) -> Non
     events = EventAccumulator(str(pipeline_run / "student"))
     events.Reload()
     assert "test/trajectory" in events.Tags()["images"]
+    assert "refinement/protocols/text_summary" in events.Tags()["tensors"]
+    assert "test/refined_test_store/pos_median_m" in events.Tags()["scalars"]
     assert "val/refined/pos_median_m" in events.Tags()["scalars"]
     assert "hparams/test/refined/pos_median_m" in events.Tags()["scalars"]
     decoder_events = EventAccumulator(str(pipeline_run / "decoder"))

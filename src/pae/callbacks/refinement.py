@@ -19,6 +19,14 @@ from pae.refine.affine import ORIENTATION_MODES, WEIGHT_MODELS, RefinementResult
 
 Refiner = Callable[[Latents, Tensor, Tensor | None], RefinementResult]
 """``(query_latents, initial_poses [B, 7], scenes [B]) -> RefinementResult``."""
+PROTOCOLS_TEXT = (
+    "**Retrieval protocols.** `refined`, `knn_mean`, `guess_refined` and the alternatives "
+    "retrieve among the train poses (the protocol the paper describes). Scalars named "
+    "`*_test_store` retrieve among the evaluated split's own ground-truth poses, as the "
+    "authors' public scripts do: they read the test labels and can retrieve a query's own "
+    "pose. They are an audit, not a result. `knn_mean*` is the plain mean of the same "
+    "neighbours, with no PAE: what refinement adds is the difference to it."
+)
 RESERVED_METHODS = (
     "teacher",
     "student",
@@ -193,6 +201,8 @@ class TestTimeRefinement(L.Callback):
         if split == "test":
             figures["bench/refine/callback_ms_per_query"] = torch.tensor(1000 * elapsed / len(gt))
         pl_module.log_dict(figures)
+        if self.audit:
+            self._describe_protocols(trainer)
         if self.trajectory_plot:
             self._plot(trainer, split, gt, estimate, predictions["refined"], scene)
 
@@ -225,6 +235,14 @@ class TestTimeRefinement(L.Callback):
         pos, rot = pose_errors(pred.float(), gt.float())
         summary = summarise_errors(pos, rot, scene, names)
         return {f"{split}/{method}/{key}": value for key, value in summary.items()}
+
+    @staticmethod
+    def _describe_protocols(trainer: L.Trainer) -> None:
+        """A TensorBoard text (tab TEXT, tag ``refinement/protocols``) that marks the
+        ``*_test_store`` scalars as audits reading the evaluated split's labels."""
+        for logger in trainer.loggers:
+            if isinstance(logger, TensorBoardLogger):
+                logger.experiment.add_text("refinement/protocols", PROTOCOLS_TEXT, 0)
 
     def _plot(
         self,
