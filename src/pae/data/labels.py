@@ -15,14 +15,14 @@ from __future__ import annotations
 
 import csv
 import os
-import uuid
 import warnings
 from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
+
+from pae.atomic import atomic_write
 
 __all__ = [
     "LABEL_COLUMNS",
@@ -298,29 +298,20 @@ def write_labels(path: str | os.PathLike[str], table: LabelTable) -> None:
     Numbers are written with Python's shortest round-trip representation, so reading the file
     gives back exactly ``table.poses``. Values are written as they are (no normalisation).
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    try:
-        with open(temporary, "x", newline="", encoding="utf-8") as handle:
-            writer = csv.writer(handle, lineterminator="\n")
-            writer.writerow(LABEL_COLUMNS)
-            poses = table.poses.tolist()
-            for i in range(len(table)):
-                writer.writerow(
-                    [
-                        table.scene[i],
-                        table.split[i],
-                        table.seq[i],
-                        table.img_path[i],
-                        *(repr(v + 0.0) for v in poses[i]),
-                    ]
-                )
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
+    with atomic_write(path, newline="", encoding="utf-8") as handle:
+        writer = csv.writer(handle, lineterminator="\n")
+        writer.writerow(LABEL_COLUMNS)
+        poses = table.poses.tolist()
+        for i in range(len(table)):
+            writer.writerow(
+                [
+                    table.scene[i],
+                    table.split[i],
+                    table.seq[i],
+                    table.img_path[i],
+                    *(repr(v + 0.0) for v in poses[i]),
+                ]
+            )
 
 
 def find_image_problems(
