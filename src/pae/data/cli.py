@@ -3,6 +3,7 @@
 ::
 
     pae-data synth OUT [--scenes N --train-frames N --test-frames N --size PX --seed S]
+                       [--overwrite]
     pae-data convert {cambridge,7scenes} RAW_ROOT OUT_DIR
     pae-data check LABELS.csv ROOT
 
@@ -35,6 +36,7 @@ def _synth(args: argparse.Namespace) -> int:
         test_frames=chosen(args.test_frames, synthetic.DEFAULT_TEST_FRAMES),
         size=chosen(args.size, synthetic.DEFAULT_SIZE),
         seed=args.seed,
+        overwrite=args.overwrite,
     )
     print(dataset.summary())
     return 0
@@ -88,6 +90,11 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--test-frames", type=int, help="test frames per scene")
     synth.add_argument("--size", type=int, metavar="PX", help="image side in pixels")
     synth.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    synth.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the dataset already in OUT (otherwise a non-empty OUT is refused)",
+    )
     synth.set_defaults(run=_synth)
 
     convert = commands.add_parser(

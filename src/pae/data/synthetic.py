@@ -30,7 +30,7 @@ from __future__ import annotations
 import colorsys
 import functools
 import math
-import os
+import shutil
 import time
 import uuid
 from dataclasses import dataclass
@@ -866,16 +866,36 @@ class SyntheticSummary:
 
 
 def _write_png(path: Path, image_rgb: np.ndarray) -> None:
-    """Write an RGB image as PNG via a temporary file, so ``path`` is never half-written."""
+    """Write an RGB image as PNG (into the rendering folder, renamed into place when whole)."""
     ok, encoded = cv2.imencode(".png", cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR))
     if not ok:
         raise OSError(f"could not encode {path}")
-    temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    try:
-        temporary.write_bytes(encoded.tobytes())
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
+    path.write_bytes(encoded.tobytes())
+
+
+def _prepare_output(out: Path, overwrite: bool) -> None:
+    """Refuse a used folder unless `overwrite`, and even then one that holds no dataset."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise FileExistsError(f"{out}: exists and is not a folder")
+    if not any(out.iterdir()):
+        return
+    if not overwrite:
+        raise FileExistsError(f"{out}: folder is not empty; --overwrite replaces the dataset in it")
+    if not (out / "labels").is_dir():
+        raise FileExistsError(
+            f"{out}: folder is not empty and holds no dataset (no labels/); not replacing it"
+        )
+
+
+def _replace_folder(new: Path, out: Path) -> None:
+    """Put the folder `new` in place of `out` (moved aside, then deleted if it existed)."""
+    old = out.with_name(f".{out.name}.old-{uuid.uuid4().hex}")
+    if out.exists():
+        out.rename(old)
+    new.rename(out)
+    shutil.rmtree(old, ignore_errors=True)
 
 
 def write_synthetic_dataset(
@@ -885,9 +905,13 @@ def write_synthetic_dataset(
     test_frames: int = DEFAULT_TEST_FRAMES,
     size: int = DEFAULT_SIZE,
     seed: int = 0,
+    overwrite: bool = False,
 ) -> SyntheticSummary:
-    """Render the benchmark into ``out``: images first, label files last.
+    """Render the benchmark into ``out``: exactly the new dataset, or nothing.
 
+    Rendering goes into a hidden folder beside ``out`` that is renamed to ``out`` when done.
+    A non-empty ``out`` is refused (FileExistsError) unless ``overwrite``, which replaces a
+    folder holding a dataset (``labels/``) as a whole, stale files included.
     ``train_frames`` and ``test_frames`` are per scene. The same arguments give byte-identical
     files.
     """
@@ -900,8 +924,34 @@ def write_synthetic_dataset(
     ):
         if int(value) != value or value < low:
             raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
-    out = Path(out)
+    final = Path(out)
+    _prepare_output(final, overwrite)
+    final.parent.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
+    out = final.with_name(f".{final.name}.rendering-{uuid.uuid4().hex}")
+    try:
+        _render(out, scenes, train_frames, test_frames, size, seed)
+    except BaseException:
+        shutil.rmtree(out, ignore_errors=True)
+        raise
+    _replace_folder(out, final)
+    seconds = time.perf_counter() - started
+    frames = scenes * (train_frames + test_frames)
+    return SyntheticSummary(
+        root=str(final),
+        scenes=[scene_name(i) for i in range(scenes)],
+        train_frames=scenes * train_frames,
+        test_frames=scenes * test_frames,
+        size=size,
+        seconds=seconds,
+        frames_per_second=frames / seconds,
+    )
+
+
+def _render(
+    out: Path, scenes: int, train_frames: int, test_frames: int, size: int, seed: int
+) -> None:
+    """Render every scene into `out`: images first, label files last."""
     camera = PinholeCamera(size)
     label_tables: dict[tuple[str, str], LabelTable] = {}
     for index in range(scenes):
@@ -935,17 +985,6 @@ def write_synthetic_dataset(
             labels / f"all_{split}.csv",
             LabelTable.concat(t for (_, s), t in label_tables.items() if s == split),
         )
-    seconds = time.perf_counter() - started
-    frames = scenes * (train_frames + test_frames)
-    return SyntheticSummary(
-        root=str(out),
-        scenes=[scene_name(i) for i in range(scenes)],
-        train_frames=scenes * train_frames,
-        test_frames=scenes * test_frames,
-        size=size,
-        seconds=seconds,
-        frames_per_second=frames / seconds,
-    )
 
 
 def measure_render_speed(frames: int = 200, size: int = DEFAULT_SIZE, seed: int = 0) -> float:

@@ -8,10 +8,12 @@ from typing import Any
 from lightning.pytorch.utilities import rank_zero_info
 
 from pae.data.datamodule import PoseDataModule
+from pae.data.labels import LabelError
 
 
 class SyntheticDataModule(PoseDataModule):
-    """Renders `pae-data synth` output into `root` when its label files are missing."""
+    """Renders `pae-data synth` output into `root` when its label files are missing (a
+    non-empty `root` without them is an error, never overwritten)."""
 
     def __init__(
         self,
@@ -43,7 +45,12 @@ class SyntheticDataModule(PoseDataModule):
             return
         from pae.data.synthetic import write_synthetic_dataset
 
-        rank_zero_info(write_synthetic_dataset(self.root, **self.render_args).summary())
+        try:
+            rank_zero_info(write_synthetic_dataset(self.root, **self.render_args).summary())
+        except FileExistsError as err:
+            raise LabelError(
+                self.label_paths["train"], None, f"file not found, and not rendered: {err}"
+            ) from None
 
     def setup(self, stage: str | None = None) -> None:
         self.prepare_data()
