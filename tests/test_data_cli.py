@@ -333,6 +333,12 @@ def test_synth_passes_arguments_and_prints_summary(
     assert main(["synth", str(tmp_path / "b")]) == 0
     assert capsys.readouterr().out == "synthetic summary\n" * 2
     assert calls == [
-        (tmp_path / "a", dict(scenes=2, train_frames=40, test_frames=20, size=32, seed=7)),
-        (tmp_path / "b", dict(scenes=3, train_frames=40, test_frames=20, size=64, seed=0)),
+        (
+            tmp_path / "a",
+            dict(scenes=2, train_frames=40, test_frames=20, size=32, seed=7, overwrite=False),
+        ),
+        (
+            tmp_path / "b",
+            dict(scenes=3, train_frames=40, test_frames=20, size=64, seed=0, overwrite=False),
+        ),
     ]

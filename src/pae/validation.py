@@ -93,7 +93,12 @@ def _train_set_size(cfg: DictConfig) -> int:
 def validate_data(cfg: DictConfig, train: bool = True) -> None:
     """data.*: sizes, batch sizes (train: at most the train set), workers, paths."""
     crop = _integer(cfg, "data.crop", 1)
-    _integer(cfg, "data.shorter_edge", crop)
+    shorter_edge = _integer(cfg, "data.shorter_edge", 1)
+    if crop > shorter_edge:
+        raise ConfigError(
+            f"data.crop={crop} is larger than data.shorter_edge={shorter_edge} (the images' "
+            "shorter edge after resizing)"
+        )
     _integer(cfg, "data.eval_batch_size", 1)
     _integer(cfg, "data.num_workers", 0)
     for key in ("augment", "cache_images", "balance_scenes"):
