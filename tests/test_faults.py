@@ -16,7 +16,7 @@ import pytest
 import torch
 
 import pae.pipeline
-from pae.checkpoints import DATA_FINGERPRINT_KEY, AtomicCheckpointIO, read_checkpoint
+from pae.checkpoints import CheckpointError, read_checkpoint
 from pae.data.cli import main as pae_data
 from pae.data.dataset import PoseDataset
 from pae.data.labels import LabelError, LabelTable, read_labels, write_labels
@@ -146,6 +146,8 @@ def test_last_checkpoint_after_every_training_epoch(
 def test_checkpoints_are_written_whole(
     compose_train, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    from pae.checkpoints import AtomicCheckpointIO
+
     trainer = pae.pipeline.build_trainer(compose_train(), tmp_path, 1, [])
     assert isinstance(trainer.strategy.checkpoint_io, AtomicCheckpointIO)
     path = tmp_path / "last.ckpt"
@@ -252,8 +254,6 @@ def test_run_dir_and_checkpoint_files_fail_in_one_line(tiny_root: Path, tmp_path
         f"pae-train: error: hydra.run.dir={tmp_path}/file/run: cannot be created "
         f"({tmp_path}/file is not a directory)"
     ]
-    from pae.checkpoints import CheckpointError
-
     with pytest.raises(CheckpointError, match=r"file: not a readable checkpoint \(not a complete"):
         read_checkpoint(tmp_path / "file")
 
@@ -302,6 +302,8 @@ def test_check_and_loaders_agree_on_paths_outside_the_root(
 def test_checkpoints_remember_their_data(
     teacher_run: Path, compose_train, tiny_root: Path, tmp_path: Path
 ) -> None:
+    from pae.checkpoints import DATA_FINGERPRINT_KEY
+
     teacher_ckpt = teacher_run / "checkpoints" / "last.ckpt"
     fingerprint = read_checkpoint(teacher_ckpt)[DATA_FINGERPRINT_KEY]
     assert fingerprint["scenes"] == ["scene00", "scene01"]
@@ -309,7 +311,7 @@ def test_checkpoints_remember_their_data(
     write_synthetic_dataset(other, seed=1, **TINY)
     student = ("stage=student", f"teacher_ckpt={teacher_ckpt}", "student.max_epochs=0")
     cfg = compose_train(*student, f"data.root={other}", run_dir=tmp_path / "a")
-    with pytest.raises(pae.checkpoints.CheckpointError, match="trained on other train poses"):
+    with pytest.raises(CheckpointError, match="trained on other train poses"):
         run(cfg, tmp_path / "a")
     cfg = compose_train(*student, f"data.root={other}", "allow_other_data=true")
     assert "test/student/pos_median_m" in run(cfg, tmp_path / "b")
