@@ -205,8 +205,8 @@ def _check_data(
     """The checkpoint was trained on this data, and its models fit this data's scene count."""
     if len(loaded.scene_names) != data.n_scenes:
         raise CheckpointError(
-            f"{path}: trained on {len(loaded.scene_names)} scenes {loaded.scene_names}, but the "
-            f"data has {data.n_scenes} {data.scene_names}"
+            f"{path}: trained on scenes {loaded.scene_names}, but the data has scenes "
+            f"{data.scene_names}"
         )
     trained = loaded.data_fingerprint or {"scenes": loaded.scene_names}
     _check_fingerprint(cfg, path, trained, data.fingerprint())
