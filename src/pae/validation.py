@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from pae.data.labels import read_labels
@@ -87,7 +88,9 @@ def _train_set_size(cfg: DictConfig) -> int:
     ):
         raise ConfigError(f"data.scenes must be null or a list of scene names, got {scenes!r}")
     table = read_labels(data.train_labels)
-    return sum(1 for scene in table.scene if scenes is None or scene in scenes)
+    if scenes is None:
+        return len(table)
+    return int(np.isin(np.asarray(table.scene), list(scenes)).sum())
 
 
 def validate_data(cfg: DictConfig, train: bool = True) -> None:
