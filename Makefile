@@ -19,6 +19,8 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)  ## create .venv and install pae with its dev tools
 
 demo: $(STAMP)  ## full pipeline on the embedded synthetic benchmark, prints the results table
+	@if [ -e outputs/demo ]; then kept=outputs/demo-$$(date +%Y%m%d-%H%M%S); \
+	  mv outputs/demo $$kept && echo "the previous demo's outputs are kept in $$kept"; fi
 	@start=$$(date +%s); $(VENV)/bin/pae-train experiment=demo && \
 	  echo "demo finished in $$(( $$(date +%s) - start )) s; outputs/demo holds metrics.json, checkpoints and TensorBoard logs"
 

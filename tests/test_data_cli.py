@@ -335,11 +335,27 @@ def test_synth_passes_arguments_and_prints_summary(
     assert calls == [
         (
             tmp_path / "a",
-            dict(scenes=2, train_frames=40, test_frames=20, size=32, seed=7, test_offset_m=0.7),
+            dict(
+                scenes=2,
+                train_frames=40,
+                test_frames=20,
+                size=32,
+                seed=7,
+                test_offset_m=0.7,
+                overwrite=False,
+            ),
         ),
         (
             tmp_path / "b",
-            dict(scenes=3, train_frames=40, test_frames=20, size=64, seed=0, test_offset_m=0.0),
+            dict(
+                scenes=3,
+                train_frames=40,
+                test_frames=20,
+                size=64,
+                seed=0,
+                test_offset_m=0.0,
+                overwrite=False,
+            ),
         ),
     ]
     assert main(["synth", str(tmp_path / "c"), "--poses", "x.csv", "--scenes", "2"]) == 1

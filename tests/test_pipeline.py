@@ -287,7 +287,7 @@ def test_bad_refine_options_name_the_key(compose_train, override: str, message: 
 @pytest.mark.parametrize(
     ("override", "message"),
     [
-        ("student.input=image", "unknown student.pae_input 'image'"),
+        ("student.input=image", "unknown student.input 'image'"),
         ("student.latent_loss=cosine", "unknown student.latent_loss 'cosine'"),
         ("pae.latent_dim=64", "pae.latent_dim=64 does not match the teacher's latent size 256"),
     ],

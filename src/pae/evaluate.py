@@ -12,11 +12,13 @@ from omegaconf import DictConfig
 from pae import CONFIG_DIR
 from pae.pipeline import evaluate_checkpoints
 from pae.reporting import format_results_table, reporting_errors, write_json_atomic
+from pae.validation import validate_eval_config
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="eval")
 def main(cfg: DictConfig) -> float | None:
     with reporting_errors("pae-eval"):
+        validate_eval_config(cfg)
         L.seed_everything(cfg.seed, verbose=False)
         run_dir = Path(HydraConfig.get().runtime.output_dir)
         metrics = evaluate_checkpoints(cfg, run_dir)

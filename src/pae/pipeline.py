@@ -15,10 +15,21 @@ import lightning as L
 import torch
 from hydra.utils import instantiate
 from lightning.pytorch.loggers import Logger, TensorBoardLogger
+from lightning.pytorch.utilities import rank_zero_info
 from omegaconf import DictConfig, OmegaConf
 
 from pae.callbacks.refinement import TestTimeRefinement
-from pae.checkpoints import CheckpointError, load_decoder, load_pae, load_teacher
+from pae.checkpoints import (
+    DATA_FINGERPRINT_KEY,
+    AtomicCheckpointIO,
+    CheckpointError,
+    LoadedModel,
+    load_decoder,
+    load_pae,
+    load_teacher,
+    newest_readable_checkpoint,
+    read_checkpoint,
+)
 from pae.data.datamodule import PoseDataModule
 from pae.data.latents import TeacherLatentDataModule
 from pae.lit.decoder import DecoderModule
@@ -62,12 +73,27 @@ def build_trainer(
         logger=loggers or False,
         callbacks=configured + callbacks,
         default_root_dir=str(step_dir),
+        plugins=[AtomicCheckpointIO()],
     )
 
 
-def _resume_path(cfg: DictConfig, step_dir: Path) -> str | None:
-    last = step_dir / "checkpoints" / "last.ckpt"
-    return str(last) if cfg.get("resume") and last.is_file() else None
+def _resume_path(cfg: DictConfig, step_dir: Path, data: L.LightningDataModule) -> str | None:
+    """With resume=true: the newest readable checkpoint of the step (said in one line when a
+    newer one is unreadable), checked against the data; None when the step has none yet."""
+    folder = step_dir / "checkpoints"
+    if not cfg.get("resume"):
+        return None
+    path, skipped = newest_readable_checkpoint(folder)
+    if path is None and skipped:
+        raise CheckpointError(f"{folder}: no readable checkpoint to resume from ({skipped[0]})")
+    if path is None:
+        return None
+    trained = read_checkpoint(path).get(DATA_FINGERPRINT_KEY)
+    if trained is not None:
+        _check_fingerprint(cfg, path, trained, data.fingerprint())
+    if skipped:
+        rank_zero_info(f"resume: {skipped[0]}; resuming from {path.name} instead")
+    return str(path)
 
 
 def collect_metrics(trainer: L.Trainer, prefixes: tuple[str, ...] = ("test/",)) -> Metrics:
@@ -78,21 +104,28 @@ def collect_metrics(trainer: L.Trainer, prefixes: tuple[str, ...] = ("test/",)) 
     }
 
 
-def log_hparams(trainer: L.Trainer, cfg: DictConfig, metrics: Metrics) -> None:
-    """Hyper-parameters with the final figures (TensorBoard HParams tab, comparable in sweeps)."""
+def flat_config(cfg: DictConfig, sep: str = "/") -> dict[str, Any]:
+    """The resolved run config without its hydra section, flattened to `a{sep}b` keys; values
+    are scalars, other leaves (lists, None) their string form."""
     flat: dict[str, Any] = {}
 
     def walk(node: Any, prefix: str) -> None:
         if isinstance(node, dict):
             for key, value in node.items():
-                walk(value, f"{prefix}{key}/")
+                walk(value, f"{prefix}{key}{sep}")
         else:
-            flat[prefix.rstrip("/")] = (
+            flat[prefix.removesuffix(sep)] = (
                 node if isinstance(node, int | float | str | bool) else str(node)
             )
 
     run_config = OmegaConf.masked_copy(cfg, [key for key in cfg if key != "hydra"])
     walk(OmegaConf.to_container(run_config, resolve=True), "")
+    return flat
+
+
+def log_hparams(trainer: L.Trainer, cfg: DictConfig, metrics: Metrics) -> None:
+    """Hyper-parameters with the final figures (TensorBoard HParams tab, comparable in sweeps)."""
+    flat = flat_config(cfg)
     for logger in trainer.loggers:
         if isinstance(logger, TensorBoardLogger):
             logger.log_hyperparams(flat, metrics={f"hparams/{k}": v for k, v in metrics.items()})
@@ -121,7 +154,8 @@ def _fit_and_test(
     """Fit, test, record `bench/{name}/fit_s` -> (metrics, path of the last checkpoint)."""
     trainer = build_trainer(cfg, step_dir, epochs, callbacks or [])
     start = time.perf_counter()
-    trainer.fit(module, datamodule=data, ckpt_path=_resume_path(cfg, step_dir), weights_only=True)
+    resume_from = _resume_path(cfg, step_dir, data)
+    trainer.fit(module, datamodule=data, ckpt_path=resume_from, weights_only=True)
     fit_s = time.perf_counter() - start
     trainer.test(module, datamodule=data, verbose=False)
     metrics = collect_metrics(trainer)
@@ -146,11 +180,36 @@ def fit_teacher(cfg: DictConfig, step_dir: Path) -> tuple[Metrics, Path]:
     return _fit_and_test(cfg, step_dir, "teacher", module, data, cfg.teacher.max_epochs)
 
 
-def _check_scenes(path: str | Path, ckpt_scenes: list[str], data_scenes: list[str]) -> None:
-    if ckpt_scenes != data_scenes:
+def _check_fingerprint(
+    cfg: DictConfig, path: str | Path, trained: dict[str, Any], data: dict[str, Any]
+) -> None:
+    """A checkpoint trained on other data (scene names, or train poses when it records them)
+    is an error unless allow_other_data=true."""
+    if cfg.get("allow_other_data"):
+        return
+    if trained["scenes"] != data["scenes"]:
         raise CheckpointError(
-            f"{path}: trained on scenes {ckpt_scenes}, but the data has scenes {data_scenes}"
+            f"{path}: trained on scenes {trained['scenes']}, but the data has scenes "
+            f"{data['scenes']} (allow_other_data=true uses it anyway)"
         )
+    if trained.get("train_poses_sha256", data["train_poses_sha256"]) != data["train_poses_sha256"]:
+        raise CheckpointError(
+            f"{path}: trained on other train poses than those of {data['scenes']} in this "
+            "data's train labels (allow_other_data=true uses it anyway)"
+        )
+
+
+def _check_data(
+    cfg: DictConfig, path: str | Path, loaded: LoadedModel, data: PoseDataModule
+) -> None:
+    """The checkpoint was trained on this data, and its models fit this data's scene count."""
+    if len(loaded.scene_names) != data.n_scenes:
+        raise CheckpointError(
+            f"{path}: trained on scenes {loaded.scene_names}, but the data has scenes "
+            f"{data.scene_names}"
+        )
+    trained = loaded.data_fingerprint or {"scenes": loaded.scene_names}
+    _check_fingerprint(cfg, path, trained, data.fingerprint())
 
 
 def refinement_callbacks(cfg: DictConfig) -> list[L.Callback]:
@@ -207,7 +266,7 @@ def fit_student(
     teacher_ckpt = _required(teacher_ckpt, "teacher_ckpt", "student")
     teacher = load_teacher(teacher_ckpt)
     data = build_data(cfg, augment=False)
-    _check_scenes(teacher_ckpt, teacher.scene_names, data.scene_names)
+    _check_data(cfg, teacher_ckpt, teacher, data)
     pae_config = OmegaConf.to_container(cfg.pae, resolve=True)
     pae_config["n_scenes"] = data.n_scenes
     pae = instantiate(pae_config)
@@ -233,7 +292,7 @@ def fit_decoder(
     pae_ckpt = _required(pae_ckpt, "pae_ckpt", "decoder")
     pae = load_pae(pae_ckpt)
     data = build_data(cfg, augment=False)
-    _check_scenes(pae_ckpt, pae.scene_names, data.scene_names)
+    _check_data(cfg, pae_ckpt, pae, data)
     decoder_config = OmegaConf.to_container(cfg.decoder.model, resolve=True)
     module = DecoderModule(
         pae.model,
@@ -256,7 +315,7 @@ def fit_rpr(
     teacher, pae, decoder = load_teacher(pae_ckpt), load_pae(pae_ckpt), load_decoder(decoder_ckpt)
     data = build_data(cfg)
     for path, loaded in ((pae_ckpt, pae), (decoder_ckpt, decoder)):
-        _check_scenes(path, loaded.scene_names, data.scene_names)
+        _check_data(cfg, path, loaded, data)
     rpr_config = OmegaConf.to_container(cfg.rpr.model, resolve=True)
     rpr_config["backbone"]["pretrained"] = False
     module = RPRModule(
@@ -285,8 +344,8 @@ def evaluate_checkpoints(cfg: DictConfig, run_dir: Path) -> Metrics:
     teacher = load_teacher(teacher_path)
     pae = load_pae(cfg.pae_ckpt)
     data = build_data(cfg, augment=False)
-    _check_scenes(teacher_path, teacher.scene_names, data.scene_names)
-    _check_scenes(cfg.pae_ckpt, pae.scene_names, data.scene_names)
+    _check_data(cfg, teacher_path, teacher, data)
+    _check_data(cfg, cfg.pae_ckpt, pae, data)
     if pae.model.latent_dim != teacher.model.latent_dim:
         raise CheckpointError(
             f"{cfg.pae_ckpt}: PAE latent size {pae.model.latent_dim} does not match the "

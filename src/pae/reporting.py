@@ -4,17 +4,18 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
-import tempfile
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 
-from hydra.errors import HydraException, InstantiationException
+from hydra.core.hydra_config import HydraConfig
+from hydra.errors import CompactHydraException, HydraException, InstantiationException
+from hydra.types import RunMode
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from pae.atomic import atomic_write
 from pae.checkpoints import CheckpointError
 from pae.data.labels import LabelError
 from pae.data.transforms import ImageError
@@ -57,8 +58,17 @@ def table_methods(metrics: Mapping[str, float], split: str = "test") -> list[str
     return known[:cut] + extra + known[cut:]
 
 
+ERROR_FILE = "error.txt"
+"""A failed run's one-line error, written into its run directory (pae-report lists it)."""
+
+
 class ConfigError(ValueError):
     """A configuration value that cannot work; the message names the key."""
+
+
+class SweepJobFailed(CompactHydraException):
+    """A sweep job stopped on a user error: Hydra goes on with the other jobs, then ends the
+    sweep with this one line and exit status 1."""
 
 
 USER_ERRORS = (
@@ -74,17 +84,9 @@ USER_ERRORS = (
 
 def write_json_atomic(path: str | Path, payload: Mapping[str, object]) -> None:
     """Write JSON to a temporary file beside `path`, then rename it over `path`."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as handle:
-            json.dump(dict(payload), handle, indent=2, sort_keys=True)
-            handle.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_write(path) as handle:
+        json.dump(dict(payload), handle, indent=2, sort_keys=True)
+        handle.write("\n")
 
 
 def format_results_table(metrics: Mapping[str, float], split: str = "test") -> str:
@@ -151,17 +153,54 @@ def first_line(err: BaseException) -> str:
     return " ".join(" ".join(lines).split()) or type(cause).__name__
 
 
+def _hydra_job() -> tuple[Path, bool] | None:
+    """(output directory, whether it is a sweep job) of the running Hydra job, if any."""
+    if not HydraConfig.initialized():
+        return None
+    hydra_cfg = HydraConfig.get()
+    output_dir = OmegaConf.select(hydra_cfg, "runtime.output_dir", throw_on_missing=False)
+    if output_dir is None or not Path(output_dir).is_dir():
+        return None
+    return Path(output_dir), hydra_cfg.mode == RunMode.MULTIRUN
+
+
 @contextmanager
 def reporting_errors(program: str) -> Iterator[None]:
-    """Turn user errors (bad labels, images, checkpoints, config) into one line and exit 1."""
+    """Turn user errors (bad labels, images, checkpoints, config) into one line on stderr.
+
+    Outside Hydra and in single runs the process exits with status 1. Inside a Hydra job the
+    error is also written to `<run dir>/error.txt` (any error, tracebacks too; a finished job
+    removes an old one); a sweep job raises SweepJobFailed instead of exiting, so that the
+    other jobs of the sweep still run.
+    """
+    job = _hydra_job()
     try:
         yield
-    except InstantiationException as err:
-        print(f"{program}: error: {first_line(err)}", file=sys.stderr)
-        raise SystemExit(1) from None
     except USER_ERRORS as err:
-        print(f"{program}: error: {first_line(err)}", file=sys.stderr)
-        raise SystemExit(1) from None
+        line = f"{program}: error: {first_line(err)}"
+        print(line, file=sys.stderr)
+        if job is None:
+            raise SystemExit(1) from None
+        run_dir, sweep = job
+        record_failure(run_dir, line)
+        if not sweep:
+            raise SystemExit(1) from None
+        raise SweepJobFailed(
+            f"{program}: error: a sweep job failed ({run_dir}: {first_line(err)}); "
+            f"pae-report {run_dir.parent} lists every failed job"
+        ) from None
+    except Exception as err:
+        if job is not None:
+            record_failure(job[0], f"{type(err).__name__}: {first_line(err)}")
+        raise
+    if job is not None:
+        (job[0] / ERROR_FILE).unlink(missing_ok=True)
+
+
+def record_failure(run_dir: Path, line: str) -> None:
+    """Write a run's one-line error to `<run_dir>/error.txt`, atomically."""
+    with atomic_write(run_dir / ERROR_FILE) as handle:
+        handle.write(line + "\n")
 
 
 def _job_name(run_dir: Path, root: Path) -> str:
@@ -174,16 +213,49 @@ def _job_name(run_dir: Path, root: Path) -> str:
     return " ".join(shown) or "(defaults)"
 
 
+def _job_dirs(root: Path) -> list[Path]:
+    """Run directories below `root`: those with a metrics.json, an error.txt or a .hydra/."""
+    found = {p.parent for name in ("metrics.json", ERROR_FILE) for p in root.rglob(name)}
+    found |= {p.parent.parent for p in root.rglob(".hydra/overrides.yaml")}
+    return sorted(found)
+
+
+def _read_metrics(path: Path) -> tuple[dict[str, float] | None, str | None]:
+    """metrics.json -> (metrics, None), or (None, why it cannot be used)."""
+    if not path.is_file():
+        return None, None
+    try:
+        metrics = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        return None, f"{path}: unreadable metrics.json ({first_line(err)})"
+    if not isinstance(metrics, dict):
+        return None, f"{path}: metrics.json does not hold a JSON object"
+    return metrics, None
+
+
 def sweep_table(root: str | Path, split: str = "test") -> str:
     """Markdown table of every metrics.json under `root` (a run or a multirun directory):
     one row per job, named by its command-line overrides; cells are median position [m] /
-    orientation [deg] per method."""
+    orientation [deg] per method. Below it, every failed job with its error (error.txt, an
+    unreadable metrics.json, or no metrics.json at all)."""
     root = Path(root)
     jobs = []
-    for path in sorted(root.rglob("metrics.json")):
-        metrics = json.loads(path.read_text())
-        jobs.append((_job_name(path.parent, root), metrics))
-    if not jobs:
+    failed = []
+    for run_dir in _job_dirs(root):
+        name = _job_name(run_dir, root)
+        metrics, problem = _read_metrics(run_dir / "metrics.json")
+        error_file = run_dir / ERROR_FILE
+        if error_file.is_file():
+            problem = f"{error_file.read_text().strip()} ({error_file})"
+        elif metrics is None and problem is None:
+            problem = (
+                f"no metrics.json: unfinished, or stopped without a recorded error ({run_dir})"
+            )
+        if metrics is not None:
+            jobs.append((name, metrics))
+        if problem is not None:
+            failed.append(f"- {name}: {problem}")
+    if not jobs and not failed:
         raise FileNotFoundError(f"{root}: no metrics.json below this directory")
     methods = table_methods({key: 0.0 for _, job in jobs for key in job}, split)
     lines = [
@@ -197,6 +269,8 @@ def sweep_table(root: str | Path, split: str = "test") -> str:
             rot = metrics.get(f"{split}/{method}/rot_median_deg")
             cells.append("-" if pos is None else f"{pos:.3f} / {rot:.2f}")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    if failed:
+        lines += ["", f"{len(failed)} failed job{'s' if len(failed) > 1 else ''}:", *failed]
     return "\n".join(lines)
 
 

@@ -11,16 +11,14 @@ from omegaconf import DictConfig
 
 from pae import CONFIG_DIR
 from pae.pipeline import fit_decoder, fit_rpr, fit_student, fit_teacher
-from pae.reporting import ConfigError, format_results_table, reporting_errors, write_json_atomic
-
-STEPS = ("teacher", "student", "decoder", "rpr")
+from pae.reporting import format_results_table, reporting_errors, write_json_atomic
+from pae.validation import validate_train_config
 
 
 def run(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
-    """Run the stage's steps; metrics.json is rewritten atomically after each finished step."""
-    unknown = [step for step in cfg.stage.steps if step not in STEPS]
-    if unknown:
-        raise ConfigError(f"unknown stage.steps {unknown}; choose from {list(STEPS)}")
+    """Check every setting, then run the stage's steps; metrics.json is rewritten atomically
+    after each finished step."""
+    validate_train_config(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     metrics: dict[str, float] = {}
     ckpt = {"teacher": cfg.teacher_ckpt, "pae": cfg.pae_ckpt, "decoder": cfg.decoder_ckpt}

@@ -3,8 +3,8 @@
 ::
 
     pae-data synth OUT [--scenes N --train-frames N --test-frames N --test-offset M --size PX
-                        --seed S]
-    pae-data synth OUT --poses LABELS.csv [LABELS.csv ...] [--size PX --seed S]
+                        --seed S] [--overwrite]
+    pae-data synth OUT --poses LABELS.csv [LABELS.csv ...] [--size PX --seed S] [--overwrite]
     pae-data convert {cambridge,7scenes} RAW_ROOT OUT_DIR
     pae-data check LABELS.csv ROOT
     pae-data audit-guess --test TEST.csv [...] --train TRAIN.csv [...] [--sigma M --k K --seed S]
@@ -54,7 +54,11 @@ def _synth(args: argparse.Namespace) -> int:
         from pae.data.synthetic_poses import write_dataset_at_poses
 
         dataset = write_dataset_at_poses(
-            args.out, args.poses, size=chosen(args.size, synthetic.DEFAULT_SIZE), seed=args.seed
+            args.out,
+            args.poses,
+            size=chosen(args.size, synthetic.DEFAULT_SIZE),
+            seed=args.seed,
+            overwrite=args.overwrite,
         )
     else:
         dataset = synthetic.write_synthetic_dataset(
@@ -65,6 +69,7 @@ def _synth(args: argparse.Namespace) -> int:
             size=chosen(args.size, synthetic.DEFAULT_SIZE),
             seed=args.seed,
             test_offset_m=chosen(args.test_offset, synthetic.DEFAULT_TEST_OFFSET_M),
+            overwrite=args.overwrite,
         )
     print(dataset.summary())
     return 0
@@ -152,6 +157,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     synth.add_argument("--size", type=int, metavar="PX", help="image side in pixels")
     synth.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    synth.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the dataset already in OUT (otherwise a non-empty OUT is refused)",
+    )
     synth.set_defaults(run=_synth)
 
     convert = commands.add_parser(

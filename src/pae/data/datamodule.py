@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 from typing import Any
 
 import lightning as L
+import numpy as np
 import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, WeightedRandomSampler
@@ -110,6 +112,15 @@ class PoseDataModule(L.LightningDataModule):
         """The train poses [N, 7] and scene ids [N] (the store for pose retrieval)."""
         dataset = self.datasets["train"]
         return dataset.poses, dataset.scenes
+
+    def fingerprint(self) -> dict[str, Any]:
+        """What identifies the training data: its scene names and a SHA-256 of its train poses
+        (float64 [N, 7], as read from the train label file). Checkpoints record it."""
+        poses = np.ascontiguousarray(self.tables["train"].poses, dtype=np.float64)
+        return {
+            "scenes": list(self.scene_names),
+            "train_poses_sha256": hashlib.sha256(poses.tobytes()).hexdigest(),
+        }
 
     def _loader(self, dataset: Dataset, batch_size: int, **kwargs: Any) -> DataLoader:
         return DataLoader(

@@ -11,16 +11,18 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset, default_collate
 
-from pae.data.labels import LabelTable
-from pae.data.transforms import load_image
+from pae.data.labels import LabelError, LabelTable, outside_root
+from pae.data.transforms import image_size, load_image
 
 
 class PoseDataset(Dataset):
     """Rows of a label table: `{"image": uint8 [3, H, W], "pose": [7], "scene": long, "index"}`.
 
-    Images are read with OpenCV relative to `root` and resized so their shorter edge is
-    `shorter_edge` px, a batch at a time on `workers` threads. With cache=True all images are
-    decoded once into one uint8 tensor and a batch is a single indexing operation.
+    Images are read with OpenCV relative to `root` (a path escaping it is a LabelError) and
+    must all have the size of the first (ImageError naming the file otherwise, as
+    `pae-data check` reports); they are resized so their shorter edge is `shorter_edge` px,
+    a batch at a time on `workers` threads. With cache=True all images are decoded once
+    into one uint8 tensor and a batch is a single indexing operation.
     """
 
     def __init__(
@@ -37,7 +39,16 @@ class PoseDataset(Dataset):
         self.shorter_edge = shorter_edge
         self.poses = torch.as_tensor(table.poses, dtype=torch.float32)
         self.scenes = torch.as_tensor(table.scene_ids(scene_names), dtype=torch.long)
+        outside = outside_root(table.img_path, self.root)
+        if outside:
+            i = outside[0]
+            raise LabelError(
+                table.source,
+                table.file_line(i),
+                f"image path escapes the root {root}: {table.img_path[i]!r}",
+            )
         self.paths = [str(self.root / p) for p in table.img_path]
+        self.image_size = image_size(self.paths[0]) if self.paths else None
         self.workers = max(1, workers)
         self.images: Tensor | None = None
         if cache:
@@ -50,7 +61,7 @@ class PoseDataset(Dataset):
         return torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous()
 
     def _load(self, path: str) -> np.ndarray:
-        return load_image(path, self.shorter_edge)
+        return load_image(path, self.shorter_edge, self.image_size)
 
     def __len__(self) -> int:
         return len(self.paths)

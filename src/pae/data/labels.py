@@ -15,14 +15,14 @@ from __future__ import annotations
 
 import csv
 import os
-import uuid
 import warnings
 from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
+
+from pae.atomic import atomic_write
 
 __all__ = [
     "LABEL_COLUMNS",
@@ -30,6 +30,7 @@ __all__ = [
     "LabelTable",
     "LabelWarning",
     "find_image_problems",
+    "outside_root",
     "read_labels",
     "read_labels_lenient",
     "write_labels",
@@ -298,73 +299,88 @@ def write_labels(path: str | os.PathLike[str], table: LabelTable) -> None:
     Numbers are written with Python's shortest round-trip representation, so reading the file
     gives back exactly ``table.poses``. Values are written as they are (no normalisation).
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    try:
-        with open(temporary, "x", newline="", encoding="utf-8") as handle:
-            writer = csv.writer(handle, lineterminator="\n")
-            writer.writerow(LABEL_COLUMNS)
-            poses = table.poses.tolist()
-            for i in range(len(table)):
-                writer.writerow(
-                    [
-                        table.scene[i],
-                        table.split[i],
-                        table.seq[i],
-                        table.img_path[i],
-                        *(repr(v + 0.0) for v in poses[i]),
-                    ]
-                )
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
+    with atomic_write(path, newline="", encoding="utf-8") as handle:
+        writer = csv.writer(handle, lineterminator="\n")
+        writer.writerow(LABEL_COLUMNS)
+        poses = table.poses.tolist()
+        for i in range(len(table)):
+            writer.writerow(
+                [
+                    table.scene[i],
+                    table.split[i],
+                    table.seq[i],
+                    table.img_path[i],
+                    *(repr(v + 0.0) for v in poses[i]),
+                ]
+            )
+
+
+def outside_root(img_paths: Sequence[str], root: str | os.PathLike[str]) -> list[int]:
+    """Indices of the paths that escape ``root`` once joined to it, resolved lexically (``..``
+    and absolute paths; symbolic links inside ``root`` are allowed). Loaders and
+    ``pae-data check`` share this rule."""
+    root_abs = os.path.abspath(root)
+    return [
+        i
+        for i, img_path in enumerate(img_paths)
+        if os.path.commonpath((root_abs, os.path.normpath(os.path.join(root_abs, img_path))))
+        != root_abs
+    ]
 
 
 def find_image_problems(
     table: LabelTable, root: str | os.PathLike[str], workers: int | None = None
 ) -> list[str]:
-    """One message per row whose image is outside ``root``, missing or not decodable.
+    """One message per row whose image is outside ``root``, missing, not decodable, or of
+    another size than the first decodable image (loaders need one size per label file).
 
-    Paths are resolved lexically (``..`` and absolute paths), so symbolic links inside ``root``
-    are allowed. Images are fully decoded with OpenCV, on ``workers`` threads.
+    Images are fully decoded with OpenCV, on ``workers`` threads.
     """
     root_abs = os.path.abspath(root)
     if not os.path.isdir(root_abs):
         raise LabelError(str(root), None, "image root is not a directory")
-    resolved = []
-    problems: dict[int, str] = {}
-    for i, img_path in enumerate(table.img_path):
-        full = os.path.normpath(os.path.join(root_abs, img_path))
-        if os.path.commonpath((root_abs, full)) != root_abs:
-            problems[i] = f"image path escapes the root {root}: {img_path!r}"
-        else:
-            resolved.append((i, full))
+    problems = {
+        i: f"image path escapes the root {root}: {table.img_path[i]!r}"
+        for i in outside_root(table.img_path, root_abs)
+    }
+    resolved = [
+        (i, os.path.join(root_abs, p)) for i, p in enumerate(table.img_path) if i not in problems
+    ]
+    first: tuple[int, tuple[int, ...]] | None = None
     with ThreadPoolExecutor(max_workers=workers or min(8, os.cpu_count() or 1)) as pool:
         outcomes = pool.map(_image_problem, (full for _, full in resolved))
-        for (i, _), outcome in zip(resolved, outcomes, strict=True):
+        for (i, _), (outcome, shape) in zip(resolved, outcomes, strict=True):
             if outcome:
                 problems[i] = f"{outcome}: {table.img_path[i]!r}"
+            elif first is None:
+                first = (i, shape)
+            elif shape != first[1]:
+                (h, w), (h0, w0) = shape, first[1]
+                problems[i] = (
+                    f"image is {w}x{h} px, unlike the {w0}x{h0} px of the first image "
+                    f"(line {table.file_line(first[0])}; one size per label file): "
+                    f"{table.img_path[i]!r}"
+                )
     location = table.source or "row"
     return [f"{location}:{table.file_line(i)}: {problems[i]}" for i in sorted(problems)]
 
 
-def _image_problem(path: str) -> str:
-    """Why the image at ``path`` cannot be used, or ``""`` if it decodes."""
+def _image_problem(path: str) -> tuple[str, tuple[int, ...]]:
+    """Why the image at ``path`` cannot be used (``""`` if it decodes) and its (h, w)."""
     import cv2
 
     if not os.path.exists(path):
-        return "image not found"
+        return "image not found", ()
     try:
         data = np.fromfile(path, dtype=np.uint8)
     except OSError as error:
-        return f"image unreadable ({error.strerror or error})"
+        return f"image unreadable ({error.strerror or error})", ()
     if data.size == 0:
-        return "image file is empty"
+        return "image file is empty", ()
     try:
         image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     except cv2.error:
         image = None
-    return "image is corrupt (cannot be decoded)" if image is None else ""
+    if image is None:
+        return "image is corrupt (cannot be decoded)", ()
+    return "", image.shape[:2]

@@ -73,6 +73,9 @@ class TeacherLatentDataModule(L.LightningDataModule):
     def train_poses(self) -> tuple[Tensor, Tensor]:
         return self.images.train_poses()
 
+    def fingerprint(self) -> dict[str, Any]:
+        return self.images.fingerprint()
+
     def train_dataloader(self) -> DataLoader:
         assert self.latents is not None
         return DataLoader(

@@ -28,11 +28,13 @@ Layout written by :func:`write_synthetic_dataset` (label format of :mod:`pae.dat
 from __future__ import annotations
 
 import colorsys
+import dataclasses
 import functools
 import math
-import os
+import shutil
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -71,6 +73,7 @@ __all__ = [
     "world_to_camera",
     "write_label_files",
     "write_synthetic_dataset",
+    "write_whole",
 ]
 
 DEFAULT_SCENES = 2
@@ -926,16 +929,36 @@ class SyntheticSummary:
 
 
 def _write_png(path: Path, image_rgb: np.ndarray) -> None:
-    """Write an RGB image as PNG via a temporary file, so ``path`` is never half-written."""
+    """Write an RGB image as PNG (into the rendering folder, renamed into place when whole)."""
     ok, encoded = cv2.imencode(".png", cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR))
     if not ok:
         raise OSError(f"could not encode {path}")
-    temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    try:
-        temporary.write_bytes(encoded.tobytes())
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
+    path.write_bytes(encoded.tobytes())
+
+
+def _prepare_output(out: Path, overwrite: bool) -> None:
+    """Refuse a used folder unless `overwrite`, and even then one that holds no dataset."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise FileExistsError(f"{out}: exists and is not a folder")
+    if not any(out.iterdir()):
+        return
+    if not overwrite:
+        raise FileExistsError(f"{out}: folder is not empty; --overwrite replaces the dataset in it")
+    if not (out / "labels").is_dir():
+        raise FileExistsError(
+            f"{out}: folder is not empty and holds no dataset (no labels/); not replacing it"
+        )
+
+
+def _replace_folder(new: Path, out: Path) -> None:
+    """Put the folder `new` in place of `out` (moved aside, then deleted if it existed)."""
+    old = out.with_name(f".{out.name}.old-{uuid.uuid4().hex}")
+    if out.exists():
+        out.rename(old)
+    new.rename(out)
+    shutil.rmtree(old, ignore_errors=True)
 
 
 def render_frames(
@@ -971,6 +994,29 @@ def write_label_files(folder: Path, tables: dict[tuple[str, str], LabelTable]) -
         )
 
 
+def write_whole(
+    out: Path | str, overwrite: bool, render: Callable[[Path], SyntheticSummary]
+) -> SyntheticSummary:
+    """Run ``render(folder)`` into a hidden folder beside ``out``, then put it in place of
+    ``out``: ``out`` ends as exactly the new dataset, or unchanged when rendering fails.
+
+    A non-empty ``out`` is refused (FileExistsError) unless ``overwrite``, which replaces a
+    folder holding a dataset (``labels/``) as a whole, stale files included. The summary's
+    ``root`` names ``out``.
+    """
+    final = Path(out)
+    _prepare_output(final, overwrite)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    folder = final.with_name(f".{final.name}.rendering-{uuid.uuid4().hex}")
+    try:
+        summary = render(folder)
+    except BaseException:
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    _replace_folder(folder, final)
+    return dataclasses.replace(summary, root=str(final))
+
+
 def write_synthetic_dataset(
     out: Path | str,
     scenes: int = DEFAULT_SCENES,
@@ -979,8 +1025,10 @@ def write_synthetic_dataset(
     size: int = DEFAULT_SIZE,
     seed: int = 0,
     test_offset_m: float = DEFAULT_TEST_OFFSET_M,
+    overwrite: bool = False,
 ) -> SyntheticSummary:
-    """Render the benchmark into ``out``: images first, label files last.
+    """Render the benchmark into ``out`` (see :func:`write_whole`): images first, label files
+    last.
 
     ``train_frames`` and ``test_frames`` are per scene; ``test_offset_m`` is the test
     sequences' lateral offset from the train route (see :func:`make_sequences`). The same
@@ -997,8 +1045,34 @@ def write_synthetic_dataset(
             raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
     if not (math.isfinite(test_offset_m) and 0 <= test_offset_m <= 1.0):
         raise ValueError(f"test_offset_m must lie in [0, 1] m, got {test_offset_m!r}")
-    out = Path(out)
-    started = time.perf_counter()
+
+    def render(folder: Path) -> SyntheticSummary:
+        started = time.perf_counter()
+        _render(folder, scenes, train_frames, test_frames, size, seed, test_offset_m)
+        seconds = time.perf_counter() - started
+        return SyntheticSummary(
+            root=str(folder),
+            scenes=[scene_name(i) for i in range(scenes)],
+            train_frames=scenes * train_frames,
+            test_frames=scenes * test_frames,
+            size=size,
+            seconds=seconds,
+            frames_per_second=scenes * (train_frames + test_frames) / seconds,
+        )
+
+    return write_whole(out, overwrite, render)
+
+
+def _render(
+    out: Path,
+    scenes: int,
+    train_frames: int,
+    test_frames: int,
+    size: int,
+    seed: int,
+    test_offset_m: float,
+) -> None:
+    """Render every scene into `out`: images first, label files last."""
     camera = PinholeCamera(size)
     label_tables: dict[tuple[str, str], LabelTable] = {}
     for index in range(scenes):
@@ -1026,17 +1100,6 @@ def write_synthetic_dataset(
                 source=f"synthetic seed={seed}",
             )
     write_label_files(out / "labels", label_tables)
-    seconds = time.perf_counter() - started
-    frames = scenes * (train_frames + test_frames)
-    return SyntheticSummary(
-        root=str(out),
-        scenes=[scene_name(i) for i in range(scenes)],
-        train_frames=scenes * train_frames,
-        test_frames=scenes * test_frames,
-        size=size,
-        seconds=seconds,
-        frames_per_second=frames / seconds,
-    )
 
 
 def measure_render_speed(frames: int = 200, size: int = DEFAULT_SIZE, seed: int = 0) -> float:

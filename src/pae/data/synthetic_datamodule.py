@@ -47,7 +47,8 @@ class SyntheticDataModule(PoseDataModule):
     test sequences' lateral offset ``test_offset_m`` from the train route). With ``poses``
     (label files, e.g. a real dataset's train and test labels): one image per row at that
     row's pose, in a world built around them (``pae-data synth --poses``). ``root`` None
-    picks a folder under ``data/synthetic`` named by these settings.
+    picks a folder under ``data/synthetic`` named by these settings. A non-empty ``root``
+    without label files is an error, never overwritten.
     """
 
     def __init__(
@@ -87,22 +88,27 @@ class SyntheticDataModule(PoseDataModule):
     def prepare_data(self) -> None:
         if all(Path(p).is_file() for p in self.label_paths.values()):
             return
-        if self.poses:
-            from pae.data.synthetic_poses import write_dataset_at_poses
+        try:
+            if self.poses:
+                from pae.data.synthetic_poses import write_dataset_at_poses
 
-            written = write_dataset_at_poses(
-                self.root, self.poses, self.render_args["size"], self.render_args["seed"]
-            )
-            if not (written.train_frames and written.test_frames):
-                raise LabelError(
-                    ", ".join(self.poses),
-                    None,
-                    "data.poses needs rows of both splits, train and test",
+                written = write_dataset_at_poses(
+                    self.root, self.poses, self.render_args["size"], self.render_args["seed"]
                 )
-        else:
-            from pae.data.synthetic import write_synthetic_dataset
+            else:
+                from pae.data.synthetic import write_synthetic_dataset
 
-            written = write_synthetic_dataset(self.root, **self.render_args)
+                written = write_synthetic_dataset(self.root, **self.render_args)
+        except FileExistsError as err:
+            raise LabelError(
+                self.label_paths["train"], None, f"file not found, and not rendered: {err}"
+            ) from None
+        if not (written.train_frames and written.test_frames):
+            raise LabelError(
+                ", ".join(self.poses or []),
+                None,
+                "data.poses needs rows of both splits, train and test",
+            )
         rank_zero_info(written.summary())
 
     def setup(self, stage: str | None = None) -> None:

@@ -34,6 +34,7 @@ from pae.data.synthetic import (
     render_frames,
     room_textures,
     write_label_files,
+    write_whole,
 )
 
 ROOM_EXTENT_M = 3.0
@@ -90,22 +91,31 @@ def _folder_name(text: str) -> str:
 
 
 def write_dataset_at_poses(
-    out: Path | str, label_paths: Sequence[Path | str], size: int = 64, seed: int = 0
+    out: Path | str,
+    label_paths: Sequence[Path | str],
+    size: int = 64,
+    seed: int = 0,
+    overwrite: bool = False,
 ) -> SyntheticSummary:
     """Render one image per row of ``label_paths`` at that row's pose into ``out``.
 
     Writes ``out/labels/<scene>_<split>.csv`` and ``out/labels/all_<split>.csv`` (label
-    files last) and the images; each (scene, split, seq) gets its own :class:`Appearance`
-    and sensor noise. A bad row raises the :class:`~pae.data.labels.LabelError` of
-    ``pae-data check`` (``FILE:LINE: problem``).
+    files last) and the images, whole or not at all (``overwrite``: see
+    :func:`~pae.data.synthetic.write_whole`); each (scene, split, seq) gets its own
+    :class:`Appearance` and sensor noise. A bad row raises the
+    :class:`~pae.data.labels.LabelError` of ``pae-data check`` (``FILE:LINE: problem``).
     """
     if int(size) != size or size < 8:
         raise ValueError(f"size must be an integer >= 8, got {size!r}")
     if not label_paths:
         raise ValueError("no label files given")
-    started = time.perf_counter()
-    out = Path(out)
     table = LabelTable.concat(read_labels(path) for path in label_paths)
+    return write_whole(out, overwrite, lambda folder: _render_rows(folder, table, size, seed))
+
+
+def _render_rows(out: Path, table: LabelTable, size: int, seed: int) -> SyntheticSummary:
+    """Render every row of ``table`` into ``out`` (see :func:`write_dataset_at_poses`)."""
+    started = time.perf_counter()
     camera = PinholeCamera(size)
     scene_column = np.asarray(table.scene)
     tables: dict[tuple[str, str], LabelTable] = {}

@@ -21,12 +21,28 @@ class ImageError(OSError):
     """A missing or unreadable image; the message names the file."""
 
 
-def load_image(path: str, shorter_edge: int) -> np.ndarray:
-    """Read an image with OpenCV (BGR -> RGB) and resize its shorter edge -> uint8 [H, W, 3]."""
+def image_size(path: str) -> tuple[int, int]:
+    """(h, w) in px of the image at `path` (ImageError if it cannot be decoded)."""
+    image = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ImageError(f"{path}: missing or unreadable image")
+    return image.shape[0], image.shape[1]
+
+
+def load_image(path: str, shorter_edge: int, size: tuple[int, int] | None = None) -> np.ndarray:
+    """Read an image with OpenCV (BGR -> RGB) and resize its shorter edge -> uint8 [H, W, 3].
+
+    `size` (h, w) in px: the size every image of the dataset must have (ImageError otherwise).
+    """
     image = cv2.imread(path, cv2.IMREAD_COLOR)
     if image is None:
         raise ImageError(f"{path}: missing or unreadable image")
     h, w = image.shape[:2]
+    if size is not None and (h, w) != tuple(size):
+        raise ImageError(
+            f"{path}: image is {w}x{h} px, unlike the {size[1]}x{size[0]} px of the first image "
+            "(all images of a label file must have one size)"
+        )
     scale = shorter_edge / min(h, w)
     if scale != 1.0:
         size = (max(shorter_edge, round(w * scale)), max(shorter_edge, round(h * scale)))

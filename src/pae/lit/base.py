@@ -9,6 +9,7 @@ import lightning as L
 import torch
 from torch import Tensor, nn
 
+from pae.checkpoints import DATA_FINGERPRINT_KEY
 from pae.lit.evaluation import PoseEvaluation
 from pae.metrics import mean_pose_per_scene
 
@@ -43,6 +44,20 @@ class PaeModule(L.LightningModule):
 
     def on_test_start(self) -> None:
         self._fill_mean_poses()
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Record the fingerprint of the training data (scenes, train poses) in the checkpoint."""
+        datamodule = getattr(self.trainer, "datamodule", None)
+        if datamodule is not None and hasattr(datamodule, "fingerprint"):
+            checkpoint[DATA_FINGERPRINT_KEY] = datamodule.fingerprint()
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Resuming with another number of epochs: keep the schedule built for this run's total
+        steps (e.g. a longer OneCycleLR) and continue it from the restored step count."""
+        for state in checkpoint.get("lr_schedulers", []):
+            if "total_steps" in state:
+                state.pop("total_steps")
+                state.pop("_schedule_phases", None)
 
     def trainable_parameters(self) -> Iterable[nn.Parameter]:
         raise NotImplementedError

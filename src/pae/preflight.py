@@ -1,0 +1,122 @@
+"""Checks that run before Hydra creates or writes anything in a run directory: the settings,
+the run directory itself, and whether a resumed run can continue with the given settings."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, OmegaConf
+
+from pae.checkpoints import newest_readable_checkpoint
+from pae.pipeline import flat_config
+from pae.reporting import ConfigError, reporting_errors
+from pae.validation import validate_eval_config, validate_train_config
+
+RESUMABLE_CHANGES = (
+    "resume",
+    "allow_other_data",
+    "teacher.max_epochs",
+    "student.max_epochs",
+    "decoder.max_epochs",
+    "rpr.max_epochs",
+    "trainer.",
+    "callbacks.",
+    "logger.",
+    "refine.",
+    "data.num_workers",
+    "data.eval_batch_size",
+)
+"""Settings a resumed run may change (`trainer.` etc.: every key of the group): the number of
+epochs, how the run is executed and logged, and test-time refinement."""
+
+
+def check_writable_dir(path: Path, key: str) -> None:
+    """`path` exists as a writable folder or can be created; else ConfigError naming `key`."""
+    existing = path
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ConfigError(f"{key}={path}: cannot be created ({existing} is not a directory)")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ConfigError(f"{key}={path}: cannot be written ({existing} is not writable)")
+
+
+def _checkpoint_folders(run_dir: Path) -> list[Path]:
+    return sorted({p.parent for p in run_dir.glob("**/checkpoints/*.ckpt")})
+
+
+def _changed_settings(old: DictConfig, new: DictConfig) -> list[str]:
+    """Keys whose value differs between two run configs, except RESUMABLE_CHANGES."""
+    before, after = flat_config(old, sep="."), flat_config(new, sep=".")
+    changed = []
+    for key in sorted(before.keys() | after.keys()):
+        if before.get(key) != after.get(key) and not key.startswith(RESUMABLE_CHANGES):
+            changed.append(f"{key}: {before.get(key, '(unset)')} -> {after.get(key, '(unset)')}")
+    return changed
+
+
+def check_resume(cfg: DictConfig, run_dir: Path) -> None:
+    """resume=true continues `run_dir` only if it is an earlier run with the same settings
+    (RESUMABLE_CHANGES aside) and every step folder with checkpoints has a readable one."""
+    saved = run_dir / ".hydra" / "config.yaml"
+    if not saved.is_file():
+        raise ConfigError(
+            f"resume=true: {run_dir} is not an earlier run (no .hydra/config.yaml); "
+            "pass hydra.run.dir=<the run directory to continue>"
+        )
+    changed = _changed_settings(OmegaConf.load(saved), cfg)
+    if changed:
+        more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
+        raise ConfigError(
+            f"resume=true: {run_dir} was trained with other settings ({'; '.join(changed[:3])}"
+            f"{more}); resume with its settings, or start a new run"
+        )
+    for folder in _checkpoint_folders(run_dir):
+        path, skipped = newest_readable_checkpoint(folder)
+        if path is None:
+            raise ConfigError(f"resume=true: no readable checkpoint in {folder} ({skipped[0]})")
+
+
+def check_fresh(run_dir: Path, key: str) -> None:
+    """A new run must not overwrite the checkpoints of an earlier one in `run_dir`."""
+    folders = _checkpoint_folders(run_dir) if run_dir.is_dir() else []
+    if folders:
+        raise ConfigError(
+            f"{key}={run_dir} already holds the checkpoints of a run ({folders[0]}): "
+            "resume=true continues it; choose another directory to start a new run"
+        )
+
+
+class Preflight(Callback):
+    """Hydra callback (conf/train.yaml, conf/eval.yaml: hydra.callbacks): every check that can
+    fail runs here, before Hydra creates the run directory or rewrites its .hydra/ files, and
+    ends in one line. Sweep jobs check their settings again when they start."""
+
+    def __init__(self, program: str) -> None:
+        self.program = program
+
+    def _validate(self, config: DictConfig) -> None:
+        if self.program == "pae-train":
+            validate_train_config(config)
+        else:
+            validate_eval_config(config)
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        with reporting_errors(self.program):
+            run_dir = Path(config.hydra.run.dir)
+            check_writable_dir(run_dir, "hydra.run.dir")
+            if config.get("resume"):
+                check_resume(config, run_dir)
+            else:
+                check_fresh(run_dir, "hydra.run.dir")
+            self._validate(config)
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        with reporting_errors(self.program):
+            sweep_dir = Path(config.hydra.sweep.dir)
+            check_writable_dir(sweep_dir, "hydra.sweep.dir")
+            if not config.get("resume"):
+                check_fresh(sweep_dir, "hydra.sweep.dir")

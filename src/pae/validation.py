@@ -1,0 +1,180 @@
+"""Every configured value checked when a run starts, before data is rendered or read for
+training: types, ranges and paths, each failure a ConfigError naming its key."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from pae.data.labels import read_labels
+from pae.losses import LATENT_LOSSES
+from pae.pipeline import refinement_callbacks
+from pae.reporting import ConfigError
+
+STEPS = ("teacher", "student", "decoder", "rpr")
+"""The steps of pae-train, each with its config group (max_epochs, optimizer, ...)."""
+NEEDS = {
+    "student": (("teacher_ckpt", "teacher"),),
+    "decoder": (("pae_ckpt", "student"),),
+    "rpr": (("pae_ckpt", "student"), ("decoder_ckpt", "decoder")),
+}
+"""Per step: the checkpoint keys it needs unless an earlier step of the run produces them."""
+
+
+def _value(cfg: DictConfig, key: str) -> Any:
+    return OmegaConf.select(cfg, key, default=None)
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _integer(cfg: DictConfig, key: str, low: int) -> int:
+    value = _value(cfg, key)
+    if not _is_int(value) or value < low:
+        raise ConfigError(f"{key} must be an integer >= {low}, got {value!r}")
+    return value
+
+
+def _number(cfg: DictConfig, key: str, low: float, strict: bool, optional: bool = False) -> None:
+    value = _value(cfg, key)
+    if value is None and optional:
+        return
+    number = _is_int(value) or isinstance(value, float)
+    if not number or value != value or (value <= low if strict else value < low):
+        bound = f"> {low:g}" if strict else f">= {low:g}"
+        raise ConfigError(f"{key} must be a number {bound}, got {value!r}")
+
+
+def _boolean(cfg: DictConfig, key: str) -> None:
+    value = _value(cfg, key)
+    if not isinstance(value, bool):
+        raise ConfigError(f"{key} must be true or false, got {value!r}")
+
+
+def _choice(cfg: DictConfig, key: str, choices: tuple[str, ...]) -> None:
+    value = _value(cfg, key)
+    if value not in choices:
+        raise ConfigError(f"unknown {key} {value!r}; choose one of {list(choices)}")
+
+
+def _file(cfg: DictConfig, key: str) -> None:
+    value = _value(cfg, key)
+    if value is not None and not Path(str(value)).is_file():
+        raise ConfigError(f"{key}={value}: no such file")
+
+
+def _train_set_size(cfg: DictConfig) -> int:
+    """Rows of the train split: from the synthetic data's settings (it may not be rendered
+    yet), otherwise from the train label file (its chosen scenes)."""
+    data = cfg.data
+    if "train_frames" in data:
+        _integer(cfg, "data.scenes", 1)
+        _integer(cfg, "data.train_frames", 1)
+        _integer(cfg, "data.test_frames", 1)
+        _integer(cfg, "data.size", 8)
+        _integer(cfg, "data.render_seed", 0)
+        return data.scenes * data.train_frames
+    if not Path(str(data.root)).is_dir():
+        raise ConfigError(f"data.root={data.root}: no such directory")
+    for key in ("train_labels", "test_labels", "val_labels"):
+        _file(cfg, f"data.{key}")
+    scenes = data.get("scenes")
+    if scenes is not None and not (
+        isinstance(scenes, ListConfig) and scenes and all(isinstance(s, str) for s in scenes)
+    ):
+        raise ConfigError(f"data.scenes must be null or a list of scene names, got {scenes!r}")
+    table = read_labels(data.train_labels)
+    if scenes is None:
+        return len(table)
+    return int(np.isin(np.asarray(table.scene), list(scenes)).sum())
+
+
+def validate_data(cfg: DictConfig, train: bool = True) -> None:
+    """data.*: sizes, batch sizes (train: at most the train set), workers, paths."""
+    crop = _integer(cfg, "data.crop", 1)
+    shorter_edge = _integer(cfg, "data.shorter_edge", 1)
+    if crop > shorter_edge:
+        raise ConfigError(
+            f"data.crop={crop} is larger than data.shorter_edge={shorter_edge} (the images' "
+            "shorter edge after resizing)"
+        )
+    _integer(cfg, "data.eval_batch_size", 1)
+    _integer(cfg, "data.num_workers", 0)
+    for key in ("augment", "cache_images", "balance_scenes"):
+        _boolean(cfg, f"data.{key}")
+    batch_size = _integer(cfg, "data.batch_size", 1)
+    n_train = _train_set_size(cfg)
+    if train and batch_size > n_train:
+        raise ConfigError(
+            f"data.batch_size={batch_size} is larger than the train set ({n_train} rows): "
+            "training would get no full batch"
+        )
+
+
+def validate_refine(cfg: DictConfig) -> None:
+    """refine.*: ranges here; the choices (weight model, orientation, distance) are checked by
+    building the refinement callback."""
+    _choice(cfg, "refine.method", ("none", "knn_affine"))
+    if cfg.refine.method == "none":
+        return
+    _integer(cfg, "refine.k", 1)
+    _integer(cfg, "refine.iterations", 0)
+    _number(cfg, "refine.lr", 0, strict=True)
+    _number(cfg, "refine.rot_weight", 0, strict=False)
+    _number(cfg, "refine.guess_sigma_m", 0, strict=False, optional=True)
+    _integer(cfg, "refine.every_n_val_epochs", 1)
+    refinement_callbacks(cfg)
+
+
+def _validate_common(cfg: DictConfig) -> None:
+    _integer(cfg, "seed", 0)
+    _boolean(cfg, "allow_other_data")
+    if "check_val_every_n_epoch" in cfg.trainer:
+        _integer(cfg, "trainer.check_val_every_n_epoch", 1)
+    validate_refine(cfg)
+
+
+def validate_train_config(cfg: DictConfig) -> None:
+    """All of pae-train's settings (conf/train.yaml); raises ConfigError naming the key."""
+    steps = cfg.stage.steps
+    unknown = [step for step in steps if step not in STEPS]
+    if unknown:
+        raise ConfigError(f"unknown stage.steps {unknown}; choose from {list(STEPS)}")
+    _validate_common(cfg)
+    _boolean(cfg, "resume")
+    for group in STEPS:
+        _integer(cfg, f"{group}.max_epochs", 0)
+        _number(cfg, f"{group}.optimizer.lr", 0, strict=True)
+        _number(cfg, f"{group}.optimizer.weight_decay", 0, strict=False, optional=True)
+    _integer(cfg, "teacher.model.latent_dim", 1)
+    _number(cfg, "teacher.scene_loss_weight", 0, strict=False)
+    _integer(cfg, "pae.L", 0)
+    _integer(cfg, "pae.latent_dim", 1)
+    hidden = _value(cfg, "pae.hidden")
+    if not isinstance(hidden, ListConfig) or not all(_is_int(h) and h >= 1 for h in hidden):
+        raise ConfigError(f"pae.hidden must be a list of layer widths >= 1, got {hidden!r}")
+    _choice(cfg, "student.input", ("gt", "teacher"))
+    _choice(cfg, "student.latent_loss", LATENT_LOSSES)
+    _boolean(cfg, "student.cache_latents")
+    _integer(cfg, "rpr.pair_k", 1)
+    _boolean(cfg, "backbone.pretrained")
+    _file(cfg, "backbone.weights_path")
+    for key in ("teacher_ckpt", "pae_ckpt", "decoder_ckpt"):
+        _file(cfg, key)
+    for index, step in enumerate(steps):
+        for key, producer in NEEDS.get(step, ()):
+            if _value(cfg, key) is None and producer not in steps[:index]:
+                raise ConfigError(f"stage={cfg.stage.name} needs {key}=PATH")
+    validate_data(cfg, train=True)
+
+
+def validate_eval_config(cfg: DictConfig) -> None:
+    """All of pae-eval's settings (conf/eval.yaml); raises ConfigError naming the key."""
+    _validate_common(cfg)
+    for key in ("pae_ckpt", "teacher_ckpt"):
+        _file(cfg, key)
+    validate_data(cfg, train=False)
