@@ -54,3 +54,40 @@ def test_results_table_lists_methods_in_order_with_scenes() -> None:
     assert lines[1].split() == ["method", "overall", "a", "b"]
     assert lines[3].startswith("teacher") and lines[4].startswith("refined")
     assert lines[3].count("0.500 / 3.00") == 3
+
+
+def _metrics(teacher: float, refined: float) -> dict[str, float]:
+    figures = {}
+    for method, pos in (("teacher", teacher), ("refined", refined), ("refined_test_store", 0.1)):
+        figures[f"test/{method}/pos_median_m"] = pos
+        figures[f"test/{method}/rot_median_deg"] = 5.0
+    figures["test/latent_knn/pos_median_m"] = teacher
+    figures["test/latent_knn/rot_median_deg"] = 5.0
+    figures["test/diagnostics/gt_to_train_per_error"] = 0.7
+    return figures
+
+
+def test_results_table_marks_test_store_rows_and_prints_the_ratio() -> None:
+    table = format_results_table(_metrics(0.5, 0.45))
+    rows = [line.split()[0] for line in table.splitlines()[3:6]]
+    assert rows == ["teacher", "refined", "latent_knn"]
+    assert "refined_test_store *" in table and "uses test labels" in table
+    assert "teacher median error: 0.70" in table
+
+
+def test_compare_table_has_a_column_per_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from pae.reporting import main
+
+    for name, refined in (("a", 0.45), ("b", 0.6)):
+        write_json_atomic(tmp_path / name / "metrics.json", _metrics(0.5, refined))
+    args = ["--compare", str(tmp_path / "a"), str(tmp_path / "b"), "--names", "room,street"]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "| method | room | street |" in out
+    assert "| refined | 0.450 / 5.00 (-10.0%) | 0.600 / 5.00 (+20.0%) |" in out
+    assert (
+        "| refined_test_store * |" in out and "| the same ÷ teacher's median error | 0.70 |" in out
+    )
+    assert main([*args[:-1], "one"]) == 1

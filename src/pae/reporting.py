@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -36,7 +36,7 @@ METHOD_ORDER = (
     "mean_pose",
 )
 """Row order of the results tables; other methods (refinement alternatives) follow
-``knn_mean`` in the order of their keys."""
+``refined`` and ``knn_mean`` in the order of their keys."""
 TEST_STORE_SUFFIX = "_test_store"
 """Methods whose name ends so retrieve among the evaluated split's own poses: audits."""
 
@@ -54,7 +54,8 @@ def table_methods(metrics: Mapping[str, float], split: str = "test") -> list[str
     extra = [m for m in found if m not in METHOD_ORDER]
     if not extra:
         return known
-    cut = known.index("knn_mean") + 1 if "knn_mean" in known else len(known)
+    anchors = [known.index(m) + 1 for m in ("refined", "knn_mean") if m in known]
+    cut = max(anchors, default=len(known))
     return known[:cut] + extra + known[cut:]
 
 
@@ -274,14 +275,68 @@ def sweep_table(root: str | Path, split: str = "test") -> str:
     return "\n".join(lines)
 
 
+def compare_table(runs: Sequence[Path], names: Sequence[str], split: str = "test") -> str:
+    """Markdown table with one column per run (its ``metrics.json``) and one row per method:
+    median position [m] / orientation [deg] and the position's change against the run's
+    teacher; ``*_test_store`` rows are marked as audits, and the geometry ratio closes it."""
+    if len(names) != len(runs):
+        raise ValueError(f"--names gives {len(names)} names for {len(runs)} runs")
+    columns = []
+    for run in runs:
+        metrics, problem = _read_metrics(Path(run) / "metrics.json")
+        if metrics is None:
+            raise ValueError(problem or f"{run}: no metrics.json")
+        columns.append(metrics)
+    merged = {key: 0.0 for metrics in columns for key in metrics}
+    methods = [m for m in table_methods(merged, split) if m != "mean_pose"]
+    lines = ["| method | " + " | ".join(names) + " |", "|---|" + "---:|" * len(names)]
+    for method in methods:
+        cells = []
+        for metrics in columns:
+            pos = metrics.get(f"{split}/{method}/pos_median_m")
+            rot = metrics.get(f"{split}/{method}/rot_median_deg")
+            teacher = metrics.get(f"{split}/teacher/pos_median_m")
+            if pos is None:
+                cells.append("-")
+                continue
+            change = "" if not teacher or method == "teacher" else f" ({pos / teacher - 1:+.1%})"
+            cells.append(f"{pos:.3f} / {rot:.2f}{change}")
+        label = f"{method} *" if method.endswith(TEST_STORE_SUFFIX) else method
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    for key, label in (
+        ("gt_to_train_m", "test camera → nearest train camera [m]"),
+        ("gt_to_train_per_error", "the same ÷ teacher's median error"),
+        ("estimate_to_train_m", "teacher estimate → nearest train camera [m]"),
+    ):
+        values = [metrics.get(f"{split}/diagnostics/{key}") for metrics in columns]
+        cells = ["-" if v is None else f"{v:.2f}" for v in values]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    lines.append(
+        f"\n\\* retrieves among the {split} split's own poses (reads the {split} labels, as the "
+        "authors' public scripts do): an audit, not a result."
+    )
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
-    """`pae-report DIR`: the results of a run or a sweep as a markdown table."""
+    """`pae-report DIR`: the results of a run or a sweep as a markdown table;
+    `pae-report --compare RUN [RUN ...] --names A,B,...`: methods × runs."""
     parser = argparse.ArgumentParser(prog="pae-report", description=sweep_table.__doc__)
-    parser.add_argument("directory", type=Path)
+    parser.add_argument("directory", type=Path, nargs="?")
     parser.add_argument("--split", default="test", choices=("test", "val"))
+    parser.add_argument(
+        "--compare", type=Path, nargs="+", metavar="RUN", help="run directories as columns"
+    )
+    parser.add_argument("--names", help="comma-separated column names for --compare")
     args = parser.parse_args(argv)
+    if (args.directory is None) == (args.compare is None):
+        parser.error("give either DIR or --compare RUN [RUN ...]")
     try:
-        print(sweep_table(args.directory, args.split))
+        if args.compare:
+            names = args.names.split(",") if args.names else [p.name for p in args.compare]
+            print(compare_table(args.compare, names, args.split))
+        else:
+            print(sweep_table(args.directory, args.split))
     except (OSError, ValueError) as err:
         print(f"pae-report: error: {err}", file=sys.stderr)
         return 1
