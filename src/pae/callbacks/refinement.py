@@ -165,18 +165,14 @@ class TestTimeRefinement(L.Callback):
             stores["_test_store"] = self._index(gt, scene).to(self.index.device)
 
         predictions: dict[str, Tensor] = {}
-        start = time.perf_counter()
-        predictions["refined"], predictions["knn_mean"] = self._refine_both(
-            self._refiner(pl_module, self.index), query, estimate, estimate_scene
-        )
-        elapsed = time.perf_counter() - start
-        if self.audit:
-            refiner = self._refiner(pl_module, stores["_test_store"])
-            refined, knn_mean = self._refine_both(refiner, query, estimate, estimate_scene)
-            predictions["refined_test_store"], predictions["knn_mean_test_store"] = (
-                refined,
-                knn_mean,
+        elapsed = {}
+        for suffix, store in stores.items():
+            start = time.perf_counter()
+            refined, knn_mean = self._refine_both(
+                self._refiner(pl_module, store), query, estimate, estimate_scene
             )
+            elapsed[suffix] = time.perf_counter() - start
+            predictions[f"refined{suffix}"], predictions[f"knn_mean{suffix}"] = refined, knn_mean
         for name, factory in self.alternatives.items():
             refiner = factory(index=self.index, pae=pl_module.pae)
             predictions[name] = refiner(query, estimate, estimate_scene).poses
@@ -199,7 +195,9 @@ class TestTimeRefinement(L.Callback):
         ]
         figures |= self._store_distances(split, estimate, estimate_scene, gt, scene, teacher_error)
         if split == "test":
-            figures["bench/refine/callback_ms_per_query"] = torch.tensor(1000 * elapsed / len(gt))
+            figures["bench/refine/callback_ms_per_query"] = torch.tensor(
+                1000 * elapsed[""] / len(gt)
+            )
         pl_module.log_dict(figures)
         if self.audit:
             self._describe_protocols(trainer)
