@@ -7,7 +7,8 @@ and the refined position is ``Σ aᵢ xᵢ``. Three weight models:
 
 - ``"mlp"``: the public code's weight regressor, an MLP over the k concatenated encodings
   (k·D → 64k → 32k → 16k → k, ReLU) whose softmax gives ``a``; freshly initialised for every
-  query and optimised with AdamW for ``iterations`` steps;
+  query (in ``refine_affine`` the later layers' starting values are one draw shared by the
+  call's queries) and optimised with AdamW for ``iterations`` steps;
 - ``"softmax_logits"``: free logits per query (softmax gives ``a``), optimised the same way;
 - ``"closed_form"``: the exact equality-constrained least-squares solution (weights may be
   negative, so the position may leave the neighbours' convex hull).
@@ -424,8 +425,9 @@ def refine_affine(
 
     ``init`` gives the initial parameters (see ``InitParams``; for the MLP it also fixes the
     hidden widths, ``hidden`` being for drawn ones). Without it logits start at
-    zero (uniform weights), and each query's MLP is drawn from ``generator``: biases and
-    later layers as ``nn.Linear`` does (U(±1/√fan_in)); the first layer's weights as
+    zero (uniform weights), and each query's MLP is drawn from ``generator``: the first
+    layer's bias per query and the later layers once per call, shared as starting values,
+    as ``nn.Linear`` does (U(±1/√fan_in)); the first layer's weights per query as
     N(0, 1/(3·fan_in)), the same variance, which lets x·W₁ be drawn directly (see
     ``_fit_regressor``). The MLP path runs ``chunk_size`` queries at a time (their optimiser
     state then stays in cache: 64 is fastest on CPU), which does not change the result.
@@ -505,7 +507,12 @@ def _refine_mlp(
             * (bound / math.sqrt(3.0))
         )
         first_bias = _uniform((batch, width), bound, generator, query)
-        layers = _uniform_layers(batch, sizes[1:], generator, query)
+        # one draw of the later layers' initial values serves every query (each still starts
+        # from nn.Linear's distribution; each then trains its own copy)
+        layers = [
+            (weight.expand(batch, -1, -1), bias.expand(batch, -1))
+            for weight, bias in _uniform_layers(1, sizes[1:], generator, query)
+        ]
     else:
         (first_weight, first_bias), *layers = _check_mlp_init(init, batch, k, dim)
         first_preactivation = torch.einsum(
