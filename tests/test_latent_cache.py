@@ -103,3 +103,17 @@ def test_key_follows_teacher_bytes_and_preprocessing(tiny_root: Path, tmp_path: 
     assert latent_cache_key(teacher, data(24)) != key
     teacher.write_bytes(b"weights two")
     assert latent_cache_key(teacher, data(28))["teacher_sha256"] != key["teacher_sha256"]
+
+
+def test_unwritable_cache_folder_is_refused_before_the_run(tmp_path: Path) -> None:
+    from omegaconf import OmegaConf
+
+    from pae.preflight import _check_latent_cache
+    from pae.reporting import ConfigError
+
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    config = OmegaConf.create({"student": {"latent_cache_dir": str(blocker / "cache")}})
+    with pytest.raises(ConfigError, match=r"student\.latent_cache_dir"):
+        _check_latent_cache(config)
+    _check_latent_cache(OmegaConf.create({"student": {"latent_cache_dir": None}}))
