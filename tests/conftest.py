@@ -43,6 +43,7 @@ def tiny_overrides(root: Path) -> list[str]:
         "trainer.check_val_every_n_epoch=1",
         "callbacks=minimal",
         "+trainer.enable_progress_bar=false",
+        f"student.latent_cache_dir={root.parent / 'latent_cache'}",
     ]
 
 

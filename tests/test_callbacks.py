@@ -50,8 +50,9 @@ def _poses(n: int, offset: float, generator: torch.Generator) -> torch.Tensor:
     return torch.cat([positions, quaternions * quaternions[:, :1].sign()], dim=1)
 
 
-def _run(audit: bool) -> dict[str, float]:
-    """Queries whose estimate is their true pose; train poses shifted 0.3 m away from them."""
+def _run(audit: bool, repeats: int = 0) -> dict[str, float]:
+    """Queries whose estimate is their true pose; train poses shifted 0.3 m away from them.
+    The first ``repeats`` queries come again at the end, as a distributed sampler pads."""
     from pae.callbacks.refinement import TestTimeRefinement
     from pae.models.pae import PoseAutoEncoder
     from pae.refine import LatentRetrievalRefiner
@@ -69,7 +70,9 @@ def _run(audit: bool) -> dict[str, float]:
         "pose": test,
         "scene": torch.zeros(40, dtype=torch.long),
         "scene_estimate": torch.zeros(40, dtype=torch.long),
+        "index": torch.arange(40),
     }
+    outputs = {key: torch.cat([value, value[:repeats]]) for key, value in outputs.items()}
     callback = TestTimeRefinement(
         k=1,
         guess_sigma_m=0.5,
@@ -103,3 +106,26 @@ def test_audit_false_skips_the_test_store_rows() -> None:
     logged = _run(audit=False)
     assert "test/refined/pos_median_m" in logged and "test/knn_mean/pos_median_m" in logged
     assert not [key for key in logged if "_test_store" in key]
+
+
+def test_padding_repeats_are_counted_once() -> None:
+    once, padded = _run(audit=True), _run(audit=True, repeats=3)
+    assert padded.keys() == once.keys()
+    for key, value in once.items():
+        if not key.startswith("bench/"):
+            assert padded[key] == value, key
+
+
+def test_pose_error_metric_counts_each_index_once() -> None:
+    from pae.metrics import PoseErrorMetric
+
+    generator = torch.Generator().manual_seed(1)
+    target = _poses(9, 0.0, generator)
+    pred = target + 0.1 * torch.randn(9, 7, generator=generator)
+    plain, padded = PoseErrorMetric(), PoseErrorMetric()
+    plain.update(pred, target, index=torch.arange(9))
+    padded.update(pred[:5], target[:5], index=torch.arange(5))
+    padded.update(pred[4:], target[4:], index=torch.arange(4, 9))
+    padded.update(pred[:2], target[:2], index=torch.arange(2))
+    for key, value in plain.compute().items():
+        assert padded.compute()[key] == value, key

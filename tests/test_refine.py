@@ -146,7 +146,15 @@ def test_single_scene_index_and_memory() -> None:
     assert found[:, 0].tolist() == [0, 1, 2, 3]
     assert index.poses.dtype == torch.float32 and index.poses.shape == (30, 7)
     assert bool((index.poses[:, 3] >= 0).all())
-    assert index.memory_bytes >= 30 * 7 * 4 + 30 * 8
+    assert index.memory_bytes == 30 * 7 * 4  # float32 poses, nothing else
+
+
+def test_interleaved_scenes_keep_their_order(multi_scene_store: tuple[Tensor, Tensor]) -> None:
+    poses, scenes = multi_scene_store
+    index = PoseIndex(poses, scenes)
+    assert index.memory_bytes == len(poses) * (7 * 4 + 4)  # poses and an int32 permutation
+    torch.testing.assert_close(index.poses, PoseIndex(poses).poses)
+    assert torch.equal(index.scenes, scenes)
 
 
 @pytest.mark.parametrize("weight_model", ["mlp", "softmax_logits", "closed_form"])
@@ -355,8 +363,9 @@ def test_latent_retrieval_finds_the_pose_that_encodes_the_query() -> None:
     from pae.refine import LatentRetrievalRefiner
 
     generator = torch.Generator().manual_seed(3)
-    store = random_poses(200, generator, spread_m=3.0).float()
+    store = PoseIndex(random_poses(200, generator, spread_m=3.0).float()).poses  # qw >= 0
     scenes = torch.arange(200) % 2
+    torch.manual_seed(0)  # the PAE's weights, whatever ran before
     pae = PoseAutoEncoder(latent_dim=32, L=3, n_scenes=2).eval()
     picked = torch.tensor([5, 17, 80, 151])
     with torch.no_grad():

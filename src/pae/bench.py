@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -98,30 +100,97 @@ def bench_pae(n_scenes: int = 2, repeats: int = 200) -> dict[str, float]:
     return {"bench/pae/latency_ms": 1000 * latency, "bench/pae/size_mb": size / 1e6}
 
 
+def _train(*overrides: str) -> float:
+    """Seconds of one `pae-train` command (a fresh process, as a user runs it)."""
+    command = [sys.executable, "-m", "pae.train", *overrides]
+    start = time.perf_counter()
+    result = subprocess.run(command, capture_output=True, text=True)
+    if result.returncode != 0:
+        raise RuntimeError(f"pae-train {' '.join(overrides)} failed: {result.stderr[-2000:]}")
+    return time.perf_counter() - start
+
+
+def bench_sweep(
+    root: Path, scenes: int, train_frames: int, test_frames: int, size: int, epochs: int = 2
+) -> dict[str, float]:
+    """A 3-job student sweep (pae.L=0,3,6) of one teacher: 2 jobs at a time (joblib) on one
+    shared teacher-latent cache, against the same sweep one job after another with every job
+    computing its own latents. Wall-clock seconds of each, and their ratio."""
+    data = [
+        f"data.root={root}",
+        f"data.scenes={scenes}",
+        f"data.train_frames={train_frames}",
+        f"data.test_frames={test_frames}",
+        f"data.size={size}",
+        "callbacks=minimal",
+        "+trainer.enable_progress_bar=false",
+    ]
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp)
+        _train("stage=teacher", "teacher.max_epochs=1", f"hydra.run.dir={out / 'teacher'}", *data)
+        sweep = [
+            "-m",
+            "stage=student",
+            f"teacher_ckpt={out / 'teacher' / 'checkpoints' / 'last.ckpt'}",
+            "pae.L=0,3,6",
+            f"student.max_epochs={epochs}",
+            "refine=none",
+            *data,
+        ]
+        one_by_one = _train(
+            *sweep, "student.latent_cache_dir=null", f"hydra.sweep.dir={out / 'sequential'}"
+        )
+        parallel = _train(
+            *sweep,
+            "hydra/launcher=joblib",
+            "hydra.launcher.n_jobs=2",
+            f"student.latent_cache_dir={out / 'cache'}",
+            f"hydra.sweep.dir={out / 'parallel'}",
+        )
+    return {
+        "bench/sweep/sequential_uncached_s": one_by_one,
+        "bench/sweep/parallel_cached_s": parallel,
+        "bench/sweep/speedup": one_by_one / parallel,
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="pae-bench", description=__doc__)
     parser.add_argument("--train-frames", type=int, default=800, help="per scene, student bench")
     parser.add_argument("--queries", type=int, default=500, help="refinement bench queries")
     parser.add_argument("--labels", type=Path, default=REFERENCE_LABELS)
+    parser.add_argument(
+        "--only",
+        nargs="+",
+        choices=("synthetic", "student", "refine", "pae", "index", "sweep"),
+        help="run only these benchmarks (default: all)",
+    )
     args = parser.parse_args(argv)
     torch.manual_seed(0)
+    chosen = set(args.only or ("synthetic", "student", "refine", "pae", "index", "sweep"))
     figures: dict[str, float] = {}
-    figures["bench/synthetic/frames_per_s"] = measure_render_speed()
+    if "synthetic" in chosen:
+        figures["bench/synthetic/frames_per_s"] = measure_render_speed()
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         write_synthetic_dataset(root, scenes=2, train_frames=args.train_frames, test_frames=20)
-        demo_teacher = bench_student_cache(root, "small_cnn", 64, 56)
-        figures |= demo_teacher
-        figures["bench/student/cache_speedup"] = demo_teacher[
-            "bench/student/small_cnn_56px/cache_speedup"
-        ]
-        small = Path(tmp) / "paper_size"
-        write_synthetic_dataset(small, scenes=1, train_frames=64, test_frames=4, size=256)
-        figures |= bench_student_cache(small, "efficientnet_b0", 256, 224, repeats=1)
-    figures |= bench_refinement(n_queries=args.queries)
-    figures |= bench_pae()
+        if "student" in chosen:
+            demo_teacher = bench_student_cache(root, "small_cnn", 64, 56)
+            figures |= demo_teacher
+            figures["bench/student/cache_speedup"] = demo_teacher[
+                "bench/student/small_cnn_56px/cache_speedup"
+            ]
+            small = Path(tmp) / "paper_size"
+            write_synthetic_dataset(small, scenes=1, train_frames=64, test_frames=4, size=256)
+            figures |= bench_student_cache(small, "efficientnet_b0", 256, 224, repeats=1)
+        if "sweep" in chosen:
+            figures |= bench_sweep(root, 2, args.train_frames, 20, 64)
+    if "refine" in chosen:
+        figures |= bench_refinement(n_queries=args.queries)
+    if "pae" in chosen:
+        figures |= bench_pae()
     train_files = sorted(args.labels.glob("*/*_train.csv")) if args.labels.is_dir() else []
-    if train_files:
+    if train_files and "index" in chosen:
         figures |= bench_index(train_files)
     print(json.dumps({k: round(v, 4) for k, v in figures.items()}, indent=2, sort_keys=True))
     return 0

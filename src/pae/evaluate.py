@@ -7,6 +7,7 @@ from pathlib import Path
 import hydra
 import lightning as L
 from hydra.core.hydra_config import HydraConfig
+from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig
 
 from pae import CONFIG_DIR
@@ -22,9 +23,10 @@ def main(cfg: DictConfig) -> float | None:
         L.seed_everything(cfg.seed, verbose=False)
         run_dir = Path(HydraConfig.get().runtime.output_dir)
         metrics = evaluate_checkpoints(cfg, run_dir)
-        write_json_atomic(run_dir / "metrics.json", metrics)
-        print(format_results_table(metrics))
-        print(f"metrics: {run_dir / 'metrics.json'}")
+        if rank_zero_only.rank == 0:  # under DDP every process holds the same figures
+            write_json_atomic(run_dir / "metrics.json", metrics)
+            print(format_results_table(metrics))
+            print(f"metrics: {run_dir / 'metrics.json'}")
         return metrics.get("test/refined/pos_median_m")
 
 

@@ -1,4 +1,5 @@
-"""Pose-error metric: gathers per-sample errors (DDP-safe) and reports medians per scene."""
+"""Pose-error metric: gathers per-sample errors (DDP-safe: every sample counted once) and
+reports medians per scene."""
 
 from __future__ import annotations
 
@@ -16,6 +17,9 @@ class PoseErrorMetric(Metric):
     `compute()` returns `{"pos_median_m", "rot_median_deg", "pos_mean_m", "rot_mean_deg"}`
     overall — the average of the per-scene figures, as the paper's multi-scene tables do — and
     `{"<scene>/pos_median_m", ...}` per scene when there is more than one scene.
+
+    Updates that pass the samples' dataset indices are counted once per index: the padding
+    repeats a distributed sampler adds to even out the processes' shares are dropped.
     """
 
     full_state_update = False
@@ -26,19 +30,45 @@ class PoseErrorMetric(Metric):
         self.add_state("pos", default=[], dist_reduce_fx="cat")
         self.add_state("rot", default=[], dist_reduce_fx="cat")
         self.add_state("scene", default=[], dist_reduce_fx="cat")
+        self.add_state("index", default=[], dist_reduce_fx="cat")
 
-    def update(self, pred: Tensor, target: Tensor, scene: Tensor | None = None) -> None:
-        """pred, target [B, 7]; scene [B] long indices into scene_names."""
+    def update(
+        self,
+        pred: Tensor,
+        target: Tensor,
+        scene: Tensor | None = None,
+        index: Tensor | None = None,
+    ) -> None:
+        """pred, target [B, 7]; scene [B] long indices into scene_names; index [B] long
+        dataset indices of the samples (None: every update holds distinct samples)."""
         pos, rot = pose_errors(pred.detach().float(), target.float())
         self.pos.append(pos)
         self.rot.append(rot)
         if scene is None:
             scene = torch.zeros(len(pos), dtype=torch.long, device=pos.device)
         self.scene.append(scene.long())
+        if index is not None:
+            self.index.append(index.long())
 
     def compute(self) -> dict[str, Tensor]:
         pos, rot, scene = (dim_zero_cat(s) for s in (self.pos, self.rot, self.scene))
+        if isinstance(self.index, Tensor) or self.index:
+            index = dim_zero_cat(self.index)
+            if len(index) != len(pos):
+                raise ValueError("PoseErrorMetric: pass index with every update or with none")
+            keep = first_occurrences(index)
+            pos, rot, scene = pos[keep], rot[keep], scene[keep]
         return summarise_errors(pos, rot, scene, self.scene_names)
+
+
+def first_occurrences(index: Tensor) -> Tensor:
+    """Positions [M] of the first occurrence of each distinct value of index [N], in
+    increasing order of the value: gathered outputs with repeated samples -> each sample once."""
+    order = torch.sort(index, stable=True).indices
+    ordered = index[order]
+    keep = torch.ones_like(ordered, dtype=torch.bool)
+    keep[1:] = ordered[1:] != ordered[:-1]
+    return order[keep]
 
 
 def summarise_errors(

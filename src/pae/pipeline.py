@@ -31,7 +31,7 @@ from pae.checkpoints import (
     read_checkpoint,
 )
 from pae.data.datamodule import PoseDataModule
-from pae.data.latents import TeacherLatentDataModule
+from pae.data.latents import LatentCache, TeacherLatentDataModule
 from pae.lit.decoder import DecoderModule
 from pae.lit.rpr import RPRModule
 from pae.lit.student import StudentModule
@@ -271,12 +271,35 @@ def fit_student(
     pae_config["n_scenes"] = data.n_scenes
     pae = instantiate(pae_config)
     module = _student_module(cfg, teacher.model, pae, data.scene_names, teacher.config, pae_config)
-    cached = cfg.student.cache_latents
-    train_data = TeacherLatentDataModule(data, teacher.model) if cached else data
-    epochs = cfg.student.max_epochs
-    return _fit_and_test(
-        cfg, step_dir, "student", module, train_data, epochs, refinement_callbacks(cfg)
+    if not cfg.student.cache_latents:
+        return _fit_and_test(
+            cfg,
+            step_dir,
+            "student",
+            module,
+            data,
+            cfg.student.max_epochs,
+            refinement_callbacks(cfg),
+        )
+    folder = cfg.student.get("latent_cache_dir")
+    train_data = TeacherLatentDataModule(
+        data,
+        teacher.model,
+        cache=LatentCache(folder) if folder else None,
+        teacher_ckpt=teacher_ckpt,
     )
+    metrics, last = _fit_and_test(
+        cfg,
+        step_dir,
+        "student",
+        module,
+        train_data,
+        cfg.student.max_epochs,
+        refinement_callbacks(cfg),
+    )
+    if train_data.cache_hit is not None:
+        metrics["bench/student/latent_cache_hit"] = float(train_data.cache_hit)
+    return metrics, last
 
 
 def _required(path: str | Path | None, key: str, stage: str) -> str | Path:

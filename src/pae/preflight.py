@@ -44,6 +44,13 @@ def check_writable_dir(path: Path, key: str) -> None:
         raise ConfigError(f"{key}={path}: cannot be written ({existing} is not writable)")
 
 
+def _check_latent_cache(config: DictConfig) -> None:
+    """The teacher-latent cache folder, when one is set, can be written."""
+    folder = OmegaConf.select(config, "student.latent_cache_dir", default=None)
+    if folder:
+        check_writable_dir(Path(folder), "student.latent_cache_dir")
+
+
 def _checkpoint_folders(run_dir: Path) -> list[Path]:
     return sorted({p.parent for p in run_dir.glob("**/checkpoints/*.ckpt")})
 
@@ -113,6 +120,7 @@ class Preflight(Callback):
             else:
                 check_fresh(run_dir, "hydra.run.dir")
             self._validate(config)
+            _check_latent_cache(config)
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         with reporting_errors(self.program):
@@ -120,3 +128,4 @@ class Preflight(Callback):
             check_writable_dir(sweep_dir, "hydra.sweep.dir")
             if not config.get("resume"):
                 check_fresh(sweep_dir, "hydra.sweep.dir")
+            _check_latent_cache(config)

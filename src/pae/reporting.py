@@ -8,11 +8,13 @@ import sys
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import CompactHydraException, HydraException, InstantiationException
+from hydra.experimental.callback import Callback
 from hydra.types import RunMode
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from pae.atomic import atomic_write
@@ -316,6 +318,23 @@ def compare_table(runs: Sequence[Path], names: Sequence[str], split: str = "test
         "authors' public scripts do): an audit, not a result."
     )
     return "\n".join(lines)
+
+
+class SweepReport(Callback):
+    """Hydra callback: at the end of a sweep, print its `pae-report` table and write it to
+    `<sweep dir>/report.md` (failed jobs listed below the table)."""
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        sweep_dir = Path(config.hydra.sweep.dir)
+        try:
+            table = sweep_table(sweep_dir)
+        except FileNotFoundError as err:
+            print(f"pae-report: {err}", file=sys.stderr)
+            return
+        with atomic_write(sweep_dir / "report.md") as handle:
+            handle.write(table + "\n")
+        print(table)
+        print(f"report: {sweep_dir / 'report.md'}")
 
 
 def main(argv: list[str] | None = None) -> int:

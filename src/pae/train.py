@@ -7,6 +7,7 @@ from pathlib import Path
 import hydra
 import lightning as L
 from hydra.core.hydra_config import HydraConfig
+from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig
 
 from pae import CONFIG_DIR
@@ -17,7 +18,7 @@ from pae.validation import validate_train_config
 
 def run(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
     """Check every setting, then run the stage's steps; metrics.json is rewritten atomically
-    after each finished step."""
+    after each finished step (by the first process only under DDP)."""
     validate_train_config(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     metrics: dict[str, float] = {}
@@ -34,7 +35,8 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
         else:
             step_metrics, _ = fit_rpr(cfg, step_dir, ckpt["pae"], ckpt["decoder"])
         metrics |= step_metrics
-        write_json_atomic(run_dir / "metrics.json", metrics)
+        if rank_zero_only.rank == 0:
+            write_json_atomic(run_dir / "metrics.json", metrics)
     return metrics
 
 
@@ -43,8 +45,9 @@ def main(cfg: DictConfig) -> float | None:
     with reporting_errors("pae-train"):
         run_dir = Path(HydraConfig.get().runtime.output_dir)
         metrics = run(cfg, run_dir)
-        print(format_results_table(metrics))
-        print(f"metrics: {run_dir / 'metrics.json'}")
+        if rank_zero_only.rank == 0:
+            print(format_results_table(metrics))
+            print(f"metrics: {run_dir / 'metrics.json'}")
         return metrics.get("test/student/pos_median_m", metrics.get("test/teacher/pos_median_m"))
 
 

@@ -12,7 +12,7 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from torch import Tensor
 
 from pae.geometry import pose_errors
-from pae.metrics import summarise_errors
+from pae.metrics import first_occurrences, summarise_errors
 from pae.models.base import Latents
 from pae.refine import PoseIndex, PositionRefiner, perturb_positions
 from pae.refine.affine import ORIENTATION_MODES, WEIGHT_MODELS, RefinementResult
@@ -49,6 +49,9 @@ RefinerFactory = Callable[..., Refiner]
 
 class TestTimeRefinement(L.Callback):
     """Refines every evaluated query of a StudentModule, in both retrieval protocols.
+
+    Under DDP every process gathers all queries and drops the repeats a distributed sampler
+    adds (by dataset index), so each figure counts every sample once, in dataset order.
 
     Logged for the same queries, after every ``every_n_val_epochs``-th validation and every
     test (``{split}`` is val or test):
@@ -156,6 +159,9 @@ class TestTimeRefinement(L.Callback):
         }
         if trainer.world_size > 1:  # every rank refines all queries of the split
             outputs = {k: pl_module.all_gather(v).flatten(0, 1) for k, v in outputs.items()}
+        # each test sample once (a distributed sampler pads with repeats), in dataset order
+        keep = first_occurrences(outputs["index"])
+        outputs = {key: value[keep] for key, value in outputs.items()}
         d = outputs["z"].shape[-1] // 2
         query = Latents(outputs["z"][:, :d], outputs["z"][:, d:])
         estimate, estimate_scene = outputs["estimate"], outputs["scene_estimate"]

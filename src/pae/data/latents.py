@@ -1,14 +1,29 @@
-"""Teacher outputs for the PAE's training images, computed once so PAE epochs cost MLP time only."""
+"""Teacher outputs for the PAE's training images, computed once so PAE epochs cost MLP time only.
+
+With a cache folder they are computed once per (teacher checkpoint, training images,
+pre-processing) and shared on disk by every job of a sweep: written atomically, built by one
+job at a time (a file lock), and checked on every read (key and checksum): a corrupt or stale
+file is rebuilt, never used.
+"""
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
+import json
+import os
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import lightning as L
 import torch
+from lightning.pytorch.utilities import rank_zero_info
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
+from pae.atomic import atomic_write
 from pae.data.datamodule import PoseDataModule
 from pae.data.dataset import collate_batch
 from pae.models.base import PoseRegressor
@@ -37,9 +52,7 @@ def compute_teacher_latents(
 ) -> TeacherLatents:
     """Run the frozen teacher once over the train split with the test pre-processing."""
     teacher = teacher.to(device).eval()
-    parts: dict[str, list[Tensor]] = {
-        k: [] for k in ("pose", "scene", "z_x", "z_q", "teacher_pose")
-    }
+    parts: dict[str, list[Tensor]] = {k: [] for k in LATENT_KEYS}
     for batch in images.train_eval_dataloader():
         pixels = images.preprocess(batch["image"].to(device), train=False)
         pose, latents = teacher(pixels)
@@ -51,24 +64,148 @@ def compute_teacher_latents(
     return TeacherLatents({k: torch.cat(v) for k, v in parts.items()})
 
 
+LATENT_KEYS = ("pose", "scene", "z_x", "z_q", "teacher_pose")
+CACHE_FORMAT = 1
+
+
+def _sha256_file(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _tensors_sha256(tensors: dict[str, Tensor]) -> str:
+    digest = hashlib.sha256()
+    for key in LATENT_KEYS:
+        digest.update(key.encode())
+        digest.update(tensors[key].contiguous().numpy().tobytes())
+    return digest.hexdigest()
+
+
+def latent_cache_key(teacher_ckpt: str | Path, images: PoseDataModule) -> dict[str, Any]:
+    """What the cached latents depend on: the teacher checkpoint's bytes, the training data
+    (scenes, train poses, each image's path, size and modification time) and the
+    pre-processing (shorter edge, crop). JSON-able; its SHA-256 names the cache file."""
+    table = images.tables["train"]
+    files = hashlib.sha256()
+    for relative in table.img_path:
+        stat = (images.root / relative).stat()
+        files.update(f"{relative}\0{stat.st_size}\0{stat.st_mtime_ns}\n".encode())
+    return {
+        "format": CACHE_FORMAT,
+        "teacher_sha256": _sha256_file(Path(teacher_ckpt)),
+        "data": images.fingerprint(),
+        "root": str(images.root.resolve()),
+        "images_sha256": files.hexdigest(),
+        "shorter_edge": images.shorter_edge,
+        "crop": images.eval_transform.crop,
+    }
+
+
+@contextmanager
+def _locked(path: Path) -> Iterator[None]:
+    """An exclusive lock on `path` (created if needed), held while the block runs."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("a") as handle:
+        fcntl.flock(handle.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_UN)
+
+
+class LatentCache:
+    """Teacher latents on disk in `folder`, one file per key: `<sha256 of the key>.pt`."""
+
+    def __init__(self, folder: str | Path) -> None:
+        self.folder = Path(folder)
+
+    def path(self, key: dict[str, Any]) -> Path:
+        name = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:32]
+        return self.folder / f"{name}.pt"
+
+    def _read(self, path: Path, key: dict[str, Any], rows: int) -> TeacherLatents | None:
+        """The cached latents, or None (with the reason said once) when the file is missing,
+        unreadable, for another key, of another length, or fails its checksum."""
+        if not path.is_file():
+            return None
+        try:
+            payload = torch.load(path, map_location="cpu", weights_only=True)
+            tensors = {name: payload["tensors"][name] for name in LATENT_KEYS}
+            problem = None
+            if payload["key"] != key:
+                problem = "made for other settings"
+            elif any(len(t) != rows for t in tensors.values()):
+                problem = f"holds other than {rows} rows"
+            elif payload["sha256"] != _tensors_sha256(tensors):
+                problem = "fails its checksum"
+        except Exception as err:  # any unreadable file is rebuilt
+            problem = f"unreadable ({type(err).__name__})"
+        if problem is not None:
+            rank_zero_info(f"teacher latent cache {path}: {problem}; rebuilding it")
+            return None
+        return TeacherLatents(tensors)
+
+    def load_or_compute(
+        self, key: dict[str, Any], rows: int, compute: Callable[[], TeacherLatents]
+    ) -> tuple[TeacherLatents, bool]:
+        """(latents, whether they came from the cache). One job computes and writes while the
+        others wait on the lock, then read its file."""
+        path = self.path(key)
+        with _locked(path.with_suffix(".lock")):
+            cached = self._read(path, key, rows)
+            if cached is not None:
+                return cached, True
+            latents = compute()
+            tensors = {name: latents.tensors[name].contiguous() for name in LATENT_KEYS}
+            payload = {"key": key, "tensors": tensors, "sha256": _tensors_sha256(tensors)}
+            with atomic_write(path, "wb") as handle:
+                torch.save(payload, handle)
+            rank_zero_info(f"teacher latents cached in {path} (pid {os.getpid()})")
+            return latents, False
+
+
 class TeacherLatentDataModule(L.LightningDataModule):
     """Training batches of cached teacher latents; validation and test batches are the
-    wrapped PoseDataModule's images (the teacher still runs on queries)."""
+    wrapped PoseDataModule's images (the teacher still runs on queries). With `cache` and
+    `teacher_ckpt` the latents come from (or go to) that on-disk cache; `cache_hit` says
+    which."""
 
     def __init__(
-        self, images: PoseDataModule, teacher: PoseRegressor, batch_size: int | None = None
+        self,
+        images: PoseDataModule,
+        teacher: PoseRegressor,
+        batch_size: int | None = None,
+        cache: LatentCache | None = None,
+        teacher_ckpt: str | Path | None = None,
     ) -> None:
         super().__init__()
+        if cache is not None and teacher_ckpt is None:
+            raise ValueError("a latent cache needs the teacher checkpoint it keys on")
         self.images = images
         self.teacher = teacher
         self.batch_size = batch_size or images.batch_size
+        self.cache = cache
+        self.teacher_ckpt = teacher_ckpt
         self.latents: TeacherLatents | None = None
+        self.cache_hit: bool | None = None
 
     def setup(self, stage: str | None = None) -> None:
         self.images.setup(stage)
         if self.latents is None and stage in (None, "fit"):
             device = self.trainer.strategy.root_device if self.trainer is not None else "cpu"
-            self.latents = compute_teacher_latents(self.teacher, self.images, device)
+
+            def compute() -> TeacherLatents:
+                return compute_teacher_latents(self.teacher, self.images, device)
+
+            if self.cache is None:
+                self.latents = compute()
+                return
+            key = latent_cache_key(self.teacher_ckpt, self.images)
+            rows = len(self.images.tables["train"])
+            self.latents, self.cache_hit = self.cache.load_or_compute(key, rows, compute)
 
     def train_poses(self) -> tuple[Tensor, Tensor]:
         return self.images.train_poses()

@@ -24,8 +24,17 @@ class PoseEvaluation(nn.Module):
             }
         )
 
-    def update(self, split: str, method: str, pred: Tensor, target: Tensor, scene: Tensor) -> None:
-        self.metrics[f"{split}_{method}"].update(pred, target, scene)
+    def update(
+        self,
+        split: str,
+        method: str,
+        pred: Tensor,
+        target: Tensor,
+        scene: Tensor,
+        index: Tensor | None = None,
+    ) -> None:
+        """pred, target [B, 7]; scene [B]; index [B] dataset indices (each counted once)."""
+        self.metrics[f"{split}_{method}"].update(pred, target, scene, index)
 
     def log(self, module: L.LightningModule, split: str) -> None:
         for method in self.methods:

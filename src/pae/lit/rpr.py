@@ -109,5 +109,6 @@ class RPRModule(PaeModule):
             images, self.virtual_reference(reference, answer.scene, images.shape[-1])
         )
         vrpr = torch.cat([reference[:, :3] + relative[:, :3], answer.pose[:, 3:]], dim=-1)
-        self.evaluation.update(split, "teacher", answer.raw_pose, gt, scene)
-        self.evaluation.update(split, "vrpr", vrpr, gt, scene)
+        index = batch.get("index")
+        self.evaluation.update(split, "teacher", answer.raw_pose, gt, scene, index)
+        self.evaluation.update(split, "vrpr", vrpr, gt, scene, index)

@@ -24,8 +24,8 @@ class StudentModule(PaeModule):
     so the pose loss trains the PAE through them. Batches either carry cached teacher outputs
     (`z_x`, `z_q`, `teacher_pose`) or images, in which case the teacher runs on them.
     `pae_input` is "gt" (the ground-truth pose, paper) or "teacher" (the teacher's estimate).
-    During evaluation the module keeps every query's teacher latents and estimate in
-    `eval_outputs` for the test-time refinement callback.
+    During evaluation the module keeps every query's teacher latents, estimate and dataset
+    index in `eval_outputs` for the test-time refinement callback.
     """
 
     def __init__(
@@ -116,7 +116,7 @@ class StudentModule(PaeModule):
         return list(self.pae.parameters()) + list(self.loss.parameters())
 
     def evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
-        gt, scene = batch["pose"], batch["scene"]
+        gt, scene, index = batch["pose"], batch["scene"], batch["index"]
         answer = self.teacher.estimate(batch["image"], scene)
         student_pose = self.teacher.regress(self.pae(answer.pose, answer.scene))
         student_gt_pose = self.teacher.regress(self.pae(gt, scene))
@@ -127,7 +127,7 @@ class StudentModule(PaeModule):
             "mean_pose": self.mean_poses[scene],
         }
         for method, pred in predictions.items():
-            self.evaluation.update(split, method, pred, gt, scene)
+            self.evaluation.update(split, method, pred, gt, scene, index)
         self.eval_outputs.append(
             {
                 "z": answer.latents.joint(),
@@ -135,5 +135,6 @@ class StudentModule(PaeModule):
                 "pose": gt,
                 "scene": scene,
                 "scene_estimate": answer.scene,
+                "index": index,
             }
         )

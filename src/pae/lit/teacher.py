@@ -61,6 +61,6 @@ class TeacherModule(PaeModule):
 
     def evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
         pred, _ = self.teacher(batch["image"])
-        self.evaluation.update(split, "teacher", pred, batch["pose"], batch["scene"])
-        baseline = self.mean_poses[batch["scene"]]
-        self.evaluation.update(split, "mean_pose", baseline, batch["pose"], batch["scene"])
+        gt, scene, index = batch["pose"], batch["scene"], batch.get("index")
+        self.evaluation.update(split, "teacher", pred, gt, scene, index)
+        self.evaluation.update(split, "mean_pose", self.mean_poses[scene], gt, scene, index)

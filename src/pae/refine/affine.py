@@ -7,7 +7,8 @@ and the refined position is ``Σ aᵢ xᵢ``. Three weight models:
 
 - ``"mlp"``: the public code's weight regressor, an MLP over the k concatenated encodings
   (k·D → 64k → 32k → 16k → k, ReLU) whose softmax gives ``a``; freshly initialised for every
-  query and optimised with AdamW for ``iterations`` steps;
+  query (in ``refine_affine`` the later layers' starting values are one draw shared by the
+  call's queries) and optimised with AdamW for ``iterations`` steps;
 - ``"softmax_logits"``: free logits per query (softmax gives ``a``), optimised the same way;
 - ``"closed_form"``: the exact equality-constrained least-squares solution (weights may be
   negative, so the position may leave the neighbours' convex hull).
@@ -50,6 +51,7 @@ SERIES_RATIO = {torch.float64: 1e3, torch.float32: 30.0}
 """Per working dtype, the aᵢ·s / eps above which ``_FirstLayerGain`` uses its series: the
 truncation error, below ratio⁻⁵, is under the dtype's rounding (1e-15; 4e-8)."""
 _BAND_TERMS = 1 << 20
+_SMALLEST = 32
 WEIGHT_MODELS: tuple[str, ...] = ("softmax_logits", "mlp", "closed_form")
 ORIENTATION_MODES: tuple[str, ...] = ("teacher", "affine", "markley")
 
@@ -259,83 +261,74 @@ class _FirstLayerGain:
     """S[b, j] = Σᵢ aᵢ² / (aᵢ·s[b, j] + eps) for fixed a = |x| [b, n] and any s [b, h] >= 0.
 
     Evaluated in float64. Terms with aᵢ·s >= ratio·eps are summed with the series
-    (aᵢ/s)·Σₚ₌₀⁴ (−eps/(aᵢ s))ᵖ (relative error below ratio⁻⁵) from prefix sums of aᵢ^(1−p)
-    over the inputs sorted in decreasing order, prepared once; the others (aᵢ near 0) are
-    summed term by term, at most ``_BAND_TERMS`` at a time. Zero inputs add nothing; entries
-    with s = 0 give 0.
+    (aᵢ/s)·Σₚ₌₀⁴ (−eps/(aᵢ s))ᵖ (relative error below ratio⁻⁵) from sums of aᵢ^(1−p),
+    prepared once; the others (aᵢ near 0) are summed term by term. Only the ``_SMALLEST``
+    smallest positive inputs of a row can fall below the series' range in practice: they are kept
+    sorted, with suffix sums, and the rest's sums are prepared once, so a step costs
+    O(b·h·_SMALLEST), with no full sort. Rows whose threshold exceeds even those are summed
+    directly, at most ``_BAND_TERMS`` terms at a time. Zero inputs add nothing; s = 0 gives 0.
     """
 
     def __init__(self, abs_inputs: Tensor, eps: float, ratio: float) -> None:
-        negated = (-abs_inputs.to(torch.float64)).sort(dim=1).values  # ascending
-        a = -negated  # decreasing
-        rows, n = a.shape
-        positive = a > 0
-        inverse = torch.where(positive, 1.0 / torch.where(positive, a, 1.0), 0.0)
-        prefix = torch.zeros(rows, n + 1, 5, dtype=a.dtype, device=a.device)
-        prefix[:, 1:, 0] = a
-        prefix[:, 1:, 1] = positive
-        prefix[:, 1:, 2] = inverse
-        torch.mul(inverse, inverse, out=prefix[:, 1:, 3])
-        torch.mul(prefix[:, 1:, 3], inverse, out=prefix[:, 1:, 4])
-        self.prefix = prefix.cumsum_(dim=1)  # [b, n + 1, 5]: sums over the c largest a
-        self.negated = negated
-        self.decreasing = a
-        self.n_positive = positive.sum(dim=1, keepdim=True)
+        a = abs_inputs.to(torch.float64)
+        m = min(a.shape[1], _SMALLEST)
+        # the m smallest positive inputs, ascending; inf where a row has fewer
+        positive = torch.where(a > 0, a, math.inf)
+        smallest, where_small = torch.topk(positive, m, dim=1, largest=False, sorted=True)
+        rest = a.scatter(1, where_small, 0.0)
+        finite = torch.where(torch.isinf(smallest), 0.0, smallest)
+        self.sums = torch.cat(  # [b, m + 1, 5]: rest + the c largest of the m smallest
+            [
+                self._power_sums(rest).unsqueeze(1),
+                self._power_sums(finite.flip(1), cumulative=True),
+            ],
+            dim=1,
+        )
+        self.sums[:, 1:] += self.sums[:, :1]
+        self.smallest = smallest
+        self.inputs = a
         self.eps = eps
         self.ratio = ratio
-        self.exponents = torch.arange(5, dtype=a.dtype, device=a.device)
+
+    @staticmethod
+    def _power_sums(a: Tensor, cumulative: bool = False) -> Tensor:
+        """Σ over positive aᵢ of aᵢ, 1, aᵢ⁻¹, aᵢ⁻², aᵢ⁻³ -> [b, 5] (running sums [b, n, 5])."""
+        positive = a > 0
+        inverse = torch.where(positive, 1.0 / torch.where(positive, a, 1.0), 0.0)
+        powers = torch.stack([a, positive.to(a.dtype), inverse, inverse**2, inverse**3], dim=-1)
+        return powers.cumsum(dim=1) if cumulative else powers.sum(dim=1)
 
     def __call__(self, scale: Tensor) -> Tensor:
         eps = self.eps
         s = scale.to(torch.float64)
         active = s > 0
         safe_scale = torch.where(active, s, 1.0)
-        threshold = torch.where(active, self.ratio * eps / safe_scale, math.inf)
-        # number of inputs with a >= threshold: the series covers sorted positions [0, large)
-        large = torch.searchsorted(self.negated, -threshold, right=True)
-        sums = torch.gather(self.prefix, 1, large.unsqueeze(-1).expand(-1, -1, 5))
-        coefficients = (-eps) ** self.exponents / safe_scale.unsqueeze(-1) ** (self.exponents + 1)
-        series = torch.where(large > 0, (sums * coefficients).sum(dim=-1), 0.0)
-
-        band = torch.where(active, (self.n_positive - large).clamp(min=0), 0)
-        band_sum = torch.zeros_like(s)
-        row_terms = band.sum(dim=1).tolist()
-        rows, row = len(row_terms), 0
-        while row < rows:
-            end, terms = row + 1, row_terms[row]
-            while end < rows and terms + row_terms[end] <= _BAND_TERMS:
-                terms += row_terms[end]
-                end += 1
-            if terms:
-                band_sum[row:end] = _band_sum(
-                    self.decreasing[row:end], s[row:end], large[row:end], band[row:end], eps
-                )
-            row = end
-        return series + band_sum
-
-
-def _band_sum(a: Tensor, s: Tensor, first: Tensor, counts: Tensor, eps: float) -> Tensor:
-    """[r, h]: Σᵢ a[r, i]² / (a[r, i]·s[r, j] + eps) over first[r, j] <= i < first + counts.
-
-    a [r, n]; s, first, counts [r, h].
-    """
-    rows, width = s.shape
-    flat_counts = counts.flatten()
-    total = int(flat_counts.sum())
-    unit = torch.repeat_interleave(
-        torch.arange(rows * width, device=a.device), flat_counts, output_size=total
-    )
-    offsets = torch.arange(total, device=a.device) - torch.repeat_interleave(
-        flat_counts.cumsum(0) - flat_counts, flat_counts, output_size=total
-    )
-    row = torch.div(unit, width, rounding_mode="floor")
-    values = a[row, first.flatten()[unit] + offsets]
-    terms = values.square() / (values * s.flatten()[unit] + eps)
-    return (
-        torch.zeros(rows * width, dtype=a.dtype, device=a.device)
-        .index_add_(0, unit, terms)
-        .view(rows, width)
-    )
+        threshold = torch.where(active, self.ratio * eps / safe_scale, math.inf)  # [b, h]
+        m = self.smallest.shape[1]
+        # of the m smallest inputs, how many reach the threshold: the series covers them
+        reach = m - torch.searchsorted(self.smallest, threshold, right=False)
+        sums = torch.gather(self.sums, 1, reach.unsqueeze(-1).expand(-1, -1, 5))
+        ratio = -eps / safe_scale  # Horner in (−eps/s) over the sums of aᵢ^(1−p), p = 4..0
+        series = sums[..., 4]
+        for power in (3, 2, 1, 0):
+            series = sums[..., power] + ratio * series
+        result = torch.where(active, series / safe_scale, 0.0)
+        band = active & (reach < m)
+        if bool(band.any()):  # the smallest inputs below the threshold, term by term
+            rows, cols = band.nonzero(as_tuple=True)
+            small, scale_rc = self.smallest[rows], s[rows, cols].unsqueeze(-1)
+            terms = small.square() / (small * scale_rc + eps)
+            below = small < threshold[rows, cols].unsqueeze(-1)
+            result[rows, cols] += torch.where(below, terms, 0.0).sum(dim=-1)
+        beyond = active & (reach == 0) & (m < self.inputs.shape[1])
+        if bool(beyond.any()):  # rest values may lie below the threshold too: sum directly
+            rows, cols = beyond.nonzero(as_tuple=True)
+            step = max(1, _BAND_TERMS // self.inputs.shape[1])
+            for part in range(0, len(rows), step):
+                r, c = rows[part : part + step], cols[part : part + step]
+                a, scale_rc = self.inputs[r], s[r, c].unsqueeze(-1)
+                result[r, c] = (a.square() / (a * scale_rc + eps)).sum(dim=-1)
+        return result
 
 
 def _fit_regressor(
@@ -419,7 +412,7 @@ def refine_affine(
     hidden: Sequence[int] | None = None,
     generator: torch.Generator | None = None,
     init: InitParams | None = None,
-    chunk_size: int = 256,
+    chunk_size: int = 64,
     ridge: float = 1e-6,
 ) -> AffineFit:
     """Affine weights for every query at once.
@@ -432,12 +425,14 @@ def refine_affine(
 
     ``init`` gives the initial parameters (see ``InitParams``; for the MLP it also fixes the
     hidden widths, ``hidden`` being for drawn ones). Without it logits start at
-    zero (uniform weights), and each query's MLP is drawn from ``generator``: biases and
-    later layers as ``nn.Linear`` does (U(±1/√fan_in)); the first layer's weights as
+    zero (uniform weights), and each query's MLP is drawn from ``generator``: the first
+    layer's bias per query and the later layers once per call, shared as starting values,
+    as ``nn.Linear`` does (U(±1/√fan_in)); the first layer's weights per query as
     N(0, 1/(3·fan_in)), the same variance, which lets x·W₁ be drawn directly (see
-    ``_fit_regressor``). The MLP path runs ``chunk_size`` queries at a time to bound memory,
-    which does not change the result. Works under ``torch.no_grad`` and
-    ``torch.inference_mode``; the outputs carry no autograd graph.
+    ``_fit_regressor``). The MLP path runs ``chunk_size`` queries at a time (their optimiser
+    state then stays in cache: 64 is fastest on CPU), which does not change the result.
+    Works under ``torch.no_grad`` and ``torch.inference_mode``; the outputs carry no autograd
+    graph.
     """
     _check_inputs(
         query_latent, neighbour_latents, neighbour_poses, weight_model, objective, iterations
@@ -512,7 +507,12 @@ def _refine_mlp(
             * (bound / math.sqrt(3.0))
         )
         first_bias = _uniform((batch, width), bound, generator, query)
-        layers = _uniform_layers(batch, sizes[1:], generator, query)
+        # one draw of the later layers' initial values serves every query (each still starts
+        # from nn.Linear's distribution; each then trains its own copy)
+        layers = [
+            (weight.expand(batch, -1, -1), bias.expand(batch, -1))
+            for weight, bias in _uniform_layers(1, sizes[1:], generator, query)
+        ]
     else:
         (first_weight, first_bias), *layers = _check_mlp_init(init, batch, k, dim)
         first_preactivation = torch.einsum(
@@ -584,7 +584,7 @@ def refine_affine_per_query(
     hidden: Sequence[int] | None = None,
     generator: torch.Generator | None = None,
     init: InitParams | None = None,
-    chunk_size: int = 256,
+    chunk_size: int = 64,
     ridge: float = 1e-6,
 ) -> AffineFit:
     """Reference for ``refine_affine`` that processes one query at a time, as the public code.
@@ -728,7 +728,7 @@ class PositionRefiner:
         orientation: OrientationMode = "teacher",
         objective: Objective = "l2",
         hidden: Sequence[int] | None = None,
-        chunk_size: int = 256,
+        chunk_size: int = 64,
         seed: int = 0,
     ) -> None:
         if weight_model not in WEIGHT_MODELS:

@@ -85,33 +85,41 @@ class PoseIndex:
                     f"got {tuple(scenes_t.shape)}"
                 )
         quaternions = _unit_canonical_quaternions(poses_t[:, 3:], "poses")
-        self._poses = torch.cat([poses_t[:, :3], quaternions], dim=1).contiguous()
-        self._scenes = scenes_t.contiguous()
+        poses_t = torch.cat([poses_t[:, :3], quaternions], dim=1)
         self.distance: PoseDistance = distance
         self.rot_weight = float(rot_weight)
         self.chunk_size = int(chunk_size)
-        # Entries grouped by scene: the stable sort keeps the original order within a scene.
-        self._order = torch.sort(self._scenes, stable=True).indices
-        scene_ids, counts = torch.unique_consecutive(self._scenes[self._order], return_counts=True)
-        ends = torch.cumsum(counts, 0)
+        # One float32 copy, each scene's poses contiguous (kept in the given order when they
+        # are already; else stably sorted by scene, keeping that permutation as int32).
+        run_ids, run_counts = torch.unique_consecutive(scenes_t, return_counts=True)
+        grouped = len(run_ids) == len(torch.unique(scenes_t))
+        order = None if grouped else torch.sort(scenes_t, stable=True).indices
+        self._order = None if order is None else order.to(torch.int32)
+        self._store = (poses_t if order is None else poses_t[order]).contiguous()
+        if order is not None:
+            run_ids, run_counts = torch.unique_consecutive(scenes_t[order], return_counts=True)
+        ends = torch.cumsum(run_counts, 0)
         self._scene_blocks: dict[int, tuple[int, int]] = {
-            int(s): (int(e - c), int(e)) for s, c, e in zip(scene_ids, counts, ends, strict=True)
+            int(s): (int(e - c), int(e)) for s, c, e in zip(run_ids, run_counts, ends, strict=True)
         }
-        self._sorted_positions = self._poses[self._order, :3].double()
-        # Renormalised in float64: a float32 norm error of 1e-7 would otherwise read as an
-        # angle of ~0.03° through acos near 1.
-        sorted_quaternions = self._poses[self._order, 3:].double()
-        self._sorted_quaternions = sorted_quaternions / sorted_quaternions.norm(dim=1, keepdim=True)
+
+    def _original_order(self, stored: Tensor) -> Tensor:
+        """Rows [N, ...] in the store's (scene-grouped) order -> the caller's order."""
+        if self._order is None:
+            return stored
+        return torch.empty_like(stored).index_copy_(0, self._order.long(), stored)
 
     @property
     def poses(self) -> Tensor:
-        """[N, 7] stored poses (float32, unit quaternions with qw >= 0)."""
-        return self._poses
+        """[N, 7] stored poses (float32, unit quaternions with qw >= 0), in the given order."""
+        return self._original_order(self._store)
 
     @property
     def scenes(self) -> Tensor:
-        """[N] long scene id of each stored pose."""
-        return self._scenes
+        """[N] long scene id of each stored pose, in the given order."""
+        ids = torch.tensor(list(self._scene_blocks), dtype=torch.long, device=self.device)
+        sizes = torch.tensor([e - s for s, e in self._scene_blocks.values()], device=self.device)
+        return self._original_order(torch.repeat_interleave(ids, sizes))
 
     @property
     def scene_ids(self) -> list[int]:
@@ -120,10 +128,10 @@ class PoseIndex:
 
     @property
     def device(self) -> torch.device:
-        return self._poses.device
+        return self._store.device
 
     def __len__(self) -> int:
-        return self._poses.shape[0]
+        return self._store.shape[0]
 
     def scene_size(self, scene: int) -> int:
         """Number of stored poses of one scene (0 when absent)."""
@@ -132,21 +140,17 @@ class PoseIndex:
 
     @property
     def memory_bytes(self) -> int:
-        """Bytes held by the store's tensors (poses, scene ids and the search copies)."""
-        tensors = (
-            self._poses,
-            self._scenes,
-            self._order,
-            self._sorted_positions,
-            self._sorted_quaternions,
-        )
+        """Bytes held by the store's tensors: 28 per pose (float32), 4 more when the poses
+        were not given grouped by scene. Searches work on float64 copies of one scene's
+        block, made per ``chunk_size`` queries."""
+        tensors = [self._store] if self._order is None else [self._store, self._order]
         return sum(t.element_size() * t.nelement() for t in tensors)
 
     def to(self, device: torch.device | str) -> PoseIndex:
         """A copy of the index on ``device``."""
         return PoseIndex(
-            self._poses.to(device),
-            self._scenes.to(device),
+            self.poses.to(device),
+            self.scenes.to(device),
             distance=self.distance,
             rot_weight=self.rot_weight,
             chunk_size=self.chunk_size,
@@ -193,26 +197,38 @@ class PoseIndex:
             if size < k:
                 raise ValueError(f"scene {scene} holds {size} stored poses, fewer than k={k}")
             start, end = self._scene_blocks[scene]
+            block = self._store[start:end].double()
+            # renormalised in float64: a float32 norm error of 1e-7 would otherwise read as
+            # an angle of ~0.03° through acos near 1
+            positions, quaternions = block[:, :3], block[:, 3:]
+            quaternions = quaternions / quaternions.norm(dim=1, keepdim=True)
             rows = torch.nonzero(scenes_t == scene).squeeze(1).to(self.device)
             for chunk in rows.split(self.chunk_size):
-                dist = self._distances(query_positions[chunk], query_quaternions[chunk], start, end)
+                dist = self._distances(
+                    query_positions[chunk], query_quaternions[chunk], positions, quaternions
+                )
                 best, local = torch.topk(dist, k, dim=1, largest=False, sorted=True)
-                indices[chunk] = self._order[start + local]
+                found = start + local
+                indices[chunk] = found if self._order is None else self._order[found].long()
                 distances[chunk] = best.float()
         return indices.to(out_device), distances.to(out_device)
 
-    def _distances(self, positions: Tensor, quaternions: Tensor, start: int, end: int) -> Tensor:
-        """Distances [b, end - start] (float64) of queries to the stored block [start, end)."""
-        stored_positions = self._sorted_positions[start:end]
-        stored_quaternions = self._sorted_quaternions[start:end]
+    def _distances(
+        self,
+        positions: Tensor,
+        quaternions: Tensor,
+        stored_positions: Tensor,
+        stored_quaternions: Tensor,
+    ) -> Tensor:
+        """Distances [b, M] (float64) of b queries to M stored poses of one scene."""
         position_dist = torch.cdist(
             positions, stored_positions, compute_mode="donot_use_mm_for_euclid_dist"
         )
-        cos_half = (quaternions @ stored_quaternions.T).abs().clamp(max=1.0)
-        angle_deg = torch.rad2deg(2.0 * torch.acos(cos_half))
+        angle_deg = (quaternions @ stored_quaternions.T).abs_().clamp_(max=1.0)
+        angle_deg.acos_().mul_(360.0 / math.pi)
         if self.distance == "fixed":
-            return position_dist + self.rot_weight * angle_deg
+            return position_dist.add_(angle_deg, alpha=self.rot_weight)
         tiny = torch.finfo(torch.float64).tiny
-        position_scale = position_dist.amax(dim=1, keepdim=True).clamp(min=tiny)
-        angle_scale = angle_deg.amax(dim=1, keepdim=True).clamp(min=tiny)
-        return position_dist / position_scale + angle_deg / angle_scale
+        position_scale = position_dist.amax(dim=1, keepdim=True).clamp_(min=tiny)
+        angle_scale = angle_deg.amax(dim=1, keepdim=True).clamp_(min=tiny)
+        return position_dist.div_(position_scale).add_(angle_deg.div_(angle_scale))
