@@ -277,10 +277,17 @@ def sweep_table(root: str | Path, split: str = "test") -> str:
     return "\n".join(lines)
 
 
+CHANGE_AGAINST = {"guess_refined": "guess_initial", "guess_refined_test_store": "guess_initial"}
+"""Methods whose change is measured against another than the teacher."""
+WITHOUT_CHANGE = ("teacher", "student_gt", "guess_initial", "mean_pose")
+"""Methods shown without a change: the baselines, and student_gt (no image involved)."""
+
+
 def compare_table(runs: Sequence[Path], names: Sequence[str], split: str = "test") -> str:
     """Markdown table with one column per run (its ``metrics.json``) and one row per method:
     median position [m] / orientation [deg] and the position's change against the run's
-    teacher; ``*_test_store`` rows are marked as audits, and the geometry ratio closes it."""
+    teacher (refined guesses: against the initial guess); ``*_test_store`` rows are marked as
+    audits, and the geometry diagnostics close it."""
     if len(names) != len(runs):
         raise ValueError(f"--names gives {len(names)} names for {len(runs)} runs")
     columns = []
@@ -297,11 +304,13 @@ def compare_table(runs: Sequence[Path], names: Sequence[str], split: str = "test
         for metrics in columns:
             pos = metrics.get(f"{split}/{method}/pos_median_m")
             rot = metrics.get(f"{split}/{method}/rot_median_deg")
-            teacher = metrics.get(f"{split}/teacher/pos_median_m")
+            baseline = metrics.get(f"{split}/{CHANGE_AGAINST.get(method, 'teacher')}/pos_median_m")
             if pos is None:
                 cells.append("-")
                 continue
-            change = "" if not teacher or method == "teacher" else f" ({pos / teacher - 1:+.1%})"
+            change = (
+                "" if not baseline or method in WITHOUT_CHANGE else f" ({pos / baseline - 1:+.1%})"
+            )
             cells.append(f"{pos:.3f} / {rot:.2f}{change}")
         label = f"{method} *" if method.endswith(TEST_STORE_SUFFIX) else method
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
