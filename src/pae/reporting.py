@@ -83,6 +83,9 @@ def format_results_table(metrics: Mapping[str, float], split: str = "test") -> s
             pos, rot = metrics.get(prefix + "pos_median_m"), metrics.get(prefix + "rot_median_deg")
             cells.append("-" if pos is None else f"{pos:.3f} / {rot:.2f}")
         lines.append(f"{method:<15}" + "".join(f"{c:>18}" for c in cells))
+    accuracy = metrics.get(f"{split}/teacher/scene_accuracy")
+    if accuracy is not None:
+        lines.append(f"teacher scene accuracy: {100 * accuracy:.1f} %")
     diagnostics = {
         key.rsplit("/", 1)[1]: value
         for key, value in metrics.items()
