@@ -16,6 +16,7 @@ from torch import Tensor
 
 from pae.checkpoints import CheckpointError, load_teacher
 from pae.models.backbones import Backbone
+from pae.models.base import Latents
 from pae.models.convert import (
     fourier_permutation,
     load_public_ms_transformer,
@@ -118,7 +119,7 @@ def test_multi_scene_refinement_retrieves_only_within_the_predicted_scene() -> N
     pae = PoseAutoEncoder(latent_dim=32, hidden=(16,), L=2, n_scenes=3)
     seen: list[Tensor] = []
 
-    def encoder(p: Tensor, s: Tensor | None) -> object:
+    def encoder(p: Tensor, s: Tensor | None) -> Latents:
         assert s is not None
         seen.append(s)
         return pae(p, s)
