@@ -84,7 +84,8 @@ def test_given_scene_selects_its_queries_and_none_selects_the_argmax() -> None:
     chosen = logits.argmax(-1)
     assert torch.allclose(predicted.x, dec_x[torch.arange(4), chosen])
     assert torch.equal(model.estimate(images, scene).scene, chosen)
-    assert small_model(n_scenes=1).encode(images).scene_logits is None
+    single = small_model(n_scenes=1)
+    assert single.scene_head is None and single.encode(images).scene_logits is None
 
 
 def test_oversized_feature_map_is_a_clear_error() -> None:
@@ -274,6 +275,9 @@ def test_public_ms_transformer_state_dict_loads(public_state: dict[str, Tensor])
         assert torch.equal(public_state[key], param), key
     pose, latents = model.eval()(torch.randn(1, 3, 64, 64))
     assert torch.isfinite(pose).all() and latents.scene_logits is not None
+    one_scene = public_ms_transformer_shapes(d=32, ff=64, layers=1, scenes=1, hidden=64)
+    single = load_public_ms_transformer(small_model("efficientnet_b0", 1), random_state(one_scene))
+    assert single.scene_head is None
 
 
 def test_public_ms_transformer_mismatches_name_the_key(

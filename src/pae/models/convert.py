@@ -197,14 +197,15 @@ def load_public_ms_transformer(
     model: MSTransformer, state: Mapping[str, Tensor] | str | Path
 ) -> MSTransformer:
     """Load a public EMSTransPoseNet state dict (or a file holding one) into `model`; backbone
-    stages past the model's stride-16 map are ignored."""
+    stages past the model's stride-16 map, and the scene classifier of a one-scene model,
+    are ignored."""
     source = str(state) if isinstance(state, str | Path) else "MS-Transformer state dict"
     raw = read_checkpoint(state) if isinstance(state, str | Path) else state
     own = model.state_dict()
     converted = {
         k: v
         for k, v in convert_ms_transformer_state_dict(raw).items()
-        if k in own or not k.startswith("backbone.stages.")
+        if k in own or not k.startswith(("backbone.stages.", "scene_head."))
     }
     _load_strict(model, converted, source)
     return model

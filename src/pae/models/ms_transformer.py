@@ -225,13 +225,13 @@ class MSTransformer(PoseRegressor):
         self.transformer_q = EncoderDecoder(*layers)
         self.queries_x = nn.Embedding(n_scenes, latent_dim)
         self.queries_q = nn.Embedding(n_scenes, latent_dim)
-        self.scene_head = nn.Linear(2 * latent_dim, 1)
+        self.scene_head = nn.Linear(2 * latent_dim, 1) if n_scenes > 1 else None
         self.head_x = _head(latent_dim, 3, head_hidden)
         self.head_q = _head(latent_dim, 4, head_hidden)
 
     def decode(self, images: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """images -> decoded queries of every scene, x and q [B, S, d], and the scene
-        logits [B, S]."""
+        logits [B, S] (zeros for a single scene)."""
         fine, coarse = self.backbone(images)
         decoded = []
         for fmap, proj, transformer, queries in (
@@ -242,6 +242,8 @@ class MSTransformer(PoseRegressor):
             pos = self.position(*fmap.shape[-2:])
             decoded.append(transformer(tokens, pos, queries.weight))
         dec_x, dec_q = decoded
+        if self.scene_head is None:  # one scene: nothing to classify, no unused parameters
+            return dec_x, dec_q, dec_x.new_zeros(dec_x.shape[:2])
         logits = self.scene_head(torch.cat([dec_x, dec_q], dim=-1)).squeeze(-1)
         return dec_x, dec_q, logits
 
