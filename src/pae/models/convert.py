@@ -5,9 +5,11 @@ paper's teacher) with its EfficientNet-B0 backbone of the `efficientnet_pytorch`
 backbone keys are renamed to torchvision's `efficientnet_b0().features`; blocks past the
 stride-16 map, the last 1x1 convolution and the classifier are not used and dropped. Two
 differences remain in the backbone's arithmetic: the public backbone pads its stride-2
-convolutions TensorFlow-style ("same", one pixel more on the bottom/right) and uses BatchNorm
+convolutions TensorFlow-style ("same": one pixel less at the top/left) and uses BatchNorm
 eps 1e-3 (torchvision: symmetric padding, eps 1e-5), so features shift slightly; fine-tune
-briefly before comparing figures.
+briefly before comparing figures. Build the model with `heads=8`: the public configs ask
+for 4 heads under a key (`nheads`) its transformer does not read, so it runs with its default
+of 8; the weights' shapes are the same either way, only the outputs differ.
 
 PAE: the public `PoseEncoder` / `MultiSCenePoseEncoder` state dicts. Their Fourier features
 are ordered (input, then per band: sin of every coordinate, cos of every coordinate); pae's
