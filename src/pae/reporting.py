@@ -124,6 +124,9 @@ def format_results_table(metrics: Mapping[str, float], split: str = "test") -> s
             f"* retrieves among the {split} split's own poses (uses {split} labels, as the "
             "authors' public scripts do): an audit, not a result"
         )
+    accuracy = metrics.get(f"{split}/teacher/scene_accuracy")
+    if accuracy is not None:
+        lines.append(f"teacher scene accuracy: {100 * accuracy:.1f} %")
     diagnostics = f"{split}/diagnostics/"
     distances = {
         key.removeprefix(diagnostics).removesuffix("_m"): value

@@ -50,12 +50,13 @@ class TeacherLatents(Dataset):
 def compute_teacher_latents(
     teacher: PoseRegressor, images: PoseDataModule, device: torch.device | str = "cpu"
 ) -> TeacherLatents:
-    """Run the frozen teacher once over the train split with the test pre-processing."""
+    """Run the frozen teacher once over the train split with the test pre-processing; a
+    multi-scene teacher gives the latents of each image's true scene."""
     teacher = teacher.to(device).eval()
     parts: dict[str, list[Tensor]] = {k: [] for k in LATENT_KEYS}
     for batch in images.train_eval_dataloader():
         pixels = images.preprocess(batch["image"].to(device), train=False)
-        pose, latents = teacher(pixels)
+        pose, latents = teacher(pixels, batch["scene"].to(device))
         parts["pose"].append(batch["pose"])
         parts["scene"].append(batch["scene"])
         parts["z_x"].append(latents.x.cpu())

@@ -22,7 +22,8 @@ class StudentModule(PaeModule):
 
     The teacher is frozen (eval mode, no parameter gradients) but its heads stay in the graph,
     so the pose loss trains the PAE through them. Batches either carry cached teacher outputs
-    (`z_x`, `z_q`, `teacher_pose`) or images, in which case the teacher runs on them.
+    (`z_x`, `z_q`, `teacher_pose`) or images, in which case the teacher runs on them; a
+    multi-scene teacher's targets are the latents of the true scene.
     `pae_input` is "gt" (the ground-truth pose, paper) or "teacher" (the teacher's estimate).
     During evaluation the module keeps every query's teacher latents, estimate and dataset
     index in `eval_outputs` for the test-time refinement callback.
@@ -84,7 +85,7 @@ class StudentModule(PaeModule):
             teacher_pose = batch["teacher_pose"]
         else:
             with torch.no_grad():
-                teacher_pose, target = self.teacher(batch["image"])
+                teacher_pose, target = self.teacher(batch["image"], batch["scene"])
         source = batch["pose"] if self.pae_input == "gt" else normalize_pose(teacher_pose)
         latents = self.pae(source, batch["scene"])
         pred = self.teacher.regress(latents)

@@ -5,16 +5,19 @@ from __future__ import annotations
 from typing import Any
 
 from torch import Tensor, nn
+from torchmetrics.classification import MulticlassAccuracy
 
 from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
-from pae.lit.evaluation import PoseEvaluation
+from pae.lit.evaluation import EVAL_SPLITS, PoseEvaluation
 from pae.losses import LearnedPoseLoss
 from pae.models.base import PoseRegressor
 
 
 class TeacherModule(PaeModule):
     """Wires a PoseRegressor, LearnedPoseLoss (+ scene cross-entropy for multi-scene teachers),
-    the optimiser and pose-error metrics for `teacher` and the `mean_pose` baseline."""
+    the optimiser and pose-error metrics for `teacher` and the `mean_pose` baseline; teachers
+    with a scene classifier also log `{split}/teacher/scene_accuracy` (fraction of images
+    assigned their true scene)."""
 
     def __init__(
         self,
@@ -35,6 +38,10 @@ class TeacherModule(PaeModule):
         self.scene_loss_weight = scene_loss_weight
         self.evaluation = PoseEvaluation(["teacher", "mean_pose"], scene_names)
         self.register_mean_pose_baseline(len(scene_names))
+        n_scenes = max(len(scene_names), 2)
+        self.scene_accuracy = nn.ModuleDict(
+            {split: MulticlassAccuracy(n_scenes, average="micro") for split in EVAL_SPLITS}
+        )
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         pred, latents = self.teacher(batch["image"], batch["scene"])
@@ -60,7 +67,23 @@ class TeacherModule(PaeModule):
         return list(self.parameters())
 
     def evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
-        pred, _ = self.teacher(batch["image"])
+        pred, latents = self.teacher(batch["image"])
         gt, scene, index = batch["pose"], batch["scene"], batch.get("index")
         self.evaluation.update(split, "teacher", pred, gt, scene, index)
+        if latents.scene_logits is not None:
+            self.scene_accuracy[split].update(latents.scene_logits, scene)
         self.evaluation.update(split, "mean_pose", self.mean_poses[scene], gt, scene, index)
+
+    def _log_scene_accuracy(self, split: str) -> None:
+        metric = self.scene_accuracy[split]
+        if metric.update_called:
+            self.log(f"{split}/teacher/scene_accuracy", metric.compute())
+            metric.reset()
+
+    def on_validation_epoch_end(self) -> None:
+        super().on_validation_epoch_end()
+        self._log_scene_accuracy("val")
+
+    def on_test_epoch_end(self) -> None:
+        super().on_test_epoch_end()
+        self._log_scene_accuracy("test")

@@ -52,8 +52,8 @@ def mlp(in_dim: int, hidden: Sequence[int], out_dim: int) -> nn.Sequential:
 class PoseAutoEncoder(nn.Module):
     """Two MLP branches: x [B, 3] -> z_x [B, d] and q [B, 4] -> z_q [B, d].
 
-    With n_scenes > 1 the scene index [B] is Fourier-encoded like the pose and concatenated
-    to each branch's input.
+    With n_scenes > 1 the scene index [B] is Fourier-encoded with `scene_L` bands (whatever
+    `L` is, as the public multi-scene encoder does) and concatenated to each branch's input.
     """
 
     def __init__(
@@ -62,12 +62,14 @@ class PoseAutoEncoder(nn.Module):
         hidden: Sequence[int] = (64, 128, 256),
         L: int = 6,
         n_scenes: int = 1,
+        scene_L: int = 6,
     ) -> None:
         super().__init__()
         self.latent_dim = latent_dim
         self.n_scenes = n_scenes
         self.fourier = FourierFeatures(L)
-        scene_dim = self.fourier.out_dim(1) if n_scenes > 1 else 0
+        self.scene_fourier = FourierFeatures(scene_L)
+        scene_dim = self.scene_fourier.out_dim(1) if n_scenes > 1 else 0
         self.branch_x = mlp(self.fourier.out_dim(3) + scene_dim, hidden, latent_dim)
         self.branch_q = mlp(self.fourier.out_dim(4) + scene_dim, hidden, latent_dim)
 
@@ -78,7 +80,7 @@ class PoseAutoEncoder(nn.Module):
         if self.n_scenes > 1:
             if scene is None:
                 raise ValueError("a multi-scene PoseAutoEncoder needs the scene index")
-            enc_s = self.fourier(scene.to(poses.dtype).unsqueeze(-1))
+            enc_s = self.scene_fourier(scene.to(poses.dtype).unsqueeze(-1))
             enc_x = torch.cat([enc_x, enc_s], dim=-1)
             enc_q = torch.cat([enc_q, enc_s], dim=-1)
         return Latents(self.branch_x(enc_x), self.branch_q(enc_q))
