@@ -26,8 +26,8 @@ def tiny_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return root
 
 
-def tiny_overrides(root: Path) -> list[str]:
-    """Overrides that point the default config at the tiny dataset with 1-2 epoch runs."""
+def tiny_data_overrides(root: Path) -> list[str]:
+    """Overrides that point the data config (train or eval) at the tiny dataset."""
     return [
         f"data.root={root}",
         f"data.scenes={TINY['scenes']}",
@@ -35,6 +35,13 @@ def tiny_overrides(root: Path) -> list[str]:
         f"data.test_frames={TINY['test_frames']}",
         f"data.size={TINY['size']}",
         "data.crop=28",
+    ]
+
+
+def tiny_overrides(root: Path) -> list[str]:
+    """Overrides that point the default config at the tiny dataset with 1-2 epoch runs."""
+    return [
+        *tiny_data_overrides(root),
         "data.batch_size=8",
         "teacher.max_epochs=2",
         "student.max_epochs=2",

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import TINY, tiny_overrides
+from tests.conftest import tiny_data_overrides, tiny_overrides
 
 pytestmark = pytest.mark.slow
 
@@ -25,12 +25,7 @@ def _odd_test_split(tiny_root: Path, root: Path) -> Path:
 
 def _data_overrides(root: Path) -> list[str]:
     return [
-        f"data.root={root}",
-        f"data.scenes={TINY['scenes']}",
-        f"data.train_frames={TINY['train_frames']}",
-        f"data.test_frames={TINY['test_frames']}",
-        f"data.size={TINY['size']}",
-        "data.crop=28",
+        *tiny_data_overrides(root),
         "data.eval_batch_size=5",
         "+trainer.enable_progress_bar=false",
     ]

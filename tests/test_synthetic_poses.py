@@ -136,3 +136,15 @@ def test_renders_real_7scenes_and_cambridge_geometry(tmp_path: Path) -> None:
     written = read_labels(tmp_path / "out" / "labels" / "all_test.csv")
     for path in written.img_path:
         assert cv2.imread(str(tmp_path / "out" / path)).std() > 8, path
+
+
+def test_a_missing_split_is_reported_before_rendering(tmp_path: Path) -> None:
+    from pae.data.labels import LabelError
+
+    path = tmp_path / "train_only.csv"
+    write_labels(path, read_labels(_labels(tmp_path / "all.csv", "room", _walk(3.0, 6, 0))))
+    table = read_labels(path)
+    write_labels(path, table.select(np.asarray(table.split) == "train"))
+    with pytest.raises(LabelError, match=r"no rows of the split\(s\) \['test'\]"):
+        write_dataset_at_poses(tmp_path / "out", [path], size=16, required_splits=("train", "test"))
+    assert not (tmp_path / "out").exists()

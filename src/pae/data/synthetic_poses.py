@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pae.data.labels import LabelTable, read_labels
+from pae.data.labels import LabelError, LabelTable, read_labels
 from pae.data.synthetic import (
     Appearance,
     Box,
@@ -96,6 +96,7 @@ def write_dataset_at_poses(
     size: int = 64,
     seed: int = 0,
     overwrite: bool = False,
+    required_splits: Sequence[str] = (),
 ) -> SyntheticSummary:
     """Render one image per row of ``label_paths`` at that row's pose into ``out``.
 
@@ -103,13 +104,18 @@ def write_dataset_at_poses(
     files last) and the images, whole or not at all (``overwrite``: see
     :func:`~pae.data.synthetic.write_whole`); each (scene, split, seq) gets its own
     :class:`Appearance` and sensor noise. A bad row raises the
-    :class:`~pae.data.labels.LabelError` of ``pae-data check`` (``FILE:LINE: problem``).
+    :class:`~pae.data.labels.LabelError` of ``pae-data check`` (``FILE:LINE: problem``), and
+    so does a split of ``required_splits`` without rows, before anything is rendered.
     """
     if int(size) != size or size < 8:
         raise ValueError(f"size must be an integer >= 8, got {size!r}")
     if not label_paths:
         raise ValueError("no label files given")
     table = LabelTable.concat(read_labels(path) for path in label_paths)
+    missing = [split for split in required_splits if split not in table.split]
+    if missing:
+        files = ", ".join(str(path) for path in label_paths)
+        raise LabelError(files, None, f"no rows of the split(s) {missing}; rows of each are needed")
     return write_whole(out, overwrite, lambda folder: _render_rows(folder, table, size, seed))
 
 
