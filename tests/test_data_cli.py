@@ -324,13 +324,13 @@ def test_synth_passes_arguments_and_prints_summary(
 
     fake = types.ModuleType("pae.data.synthetic")
     fake.DEFAULT_SCENES, fake.DEFAULT_TRAIN_FRAMES, fake.DEFAULT_TEST_FRAMES = 3, 40, 20
-    fake.DEFAULT_SIZE, fake.DEFAULT_TEST_OFFSET_M = 64, 0.7
+    fake.DEFAULT_SIZE, fake.DEFAULT_TEST_OFFSET_M, fake.DEFAULT_TRAIN_LANE_M = 64, 0.7, 0.0
     fake.write_synthetic_dataset = write_synthetic_dataset
     monkeypatch.setitem(sys.modules, "pae.data.synthetic", fake)
     monkeypatch.setattr(pae.data, "synthetic", fake, raising=False)
 
     assert main(["synth", str(tmp_path / "a"), "--scenes", "2", "--size", "32", "--seed", "7"]) == 0
-    assert main(["synth", str(tmp_path / "b"), "--test-offset", "0"]) == 0
+    assert main(["synth", str(tmp_path / "b"), "--test-offset", "0", "--train-lane", "0.5"]) == 0
     assert capsys.readouterr().out == "synthetic summary\n" * 2
     assert calls == [
         (
@@ -342,6 +342,7 @@ def test_synth_passes_arguments_and_prints_summary(
                 size=32,
                 seed=7,
                 test_offset_m=0.7,
+                train_lane_m=0.0,
                 overwrite=False,
             ),
         ),
@@ -354,6 +355,7 @@ def test_synth_passes_arguments_and_prints_summary(
                 size=64,
                 seed=0,
                 test_offset_m=0.0,
+                train_lane_m=0.5,
                 overwrite=False,
             ),
         ),

@@ -2,8 +2,8 @@
 
 ::
 
-    pae-data synth OUT [--scenes N --train-frames N --test-frames N --test-offset M --size PX
-                        --seed S] [--overwrite]
+    pae-data synth OUT [--scenes N --train-frames N --test-frames N --test-offset M
+                        --train-lane M --size PX --seed S] [--overwrite]
     pae-data synth OUT --poses LABELS.csv [LABELS.csv ...] [--size PX --seed S] [--overwrite]
     pae-data convert {cambridge,7scenes} RAW_ROOT OUT_DIR
     pae-data check LABELS.csv ROOT
@@ -46,6 +46,7 @@ def _synth(args: argparse.Namespace) -> int:
                 ("--train-frames", args.train_frames),
                 ("--test-frames", args.test_frames),
                 ("--test-offset", args.test_offset),
+                ("--train-lane", args.train_lane),
             )
             if value is not None
         ]
@@ -69,6 +70,7 @@ def _synth(args: argparse.Namespace) -> int:
             size=chosen(args.size, synthetic.DEFAULT_SIZE),
             seed=args.seed,
             test_offset_m=chosen(args.test_offset, synthetic.DEFAULT_TEST_OFFSET_M),
+            train_lane_m=chosen(args.train_lane, synthetic.DEFAULT_TRAIN_LANE_M),
             overwrite=args.overwrite,
         )
     print(dataset.summary())
@@ -146,6 +148,13 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="M",
         help="lateral offset of the test sequences from the train route in metres "
         "(default: 0.7; 0 puts them on the route)",
+    )
+    synth.add_argument(
+        "--train-lane",
+        type=float,
+        metavar="M",
+        help="lateral offset of the train sequences from the route in metres, alternately "
+        "left and right (default: 0, on the route)",
     )
     synth.add_argument(
         "--poses",

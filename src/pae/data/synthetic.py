@@ -91,6 +91,12 @@ median test camera lies about 0.24 m from the nearest train camera (7-Scenes: 0.
 where retrieval of train poses cannot reach it (0 puts the test cameras on the train route,
 about 0.09 m away)."""
 
+DEFAULT_TRAIN_LANE_M = 0.0
+"""Lateral offset (m) of the train sequences from the route, alternately left and right."""
+
+SEQUENCE_YAW_STRAY_RAD = 0.5
+"""How far (rad) a sequence's yaw strays from the route's heading."""
+
 TRAIN_SEQUENCES = 6
 TEST_SEQUENCES = 2
 TEXEL_SIZE_M = 0.02
@@ -607,11 +613,14 @@ def furnish(
     return tuple(boxes)
 
 
-def make_scene(index: int, seed: int = 0, test_offset_m: float = 0.0) -> SyntheticScene:
+def make_scene(
+    index: int, seed: int = 0, test_offset_m: float = 0.0, train_lane_m: float = 0.0
+) -> SyntheticScene:
     """Scene ``index`` of the benchmark with ``seed``: room, furniture, textures, camera route.
 
-    ``test_offset_m`` is the lateral offset of the test sequences from the route (see
-    :func:`make_sequences`); the furniture keeps that much further away from the route.
+    ``test_offset_m`` and ``train_lane_m`` are the lateral offsets of the test and train
+    sequences from the route (see :func:`make_sequences`); the furniture keeps the larger of
+    them further away from the route.
     """
     rng = np.random.default_rng([seed, index, 0])
     size = np.array([rng.uniform(6.0, 8.0), rng.uniform(5.5, 7.0), rng.uniform(2.6, 3.2)])
@@ -621,7 +630,7 @@ def make_scene(index: int, seed: int = 0, test_offset_m: float = 0.0) -> Synthet
     centre = np.array([*rng.uniform(-0.3, 0.3, 2), 1.4])
     half = np.array([rng.uniform(1.2, 1.6), rng.uniform(1.0, 1.4), 0.3])
     route = CameraRoute.random(rng, centre, half)
-    boxes = furnish(rng, room, centre - half, centre + half, 0.6 + test_offset_m)
+    boxes = furnish(rng, room, centre - half, centre + half, 0.6 + max(test_offset_m, train_lane_m))
     light = np.array([*rng.uniform(-1.0, 1.0, 2), size[2] - 0.5])
     return SyntheticScene(scene_name(index), room, boxes, light, route)
 
@@ -856,7 +865,7 @@ def _trajectory(
         ],
         axis=1,
     )
-    yaw = route_yaw + 0.5 * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3))
+    yaw = route_yaw + SEQUENCE_YAW_STRAY_RAD * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3))
     pitch = np.radians(-3.0) + np.radians(11.0) * _smooth_wave(rng, t, (0.5, 1.5), (0.8, 0.2))
     roll = np.radians(5.0) * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3))
     rotations = _look_rotations(yaw, pitch, roll)
@@ -871,6 +880,7 @@ def make_sequences(
     test_frames: int,
     seed: int = 0,
     test_offset_m: float = 0.0,
+    train_lane_m: float = 0.0,
 ) -> list[CameraSequence]:
     """Train sequences ``seq-01…`` then test sequences (numbered on) of scene ``scene_index``.
 
@@ -888,7 +898,8 @@ def make_sequences(
     for number, (split, index_in_split, count, frames) in enumerate(splits, start=1):
         rng = np.random.default_rng([seed, scene_index, 1, number])
         start = (index_in_split + rng.uniform(0, 0.3)) / count
-        offset = 0.0 if split == "train" else test_offset_m * (-1) ** index_in_split
+        lane = train_lane_m if split == "train" else test_offset_m
+        offset = lane * (-1) ** index_in_split
         poses = _trajectory(scene, frames, start, rng, offset)
         appearance = Appearance.random(rng)
         sequences.append(
@@ -1027,6 +1038,7 @@ def write_synthetic_dataset(
     seed: int = 0,
     test_offset_m: float = DEFAULT_TEST_OFFSET_M,
     overwrite: bool = False,
+    train_lane_m: float = DEFAULT_TRAIN_LANE_M,
 ) -> SyntheticSummary:
     """Render the benchmark into ``out`` (see :func:`write_whole`): images first, label files
     last.
@@ -1044,12 +1056,15 @@ def write_synthetic_dataset(
     ):
         if int(value) != value or value < low:
             raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
-    if not (math.isfinite(test_offset_m) and 0 <= test_offset_m <= 1.0):
-        raise ValueError(f"test_offset_m must lie in [0, 1] m, got {test_offset_m!r}")
+    for name, value in (("test_offset_m", test_offset_m), ("train_lane_m", train_lane_m)):
+        if not (math.isfinite(value) and 0 <= value <= 1.0):
+            raise ValueError(f"{name} must lie in [0, 1] m, got {value!r}")
 
     def render(folder: Path) -> SyntheticSummary:
         started = time.perf_counter()
-        _render(folder, scenes, train_frames, test_frames, size, seed, test_offset_m)
+        _render(
+            folder, scenes, train_frames, test_frames, size, seed, test_offset_m, train_lane_m
+        )
         seconds = time.perf_counter() - started
         return SyntheticSummary(
             root=str(folder),
@@ -1072,14 +1087,17 @@ def _render(
     size: int,
     seed: int,
     test_offset_m: float,
+    train_lane_m: float,
 ) -> None:
     """Render every scene into `out`: images first, label files last."""
     camera = PinholeCamera(size)
     label_tables: dict[tuple[str, str], LabelTable] = {}
     for index in range(scenes):
-        scene = make_scene(index, seed, test_offset_m)
+        scene = make_scene(index, seed, test_offset_m, train_lane_m)
         rows: dict[str, list[tuple[str, str, np.ndarray]]] = {"train": [], "test": []}
-        sequences = make_sequences(index, scene, train_frames, test_frames, seed, test_offset_m)
+        sequences = make_sequences(
+            index, scene, train_frames, test_frames, seed, test_offset_m, train_lane_m
+        )
         for sequence in sequences:
             paths = [
                 f"{scene.name}/{sequence.name}/frame-{frame:06d}.png"

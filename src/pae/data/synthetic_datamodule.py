@@ -23,6 +23,7 @@ def default_root(
     render_seed: int,
     test_offset_m: float,
     poses: list[str] | None,
+    train_lane_m: float = 0.0,
 ) -> str:
     """The folder a synthetic dataset renders into: named by its settings, or, for
     ``poses``, by a digest of the label files' contents (so edited files render anew)."""
@@ -37,6 +38,7 @@ def default_root(
     return (
         f"{RENDER_FOLDER}/scenes{scenes}_train{train_frames}_test{test_frames}_px{size}"
         f"_seed{render_seed}_offset{test_offset_m:g}"
+        + (f"_lane{train_lane_m:g}" if train_lane_m else "")
     )
 
 
@@ -44,7 +46,8 @@ class SyntheticDataModule(PoseDataModule):
     """Renders `pae-data synth` output into `root` when its label files are missing.
 
     Without ``poses``: the benchmark's rooms and routes (``scenes``, frames per scene, the
-    test sequences' lateral offset ``test_offset_m`` from the train route). With ``poses``
+    lateral offsets of the test and train sequences from the route, ``test_offset_m`` and
+    ``train_lane_m``). With ``poses``
     (label files, e.g. a real dataset's train and test labels): one image per row at that
     row's pose, in a world built around them (``pae-data synth --poses``). ``root`` None
     picks a folder under ``data/synthetic`` named by these settings. A non-empty ``root``
@@ -61,12 +64,20 @@ class SyntheticDataModule(PoseDataModule):
         render_seed: int = 0,
         test_offset_m: float = 0.7,
         poses: list[str] | None = None,
+        train_lane_m: float = 0.0,
         **kwargs: Any,
     ) -> None:
         poses = [str(p) for p in poses] if poses else None
         if root is None:
             root = default_root(
-                scenes, train_frames, test_frames, size, render_seed, test_offset_m, poses
+                scenes,
+                train_frames,
+                test_frames,
+                size,
+                render_seed,
+                test_offset_m,
+                poses,
+                train_lane_m,
             )
         labels = Path(root) / "labels"
         super().__init__(
@@ -83,6 +94,7 @@ class SyntheticDataModule(PoseDataModule):
             "size": size,
             "seed": render_seed,
             "test_offset_m": test_offset_m,
+            "train_lane_m": train_lane_m,
         }
 
     def prepare_data(self) -> None:
