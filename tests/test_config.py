@@ -78,3 +78,52 @@ def test_unknown_group_option_lists_valid_choices(tmp_path: Path) -> None:
     )
     assert result.returncode != 0
     assert "fourier_mlp4" in result.stderr and "mlp2" in result.stderr
+
+
+@pytest.mark.parametrize("option", GROUPS["experiment"])
+def test_experiments_with_sweep_parameters_sweep_by_themselves(option: str) -> None:
+    from hydra.types import RunMode
+
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("train", [f"experiment={option}"], return_hydra_config=True)
+    if cfg.hydra.sweeper.get("params"):
+        assert cfg.hydra.mode == RunMode.MULTIRUN, f"experiment={option} needs hydra.mode"
+
+
+def test_python_defaults_are_the_yaml_defaults() -> None:
+    """One default per setting: where Python code has a default, it is the config's value."""
+    import inspect
+
+    from omegaconf import OmegaConf
+
+    from pae.callbacks.refinement import TestTimeRefinement
+    from pae.data.synthetic_datamodule import SyntheticDataModule
+    from pae.models.pae import PoseAutoEncoder
+    from pae.refine import PoseIndex
+
+    def defaults(function) -> dict:
+        return {
+            name: p.default
+            for name, p in inspect.signature(function).parameters.items()
+            if p.default is not inspect.Parameter.empty
+        }
+
+    conf = Path(CONFIG_DIR)
+    for function, path in (
+        (SyntheticDataModule, "data/synthetic.yaml"),
+        (TestTimeRefinement, "refine/knn_affine.yaml"),
+        (PoseAutoEncoder, "pae/fourier_mlp4.yaml"),
+    ):
+        values = OmegaConf.to_container(OmegaConf.load(conf / path))
+        shared = {
+            k: v
+            for k, v in defaults(function).items()
+            if k in values and not isinstance(values[k], dict)
+        }
+        assert len(shared) >= 3
+        for key, default in shared.items():
+            if not isinstance(values[key], str) or "${" not in values[key]:
+                expected = tuple(values[key]) if isinstance(default, tuple) else values[key]
+                assert default == expected, f"{function.__name__}({key}=) vs {path}"
+    refine = OmegaConf.load(conf / "refine/knn_affine.yaml")
+    assert defaults(PoseIndex)["rot_weight"] == refine.rot_weight

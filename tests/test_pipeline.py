@@ -274,7 +274,12 @@ def test_real_data_layout_trains_end_to_end(tiny_root: Path, tmp_path: Path) -> 
     [
         ("refine.weight_model=lstsq", "unknown refine.weight_model 'lstsq'"),
         ("refine.orientation=slerp", "unknown refine.orientation 'slerp'"),
-        ("refine.method=icp", "unknown refine.method 'icp'"),
+        ("refine.distance=cosine", "unknown refine.distance 'cosine'"),
+        (
+            "refine.alternatives.latent_knn._target_=pae.refine.Nope",
+            "refine.alternatives.latent_knn: Error loading 'pae.refine.Nope'",
+        ),
+        ("refine._target_=pae.nowhere.Refiner", "refine: Error loading 'pae.nowhere.Refiner'"),
     ],
 )
 def test_bad_refine_options_name_the_key(compose_train, override: str, message: str) -> None:
@@ -282,6 +287,17 @@ def test_bad_refine_options_name_the_key(compose_train, override: str, message: 
 
     with pytest.raises(ConfigError, match=message):
         refinement_callbacks(compose_train(override))
+
+
+def test_refine_groups_instantiate_their_callback(compose_train) -> None:
+    from pae.callbacks.refinement import TestTimeRefinement
+    from pae.pipeline import refinement_callbacks
+
+    assert refinement_callbacks(compose_train("refine=none")) == []
+    (callback,) = refinement_callbacks(compose_train("refine=knn_closed_form", "refine.k=5"))
+    assert isinstance(callback, TestTimeRefinement)
+    assert callback.options["weight_model"] == "closed_form" and callback.options["k"] == 5
+    assert sorted(callback.alternatives) == ["closed_form_k10", "latent_knn", "pose_descent"]
 
 
 @pytest.mark.parametrize(

@@ -6,6 +6,7 @@ figures it measured; the entry points merge them into the run's metrics.json.
 
 from __future__ import annotations
 
+import re
 import time
 import warnings
 from pathlib import Path
@@ -18,7 +19,6 @@ from lightning.pytorch.loggers import Logger, TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_info
 from omegaconf import DictConfig, OmegaConf
 
-from pae.callbacks.refinement import TestTimeRefinement
 from pae.checkpoints import (
     DATA_FINGERPRINT_KEY,
     AtomicCheckpointIO,
@@ -213,24 +213,14 @@ def _check_data(
 
 
 def refinement_callbacks(cfg: DictConfig) -> list[L.Callback]:
-    """The configured test-time refinement callback (none for refine=none)."""
-    refine = cfg.refine
-    if refine.method == "none":
+    """The callback the `refine` group instantiates (none for refine=none, an empty group)."""
+    if not cfg.get("refine"):
         return []
-    if refine.method != "knn_affine":
-        raise ConfigError(f"unknown refine.method {refine.method!r}; choose 'none' or 'knn_affine'")
-    options = OmegaConf.to_container(refine, resolve=True)
-    options.pop("method")
-    alternatives = {}
-    for name, spec in (options.pop("alternatives", None) or {}).items():
-        try:
-            alternatives[name] = instantiate(spec, _partial_=True)
-        except Exception as err:  # a bad target or option: name the key
-            raise ConfigError(f"refine.alternatives.{name}: {first_line(err)}") from None
     try:
-        return [TestTimeRefinement(**options, alternatives=alternatives)]
-    except (TypeError, ValueError) as err:
-        raise ConfigError(f"refine: {err}") from None
+        return [instantiate(cfg.refine)]
+    except Exception as err:  # a bad target or option: name the key Hydra reports
+        key = re.search(r"full_key: (\S+)", str(err))
+        raise ConfigError(f"{key.group(1) if key else 'refine'}: {first_line(err)}") from None
 
 
 def _student_module(

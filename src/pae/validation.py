@@ -116,17 +116,20 @@ def validate_data(cfg: DictConfig, train: bool = True) -> None:
 
 
 def validate_refine(cfg: DictConfig) -> None:
-    """refine.*: ranges here; the choices (weight model, orientation, distance) are checked by
-    building the refinement callback."""
-    _choice(cfg, "refine.method", ("none", "knn_affine"))
-    if cfg.refine.method == "none":
+    """refine.*: ranges here (for the keys the configured refinement has); the choices
+    (weight model, orientation, distance) are checked by building its callback."""
+    refine = cfg.get("refine")
+    if not refine:
         return
-    _integer(cfg, "refine.k", 1)
-    _integer(cfg, "refine.iterations", 0)
-    _number(cfg, "refine.lr", 0, strict=True)
-    _number(cfg, "refine.rot_weight", 0, strict=False)
-    _number(cfg, "refine.guess_sigma_m", 0, strict=False, optional=True)
-    _integer(cfg, "refine.every_n_val_epochs", 1)
+    for key, low in (("k", 1), ("iterations", 0), ("every_n_val_epochs", 1)):
+        if key in refine:
+            _integer(cfg, f"refine.{key}", low)
+    if "lr" in refine:
+        _number(cfg, "refine.lr", 0, strict=True)
+    if "rot_weight" in refine:
+        _number(cfg, "refine.rot_weight", 0, strict=False)
+    if "guess_sigma_m" in refine:
+        _number(cfg, "refine.guess_sigma_m", 0, strict=False, optional=True)
     refinement_callbacks(cfg)
 
 
