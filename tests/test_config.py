@@ -2,6 +2,7 @@
 
 import subprocess
 import sys
+from enum import Enum
 from pathlib import Path
 
 import pytest
@@ -35,15 +36,42 @@ def _compose(config: str, overrides: list[str]):
         return compose(config, overrides=overrides)
 
 
+def _leaves(node: object, path: tuple[str, ...] = ()) -> list[tuple[tuple[str, ...], object]]:
+    """(keys, value) of every leaf of a loaded config file (keys may hold dots: sweep params)."""
+    if isinstance(node, dict):
+        return [leaf for key, value in node.items() for leaf in _leaves(value, (*path, key))]
+    return [(path, node)]
+
+
 @pytest.mark.parametrize(
     ("group", "option"), [(g, o) for g, options in GROUPS.items() for o in options]
 )
 def test_every_group_option_composes(group: str, option: str) -> None:
+    """The option is chosen, and every value its file writes (not one that interpolates or
+    must be given) is in the composed config: it took effect, not something else's value."""
+    from omegaconf import ListConfig, OmegaConf
+
     overrides = [f"{group}={option}"]
     if group == "data" and option != "synthetic":
         overrides.append("data.root=/data/somewhere")
-    cfg = _compose("train", overrides)
-    assert group == "experiment" or cfg[group] is not None
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("train", overrides=overrides, return_hydra_config=True)
+    assert cfg.hydra.runtime.choices[group] == option
+    file = OmegaConf.to_container(OmegaConf.load(Path(CONFIG_DIR) / group / f"{option}.yaml"))
+    written = {k: v for k, v in (file or {}).items() if k != "defaults"}
+    leaves = _leaves(written, () if group == "experiment" else (group,))
+    assert leaves or "defaults" in (file or {}) or option == "none"  # cpu: only its base
+    for keys, value in leaves:
+        if isinstance(value, str) and ("${" in value or value == "???"):
+            continue
+        composed = cfg
+        for key in keys:
+            composed = composed[key]
+        if isinstance(composed, ListConfig):
+            composed = OmegaConf.to_container(composed)
+        if isinstance(composed, Enum):  # hydra.mode
+            composed = composed.name
+        assert composed == value, f"{group}={option}: {'.'.join(keys)}"
 
 
 @pytest.mark.parametrize("option", GROUPS["pae"])

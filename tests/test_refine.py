@@ -24,7 +24,7 @@ from pae.refine import (
     refine_affine_per_query,
 )
 from pae.refine.affine import _FirstLayerGain
-from pae.refine.benchmarks import bench_index, bench_refinement
+from pae.refine.benchmarks import bench_index, bench_refinement, mlp_flops_per_query
 
 
 @pytest.fixture(autouse=True)
@@ -326,14 +326,27 @@ def test_refiner_under_inference_mode(
     assert torch.equal(refiner(with_logits, initial).neighbour_indices, result.neighbour_indices)
 
 
-def test_bench_refinement_reports_positive_timings() -> None:
-    figures = bench_refinement(n_queries=50)
-    for key in (
-        "bench/refine/batched_ms_per_query",
-        "bench/refine/per_query_ms_per_query",
-        "bench/refine/speedup",
-    ):
-        assert figures[key] > 0
+def test_mlp_flops_per_query_on_known_sizes() -> None:
+    # k=3, D=512: layers 1536 -> 192 -> 96 -> 48 -> 3, 318,096 multiply-adds per pass;
+    # 3 iterations of forward + backward (3 passes) and a last forward: 10 passes, 2 FLOP each
+    assert mlp_flops_per_query(3, 512, 3) == 2 * 318_096 * 10
+    assert mlp_flops_per_query(1, 2, 0) == 2 * (2 * 64 + 64 * 32 + 32 * 16 + 16 * 1)
+
+
+def test_bench_refinement_figures_agree_with_each_other() -> None:
+    figures = bench_refinement(n_queries=40, public_queries=10)
+    batched = figures["bench/refine/batched_ms_per_query"]
+    per_query = figures["bench/refine/per_query_ms_per_query"]
+    public = figures["bench/refine/public_loop_ms_per_query"]
+    assert figures["bench/refine/speedup"] == pytest.approx(public / batched)
+    assert figures["bench/refine/speedup_vs_per_query"] == pytest.approx(per_query / batched)
+    assert figures["bench/refine/mflop_per_query"] == pytest.approx(6.36192)
+    seconds_at_roofline = 6.36192e6 / (figures["bench/refine/matmul_gflops"] * 1e9)
+    assert figures["bench/refine/roofline_fraction"] == pytest.approx(
+        seconds_at_roofline * 1e3 / batched
+    )
+    # one batched call against 40 optimiser loops: batched is the faster under any load
+    assert per_query > batched
 
 
 def test_bench_index_on_label_files(tmp_path: Path) -> None:

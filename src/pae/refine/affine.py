@@ -571,6 +571,26 @@ class _FreeLogits(nn.Module):
         return F.softmax(self.logits, dim=0)
 
 
+def _closed_form_by_substitution(query: Tensor, neighbours: Tensor, ridge: float) -> Tensor:
+    """One query's ``closed_form_weights`` [k] computed another way: the constraint is
+    substituted (a_k = 1 − Σ_{i<k} aᵢ) and the unconstrained, ridge-augmented least squares
+    in the other k − 1 weights is solved by ``torch.linalg.lstsq``. query [D]; neighbours
+    [k, D]."""
+    k = neighbours.shape[0]
+    if k == 1:
+        return torch.ones(1, dtype=neighbours.dtype, device=neighbours.device)
+    spread = (neighbours - neighbours.mean(dim=0)).pow(2).sum(dim=1).mean()
+    penalty = ridge * (spread if spread > 0 else torch.ones_like(spread))
+    last = neighbours[-1]
+    columns = (neighbours[:-1] - last).T  # [D, k − 1]
+    root = penalty.sqrt()
+    eye = torch.eye(k - 1, dtype=neighbours.dtype, device=neighbours.device)
+    system = torch.cat([columns, root * eye, -root * torch.ones_like(eye[:1])], dim=0)
+    target = torch.cat([query - last, torch.zeros(k - 1).to(query), -root.reshape(1)], dim=0)
+    free = torch.linalg.lstsq(system, target.unsqueeze(1)).solution.squeeze(1)
+    return torch.cat([free, (1.0 - free.sum()).reshape(1)])
+
+
 def refine_affine_per_query(
     query_latent: Tensor,
     neighbour_latents: Tensor,
@@ -592,8 +612,9 @@ def refine_affine_per_query(
     Same arguments and result. Each query gets a fresh ``nn.Module`` (MLP or logits) and its
     own AdamW, and is optimised with batch size 1. Without ``init`` or ``generator`` the MLP
     keeps ``nn.Linear``'s default initialisation (global RNG); with ``generator`` each query's
-    parameters are drawn by ``init_weight_regressor``. ``chunk_size`` is accepted for a common
-    signature and unused.
+    parameters are drawn by ``init_weight_regressor``. ``closed_form`` is solved by another
+    method than ``closed_form_weights`` (substitution and least squares, not the KKT system).
+    ``chunk_size`` is accepted for a common signature and unused.
     """
     _check_inputs(
         query_latent, neighbour_latents, neighbour_poses, weight_model, objective, iterations
@@ -614,9 +635,7 @@ def refine_affine_per_query(
         rows = []
         for row in range(batch):
             if weight_model == "closed_form":
-                rows.append(
-                    closed_form_weights(query[row : row + 1], neighbours[row : row + 1], ridge)[0]
-                )
+                rows.append(_closed_form_by_substitution(query[row], neighbours[row], ridge))
                 continue
             model: nn.Module
             if weight_model == "softmax_logits":
