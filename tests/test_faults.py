@@ -16,13 +16,13 @@ import pytest
 import torch
 
 import pae.pipeline
-from pae.checkpoints import CheckpointError, read_checkpoint
+from pae.checkpoints import read_checkpoint
 from pae.data.cli import main as pae_data
 from pae.data.dataset import PoseDataset
-from pae.data.labels import LabelError, LabelTable, read_labels, write_labels
+from pae.data.labels import LabelTable, read_labels, write_labels
 from pae.data.synthetic import write_synthetic_dataset
-from pae.data.transforms import ImageError
-from pae.reporting import ConfigError, sweep_table
+from pae.errors import CheckpointError, ConfigError, ImageError, LabelError
+from pae.reporting import sweep_table
 from pae.train import run
 from tests.conftest import TINY, tiny_overrides
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from pae.checkpoints import CheckpointError, load_pae, load_teacher
+from pae.checkpoints import load_pae, load_teacher
+from pae.errors import CheckpointError, ConfigError
 from pae.pipeline import evaluate_checkpoints
-from pae.reporting import ConfigError
 from pae.train import run
 
 EXPECTED_METHODS = (

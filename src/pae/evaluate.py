@@ -11,8 +11,9 @@ from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig
 
 from pae import CONFIG_DIR
+from pae.atomic import write_json_atomic
 from pae.pipeline import evaluate_checkpoints
-from pae.reporting import format_results_table, reporting_errors, write_json_atomic
+from pae.reporting import format_results_table, reporting_errors
 from pae.validation import validate_eval_config
 
 

@@ -13,7 +13,6 @@ from pathlib import Path
 from typing import Any
 
 import lightning as L
-import torch
 from hydra.utils import instantiate
 from lightning.pytorch.loggers import Logger, TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_info
@@ -32,14 +31,14 @@ from pae.checkpoints import (
 )
 from pae.data.datamodule import PoseDataModule
 from pae.data.latents import LatentCache, TeacherLatentDataModule
+from pae.errors import ConfigError
 from pae.lit.decoder import DecoderModule
 from pae.lit.rpr import RPRModule
-from pae.lit.student import StudentModule
+from pae.lit.student import StudentEvaluator, StudentModule
 from pae.lit.teacher import TeacherModule
-from pae.losses import LearnedPoseLoss
 from pae.models.base import PoseRegressor
 from pae.models.pae import PoseAutoEncoder
-from pae.reporting import ConfigError, first_line
+from pae.reporting import first_line
 
 Metrics = dict[str, float]
 
@@ -364,15 +363,7 @@ def evaluate_checkpoints(cfg: DictConfig, run_dir: Path) -> Metrics:
             f"{cfg.pae_ckpt}: PAE latent size {pae.model.latent_dim} does not match the "
             f"teacher's {teacher.model.latent_dim} ({teacher_path})"
         )
-    module = StudentModule(
-        teacher.model,
-        pae.model,
-        loss=LearnedPoseLoss(),
-        optimizer=torch.optim.Adam,
-        scene_names=data.scene_names,
-        teacher_config=teacher.config,
-        pae_config=pae.config,
-    )
+    module = StudentEvaluator(teacher.model, pae.model, data.scene_names)
     trainer = build_trainer(cfg, run_dir, 0, refinement_callbacks(cfg))
     trainer.test(module, datamodule=data, verbose=False)
     metrics = collect_metrics(trainer)

@@ -11,8 +11,9 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from pae.checkpoints import newest_readable_checkpoint
+from pae.errors import ConfigError
 from pae.pipeline import flat_config
-from pae.reporting import ConfigError, reporting_errors
+from pae.reporting import reporting_errors
 from pae.validation import validate_eval_config, validate_train_config
 
 RESUMABLE_CHANGES = (

@@ -10,9 +10,9 @@ import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from pae.data.labels import read_labels
+from pae.errors import ConfigError
 from pae.losses import LATENT_LOSSES
 from pae.pipeline import refinement_callbacks
-from pae.reporting import ConfigError
 
 STEPS = ("teacher", "student", "decoder", "rpr")
 """The steps of pae-train, each with its config group (max_epochs, optimizer, ...)."""

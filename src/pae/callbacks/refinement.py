@@ -48,7 +48,8 @@ RefinerFactory = Callable[..., Refiner]
 
 
 class TestTimeRefinement(L.Callback):
-    """Refines every evaluated query of a StudentModule, in both retrieval protocols.
+    """Refines every evaluated query of a StudentEvaluator (or StudentModule), in both
+    retrieval protocols.
 
     Under DDP every process gathers all queries and drops the repeats a distributed sampler
     adds (by dataset index), so each figure counts every sample once, in dataset order.

@@ -30,7 +30,9 @@ from typing import Literal
 
 import numpy as np
 
-from pae.data.labels import ZERO_QUATERNION_NORM, LabelError, LabelTable, write_labels
+from pae.data.labels import ZERO_QUATERNION_NORM, LabelTable, write_labels
+from pae.errors import LabelError
+from pae.quaternion_sign import canonical_sign
 
 __all__ = [
     "CAMBRIDGE_SPLIT_FILES",
@@ -108,8 +110,7 @@ def read_cambridge_scene(scene_dir: str | os.PathLike[str], split: str) -> Label
     if not poses:
         raise LabelError(path, None, "no frames listed")
     pose_array = np.asarray(poses, dtype=np.float64)
-    flip = pose_array[:, 3:4] < 0
-    pose_array[:, 3:] = np.where(flip, -pose_array[:, 3:], pose_array[:, 3:])
+    pose_array[:, 3:] = canonical_sign(pose_array[:, 3:])
     return LabelTable(
         scene=[scene] * len(poses),
         split=[split] * len(poses),

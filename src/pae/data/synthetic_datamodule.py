@@ -10,7 +10,7 @@ from lightning.pytorch.utilities import rank_zero_info
 
 from pae.data import synthetic
 from pae.data.datamodule import PoseDataModule
-from pae.data.labels import LabelError
+from pae.errors import LabelError
 
 RENDER_FOLDER = "data/synthetic"
 """Where datasets without an explicit ``root`` are rendered (relative to the working dir)."""

@@ -785,15 +785,9 @@ class PositionRefiner:
         self, query_latents: Latents, initial_poses: Tensor, scenes: Tensor | None = None
     ) -> RefinementResult:
         """query_latents: the APR's latents (x, q of [B, d]); initial_poses [B, 7]: its
-        estimates; scenes [B] long or None. With several scenes in the index and no
-        ``scenes``, the argmax of ``query_latents.scene_logits`` is used.
+        estimates; scenes [B] long: the scene of each query (``PoseRegressor.estimate``
+        assigns them), None only for a single-scene index.
         """
-        if (
-            scenes is None
-            and len(self.index.scene_ids) > 1
-            and query_latents.scene_logits is not None
-        ):
-            scenes = query_latents.scene_logits.argmax(dim=-1)
         with torch.inference_mode(False):
             device = initial_poses.device
             initial = initial_poses.detach().clone()

@@ -30,15 +30,16 @@ from pae.refine.affine import (
 from pae.refine.index import PoseIndex
 
 
-def _scenes_or_default(
-    query_latents: Latents, scenes: Tensor | None, batch: int, device: torch.device
+def _query_scenes(
+    index: PoseIndex, scenes: Tensor | None, batch: int, device: torch.device
 ) -> Tensor:
-    """[B] scene of each query: given, else the latents' classifier argmax, else scene 0."""
+    """[B] scene of each query: as given (``PoseRegressor.estimate`` assigns them), or the
+    index's only scene."""
     if scenes is not None:
         return scenes.to(device, torch.long)
-    if query_latents.scene_logits is not None:
-        return query_latents.scene_logits.argmax(dim=-1).to(device)
-    return torch.zeros(batch, dtype=torch.long, device=device)
+    if len(index.scene_ids) != 1:
+        raise ValueError(f"the index holds {len(index.scene_ids)} scenes: pass the queries' scenes")
+    return torch.full((batch,), index.scene_ids[0], dtype=torch.long, device=device)
 
 
 class LatentRetrievalRefiner:
@@ -79,7 +80,7 @@ class LatentRetrievalRefiner:
         """query_latents x, q [B, d]; initial_poses [B, 7]; scenes [B] long or None."""
         device = initial_poses.device
         batch = initial_poses.shape[0]
-        scenes = _scenes_or_default(query_latents, scenes, batch, device)
+        scenes = _query_scenes(self.index, scenes, batch, device)
         store_poses = self.index.poses.to(device)
         store_scenes = self.index.scenes.to(device)
         with torch.no_grad():
@@ -147,9 +148,9 @@ class PoseDescentRefiner:
     def __call__(
         self, query_latents: Latents, initial_poses: Tensor, scenes: Tensor | None = None
     ) -> RefinementResult:
-        """query_latents x, q [B, d]; initial_poses [B, 7]; scenes [B] long or None."""
+        """query_latents x, q [B, d]; initial_poses [B, 7]; scenes [B] long (a multi-scene
+        PAE needs them), or None."""
         batch = initial_poses.shape[0]
-        scenes = _scenes_or_default(query_latents, scenes, batch, initial_poses.device)
         with torch.inference_mode(False), torch.enable_grad():
             target = query_latents.joint().detach().clone()
             pose = initial_poses.detach().clone().float()
