@@ -1,6 +1,6 @@
 """Refinements that search the PAE's latent space instead of pose space (train poses only).
 
-Both share :class:`~pae.refine.affine.PositionRefiner`'s call signature
+Both share :class:`~pae.refine.refiner.PositionRefiner`'s call signature
 ``(query_latents, initial_poses, scenes) -> RefinementResult`` and its factory signature
 ``(index, pae, **options)``, so the refinement callback runs them side by side:
 
@@ -19,15 +19,9 @@ import torch
 from torch import Tensor
 
 from pae.models.base import Latents
-from pae.refine.affine import (
-    OrientationMode,
-    PoseEncoder,
-    RefinementResult,
-    WeightModel,
-    combine_orientations,
-    refine_affine,
-)
 from pae.refine.index import PoseIndex
+from pae.refine.refiner import OrientationMode, PoseEncoder, RefinementResult, combine_orientations
+from pae.refine.weights import WeightModel, refine_affine
 
 
 def _query_scenes(
@@ -48,7 +42,7 @@ class LatentRetrievalRefiner:
     Every train pose of the index is encoded once per call (one batched PAE pass); each query
     retrieves, within its scene, the k encodings nearest its latent ``[z_x, z_q]`` (L2), and
     the refined position is ``Σ aᵢ xᵢ`` with weights fitted as in
-    :func:`~pae.refine.affine.refine_affine` (default: the exact closed form).
+    :func:`~pae.refine.weights.refine_affine` (default: the exact closed form).
     """
 
     def __init__(
