@@ -164,6 +164,10 @@ def test_checkpoints_are_written_whole(
     assert [p.name for p in tmp_path.iterdir() if p.suffix == ".tmp"] == []
 
 
+def test_each_checkpoint_is_stored_once(teacher_run: Path) -> None:
+    assert [p.name for p in (teacher_run / "checkpoints").iterdir()] == ["last.ckpt"]
+
+
 def test_resume_falls_back_and_continues_a_longer_schedule(
     teacher_run: Path, tiny_root: Path, tmp_path: Path
 ) -> None:
@@ -171,8 +175,10 @@ def test_resume_falls_back_and_continues_a_longer_schedule(
     checkpoints = run_dir / "checkpoints"
     last = checkpoints / "last.ckpt"
     steps_per_epoch = read_checkpoint(last)["global_step"] // 2
+    # an older checkpoint beside it (a run that kept one per epoch), then a damaged last.ckpt
+    shutil.copy(last, checkpoints / "epoch001.ckpt")
     last.write_bytes(last.read_bytes()[: last.stat().st_size // 3])  # what a full disk leaves
-    os.utime(last)
+    os.utime(last, ns=(last.stat().st_atime_ns, last.stat().st_mtime_ns + 10**9))
     result = pae_command(
         "train",
         *tiny_overrides(tiny_root),
