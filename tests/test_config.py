@@ -93,7 +93,7 @@ def test_pae_bands_override_reaches_the_model() -> None:
 
 
 def test_eval_config_composes() -> None:
-    cfg = _compose("eval", ["pae_ckpt=/x.ckpt", "refine=knn_closed_form"])
+    cfg = _compose("eval", ["student_ckpt=/x.ckpt", "refine=knn_closed_form"])
     assert cfg.refine.weight_model == "closed_form"
 
 
@@ -155,3 +155,21 @@ def test_python_defaults_are_the_yaml_defaults() -> None:
                 assert default == expected, f"{function.__name__}({key}=) vs {path}"
     refine = OmegaConf.load(conf / "refine/knn_affine.yaml")
     assert defaults(PoseIndex)["rot_weight"] == refine.rot_weight
+
+
+def test_old_key_pae_ckpt_is_read_as_student_ckpt_with_one_warning(capsys) -> None:
+    import pae.validation
+    from pae.errors import ConfigError
+    from pae.validation import apply_renamed_keys
+
+    pae.validation._WARNED.clear()
+    for config in ("train", "eval"):
+        cfg = _compose(config, ["pae_ckpt=/x.ckpt"])
+        apply_renamed_keys(cfg, "pae-train")
+        assert cfg.student_ckpt == "/x.ckpt" and cfg.pae_ckpt is None
+    assert capsys.readouterr().err == (
+        "pae-train: warning: pae_ckpt is deprecated, use student_ckpt (read as student_ckpt "
+        "until 0.3)\n"
+    )
+    with pytest.raises(ConfigError, match="pae_ckpt is the old name of student_ckpt"):
+        apply_renamed_keys(_compose("eval", ["pae_ckpt=/x.ckpt", "student_ckpt=/y.ckpt"]))

@@ -342,3 +342,12 @@ def test_synth_into_a_used_folder(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fresh", "used"]
     assert pae_data(["synth", str(tmp_path), "--overwrite", *small]) == 1
     assert "holds no dataset" in capsys.readouterr().err
+
+
+def test_old_checkpoint_key_still_works_with_a_deprecation_line(tmp_path: Path) -> None:
+    result = pae_command("evaluate", f"pae_ckpt={tmp_path / 'nope.ckpt'}", cwd=tmp_path)
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    assert "pae-eval: warning: pae_ckpt is deprecated, use student_ckpt" in result.stderr
+    assert error_lines(result.stderr) == [
+        f"pae-eval: error: student_ckpt={tmp_path / 'nope.ckpt'}: no such file"
+    ]

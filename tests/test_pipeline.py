@@ -157,7 +157,7 @@ def test_evaluate_checkpoints_with_each_weight_model(
             cfg = compose(
                 "eval",
                 overrides=[
-                    f"pae_ckpt={student_ckpt}",
+                    f"student_ckpt={student_ckpt}",
                     *tiny_data_overrides(root),
                     f"refine.weight_model={weight_model}",
                     "refine.orientation=markley",

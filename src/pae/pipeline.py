@@ -298,13 +298,13 @@ def _required(path: str | Path | None, key: str, stage: str) -> str | Path:
 
 
 def fit_decoder(
-    cfg: DictConfig, step_dir: Path, pae_ckpt: str | Path | None
+    cfg: DictConfig, step_dir: Path, student_ckpt: str | Path | None
 ) -> tuple[Metrics, Path]:
     """Train an image decoder on a frozen PAE (from a student checkpoint), then test it."""
-    pae_ckpt = _required(pae_ckpt, "pae_ckpt", "decoder")
-    pae = load_pae(pae_ckpt)
+    student_ckpt = _required(student_ckpt, "student_ckpt", "decoder")
+    pae = load_pae(student_ckpt)
     data = build_data(cfg, augment=False)
-    _check_data(cfg, pae_ckpt, pae, data)
+    _check_data(cfg, student_ckpt, pae, data)
     decoder_config = OmegaConf.to_container(cfg.decoder.model, resolve=True)
     module = DecoderModule(
         pae.model,
@@ -319,14 +319,21 @@ def fit_decoder(
 
 
 def fit_rpr(
-    cfg: DictConfig, step_dir: Path, pae_ckpt: str | Path | None, decoder_ckpt: str | Path | None
+    cfg: DictConfig,
+    step_dir: Path,
+    student_ckpt: str | Path | None,
+    decoder_ckpt: str | Path | None,
 ) -> tuple[Metrics, Path]:
     """Train the Siamese RPR on virtual references, then test virtual RPR (`test/vrpr/...`)."""
-    pae_ckpt = _required(pae_ckpt, "pae_ckpt", "rpr")
+    student_ckpt = _required(student_ckpt, "student_ckpt", "rpr")
     decoder_ckpt = _required(decoder_ckpt, "decoder_ckpt", "rpr")
-    teacher, pae, decoder = load_teacher(pae_ckpt), load_pae(pae_ckpt), load_decoder(decoder_ckpt)
+    teacher, pae, decoder = (
+        load_teacher(student_ckpt),
+        load_pae(student_ckpt),
+        load_decoder(decoder_ckpt),
+    )
     data = build_data(cfg)
-    for path, loaded in ((pae_ckpt, pae), (decoder_ckpt, decoder)):
+    for path, loaded in ((student_ckpt, pae), (decoder_ckpt, decoder)):
         _check_data(cfg, path, loaded, data)
     rpr_config = OmegaConf.to_container(cfg.rpr.model, resolve=True)
     rpr_config["backbone"]["pretrained"] = False
@@ -352,15 +359,15 @@ def fit_rpr(
 
 def evaluate_checkpoints(cfg: DictConfig, run_dir: Path) -> Metrics:
     """Test a student checkpoint (and optionally another teacher) with the configured refinement."""
-    teacher_path = cfg.teacher_ckpt or cfg.pae_ckpt
+    teacher_path = cfg.teacher_ckpt or cfg.student_ckpt
     teacher = load_teacher(teacher_path)
-    pae = load_pae(cfg.pae_ckpt)
+    pae = load_pae(cfg.student_ckpt)
     data = build_data(cfg, augment=False)
     _check_data(cfg, teacher_path, teacher, data)
-    _check_data(cfg, cfg.pae_ckpt, pae, data)
+    _check_data(cfg, cfg.student_ckpt, pae, data)
     if pae.model.latent_dim != teacher.model.latent_dim:
         raise CheckpointError(
-            f"{cfg.pae_ckpt}: PAE latent size {pae.model.latent_dim} does not match the "
+            f"{cfg.student_ckpt}: PAE latent size {pae.model.latent_dim} does not match the "
             f"teacher's {teacher.model.latent_dim} ({teacher_path})"
         )
     module = StudentEvaluator(teacher.model, pae.model, data.scene_names)

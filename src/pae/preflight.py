@@ -14,7 +14,7 @@ from pae.checkpoints import newest_readable_checkpoint
 from pae.errors import ConfigError
 from pae.pipeline import flat_config
 from pae.reporting import reporting_errors
-from pae.validation import validate_eval_config, validate_train_config
+from pae.validation import apply_renamed_keys, validate_eval_config, validate_train_config
 
 RESUMABLE_CHANGES = (
     "resume",
@@ -75,7 +75,9 @@ def check_resume(cfg: DictConfig, run_dir: Path) -> None:
             f"resume=true: {run_dir} is not an earlier run (no .hydra/config.yaml); "
             "pass hydra.run.dir=<the run directory to continue>"
         )
-    changed = _changed_settings(OmegaConf.load(saved), cfg)
+    earlier = OmegaConf.load(saved)
+    apply_renamed_keys(earlier)  # a run made before a key was renamed
+    changed = _changed_settings(earlier, cfg)
     if changed:
         more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
         raise ConfigError(
@@ -114,6 +116,7 @@ class Preflight(Callback):
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         with reporting_errors(self.program):
+            apply_renamed_keys(config, self.program)
             run_dir = Path(config.hydra.run.dir)
             check_writable_dir(run_dir, "hydra.run.dir")
             if config.get("resume"):
@@ -125,6 +128,7 @@ class Preflight(Callback):
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         with reporting_errors(self.program):
+            apply_renamed_keys(config, self.program)
             sweep_dir = Path(config.hydra.sweep.dir)
             check_writable_dir(sweep_dir, "hydra.sweep.dir")
             if not config.get("resume"):

@@ -201,7 +201,7 @@ def _job_name(run_dir: Path, root: Path) -> str:
         return str(run_dir.relative_to(root)) or "."
     overrides = [str(o) for o in OmegaConf.load(overrides_file)]
     shown = [o for o in overrides if not o.startswith(("hydra.", "+trainer.", "trainer."))]
-    shown = [o for o in shown if not o.startswith(("teacher_ckpt=", "pae_ckpt="))]
+    shown = [o for o in shown if not o.startswith(("teacher_ckpt=", "student_ckpt=", "pae_ckpt="))]
     return " ".join(shown) or "(defaults)"
 
 

@@ -3,25 +3,52 @@ training: types, ranges and paths, each failure a ConfigError naming its key."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from pae.data.labels import read_labels
 from pae.errors import ConfigError
 from pae.losses import LATENT_LOSSES
 from pae.pipeline import refinement_callbacks
 
+RENAMED_KEYS = {"pae_ckpt": "student_ckpt"}
+"""Old key -> its new name. The old key is still read for one release (until 0.3), with a
+one-line deprecation warning."""
+_WARNED: set[str] = set()
+
 STEPS = ("teacher", "student", "decoder", "rpr")
 """The steps of pae-train, each with its config group (max_epochs, optimizer, ...)."""
 NEEDS = {
     "student": (("teacher_ckpt", "teacher"),),
-    "decoder": (("pae_ckpt", "student"),),
-    "rpr": (("pae_ckpt", "student"), ("decoder_ckpt", "decoder")),
+    "decoder": (("student_ckpt", "student"),),
+    "rpr": (("student_ckpt", "student"), ("decoder_ckpt", "decoder")),
 }
 """Per step: the checkpoint keys it needs unless an earlier step of the run produces them."""
+
+
+def apply_renamed_keys(cfg: DictConfig, program: str | None = None) -> None:
+    """Move a value given under an old key (RENAMED_KEYS) to its new name; with `program`,
+    say once per process that the old name is deprecated. Both names with different values
+    are a ConfigError."""
+    for old, new in RENAMED_KEYS.items():
+        value = OmegaConf.select(cfg, old, default=None, throw_on_missing=False)
+        if value is None:
+            continue
+        current = OmegaConf.select(cfg, new, default=None, throw_on_missing=False)
+        if current is not None and current != value:
+            raise ConfigError(f"{old}={value} and {new}={current}: {old} is the old name of {new}")
+        with open_dict(cfg):
+            cfg[new], cfg[old] = value, None
+        if program is not None and old not in _WARNED:
+            _WARNED.add(old)
+            print(
+                f"{program}: warning: {old} is deprecated, use {new} (read as {new} until 0.3)",
+                file=sys.stderr,
+            )
 
 
 def _value(cfg: DictConfig, key: str) -> Any:
@@ -166,7 +193,7 @@ def validate_train_config(cfg: DictConfig) -> None:
     _integer(cfg, "rpr.pair_k", 1)
     _boolean(cfg, "backbone.pretrained")
     _file(cfg, "backbone.weights_path")
-    for key in ("teacher_ckpt", "pae_ckpt", "decoder_ckpt"):
+    for key in ("teacher_ckpt", "student_ckpt", "decoder_ckpt"):
         _file(cfg, key)
     for index, step in enumerate(steps):
         for key, producer in NEEDS.get(step, ()):
@@ -178,6 +205,8 @@ def validate_train_config(cfg: DictConfig) -> None:
 def validate_eval_config(cfg: DictConfig) -> None:
     """All of pae-eval's settings (conf/eval.yaml); raises ConfigError naming the key."""
     _validate_common(cfg)
-    for key in ("pae_ckpt", "teacher_ckpt"):
+    if _value(cfg, "student_ckpt") is None:
+        raise ConfigError("pae-eval needs student_ckpt=PATH (a checkpoint of stage=student)")
+    for key in ("student_ckpt", "teacher_ckpt"):
         _file(cfg, key)
     validate_data(cfg, train=False)
