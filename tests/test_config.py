@@ -168,8 +168,8 @@ def test_old_key_pae_ckpt_is_read_as_student_ckpt_with_one_warning(capsys) -> No
         apply_renamed_keys(cfg, "pae-train")
         assert cfg.student_ckpt == "/x.ckpt" and cfg.pae_ckpt is None
     assert capsys.readouterr().err == (
-        "pae-train: warning: pae_ckpt is deprecated, use student_ckpt (read as student_ckpt "
-        "until 0.3)\n"
+        "pae-train: warning: pae_ckpt is deprecated, use student_ckpt (the old name is read for "
+        "one more release)\n"
     )
     with pytest.raises(ConfigError, match="pae_ckpt is the old name of student_ckpt"):
         apply_renamed_keys(_compose("eval", ["pae_ckpt=/x.ckpt", "student_ckpt=/y.ckpt"]))

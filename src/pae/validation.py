@@ -16,8 +16,8 @@ from pae.losses import LATENT_LOSSES
 from pae.pipeline import refinement_callbacks
 
 RENAMED_KEYS = {"pae_ckpt": "student_ckpt"}
-"""Old key -> its new name. The old key is still read for one release (until 0.3), with a
-one-line deprecation warning."""
+"""Old key -> its new name. The old key is still read for one more release, with a one-line
+deprecation warning."""
 _WARNED: set[str] = set()
 
 STEPS = ("teacher", "student", "decoder", "rpr")
@@ -46,7 +46,8 @@ def apply_renamed_keys(cfg: DictConfig, program: str | None = None) -> None:
         if program is not None and old not in _WARNED:
             _WARNED.add(old)
             print(
-                f"{program}: warning: {old} is deprecated, use {new} (read as {new} until 0.3)",
+                f"{program}: warning: {old} is deprecated, use {new} (the old name is read "
+                "for one more release)",
                 file=sys.stderr,
             )
 
