@@ -9,6 +9,7 @@ from __future__ import annotations
 import re
 import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -36,8 +37,6 @@ from pae.lit.decoder import DecoderModule
 from pae.lit.rpr import RPRModule
 from pae.lit.student import StudentEvaluator, StudentModule
 from pae.lit.teacher import TeacherModule
-from pae.models.base import PoseRegressor
-from pae.models.pae import PoseAutoEncoder
 from pae.reporting import first_line
 
 Metrics = dict[str, float]
@@ -163,6 +162,31 @@ def _fit_and_test(
     return metrics, step_dir / "checkpoints" / "last.ckpt"
 
 
+def _optimisation(group: DictConfig) -> dict[str, Any]:
+    """A trained group's optimizer and scheduler factories (scheduler=null: a constant rate)."""
+    scheduler = group.get("scheduler")
+    return {
+        "optimizer": instantiate(group.optimizer),
+        "scheduler": instantiate(scheduler) if scheduler else None,
+    }
+
+
+def _frozen(
+    cfg: DictConfig,
+    path: str | Path | None,
+    key: str,
+    stage: str,
+    load: Callable[[str | Path], LoadedModel],
+) -> tuple[str | Path, LoadedModel, PoseDataModule]:
+    """The checkpoint a step needs (`key`), its model and the step's data (no augmentation),
+    checked to belong together."""
+    path = _required(path, key, stage)
+    loaded = load(path)
+    data = build_data(cfg, augment=False)
+    _check_data(cfg, path, loaded, data)
+    return path, loaded, data
+
+
 def fit_teacher(cfg: DictConfig, step_dir: Path) -> tuple[Metrics, Path]:
     """Train and test a teacher APR -> (metrics, path of its last checkpoint)."""
     data = build_data(cfg)
@@ -170,8 +194,7 @@ def fit_teacher(cfg: DictConfig, step_dir: Path) -> tuple[Metrics, Path]:
     module = TeacherModule(
         teacher,
         loss=instantiate(cfg.teacher.loss),
-        optimizer=instantiate(cfg.teacher.optimizer),
-        scheduler=instantiate(cfg.teacher.scheduler) if cfg.teacher.get("scheduler") else None,
+        **_optimisation(cfg.teacher),
         scene_names=data.scene_names,
         teacher_config=_teacher_config(cfg, data.n_scenes),
         scene_loss_weight=cfg.teacher.scene_loss_weight,
@@ -222,44 +245,29 @@ def refinement_callbacks(cfg: DictConfig) -> list[L.Callback]:
         raise ConfigError(f"{key.group(1) if key else 'refine'}: {first_line(err)}") from None
 
 
-def _student_module(
-    cfg: DictConfig,
-    teacher: PoseRegressor,
-    pae: PoseAutoEncoder,
-    scene_names: list[str],
-    teacher_config: dict[str, Any],
-    pae_config: dict[str, Any],
-) -> StudentModule:
-    student = cfg.student
-    try:
-        return StudentModule(
-            teacher,
-            pae,
-            loss=instantiate(student.loss),
-            optimizer=instantiate(student.optimizer),
-            scheduler=instantiate(student.scheduler) if student.get("scheduler") else None,
-            scene_names=scene_names,
-            teacher_config=teacher_config,
-            pae_config=pae_config,
-            latent_loss=student.latent_loss,
-            pae_input=student.input,
-        )
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
-
-
 def fit_student(
     cfg: DictConfig, step_dir: Path, teacher_ckpt: str | Path | None
 ) -> tuple[Metrics, Path]:
     """Distil a PAE from a frozen teacher checkpoint, then test it (with refinement)."""
-    teacher_ckpt = _required(teacher_ckpt, "teacher_ckpt", "student")
-    teacher = load_teacher(teacher_ckpt)
-    data = build_data(cfg, augment=False)
-    _check_data(cfg, teacher_ckpt, teacher, data)
+    teacher_ckpt, teacher, data = _frozen(
+        cfg, teacher_ckpt, "teacher_ckpt", "student", load_teacher
+    )
     pae_config = OmegaConf.to_container(cfg.pae, resolve=True)
     pae_config["n_scenes"] = data.n_scenes
-    pae = instantiate(pae_config)
-    module = _student_module(cfg, teacher.model, pae, data.scene_names, teacher.config, pae_config)
+    try:
+        module = StudentModule(
+            teacher.model,
+            instantiate(pae_config),
+            loss=instantiate(cfg.student.loss),
+            **_optimisation(cfg.student),
+            scene_names=data.scene_names,
+            teacher_config=teacher.config,
+            pae_config=pae_config,
+            latent_loss=cfg.student.latent_loss,
+            pae_input=cfg.student.input,
+        )
+    except ValueError as err:  # latent sizes or options that do not fit: name the key
+        raise ConfigError(str(err)) from None
     if not cfg.student.cache_latents:
         return _fit_and_test(
             cfg,
@@ -301,16 +309,12 @@ def fit_decoder(
     cfg: DictConfig, step_dir: Path, student_ckpt: str | Path | None
 ) -> tuple[Metrics, Path]:
     """Train an image decoder on a frozen PAE (from a student checkpoint), then test it."""
-    student_ckpt = _required(student_ckpt, "student_ckpt", "decoder")
-    pae = load_pae(student_ckpt)
-    data = build_data(cfg, augment=False)
-    _check_data(cfg, student_ckpt, pae, data)
+    _, pae, data = _frozen(cfg, student_ckpt, "student_ckpt", "decoder", load_pae)
     decoder_config = OmegaConf.to_container(cfg.decoder.model, resolve=True)
     module = DecoderModule(
         pae.model,
         instantiate(decoder_config),
-        optimizer=instantiate(cfg.decoder.optimizer),
-        scheduler=instantiate(cfg.decoder.scheduler) if cfg.decoder.get("scheduler") else None,
+        **_optimisation(cfg.decoder),
         scene_names=data.scene_names,
         pae_config=pae.config,
         decoder_config=decoder_config,
@@ -343,8 +347,7 @@ def fit_rpr(
         pae.model,
         decoder.model,
         loss=instantiate(cfg.rpr.loss),
-        optimizer=instantiate(cfg.rpr.optimizer),
-        scheduler=instantiate(cfg.rpr.scheduler) if cfg.rpr.get("scheduler") else None,
+        **_optimisation(cfg.rpr),
         scene_names=data.scene_names,
         configs={
             "teacher_config": teacher.config,

@@ -115,22 +115,22 @@ class Preflight(Callback):
             validate_eval_config(config)
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
-        with reporting_errors(self.program):
-            apply_renamed_keys(config, self.program)
-            run_dir = Path(config.hydra.run.dir)
-            check_writable_dir(run_dir, "hydra.run.dir")
-            if config.get("resume"):
-                check_resume(config, run_dir)
-            else:
-                check_fresh(run_dir, "hydra.run.dir")
-            self._validate(config)
-            _check_latent_cache(config)
+        self._check(config, Path(config.hydra.run.dir), "hydra.run.dir", sweep=False)
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._check(config, Path(config.hydra.sweep.dir), "hydra.sweep.dir", sweep=True)
+
+    def _check(self, config: DictConfig, folder: Path, key: str, sweep: bool) -> None:
+        """The run (or sweep) directory `folder` can be written and holds no other run's
+        checkpoints, or, with resume=true, an earlier run of these settings (single runs);
+        every setting; the latent cache folder."""
         with reporting_errors(self.program):
             apply_renamed_keys(config, self.program)
-            sweep_dir = Path(config.hydra.sweep.dir)
-            check_writable_dir(sweep_dir, "hydra.sweep.dir")
+            check_writable_dir(folder, key)
             if not config.get("resume"):
-                check_fresh(sweep_dir, "hydra.sweep.dir")
+                check_fresh(folder, key)
+            elif not sweep:
+                check_resume(config, folder)
+            if not sweep:  # sweep jobs check their own settings when they start
+                self._validate(config)
             _check_latent_cache(config)

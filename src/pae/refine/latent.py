@@ -20,8 +20,13 @@ from torch import Tensor
 
 from pae.models.base import Latents
 from pae.refine.index import PoseIndex
-from pae.refine.refiner import OrientationMode, PoseEncoder, RefinementResult, combine_orientations
-from pae.refine.weights import WeightModel, refine_affine
+from pae.refine.refiner import (
+    OrientationMode,
+    PoseEncoder,
+    RefinementResult,
+    refine_with_neighbours,
+)
+from pae.refine.weights import WeightModel
 
 
 def _query_scenes(
@@ -91,21 +96,18 @@ class LatentRetrievalRefiner:
                 distances = torch.cdist(query[rows], encoded[members])
                 nearest = distances.topk(self.k, dim=1, largest=False).indices
                 indices[rows] = members[nearest]
-        neighbour_poses = store_poses[indices]  # [B, k, 7]
-        fit = refine_affine(
+        poses, weights = refine_with_neighbours(
             query,
             encoded[indices],
-            neighbour_poses,
+            store_poses[indices],
+            initial_poses,
+            self.orientation,
             weight_model=self.weight_model,
             iterations=self.iterations,
             lr=self.lr,
             generator=self.generator,
         )
-        orientation = combine_orientations(
-            neighbour_poses[..., 3:], fit.weights, initial_poses[:, 3:], self.orientation
-        )
-        poses = torch.cat([fit.positions, orientation], dim=1).to(initial_poses.dtype)
-        return RefinementResult(poses, fit.weights, indices)
+        return RefinementResult(poses, weights, indices)
 
 
 class PoseDescentRefiner:

@@ -9,8 +9,10 @@ replaces.
 
 from __future__ import annotations
 
+import inspect
 import itertools
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -27,13 +29,11 @@ from pae.refine.regressor import (
 )
 from pae.refine.weights import (
     AffineFit,
-    InitParams,
-    Objective,
-    WeightModel,
     check_fit_inputs,
     check_logits_init,
     matching_loss,
     positions_of,
+    refine_affine,
 )
 
 
@@ -91,31 +91,32 @@ def _closed_form_by_substitution(query: Tensor, neighbours: Tensor, ridge: float
     return torch.cat([free, (1.0 - free.sum()).reshape(1)])
 
 
-def refine_affine_per_query(
-    query_latent: Tensor,
-    neighbour_latents: Tensor,
-    neighbour_poses: Tensor,
-    *,
-    weight_model: WeightModel = "mlp",
-    iterations: int = 3,
-    lr: float = 1e-3,
-    weight_decay: float = 0.01,
-    objective: Objective = "l2",
-    hidden: Sequence[int] | None = None,
-    generator: torch.Generator | None = None,
-    init: InitParams | None = None,
-    chunk_size: int = 64,
-    ridge: float = 1e-6,
-) -> AffineFit:
+def refine_affine_per_query(*args: Any, **kwargs: Any) -> AffineFit:
     """``refine_affine`` one query at a time, as the public code does: the test oracle.
 
-    Same arguments and result. Each query gets a fresh ``nn.Module`` (MLP or logits) and its
-    own AdamW, and is optimised with batch size 1. Without ``init`` or ``generator`` the MLP
-    keeps ``nn.Linear``'s default initialisation (global RNG); with ``generator`` each query's
-    parameters are drawn by ``init_weight_regressor``. ``closed_form`` is solved by another
-    method than ``closed_form_weights`` (substitution and least squares, not the KKT system).
-    ``chunk_size`` is accepted for a common signature and unused.
+    ``refine_affine``'s arguments (bound to its signature, defaults included, so the two
+    cannot drift apart) and result. Each query gets a fresh ``nn.Module`` (MLP or logits) and
+    its own AdamW, and is optimised with batch size 1. Without ``init`` or ``generator`` the
+    MLP keeps ``nn.Linear``'s default initialisation (global RNG); with ``generator`` each
+    query's parameters are drawn by ``init_weight_regressor``. ``closed_form`` is solved by
+    another method than ``closed_form_weights`` (substitution and least squares, not the KKT
+    system). ``chunk_size`` does not apply.
     """
+    bound = inspect.signature(refine_affine).bind(*args, **kwargs)
+    bound.apply_defaults()
+    options = bound.arguments
+    query_latent, neighbour_latents, neighbour_poses = (
+        options["query_latent"],
+        options["neighbour_latents"],
+        options["neighbour_poses"],
+    )
+    weight_model, objective, iterations = (
+        options["weight_model"],
+        options["objective"],
+        options["iterations"],
+    )
+    lr, weight_decay, ridge = options["lr"], options["weight_decay"], options["ridge"]
+    hidden, generator, init = options["hidden"], options["generator"], options["init"]
     check_fit_inputs(
         query_latent, neighbour_latents, neighbour_poses, weight_model, objective, iterations
     )

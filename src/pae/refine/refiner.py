@@ -8,7 +8,7 @@ random-guess check's queries.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Literal, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import torch
 from torch import Tensor
@@ -71,6 +71,26 @@ def perturb_positions(
     perturbed = poses.clone()
     perturbed[:, :3] += sigma_m * noise.to(poses.device)
     return perturbed
+
+
+def refine_with_neighbours(
+    query_latent: Tensor,
+    neighbour_latents: Tensor,
+    neighbour_poses: Tensor,
+    initial_poses: Tensor,
+    orientation: OrientationMode,
+    **options: Any,
+) -> tuple[Tensor, Tensor]:
+    """Refined poses [B, 7] (``initial_poses``' dtype) and weights [B, k] from retrieved
+    neighbours: affine weights fitted by ``refine_affine(**options)``, position Σ aᵢ xᵢ, the
+    orientation chosen by ``orientation`` (``combine_orientations``). query_latent [B, D];
+    neighbour_latents [B, k, D]; neighbour_poses [B, k, 7]; initial_poses [B, 7]."""
+    fit = refine_affine(query_latent, neighbour_latents, neighbour_poses, **options)
+    rotation = combine_orientations(
+        neighbour_poses[..., 3:], fit.weights, initial_poses[:, 3:], orientation
+    )
+    dtype = initial_poses.dtype
+    return torch.cat([fit.positions.to(dtype), rotation.to(dtype)], dim=1), fit.weights
 
 
 class PositionRefiner:
@@ -156,10 +176,12 @@ class PositionRefiner:
                 encoded = self.pae(neighbour_poses.reshape(batch * self.k, 7), neighbour_scenes)
             query = query_latents.joint().detach().clone()
             neighbour_latents = encoded.joint().detach().clone().reshape(batch, self.k, -1)
-            fit = refine_affine(
+            poses, weights = refine_with_neighbours(
                 query,
                 neighbour_latents,
                 neighbour_poses,
+                initial,
+                self.orientation,
                 weight_model=self.weight_model,
                 iterations=self.iterations,
                 lr=self.lr,
@@ -169,10 +191,4 @@ class PositionRefiner:
                 generator=self.generator,
                 chunk_size=self.chunk_size,
             )
-            orientation = combine_orientations(
-                neighbour_poses[..., 3:], fit.weights, initial[:, 3:], self.orientation
-            )
-            poses = torch.cat(
-                [fit.positions.to(initial.dtype), orientation.to(initial.dtype)], dim=1
-            )
-        return RefinementResult(poses, fit.weights, indices)
+        return RefinementResult(poses, weights, indices)
