@@ -2,6 +2,7 @@
 
 import subprocess
 import sys
+from enum import Enum
 from pathlib import Path
 
 import pytest
@@ -35,15 +36,42 @@ def _compose(config: str, overrides: list[str]):
         return compose(config, overrides=overrides)
 
 
+def _leaves(node: object, path: tuple[str, ...] = ()) -> list[tuple[tuple[str, ...], object]]:
+    """(keys, value) of every leaf of a loaded config file (keys may hold dots: sweep params)."""
+    if isinstance(node, dict):
+        return [leaf for key, value in node.items() for leaf in _leaves(value, (*path, key))]
+    return [(path, node)]
+
+
 @pytest.mark.parametrize(
     ("group", "option"), [(g, o) for g, options in GROUPS.items() for o in options]
 )
 def test_every_group_option_composes(group: str, option: str) -> None:
+    """The option is chosen, and every value its file writes (not one that interpolates or
+    must be given) is in the composed config: it took effect, not something else's value."""
+    from omegaconf import ListConfig, OmegaConf
+
     overrides = [f"{group}={option}"]
     if group == "data" and option != "synthetic":
         overrides.append("data.root=/data/somewhere")
-    cfg = _compose("train", overrides)
-    assert group == "experiment" or cfg[group] is not None
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("train", overrides=overrides, return_hydra_config=True)
+    assert cfg.hydra.runtime.choices[group] == option
+    file = OmegaConf.to_container(OmegaConf.load(Path(CONFIG_DIR) / group / f"{option}.yaml"))
+    written = {k: v for k, v in (file or {}).items() if k != "defaults"}
+    leaves = _leaves(written, () if group == "experiment" else (group,))
+    assert leaves or "defaults" in (file or {}) or option == "none"  # cpu: only its base
+    for keys, value in leaves:
+        if isinstance(value, str) and ("${" in value or value == "???"):
+            continue
+        composed = cfg
+        for key in keys:
+            composed = composed[key]
+        if isinstance(composed, ListConfig):
+            composed = OmegaConf.to_container(composed)
+        if isinstance(composed, Enum):  # hydra.mode
+            composed = composed.name
+        assert composed == value, f"{group}={option}: {'.'.join(keys)}"
 
 
 @pytest.mark.parametrize("option", GROUPS["pae"])
@@ -65,7 +93,7 @@ def test_pae_bands_override_reaches_the_model() -> None:
 
 
 def test_eval_config_composes() -> None:
-    cfg = _compose("eval", ["pae_ckpt=/x.ckpt", "refine=knn_closed_form"])
+    cfg = _compose("eval", ["student_ckpt=/x.ckpt", "refine=knn_closed_form"])
     assert cfg.refine.weight_model == "closed_form"
 
 
@@ -78,3 +106,70 @@ def test_unknown_group_option_lists_valid_choices(tmp_path: Path) -> None:
     )
     assert result.returncode != 0
     assert "fourier_mlp4" in result.stderr and "mlp2" in result.stderr
+
+
+@pytest.mark.parametrize("option", GROUPS["experiment"])
+def test_experiments_with_sweep_parameters_sweep_by_themselves(option: str) -> None:
+    from hydra.types import RunMode
+
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("train", [f"experiment={option}"], return_hydra_config=True)
+    if cfg.hydra.sweeper.get("params"):
+        assert cfg.hydra.mode == RunMode.MULTIRUN, f"experiment={option} needs hydra.mode"
+
+
+def test_python_defaults_are_the_yaml_defaults() -> None:
+    """One default per setting: where Python code has a default, it is the config's value."""
+    import inspect
+
+    from omegaconf import OmegaConf
+
+    from pae.callbacks.refinement import TestTimeRefinement
+    from pae.data.synthetic_datamodule import SyntheticDataModule
+    from pae.models.pae import PoseAutoEncoder
+    from pae.refine import PoseIndex
+
+    def defaults(function) -> dict:
+        return {
+            name: p.default
+            for name, p in inspect.signature(function).parameters.items()
+            if p.default is not inspect.Parameter.empty
+        }
+
+    conf = Path(CONFIG_DIR)
+    for function, path in (
+        (SyntheticDataModule, "data/synthetic.yaml"),
+        (TestTimeRefinement, "refine/knn_affine.yaml"),
+        (PoseAutoEncoder, "pae/fourier_mlp4.yaml"),
+    ):
+        values = OmegaConf.to_container(OmegaConf.load(conf / path))
+        shared = {
+            k: v
+            for k, v in defaults(function).items()
+            if k in values and not isinstance(values[k], dict)
+        }
+        assert len(shared) >= 3
+        for key, default in shared.items():
+            if not isinstance(values[key], str) or "${" not in values[key]:
+                expected = tuple(values[key]) if isinstance(default, tuple) else values[key]
+                assert default == expected, f"{function.__name__}({key}=) vs {path}"
+    refine = OmegaConf.load(conf / "refine/knn_affine.yaml")
+    assert defaults(PoseIndex)["rot_weight"] == refine.rot_weight
+
+
+def test_old_key_pae_ckpt_is_read_as_student_ckpt_with_one_warning(capsys) -> None:
+    import pae.validation
+    from pae.errors import ConfigError
+    from pae.validation import apply_renamed_keys
+
+    pae.validation._WARNED.clear()
+    for config in ("train", "eval"):
+        cfg = _compose(config, ["pae_ckpt=/x.ckpt"])
+        apply_renamed_keys(cfg, "pae-train")
+        assert cfg.student_ckpt == "/x.ckpt" and cfg.pae_ckpt is None
+    assert capsys.readouterr().err == (
+        "pae-train: warning: pae_ckpt is deprecated, use student_ckpt (the old name is read for "
+        "one more release)\n"
+    )
+    with pytest.raises(ConfigError, match="pae_ckpt is the old name of student_ckpt"):
+        apply_renamed_keys(_compose("eval", ["pae_ckpt=/x.ckpt", "student_ckpt=/y.ckpt"]))

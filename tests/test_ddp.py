@@ -49,8 +49,10 @@ def test_ddp_evaluation_counts_every_sample_once(tiny_root: Path, tmp_path: Path
     assert trained["test/refined/pos_median_m"] >= 0
     checkpoint = tmp_path / "pipeline" / "student" / "checkpoints" / "last.ckpt"
     data = _data_overrides(_odd_test_split(tiny_root, tmp_path / "odd"))
-    one = _run("pae.evaluate", tmp_path / "one", f"pae_ckpt={checkpoint}", *data)
-    two = _run("pae.evaluate", tmp_path / "two", f"pae_ckpt={checkpoint}", *data, "trainer=ddp_sim")
+    one = _run("pae.evaluate", tmp_path / "one", f"student_ckpt={checkpoint}", *data)
+    two = _run(
+        "pae.evaluate", tmp_path / "two", f"student_ckpt={checkpoint}", *data, "trainer=ddp_sim"
+    )
     figures = sorted(key for key in one if key.startswith("test/"))
     assert "test/refined/pos_median_m" in figures and "test/teacher/pos_median_m" in figures
     assert figures == sorted(key for key in two if key.startswith("test/"))

@@ -16,13 +16,13 @@ import pytest
 import torch
 
 import pae.pipeline
-from pae.checkpoints import CheckpointError, read_checkpoint
+from pae.checkpoints import read_checkpoint
 from pae.data.cli import main as pae_data
 from pae.data.dataset import PoseDataset
-from pae.data.labels import LabelError, LabelTable, read_labels, write_labels
+from pae.data.labels import LabelTable, read_labels, write_labels
 from pae.data.synthetic import write_synthetic_dataset
-from pae.data.transforms import ImageError
-from pae.reporting import ConfigError, sweep_table
+from pae.errors import CheckpointError, ConfigError, ImageError, LabelError
+from pae.reporting import sweep_table
 from pae.train import run
 from tests.conftest import TINY, tiny_overrides
 
@@ -164,6 +164,10 @@ def test_checkpoints_are_written_whole(
     assert [p.name for p in tmp_path.iterdir() if p.suffix == ".tmp"] == []
 
 
+def test_each_checkpoint_is_stored_once(teacher_run: Path) -> None:
+    assert [p.name for p in (teacher_run / "checkpoints").iterdir()] == ["last.ckpt"]
+
+
 def test_resume_falls_back_and_continues_a_longer_schedule(
     teacher_run: Path, tiny_root: Path, tmp_path: Path
 ) -> None:
@@ -171,8 +175,10 @@ def test_resume_falls_back_and_continues_a_longer_schedule(
     checkpoints = run_dir / "checkpoints"
     last = checkpoints / "last.ckpt"
     steps_per_epoch = read_checkpoint(last)["global_step"] // 2
+    # an older checkpoint beside it (a run that kept one per epoch), then a damaged last.ckpt
+    shutil.copy(last, checkpoints / "epoch001.ckpt")
     last.write_bytes(last.read_bytes()[: last.stat().st_size // 3])  # what a full disk leaves
-    os.utime(last)
+    os.utime(last, ns=(last.stat().st_atime_ns, last.stat().st_mtime_ns + 10**9))
     result = pae_command(
         "train",
         *tiny_overrides(tiny_root),
@@ -336,3 +342,12 @@ def test_synth_into_a_used_folder(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fresh", "used"]
     assert pae_data(["synth", str(tmp_path), "--overwrite", *small]) == 1
     assert "holds no dataset" in capsys.readouterr().err
+
+
+def test_old_checkpoint_key_still_works_with_a_deprecation_line(tmp_path: Path) -> None:
+    result = pae_command("evaluate", f"pae_ckpt={tmp_path / 'nope.ckpt'}", cwd=tmp_path)
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    assert "pae-eval: warning: pae_ckpt is deprecated, use student_ckpt" in result.stderr
+    assert error_lines(result.stderr) == [
+        f"pae-eval: error: student_ckpt={tmp_path / 'nope.ckpt'}: no such file"
+    ]

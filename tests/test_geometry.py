@@ -233,3 +233,15 @@ def test_weighted_average_follows_the_weights() -> None:
     angle_to_second = orientation_error_deg(heavy_second, q[1]).item()
     assert angle_to_second < 10.0
     torch.testing.assert_close(only_first, q[0])
+
+
+def test_one_sign_convention_for_numpy_and_torch() -> None:
+    import numpy as np
+
+    from pae.quaternion_sign import canonical_sign
+
+    q = [[-0.5, 0.5, 0.5, 0.5], [0.0, -1.0, 0.0, 0.0], [2.0, 0.0, 0.0, 0.0]]
+    expected = [[0.5, -0.5, -0.5, -0.5], [0.0, -1.0, 0.0, 0.0], [2.0, 0.0, 0.0, 0.0]]
+    np.testing.assert_array_equal(canonical_sign(np.array(q)), expected)  # norms kept
+    assert torch.equal(canonical_sign(torch.tensor(q)), torch.tensor(expected))
+    assert torch.equal(canonicalize_quaternion(torch.tensor(q))[2], torch.tensor([1.0, 0, 0, 0]))

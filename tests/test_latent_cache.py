@@ -108,8 +108,8 @@ def test_key_follows_teacher_bytes_and_preprocessing(tiny_root: Path, tmp_path: 
 def test_unwritable_cache_folder_is_refused_before_the_run(tmp_path: Path) -> None:
     from omegaconf import OmegaConf
 
+    from pae.errors import ConfigError
     from pae.preflight import _check_latent_cache
-    from pae.reporting import ConfigError
 
     blocker = tmp_path / "file"
     blocker.write_text("")

@@ -1,3 +1,4 @@
+import math
 from pathlib import Path
 
 import pytest
@@ -28,6 +29,18 @@ def test_fourier_features_values() -> None:
         torch.cos(torch.tensor(1.0)),
     ]
     assert torch.allclose(out, torch.tensor(expected))
+
+
+def test_fourier_features_order_on_several_coordinates() -> None:
+    x, y, z = 0.5, -1.0, 2.0
+    out = FourierFeatures(2)(torch.tensor([[x, y, z]], dtype=torch.float64))[0]
+    expected = [x, y, z]  # the input, then per band, per coordinate: sin, cos
+    for frequency in (1.0, 2.0):
+        for value in (x, y, z):
+            expected += [math.sin(frequency * value), math.cos(frequency * value)]
+    torch.testing.assert_close(out, torch.tensor(expected, dtype=torch.float64))
+    without_input = FourierFeatures(2, include_input=False)(torch.tensor([[x, y, z]]))[0]
+    torch.testing.assert_close(without_input, torch.tensor(expected[3:], dtype=torch.float32))
 
 
 def test_fourier_features_rejects_negative_bands() -> None:

@@ -4,12 +4,13 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
-from pae.checkpoints import CheckpointError, load_pae, load_teacher
+from pae.checkpoints import load_pae, load_teacher
+from pae.errors import CheckpointError, ConfigError
 from pae.pipeline import evaluate_checkpoints
-from pae.reporting import ConfigError
 from pae.train import run
 
 EXPECTED_METHODS = (
@@ -112,35 +113,65 @@ def test_bad_checkpoints_give_clear_errors(pipeline_run: Path, tmp_path: Path) -
         load_teacher(corrupt)
 
 
+def _refined_by_hand(cfg, student_ckpt: Path, weight_model: str) -> dict[str, float]:
+    """The test split refined without pae-eval's modules and callback: the checkpoint's
+    teacher estimates every test image, a PositionRefiner over the train poses refines them
+    (markley orientation), and the errors are summarised."""
+    from pae.geometry import pose_errors
+    from pae.metrics import summarise_errors
+    from pae.models.base import Latents
+    from pae.pipeline import build_data
+    from pae.refine import PoseIndex, PositionRefiner
+
+    teacher, pae = load_teacher(student_ckpt).model, load_pae(student_ckpt).model
+    data = build_data(cfg, augment=False)
+    index = PoseIndex(*data.train_poses(), distance="normalized")
+    answers, poses, scenes = [], [], []
+    with torch.no_grad():
+        for batch in data.test_dataloader():
+            answers.append(teacher.estimate(data.preprocess(batch["image"], False), batch["scene"]))
+            poses.append(batch["pose"])
+            scenes.append(batch["scene"])
+    estimate = torch.cat([a.pose for a in answers])
+    latents = Latents(*(torch.cat([getattr(a.latents, f) for a in answers]) for f in "xq"))
+    refiner = PositionRefiner(index, pae, weight_model=weight_model, orientation="markley")
+    refined = refiner(latents, estimate, torch.cat([a.scene for a in answers])).poses
+    errors = pose_errors(refined, torch.cat(poses))
+    figures = summarise_errors(*errors, torch.cat(scenes), data.scene_names)
+    return {key: float(value) for key, value in figures.items()}
+
+
 def test_evaluate_checkpoints_with_each_weight_model(
     pipeline_run: Path, compose_train, tmp_path: Path
 ) -> None:
     from hydra import compose, initialize_config_dir
 
     from pae import CONFIG_DIR
-    from tests.conftest import TINY
+    from tests.conftest import tiny_data_overrides
 
     student_ckpt = pipeline_run / "student" / "checkpoints" / "last.ckpt"
     root = compose_train().data.root
+    refined = {}
     for weight_model in ("softmax_logits", "closed_form"):
         with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
             cfg = compose(
                 "eval",
                 overrides=[
-                    f"pae_ckpt={student_ckpt}",
-                    f"data.root={root}",
-                    f"data.size={TINY['size']}",
-                    f"data.train_frames={TINY['train_frames']}",
-                    f"data.test_frames={TINY['test_frames']}",
-                    "data.crop=28",
+                    f"student_ckpt={student_ckpt}",
+                    *tiny_data_overrides(root),
                     f"refine.weight_model={weight_model}",
                     "refine.orientation=markley",
                     "+trainer.enable_progress_bar=false",
                 ],
             )
         metrics = evaluate_checkpoints(cfg, tmp_path / weight_model)
-        assert metrics["test/refined/pos_median_m"] >= 0
-        assert "test/teacher/pos_median_m" in metrics
+        expected = _refined_by_hand(cfg, student_ckpt, weight_model)
+        for key, value in expected.items():
+            assert metrics[f"test/refined/{key}"] == pytest.approx(value, rel=1e-4, abs=1e-6)
+        # markley averages the neighbours' orientations: not the teacher's any more
+        assert metrics["test/refined/rot_median_deg"] != metrics["test/teacher/rot_median_deg"]
+        refined[weight_model] = metrics["test/refined/pos_median_m"]
+    assert refined["softmax_logits"] != refined["closed_form"]
 
 
 def test_student_without_teacher_checkpoint_is_a_config_error(
@@ -264,9 +295,20 @@ def test_real_data_layout_trains_end_to_end(tiny_root: Path, tmp_path: Path) -> 
     with open_dict(cfg):
         cfg.hydra.runtime.output_dir = str(tmp_path / "run")
     metrics = run(cfg, tmp_path / "run")
-    assert metrics["test/teacher/pos_median_m"] >= 0
     assert "test/teacher/scene00/pos_median_m" not in metrics, "only the chosen scene is used"
     assert (tmp_path / "run" / "metrics.csv").is_file()
+    # the converted labels hold the synthetic poses, and the run measured on them
+    from pae.data.labels import read_labels
+
+    converted = read_labels(raw / "labels" / "scene01_test.csv")
+    original = read_labels(tiny_root / "labels" / "all_test.csv")
+    original = original.select([i for i, s in enumerate(original.scene) if s == "scene01"])
+    np.testing.assert_allclose(converted.poses, original.poses, atol=1e-6)
+    train = read_labels(raw / "labels" / "scene01_train.csv").poses
+    distances = np.linalg.norm(converted.poses[:, :3] - train[:, :3].mean(axis=0), axis=1)
+    assert metrics["test/mean_pose/pos_median_m"] == pytest.approx(np.median(distances), rel=1e-5)
+    teacher = load_teacher(tmp_path / "run" / "checkpoints" / "last.ckpt")
+    assert teacher.scene_names == ["scene01"]
 
 
 @pytest.mark.parametrize(
@@ -274,7 +316,12 @@ def test_real_data_layout_trains_end_to_end(tiny_root: Path, tmp_path: Path) -> 
     [
         ("refine.weight_model=lstsq", "unknown refine.weight_model 'lstsq'"),
         ("refine.orientation=slerp", "unknown refine.orientation 'slerp'"),
-        ("refine.method=icp", "unknown refine.method 'icp'"),
+        ("refine.distance=cosine", "unknown refine.distance 'cosine'"),
+        (
+            "refine.alternatives.latent_knn._target_=pae.refine.Nope",
+            "refine.alternatives.latent_knn: Error loading 'pae.refine.Nope'",
+        ),
+        ("refine._target_=pae.nowhere.Refiner", "refine: Error loading 'pae.nowhere.Refiner'"),
     ],
 )
 def test_bad_refine_options_name_the_key(compose_train, override: str, message: str) -> None:
@@ -282,6 +329,17 @@ def test_bad_refine_options_name_the_key(compose_train, override: str, message: 
 
     with pytest.raises(ConfigError, match=message):
         refinement_callbacks(compose_train(override))
+
+
+def test_refine_groups_instantiate_their_callback(compose_train) -> None:
+    from pae.callbacks.refinement import TestTimeRefinement
+    from pae.pipeline import refinement_callbacks
+
+    assert refinement_callbacks(compose_train("refine=none")) == []
+    (callback,) = refinement_callbacks(compose_train("refine=knn_closed_form", "refine.k=5"))
+    assert isinstance(callback, TestTimeRefinement)
+    assert callback.options["weight_model"] == "closed_form" and callback.options["k"] == 5
+    assert sorted(callback.alternatives) == ["closed_form_k10", "latent_knn", "pose_descent"]
 
 
 @pytest.mark.parametrize(
@@ -340,10 +398,17 @@ def test_resume_continues_an_interrupted_run(
 def test_student_variants_train(
     pipeline_run: Path, compose_train, tmp_path: Path, options: tuple[str, ...]
 ) -> None:
+    from pae.checkpoints import read_checkpoint
+
     teacher_ckpt = pipeline_run / "teacher" / "checkpoints" / "last.ckpt"
     cfg = compose_train(
         "stage=student", f"teacher_ckpt={teacher_ckpt}", "refine=none", *options, run_dir=tmp_path
     )
     metrics = run(cfg, tmp_path)
-    assert metrics["test/student/pos_median_m"] >= 0
     assert "test/refined/pos_median_m" not in metrics
+    hparams = read_checkpoint(tmp_path / "checkpoints" / "last.ckpt")["hyper_parameters"]
+    chosen = dict(option.split("=") for option in options)
+    assert hparams["pae_input"] == chosen.get("student.input", "gt")
+    assert hparams["latent_loss"] == chosen.get("student.latent_loss", "l2")
+    cached = chosen.get("student.cache_latents", "true") == "true"
+    assert ("bench/student/latent_cache_hit" in metrics) == cached

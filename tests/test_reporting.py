@@ -3,8 +3,9 @@ from pathlib import Path
 
 import pytest
 
-from pae.data.transforms import ImageError
-from pae.reporting import ConfigError, format_results_table, reporting_errors, write_json_atomic
+from pae.atomic import write_json_atomic
+from pae.errors import ConfigError, ImageError
+from pae.reporting import format_results_table, reporting_errors
 
 
 def test_user_errors_become_one_line_and_exit_1(capsys: pytest.CaptureFixture[str]) -> None:

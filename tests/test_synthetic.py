@@ -315,5 +315,22 @@ def test_rendered_dots_land_where_the_camera_projects_them() -> None:
     assert np.median(errors) < 0.1
 
 
-def test_measure_render_speed() -> None:
-    assert measure_render_speed(frames=4, size=16) > 0
+def test_measure_render_speed(monkeypatch: pytest.MonkeyPatch) -> None:
+    import time
+    import types
+
+    from pae.data import synthetic
+
+    start = time.perf_counter()
+    speed = measure_render_speed(frames=4, size=16)
+    assert 4 / (time.perf_counter() - start) < speed  # the timed part lies inside the call
+    rendered = []
+
+    def render_batch(scene, poses, camera, appearance, rng):
+        rendered.append((len(poses), camera.size))
+
+    ticks = iter([10.0, 12.5])
+    monkeypatch.setattr(synthetic, "render_batch", render_batch)
+    monkeypatch.setattr(synthetic, "time", types.SimpleNamespace(perf_counter=lambda: next(ticks)))
+    assert measure_render_speed(frames=5, size=16) == 5 / 2.5
+    assert rendered == [(1, 16), (5, 16)]  # a warm-up frame, then the timed batch

@@ -4,5 +4,15 @@ from pathlib import Path
 
 __version__ = "0.1.0"
 
-CONFIG_DIR = str(Path(__file__).resolve().parents[2] / "conf")
-"""The Hydra configs at the top of the repository (pae runs from a clone: `pip install -e .`)."""
+
+def _config_dir() -> Path:
+    """The Hydra configs: inside the package when pae is installed from a wheel (pae/conf),
+    else conf/ at the top of the checkout (source tree and editable installs)."""
+    packaged = Path(__file__).resolve().parent / "conf"
+    if packaged.is_dir():
+        return packaged
+    return Path(__file__).resolve().parents[2] / "conf"
+
+
+CONFIG_DIR = str(_config_dir())
+"""The folder of train.yaml and eval.yaml (the config groups below it)."""

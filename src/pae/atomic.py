@@ -1,10 +1,14 @@
-"""Whole-or-nothing file writes: a temporary file beside the target, then one rename."""
+"""Whole-or-nothing file writes: a temporary file beside the target, flushed to disk, then
+one rename. Every file pae writes goes through ``atomic_write``: metrics, reports, error
+lines, label files, checkpoints and cached latents (rendered datasets are built in a hidden
+folder and renamed whole)."""
 
 from __future__ import annotations
 
+import json
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any
@@ -30,3 +34,14 @@ def atomic_write(path: str | Path, mode: str = "w", **open_args: Any) -> Iterato
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def write_text_atomic(path: str | Path, text: str) -> None:
+    """Write ``text`` to ``path`` whole (see ``atomic_write``)."""
+    with atomic_write(path) as handle:
+        handle.write(text)
+
+
+def write_json_atomic(path: str | Path, payload: Mapping[str, object]) -> None:
+    """Write a JSON object to ``path`` whole (indented, sorted keys, final newline)."""
+    write_text_atomic(path, json.dumps(dict(payload), indent=2, sort_keys=True) + "\n")

@@ -13,13 +13,10 @@ from lightning.fabric.plugins import TorchCheckpointIO
 from torch import nn
 
 from pae.atomic import atomic_write
+from pae.errors import CheckpointError
 
 DATA_FINGERPRINT_KEY = "pae_data_fingerprint"
 """Checkpoint entry with the fingerprint of the training data (see PoseDataModule.fingerprint)."""
-
-
-class CheckpointError(RuntimeError):
-    """A missing, unreadable, wrong-kind or mismatched checkpoint; the message names the file."""
 
 
 def read_checkpoint(path: str | Path) -> dict[str, Any]:

@@ -11,14 +11,16 @@ from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig
 
 from pae import CONFIG_DIR
+from pae.atomic import write_json_atomic
 from pae.pipeline import evaluate_checkpoints
-from pae.reporting import format_results_table, reporting_errors, write_json_atomic
-from pae.validation import validate_eval_config
+from pae.reporting import format_results_table, reporting_errors
+from pae.validation import apply_renamed_keys, validate_eval_config
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="eval")
 def main(cfg: DictConfig) -> float | None:
     with reporting_errors("pae-eval"):
+        apply_renamed_keys(cfg, "pae-eval")
         validate_eval_config(cfg)
         L.seed_everything(cfg.seed, verbose=False)
         run_dir = Path(HydraConfig.get().runtime.output_dir)

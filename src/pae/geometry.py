@@ -5,6 +5,9 @@ Conventions (shared by the whole package):
 - A pose tensor has shape ``[..., 7]``: position ``x, y, z`` in metres (world frame) followed by
   the orientation ``qw, qx, qy, qz``, a unit quaternion with the scalar part first.
 - Poses are camera-to-world: ``X_world = R(q) @ X_camera + t``.
+- Relative poses are expressed in the reference camera's frame (``relative_pose``, inverted by
+  ``compose_pose``): the one relative-pose convention of the package; the virtual RPR
+  regresses it.
 - Quaternions are Hamilton quaternions; ``q`` and ``-q`` are the same rotation and stored poses
   are canonicalised to ``qw >= 0``.
 
@@ -16,8 +19,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from pae.quaternion_sign import canonical_sign
+
 __all__ = [
     "average_quaternions",
+    "canonical_sign",
     "canonicalize_quaternion",
     "compose_pose",
     "matrix_to_quaternion",
@@ -45,8 +51,7 @@ def normalize_pose(pose: Tensor) -> Tensor:
 
 def canonicalize_quaternion(q: Tensor) -> Tensor:
     """Unit quaternions ``[..., 4]`` with the sign chosen so that ``qw >= 0``."""
-    q = normalize_quaternion(q)
-    return torch.where(q[..., :1] < 0, -q, q)
+    return canonical_sign(normalize_quaternion(q))
 
 
 def quaternion_multiply(a: Tensor, b: Tensor) -> Tensor:

@@ -6,19 +6,19 @@ figures it measured; the entry points merge them into the run's metrics.json.
 
 from __future__ import annotations
 
+import re
 import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import lightning as L
-import torch
 from hydra.utils import instantiate
 from lightning.pytorch.loggers import Logger, TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_info
 from omegaconf import DictConfig, OmegaConf
 
-from pae.callbacks.refinement import TestTimeRefinement
 from pae.checkpoints import (
     DATA_FINGERPRINT_KEY,
     AtomicCheckpointIO,
@@ -32,14 +32,12 @@ from pae.checkpoints import (
 )
 from pae.data.datamodule import PoseDataModule
 from pae.data.latents import LatentCache, TeacherLatentDataModule
+from pae.errors import ConfigError
 from pae.lit.decoder import DecoderModule
 from pae.lit.rpr import RPRModule
-from pae.lit.student import StudentModule
+from pae.lit.student import StudentEvaluator, StudentModule
 from pae.lit.teacher import TeacherModule
-from pae.losses import LearnedPoseLoss
-from pae.models.base import PoseRegressor
-from pae.models.pae import PoseAutoEncoder
-from pae.reporting import ConfigError, first_line
+from pae.reporting import first_line
 
 Metrics = dict[str, float]
 
@@ -164,6 +162,31 @@ def _fit_and_test(
     return metrics, step_dir / "checkpoints" / "last.ckpt"
 
 
+def _optimisation(group: DictConfig) -> dict[str, Any]:
+    """A trained group's optimizer and scheduler factories (scheduler=null: a constant rate)."""
+    scheduler = group.get("scheduler")
+    return {
+        "optimizer": instantiate(group.optimizer),
+        "scheduler": instantiate(scheduler) if scheduler else None,
+    }
+
+
+def _frozen(
+    cfg: DictConfig,
+    path: str | Path | None,
+    key: str,
+    stage: str,
+    load: Callable[[str | Path], LoadedModel],
+) -> tuple[str | Path, LoadedModel, PoseDataModule]:
+    """The checkpoint a step needs (`key`), its model and the step's data (no augmentation),
+    checked to belong together."""
+    path = _required(path, key, stage)
+    loaded = load(path)
+    data = build_data(cfg, augment=False)
+    _check_data(cfg, path, loaded, data)
+    return path, loaded, data
+
+
 def fit_teacher(cfg: DictConfig, step_dir: Path) -> tuple[Metrics, Path]:
     """Train and test a teacher APR -> (metrics, path of its last checkpoint)."""
     data = build_data(cfg)
@@ -171,8 +194,7 @@ def fit_teacher(cfg: DictConfig, step_dir: Path) -> tuple[Metrics, Path]:
     module = TeacherModule(
         teacher,
         loss=instantiate(cfg.teacher.loss),
-        optimizer=instantiate(cfg.teacher.optimizer),
-        scheduler=instantiate(cfg.teacher.scheduler) if cfg.teacher.get("scheduler") else None,
+        **_optimisation(cfg.teacher),
         scene_names=data.scene_names,
         teacher_config=_teacher_config(cfg, data.n_scenes),
         scene_loss_weight=cfg.teacher.scene_loss_weight,
@@ -213,64 +235,39 @@ def _check_data(
 
 
 def refinement_callbacks(cfg: DictConfig) -> list[L.Callback]:
-    """The configured test-time refinement callback (none for refine=none)."""
-    refine = cfg.refine
-    if refine.method == "none":
+    """The callback the `refine` group instantiates (none for refine=none, an empty group)."""
+    if not cfg.get("refine"):
         return []
-    if refine.method != "knn_affine":
-        raise ConfigError(f"unknown refine.method {refine.method!r}; choose 'none' or 'knn_affine'")
-    options = OmegaConf.to_container(refine, resolve=True)
-    options.pop("method")
-    alternatives = {}
-    for name, spec in (options.pop("alternatives", None) or {}).items():
-        try:
-            alternatives[name] = instantiate(spec, _partial_=True)
-        except Exception as err:  # a bad target or option: name the key
-            raise ConfigError(f"refine.alternatives.{name}: {first_line(err)}") from None
     try:
-        return [TestTimeRefinement(**options, alternatives=alternatives)]
-    except (TypeError, ValueError) as err:
-        raise ConfigError(f"refine: {err}") from None
-
-
-def _student_module(
-    cfg: DictConfig,
-    teacher: PoseRegressor,
-    pae: PoseAutoEncoder,
-    scene_names: list[str],
-    teacher_config: dict[str, Any],
-    pae_config: dict[str, Any],
-) -> StudentModule:
-    student = cfg.student
-    try:
-        return StudentModule(
-            teacher,
-            pae,
-            loss=instantiate(student.loss),
-            optimizer=instantiate(student.optimizer),
-            scheduler=instantiate(student.scheduler) if student.get("scheduler") else None,
-            scene_names=scene_names,
-            teacher_config=teacher_config,
-            pae_config=pae_config,
-            latent_loss=student.latent_loss,
-            pae_input=student.input,
-        )
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
+        return [instantiate(cfg.refine)]
+    except Exception as err:  # a bad target or option: name the key Hydra reports
+        key = re.search(r"full_key: (\S+)", str(err))
+        raise ConfigError(f"{key.group(1) if key else 'refine'}: {first_line(err)}") from None
 
 
 def fit_student(
     cfg: DictConfig, step_dir: Path, teacher_ckpt: str | Path | None
 ) -> tuple[Metrics, Path]:
     """Distil a PAE from a frozen teacher checkpoint, then test it (with refinement)."""
-    teacher_ckpt = _required(teacher_ckpt, "teacher_ckpt", "student")
-    teacher = load_teacher(teacher_ckpt)
-    data = build_data(cfg, augment=False)
-    _check_data(cfg, teacher_ckpt, teacher, data)
+    teacher_ckpt, teacher, data = _frozen(
+        cfg, teacher_ckpt, "teacher_ckpt", "student", load_teacher
+    )
     pae_config = OmegaConf.to_container(cfg.pae, resolve=True)
     pae_config["n_scenes"] = data.n_scenes
-    pae = instantiate(pae_config)
-    module = _student_module(cfg, teacher.model, pae, data.scene_names, teacher.config, pae_config)
+    try:
+        module = StudentModule(
+            teacher.model,
+            instantiate(pae_config),
+            loss=instantiate(cfg.student.loss),
+            **_optimisation(cfg.student),
+            scene_names=data.scene_names,
+            teacher_config=teacher.config,
+            pae_config=pae_config,
+            latent_loss=cfg.student.latent_loss,
+            pae_input=cfg.student.input,
+        )
+    except ValueError as err:  # latent sizes or options that do not fit: name the key
+        raise ConfigError(str(err)) from None
     if not cfg.student.cache_latents:
         return _fit_and_test(
             cfg,
@@ -309,19 +306,15 @@ def _required(path: str | Path | None, key: str, stage: str) -> str | Path:
 
 
 def fit_decoder(
-    cfg: DictConfig, step_dir: Path, pae_ckpt: str | Path | None
+    cfg: DictConfig, step_dir: Path, student_ckpt: str | Path | None
 ) -> tuple[Metrics, Path]:
     """Train an image decoder on a frozen PAE (from a student checkpoint), then test it."""
-    pae_ckpt = _required(pae_ckpt, "pae_ckpt", "decoder")
-    pae = load_pae(pae_ckpt)
-    data = build_data(cfg, augment=False)
-    _check_data(cfg, pae_ckpt, pae, data)
+    _, pae, data = _frozen(cfg, student_ckpt, "student_ckpt", "decoder", load_pae)
     decoder_config = OmegaConf.to_container(cfg.decoder.model, resolve=True)
     module = DecoderModule(
         pae.model,
         instantiate(decoder_config),
-        optimizer=instantiate(cfg.decoder.optimizer),
-        scheduler=instantiate(cfg.decoder.scheduler) if cfg.decoder.get("scheduler") else None,
+        **_optimisation(cfg.decoder),
         scene_names=data.scene_names,
         pae_config=pae.config,
         decoder_config=decoder_config,
@@ -330,14 +323,21 @@ def fit_decoder(
 
 
 def fit_rpr(
-    cfg: DictConfig, step_dir: Path, pae_ckpt: str | Path | None, decoder_ckpt: str | Path | None
+    cfg: DictConfig,
+    step_dir: Path,
+    student_ckpt: str | Path | None,
+    decoder_ckpt: str | Path | None,
 ) -> tuple[Metrics, Path]:
     """Train the Siamese RPR on virtual references, then test virtual RPR (`test/vrpr/...`)."""
-    pae_ckpt = _required(pae_ckpt, "pae_ckpt", "rpr")
+    student_ckpt = _required(student_ckpt, "student_ckpt", "rpr")
     decoder_ckpt = _required(decoder_ckpt, "decoder_ckpt", "rpr")
-    teacher, pae, decoder = load_teacher(pae_ckpt), load_pae(pae_ckpt), load_decoder(decoder_ckpt)
+    teacher, pae, decoder = (
+        load_teacher(student_ckpt),
+        load_pae(student_ckpt),
+        load_decoder(decoder_ckpt),
+    )
     data = build_data(cfg)
-    for path, loaded in ((pae_ckpt, pae), (decoder_ckpt, decoder)):
+    for path, loaded in ((student_ckpt, pae), (decoder_ckpt, decoder)):
         _check_data(cfg, path, loaded, data)
     rpr_config = OmegaConf.to_container(cfg.rpr.model, resolve=True)
     rpr_config["backbone"]["pretrained"] = False
@@ -347,8 +347,7 @@ def fit_rpr(
         pae.model,
         decoder.model,
         loss=instantiate(cfg.rpr.loss),
-        optimizer=instantiate(cfg.rpr.optimizer),
-        scheduler=instantiate(cfg.rpr.scheduler) if cfg.rpr.get("scheduler") else None,
+        **_optimisation(cfg.rpr),
         scene_names=data.scene_names,
         configs={
             "teacher_config": teacher.config,
@@ -363,26 +362,18 @@ def fit_rpr(
 
 def evaluate_checkpoints(cfg: DictConfig, run_dir: Path) -> Metrics:
     """Test a student checkpoint (and optionally another teacher) with the configured refinement."""
-    teacher_path = cfg.teacher_ckpt or cfg.pae_ckpt
+    teacher_path = cfg.teacher_ckpt or cfg.student_ckpt
     teacher = load_teacher(teacher_path)
-    pae = load_pae(cfg.pae_ckpt)
+    pae = load_pae(cfg.student_ckpt)
     data = build_data(cfg, augment=False)
     _check_data(cfg, teacher_path, teacher, data)
-    _check_data(cfg, cfg.pae_ckpt, pae, data)
+    _check_data(cfg, cfg.student_ckpt, pae, data)
     if pae.model.latent_dim != teacher.model.latent_dim:
         raise CheckpointError(
-            f"{cfg.pae_ckpt}: PAE latent size {pae.model.latent_dim} does not match the "
+            f"{cfg.student_ckpt}: PAE latent size {pae.model.latent_dim} does not match the "
             f"teacher's {teacher.model.latent_dim} ({teacher_path})"
         )
-    module = StudentModule(
-        teacher.model,
-        pae.model,
-        loss=LearnedPoseLoss(),
-        optimizer=torch.optim.Adam,
-        scene_names=data.scene_names,
-        teacher_config=teacher.config,
-        pae_config=pae.config,
-    )
+    module = StudentEvaluator(teacher.model, pae.model, data.scene_names)
     trainer = build_trainer(cfg, run_dir, 0, refinement_callbacks(cfg))
     trainer.test(module, datamodule=data, verbose=False)
     metrics = collect_metrics(trainer)

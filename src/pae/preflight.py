@@ -11,9 +11,10 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from pae.checkpoints import newest_readable_checkpoint
+from pae.errors import ConfigError
 from pae.pipeline import flat_config
-from pae.reporting import ConfigError, reporting_errors
-from pae.validation import validate_eval_config, validate_train_config
+from pae.reporting import reporting_errors
+from pae.validation import apply_renamed_keys, validate_eval_config, validate_train_config
 
 RESUMABLE_CHANGES = (
     "resume",
@@ -74,7 +75,9 @@ def check_resume(cfg: DictConfig, run_dir: Path) -> None:
             f"resume=true: {run_dir} is not an earlier run (no .hydra/config.yaml); "
             "pass hydra.run.dir=<the run directory to continue>"
         )
-    changed = _changed_settings(OmegaConf.load(saved), cfg)
+    earlier = OmegaConf.load(saved)
+    apply_renamed_keys(earlier)  # a run made before a key was renamed
+    changed = _changed_settings(earlier, cfg)
     if changed:
         more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
         raise ConfigError(
@@ -112,20 +115,22 @@ class Preflight(Callback):
             validate_eval_config(config)
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
-        with reporting_errors(self.program):
-            run_dir = Path(config.hydra.run.dir)
-            check_writable_dir(run_dir, "hydra.run.dir")
-            if config.get("resume"):
-                check_resume(config, run_dir)
-            else:
-                check_fresh(run_dir, "hydra.run.dir")
-            self._validate(config)
-            _check_latent_cache(config)
+        self._check(config, Path(config.hydra.run.dir), "hydra.run.dir", sweep=False)
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._check(config, Path(config.hydra.sweep.dir), "hydra.sweep.dir", sweep=True)
+
+    def _check(self, config: DictConfig, folder: Path, key: str, sweep: bool) -> None:
+        """The run (or sweep) directory `folder` can be written and holds no other run's
+        checkpoints, or, with resume=true, an earlier run of these settings (single runs);
+        every setting; the latent cache folder."""
         with reporting_errors(self.program):
-            sweep_dir = Path(config.hydra.sweep.dir)
-            check_writable_dir(sweep_dir, "hydra.sweep.dir")
+            apply_renamed_keys(config, self.program)
+            check_writable_dir(folder, key)
             if not config.get("resume"):
-                check_fresh(sweep_dir, "hydra.sweep.dir")
+                check_fresh(folder, key)
+            elif not sweep:
+                check_resume(config, folder)
+            if not sweep:  # sweep jobs check their own settings when they start
+                self._validate(config)
             _check_latent_cache(config)

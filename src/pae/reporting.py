@@ -17,11 +17,8 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from pae.atomic import atomic_write
-from pae.checkpoints import CheckpointError
-from pae.data.labels import LabelError
-from pae.data.transforms import ImageError
-from pae.models.backbones import BackboneError
+from pae.atomic import write_text_atomic
+from pae.errors import BackboneError, CheckpointError, ConfigError, ImageError, LabelError
 
 METHOD_ORDER = (
     "teacher",
@@ -65,10 +62,6 @@ ERROR_FILE = "error.txt"
 """A failed run's one-line error, written into its run directory (pae-report lists it)."""
 
 
-class ConfigError(ValueError):
-    """A configuration value that cannot work; the message names the key."""
-
-
 class SweepJobFailed(CompactHydraException):
     """A sweep job stopped on a user error: Hydra goes on with the other jobs, then ends the
     sweep with this one line and exit status 1."""
@@ -83,13 +76,7 @@ USER_ERRORS = (
     OmegaConfBaseException,
     HydraException,
 )
-
-
-def write_json_atomic(path: str | Path, payload: Mapping[str, object]) -> None:
-    """Write JSON to a temporary file beside `path`, then rename it over `path`."""
-    with atomic_write(path) as handle:
-        json.dump(dict(payload), handle, indent=2, sort_keys=True)
-        handle.write("\n")
+"""Reported in one line (``pae.errors``, and Hydra's and OmegaConf's own config errors)."""
 
 
 def format_results_table(metrics: Mapping[str, float], split: str = "test") -> str:
@@ -205,8 +192,7 @@ def reporting_errors(program: str) -> Iterator[None]:
 
 def record_failure(run_dir: Path, line: str) -> None:
     """Write a run's one-line error to `<run_dir>/error.txt`, atomically."""
-    with atomic_write(run_dir / ERROR_FILE) as handle:
-        handle.write(line + "\n")
+    write_text_atomic(run_dir / ERROR_FILE, line + "\n")
 
 
 def _job_name(run_dir: Path, root: Path) -> str:
@@ -215,7 +201,7 @@ def _job_name(run_dir: Path, root: Path) -> str:
         return str(run_dir.relative_to(root)) or "."
     overrides = [str(o) for o in OmegaConf.load(overrides_file)]
     shown = [o for o in overrides if not o.startswith(("hydra.", "+trainer.", "trainer."))]
-    shown = [o for o in shown if not o.startswith(("teacher_ckpt=", "pae_ckpt="))]
+    shown = [o for o in shown if not o.startswith(("teacher_ckpt=", "student_ckpt=", "pae_ckpt="))]
     return " ".join(shown) or "(defaults)"
 
 
@@ -343,8 +329,7 @@ class SweepReport(Callback):
         except FileNotFoundError as err:
             print(f"pae-report: {err}", file=sys.stderr)
             return
-        with atomic_write(sweep_dir / "report.md") as handle:
-            handle.write(table + "\n")
+        write_text_atomic(sweep_dir / "report.md", table + "\n")
         print(table)
         print(f"report: {sweep_dir / 'report.md'}")
 

@@ -11,29 +11,31 @@ from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig
 
 from pae import CONFIG_DIR
+from pae.atomic import write_json_atomic
 from pae.pipeline import fit_decoder, fit_rpr, fit_student, fit_teacher
-from pae.reporting import format_results_table, reporting_errors, write_json_atomic
-from pae.validation import validate_train_config
+from pae.reporting import format_results_table, reporting_errors
+from pae.validation import apply_renamed_keys, validate_train_config
 
 
 def run(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
     """Check every setting, then run the stage's steps; metrics.json is rewritten atomically
     after each finished step (by the first process only under DDP)."""
+    apply_renamed_keys(cfg, "pae-train")
     validate_train_config(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     metrics: dict[str, float] = {}
-    ckpt = {"teacher": cfg.teacher_ckpt, "pae": cfg.pae_ckpt, "decoder": cfg.decoder_ckpt}
+    ckpt = {"teacher": cfg.teacher_ckpt, "student": cfg.student_ckpt, "decoder": cfg.decoder_ckpt}
     several = len(cfg.stage.steps) > 1
     for step in cfg.stage.steps:
         step_dir = run_dir / step if several else run_dir
         if step == "teacher":
             step_metrics, ckpt["teacher"] = fit_teacher(cfg, step_dir)
         elif step == "student":
-            step_metrics, ckpt["pae"] = fit_student(cfg, step_dir, ckpt["teacher"])
+            step_metrics, ckpt["student"] = fit_student(cfg, step_dir, ckpt["teacher"])
         elif step == "decoder":
-            step_metrics, ckpt["decoder"] = fit_decoder(cfg, step_dir, ckpt["pae"])
+            step_metrics, ckpt["decoder"] = fit_decoder(cfg, step_dir, ckpt["student"])
         else:
-            step_metrics, _ = fit_rpr(cfg, step_dir, ckpt["pae"], ckpt["decoder"])
+            step_metrics, _ = fit_rpr(cfg, step_dir, ckpt["student"], ckpt["decoder"])
         metrics |= step_metrics
         if rank_zero_only.rank == 0:
             write_json_atomic(run_dir / "metrics.json", metrics)

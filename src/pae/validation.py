@@ -3,25 +3,53 @@ training: types, ranges and paths, each failure a ConfigError naming its key."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from pae.data.labels import read_labels
+from pae.errors import ConfigError
 from pae.losses import LATENT_LOSSES
 from pae.pipeline import refinement_callbacks
-from pae.reporting import ConfigError
+
+RENAMED_KEYS = {"pae_ckpt": "student_ckpt"}
+"""Old key -> its new name. The old key is still read for one more release, with a one-line
+deprecation warning."""
+_WARNED: set[str] = set()
 
 STEPS = ("teacher", "student", "decoder", "rpr")
 """The steps of pae-train, each with its config group (max_epochs, optimizer, ...)."""
 NEEDS = {
     "student": (("teacher_ckpt", "teacher"),),
-    "decoder": (("pae_ckpt", "student"),),
-    "rpr": (("pae_ckpt", "student"), ("decoder_ckpt", "decoder")),
+    "decoder": (("student_ckpt", "student"),),
+    "rpr": (("student_ckpt", "student"), ("decoder_ckpt", "decoder")),
 }
 """Per step: the checkpoint keys it needs unless an earlier step of the run produces them."""
+
+
+def apply_renamed_keys(cfg: DictConfig, program: str | None = None) -> None:
+    """Move a value given under an old key (RENAMED_KEYS) to its new name; with `program`,
+    say once per process that the old name is deprecated. Both names with different values
+    are a ConfigError."""
+    for old, new in RENAMED_KEYS.items():
+        value = OmegaConf.select(cfg, old, default=None, throw_on_missing=False)
+        if value is None:
+            continue
+        current = OmegaConf.select(cfg, new, default=None, throw_on_missing=False)
+        if current is not None and current != value:
+            raise ConfigError(f"{old}={value} and {new}={current}: {old} is the old name of {new}")
+        with open_dict(cfg):
+            cfg[new], cfg[old] = value, None
+        if program is not None and old not in _WARNED:
+            _WARNED.add(old)
+            print(
+                f"{program}: warning: {old} is deprecated, use {new} (the old name is read "
+                "for one more release)",
+                file=sys.stderr,
+            )
 
 
 def _value(cfg: DictConfig, key: str) -> Any:
@@ -116,17 +144,20 @@ def validate_data(cfg: DictConfig, train: bool = True) -> None:
 
 
 def validate_refine(cfg: DictConfig) -> None:
-    """refine.*: ranges here; the choices (weight model, orientation, distance) are checked by
-    building the refinement callback."""
-    _choice(cfg, "refine.method", ("none", "knn_affine"))
-    if cfg.refine.method == "none":
+    """refine.*: ranges here (for the keys the configured refinement has); the choices
+    (weight model, orientation, distance) are checked by building its callback."""
+    refine = cfg.get("refine")
+    if not refine:
         return
-    _integer(cfg, "refine.k", 1)
-    _integer(cfg, "refine.iterations", 0)
-    _number(cfg, "refine.lr", 0, strict=True)
-    _number(cfg, "refine.rot_weight", 0, strict=False)
-    _number(cfg, "refine.guess_sigma_m", 0, strict=False, optional=True)
-    _integer(cfg, "refine.every_n_val_epochs", 1)
+    for key, low in (("k", 1), ("iterations", 0), ("every_n_val_epochs", 1)):
+        if key in refine:
+            _integer(cfg, f"refine.{key}", low)
+    if "lr" in refine:
+        _number(cfg, "refine.lr", 0, strict=True)
+    if "rot_weight" in refine:
+        _number(cfg, "refine.rot_weight", 0, strict=False)
+    if "guess_sigma_m" in refine:
+        _number(cfg, "refine.guess_sigma_m", 0, strict=False, optional=True)
     refinement_callbacks(cfg)
 
 
@@ -163,7 +194,7 @@ def validate_train_config(cfg: DictConfig) -> None:
     _integer(cfg, "rpr.pair_k", 1)
     _boolean(cfg, "backbone.pretrained")
     _file(cfg, "backbone.weights_path")
-    for key in ("teacher_ckpt", "pae_ckpt", "decoder_ckpt"):
+    for key in ("teacher_ckpt", "student_ckpt", "decoder_ckpt"):
         _file(cfg, key)
     for index, step in enumerate(steps):
         for key, producer in NEEDS.get(step, ()):
@@ -175,6 +206,8 @@ def validate_train_config(cfg: DictConfig) -> None:
 def validate_eval_config(cfg: DictConfig) -> None:
     """All of pae-eval's settings (conf/eval.yaml); raises ConfigError naming the key."""
     _validate_common(cfg)
-    for key in ("pae_ckpt", "teacher_ckpt"):
+    if _value(cfg, "student_ckpt") is None:
+        raise ConfigError("pae-eval needs student_ckpt=PATH (a checkpoint of stage=student)")
+    for key in ("student_ckpt", "teacher_ckpt"):
         _file(cfg, key)
     validate_data(cfg, train=False)

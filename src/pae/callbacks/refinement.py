@@ -14,8 +14,14 @@ from torch import Tensor
 from pae.geometry import pose_errors
 from pae.metrics import first_occurrences, summarise_errors
 from pae.models.base import Latents
-from pae.refine import PoseIndex, PositionRefiner, perturb_positions
-from pae.refine.affine import ORIENTATION_MODES, WEIGHT_MODELS, RefinementResult
+from pae.refine import (
+    ORIENTATION_MODES,
+    WEIGHT_MODELS,
+    PoseIndex,
+    PositionRefiner,
+    RefinementResult,
+    perturb_positions,
+)
 
 Refiner = Callable[[Latents, Tensor, Tensor | None], RefinementResult]
 """``(query_latents, initial_poses [B, 7], scenes [B]) -> RefinementResult``."""
@@ -48,7 +54,8 @@ RefinerFactory = Callable[..., Refiner]
 
 
 class TestTimeRefinement(L.Callback):
-    """Refines every evaluated query of a StudentModule, in both retrieval protocols.
+    """Refines every evaluated query of a StudentEvaluator (or StudentModule), in both
+    retrieval protocols.
 
     Under DDP every process gathers all queries and drops the repeats a distributed sampler
     adds (by dataset index), so each figure counts every sample once, in dataset order.

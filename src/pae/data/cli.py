@@ -20,14 +20,8 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
-from pae.data.labels import (
-    LabelError,
-    LabelTable,
-    LabelWarning,
-    find_image_problems,
-    read_labels,
-    read_labels_lenient,
-)
+from pae.data.labels import LabelTable, find_image_problems, read_labels, read_labels_lenient
+from pae.errors import LabelError, LabelWarning
 
 PROG = "pae-data"
 

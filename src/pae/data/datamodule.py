@@ -13,8 +13,9 @@ from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, WeightedRandomSampler
 
 from pae.data.dataset import PoseDataset, collate_batch
-from pae.data.labels import LabelError, LabelTable, read_labels
+from pae.data.labels import LabelTable, read_labels
 from pae.data.transforms import ImageTransform
+from pae.errors import LabelError
 
 
 class PoseDataModule(L.LightningDataModule):

@@ -11,8 +11,9 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset, default_collate
 
-from pae.data.labels import LabelError, LabelTable, outside_root
+from pae.data.labels import LabelTable, outside_root
 from pae.data.transforms import image_size, load_image
+from pae.errors import LabelError
 
 
 class PoseDataset(Dataset):

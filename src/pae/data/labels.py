@@ -23,6 +23,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pae.atomic import atomic_write
+from pae.errors import LabelError, LabelWarning
+from pae.quaternion_sign import canonical_sign
 
 __all__ = [
     "LABEL_COLUMNS",
@@ -59,21 +61,6 @@ NON_UNIT_TOLERANCE = 1e-3
 """Quaternions whose norm differs from 1 by more than this are reported when normalised."""
 _RENORMALISE_TOLERANCE = 1e-12
 """Norms closer to 1 are left as read, so that read → write → read is exact."""
-
-
-class LabelError(ValueError):
-    """A problem in a label or raw pose file; ``str()`` is one line ``FILE:LINE: problem``."""
-
-    def __init__(self, path: str | os.PathLike[str], line: int | None, problem: str) -> None:
-        self.path = str(path)
-        self.line = line
-        self.problem = " ".join(problem.split())
-        where = self.path if line is None else f"{self.path}:{line}"
-        super().__init__(f"{where}: {self.problem}")
-
-
-class LabelWarning(UserWarning):
-    """Label values that were repaired while reading (e.g. quaternions normalised)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -289,8 +276,7 @@ def _unit_canonical_quaternions(q: np.ndarray) -> tuple[np.ndarray, int]:
     norms = np.linalg.norm(q, axis=1, keepdims=True)
     off = np.abs(norms - 1.0)
     q = np.where(off > _RENORMALISE_TOLERANCE, q / norms, q)
-    q = np.where(q[:, :1] < 0, -q, q)
-    return q, int(np.count_nonzero(off > NON_UNIT_TOLERANCE))
+    return canonical_sign(q), int(np.count_nonzero(off > NON_UNIT_TOLERANCE))
 
 
 def write_labels(path: str | os.PathLike[str], table: LabelTable) -> None:

@@ -30,7 +30,9 @@ from typing import Literal
 
 import numpy as np
 
-from pae.data.labels import ZERO_QUATERNION_NORM, LabelError, LabelTable, write_labels
+from pae.data.labels import ZERO_QUATERNION_NORM, LabelTable, write_labels
+from pae.errors import LabelError
+from pae.quaternion_sign import canonical_sign
 
 __all__ = [
     "CAMBRIDGE_SPLIT_FILES",
@@ -73,6 +75,27 @@ def _parse_numbers(tokens: list[str], path: Path, line: int) -> list[float]:
     return numbers
 
 
+def _scene_table(
+    scene: str,
+    split: str,
+    seqs: list[str],
+    img_paths: list[str],
+    poses: np.ndarray,
+    source: Path,
+    lines: list[int] | None = None,
+) -> LabelTable:
+    """The rows read from one scene's split file (``lines``: their line numbers in it)."""
+    return LabelTable(
+        scene=[scene] * len(poses),
+        split=[split] * len(poses),
+        seq=seqs,
+        img_path=img_paths,
+        poses=poses,
+        source=str(source),
+        lines=None if lines is None else np.asarray(lines),
+    )
+
+
 def read_cambridge_scene(scene_dir: str | os.PathLike[str], split: str) -> LabelTable:
     """Rows of ``<scene_dir>/dataset_<split>.txt`` with the raw numbers kept as they are.
 
@@ -108,17 +131,8 @@ def read_cambridge_scene(scene_dir: str | os.PathLike[str], split: str) -> Label
     if not poses:
         raise LabelError(path, None, "no frames listed")
     pose_array = np.asarray(poses, dtype=np.float64)
-    flip = pose_array[:, 3:4] < 0
-    pose_array[:, 3:] = np.where(flip, -pose_array[:, 3:], pose_array[:, 3:])
-    return LabelTable(
-        scene=[scene] * len(poses),
-        split=[split] * len(poses),
-        seq=seqs,
-        img_path=img_paths,
-        poses=pose_array,
-        source=str(path),
-        lines=np.asarray(lines),
-    )
+    pose_array[:, 3:] = canonical_sign(pose_array[:, 3:])
+    return _scene_table(scene, split, seqs, img_paths, pose_array, path, lines)
 
 
 def _read_pose_matrix(path: Path) -> np.ndarray:
@@ -185,14 +199,7 @@ def read_seven_scenes_scene(scene_dir: str | os.PathLike[str], split: str) -> La
         )
     quaternions = matrix_to_quaternion(torch.from_numpy(stacked[:, :3, :3])).numpy()
     poses = np.concatenate([stacked[:, :3, 3], quaternions], axis=1)
-    return LabelTable(
-        scene=[scene] * len(poses),
-        split=[split] * len(poses),
-        seq=seqs,
-        img_path=img_paths,
-        poses=poses,
-        source=str(split_path),
-    )
+    return _scene_table(scene, split, seqs, img_paths, poses, split_path)
 
 
 _READERS: dict[str, tuple[Callable[[Path, str], LabelTable], dict[str, str]]] = {

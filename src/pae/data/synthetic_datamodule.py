@@ -8,8 +8,9 @@ from typing import Any
 
 from lightning.pytorch.utilities import rank_zero_info
 
+from pae.data import synthetic
 from pae.data.datamodule import PoseDataModule
-from pae.data.labels import LabelError
+from pae.errors import LabelError
 
 RENDER_FOLDER = "data/synthetic"
 """Where datasets without an explicit ``root`` are rendered (relative to the working dir)."""
@@ -51,18 +52,19 @@ class SyntheticDataModule(PoseDataModule):
     (label files, e.g. a real dataset's train and test labels): one image per row at that
     row's pose, in a world built around them (``pae-data synth --poses``). ``root`` None
     picks a folder under ``data/synthetic`` named by these settings. A non-empty ``root``
-    without label files is an error, never overwritten.
+    without label files is an error, never overwritten. The defaults are ``pae-data synth``'s
+    (``pae.data.synthetic.DEFAULT_*``), the values of ``conf/data/synthetic.yaml``.
     """
 
     def __init__(
         self,
         root: str | None = None,
-        scenes: int = 2,
-        train_frames: int = 800,
-        test_frames: int = 250,
-        size: int = 64,
+        scenes: int = synthetic.DEFAULT_SCENES,
+        train_frames: int = synthetic.DEFAULT_TRAIN_FRAMES,
+        test_frames: int = synthetic.DEFAULT_TEST_FRAMES,
+        size: int = synthetic.DEFAULT_SIZE,
         render_seed: int = 0,
-        test_offset_m: float = 0.7,
+        test_offset_m: float = synthetic.DEFAULT_TEST_OFFSET_M,
         poses: list[str] | None = None,
         train_lane_m: float = 0.0,
         **kwargs: Any,
@@ -112,9 +114,7 @@ class SyntheticDataModule(PoseDataModule):
                     required_splits=("train", "test"),
                 )
             else:
-                from pae.data.synthetic import write_synthetic_dataset
-
-                written = write_synthetic_dataset(self.root, **self.render_args)
+                written = synthetic.write_synthetic_dataset(self.root, **self.render_args)
         except FileExistsError as err:
             raise LabelError(
                 self.label_paths["train"], None, f"file not found, and not rendered: {err}"

@@ -13,12 +13,10 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from pae.errors import ImageError
+
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-
-
-class ImageError(OSError):
-    """A missing or unreadable image; the message names the file."""
 
 
 def image_size(path: str) -> tuple[int, int]:

@@ -1,4 +1,5 @@
-"""What every pae LightningModule shares: evaluation hooks and optimiser wiring."""
+"""What every pae LightningModule shares: evaluation hooks (EvaluationModule) and, for the
+modules that train, optimiser wiring (PaeModule)."""
 
 from __future__ import annotations
 
@@ -17,17 +18,10 @@ OptimizerFactory = Callable[..., torch.optim.Optimizer]
 SchedulerFactory = Callable[..., Any]
 
 
-class PaeModule(L.LightningModule):
-    """Subclasses implement `trainable_parameters()` and `evaluate(batch, batch_idx, split)`;
-    pose metrics collected in a `self.evaluation` PoseEvaluation are logged after each epoch.
-    The scheduler factory gets the run's total optimiser steps (e.g. OneCycleLR)."""
-
-    def __init__(
-        self, optimizer: OptimizerFactory, scheduler: SchedulerFactory | None = None
-    ) -> None:
-        super().__init__()
-        self.optimizer_factory = optimizer
-        self.scheduler_factory = scheduler
+class EvaluationModule(L.LightningModule):
+    """Evaluation hooks every pae module shares. Subclasses implement
+    `evaluate(batch, batch_idx, split)`; pose metrics collected in a `self.evaluation`
+    PoseEvaluation are logged after each epoch."""
 
     def register_mean_pose_baseline(self, n_scenes: int) -> None:
         """Keep `mean_poses` [n_scenes, 7], the mean train pose per scene (the `mean_pose`
@@ -44,23 +38,6 @@ class PaeModule(L.LightningModule):
 
     def on_test_start(self) -> None:
         self._fill_mean_poses()
-
-    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        """Record the fingerprint of the training data (scenes, train poses) in the checkpoint."""
-        datamodule = getattr(self.trainer, "datamodule", None)
-        if datamodule is not None and hasattr(datamodule, "fingerprint"):
-            checkpoint[DATA_FINGERPRINT_KEY] = datamodule.fingerprint()
-
-    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        """Resuming with another number of epochs: keep the schedule built for this run's total
-        steps (e.g. a longer OneCycleLR) and continue it from the restored step count."""
-        for state in checkpoint.get("lr_schedulers", []):
-            if "total_steps" in state:
-                state.pop("total_steps")
-                state.pop("_schedule_phases", None)
-
-    def trainable_parameters(self) -> Iterable[nn.Parameter]:
-        raise NotImplementedError
 
     def evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
         raise NotImplementedError
@@ -81,6 +58,36 @@ class PaeModule(L.LightningModule):
 
     def on_test_epoch_end(self) -> None:
         self._log_evaluation("test")
+
+
+class PaeModule(EvaluationModule):
+    """A module that trains: subclasses also implement `trainable_parameters()`. The scheduler
+    factory gets the run's total optimiser steps (e.g. OneCycleLR); checkpoints record the
+    training data's fingerprint."""
+
+    def __init__(
+        self, optimizer: OptimizerFactory, scheduler: SchedulerFactory | None = None, **kwargs: Any
+    ) -> None:
+        super().__init__(**kwargs)  # a second base's arguments (StudentModule: StudentEvaluator)
+        self.optimizer_factory = optimizer
+        self.scheduler_factory = scheduler
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Record the fingerprint of the training data (scenes, train poses) in the checkpoint."""
+        datamodule = getattr(self.trainer, "datamodule", None)
+        if datamodule is not None and hasattr(datamodule, "fingerprint"):
+            checkpoint[DATA_FINGERPRINT_KEY] = datamodule.fingerprint()
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Resuming with another number of epochs: keep the schedule built for this run's total
+        steps (e.g. a longer OneCycleLR) and continue it from the restored step count."""
+        for state in checkpoint.get("lr_schedulers", []):
+            if "total_steps" in state:
+                state.pop("total_steps")
+                state.pop("_schedule_phases", None)
+
+    def trainable_parameters(self) -> Iterable[nn.Parameter]:
+        raise NotImplementedError
 
     def configure_optimizers(self) -> Any:
         optimizer = self.optimizer_factory(params=list(self.trainable_parameters()))

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor, nn
 
 from pae.data.transforms import ImageTransform
-from pae.geometry import quaternion_conjugate, quaternion_multiply
+from pae.geometry import compose_pose, relative_pose
 from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import PoseEvaluation
 from pae.losses import LearnedPoseLoss
@@ -20,21 +20,17 @@ from pae.models.rpr import SiameseRPR
 from pae.refine.index import PoseIndex
 
 
-def relative_target(query: Tensor, reference: Tensor) -> Tensor:
-    """[B, 7] poses -> [B, 7]: world-frame translation query − reference (m) and the rotation
-    conj(q_ref)·q_query."""
-    rotation = quaternion_multiply(quaternion_conjugate(reference[:, 3:]), query[:, 3:])
-    return torch.cat([query[:, :3] - reference[:, :3], rotation], dim=-1)
-
-
 class RPRModule(PaeModule):
     """Trains a SiameseRPR on (query image, decoded image of a nearby train pose) pairs.
 
     Training references: one of the `pair_k` nearest train poses of the query's true pose
     (never the query's own row), decoded by the frozen PAE + decoder — the same kind of
-    reference the RPR sees at test time. Evaluation: the teacher estimates the pose, the
-    nearest train pose of the estimate is decoded, and the RPR's translation moves that
-    reference position: `vrpr` position = reference + translation (orientation: teacher's).
+    reference the RPR sees at test time. The RPR regresses the query's pose relative to the
+    reference in the package's one convention, the reference camera's frame
+    (``pae.geometry.relative_pose``). Evaluation: the teacher estimates the pose, the nearest
+    train pose of the estimate is decoded, and the relative translation moves that reference
+    position: `vrpr` position = ``compose_pose(reference, relative)``'s, i.e. reference +
+    R_ref · translation (orientation: the teacher's).
     """
 
     def __init__(
@@ -89,7 +85,7 @@ class RPRModule(PaeModule):
         choice = torch.rand(candidates.shape, device=pose.device).masked_fill(own, -1).argmax(1)
         reference = self.index.poses.to(pose.device)[candidates.gather(1, choice[:, None])[:, 0]]
         images = self.virtual_reference(reference, scene, batch["image"].shape[-1])
-        terms = self.loss(self.rpr(batch["image"], images), relative_target(pose, reference))
+        terms = self.loss(self.rpr(batch["image"], images), relative_pose(reference, pose))
         self.log_dict(
             {"train/loss": terms.total, "train/pos_loss": terms.position},
             batch_size=len(pose),
@@ -108,7 +104,8 @@ class RPRModule(PaeModule):
         relative = self.rpr(
             images, self.virtual_reference(reference, answer.scene, images.shape[-1])
         )
-        vrpr = torch.cat([reference[:, :3] + relative[:, :3], answer.pose[:, 3:]], dim=-1)
+        position = compose_pose(reference, relative)[:, :3]
+        vrpr = torch.cat([position, answer.pose[:, 3:]], dim=-1)
         index = batch.get("index")
         self.evaluation.update(split, "teacher", answer.raw_pose, gt, scene, index)
         self.evaluation.update(split, "vrpr", vrpr, gt, scene, index)

@@ -1,4 +1,5 @@
-"""LightningModule that trains a student PAE against a frozen teacher APR."""
+"""LightningModules of a student PAE and its frozen teacher APR: StudentEvaluator evaluates
+them (pae-eval), StudentModule also trains the PAE."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import torch
 from torch import Tensor, nn
 
 from pae.geometry import normalize_pose
-from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
+from pae.lit.base import EvaluationModule, OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import PoseEvaluation
 from pae.losses import LATENT_LOSSES, LearnedPoseLoss, latent_distance
 from pae.models.base import Latents, PoseRegressor
@@ -17,7 +18,68 @@ from pae.models.pae import PoseAutoEncoder
 STUDENT_METHODS = ["teacher", "student", "student_gt", "mean_pose"]
 
 
-class StudentModule(PaeModule):
+class StudentEvaluator(EvaluationModule):
+    """A frozen teacher and its PAE, evaluated (what `pae-eval` runs; no loss, no optimiser).
+
+    Logs `teacher` (the teacher's estimate), `student` (the PAE encodes that estimate, the
+    frozen heads regress it back), `student_gt` (the PAE encodes the ground truth) and the
+    `mean_pose` baseline. During evaluation it keeps every query's teacher latents, estimate
+    and dataset index in `eval_outputs` for the test-time refinement callback.
+    """
+
+    def __init__(
+        self, teacher: PoseRegressor, pae: PoseAutoEncoder, scene_names: list[str]
+    ) -> None:
+        super().__init__()
+        if pae.latent_dim != teacher.latent_dim:
+            raise ValueError(
+                f"pae.latent_dim={pae.latent_dim} does not match the teacher's latent size "
+                f"{teacher.latent_dim}"
+            )
+        self.scene_names = list(scene_names)
+        self.teacher = teacher.eval().requires_grad_(False)
+        self.pae = pae
+        self.evaluation = PoseEvaluation(STUDENT_METHODS, scene_names)
+        self.register_mean_pose_baseline(len(scene_names))
+        self.eval_outputs: list[dict[str, Tensor]] = []
+
+    def train(self, mode: bool = True) -> StudentEvaluator:
+        super().train(mode)
+        self.teacher.eval()
+        return self
+
+    def on_validation_epoch_start(self) -> None:
+        self.eval_outputs = []
+
+    def on_test_epoch_start(self) -> None:
+        self.eval_outputs = []
+
+    def evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
+        gt, scene, index = batch["pose"], batch["scene"], batch["index"]
+        answer = self.teacher.estimate(batch["image"], scene)
+        student_pose = self.teacher.regress(self.pae(answer.pose, answer.scene))
+        student_gt_pose = self.teacher.regress(self.pae(gt, scene))
+        predictions = {
+            "teacher": answer.raw_pose,
+            "student": student_pose,
+            "student_gt": student_gt_pose,
+            "mean_pose": self.mean_poses[scene],
+        }
+        for method, pred in predictions.items():
+            self.evaluation.update(split, method, pred, gt, scene, index)
+        self.eval_outputs.append(
+            {
+                "z": answer.latents.joint(),
+                "estimate": answer.pose,
+                "pose": gt,
+                "scene": scene,
+                "scene_estimate": answer.scene,
+                "index": index,
+            }
+        )
+
+
+class StudentModule(PaeModule, StudentEvaluator):
     """L = latent(z_x, ẑ_x) + latent(z_q, ẑ_q) + L_p(teacher.regress(ẑ), p_gt).
 
     The teacher is frozen (eval mode, no parameter gradients) but its heads stay in the graph,
@@ -25,8 +87,7 @@ class StudentModule(PaeModule):
     (`z_x`, `z_q`, `teacher_pose`) or images, in which case the teacher runs on them; a
     multi-scene teacher's targets are the latents of the true scene.
     `pae_input` is "gt" (the ground-truth pose, paper) or "teacher" (the teacher's estimate).
-    During evaluation the module keeps every query's teacher latents, estimate and dataset
-    index in `eval_outputs` for the test-time refinement callback.
+    It evaluates as StudentEvaluator does; PaeModule adds the optimiser.
     """
 
     def __init__(
@@ -42,18 +103,13 @@ class StudentModule(PaeModule):
         latent_loss: str = "l2",
         pae_input: str = "gt",
     ) -> None:
-        super().__init__(optimizer, scheduler)
-        if pae.latent_dim != teacher.latent_dim:
-            raise ValueError(
-                f"pae.latent_dim={pae.latent_dim} does not match the teacher's latent size "
-                f"{teacher.latent_dim}"
-            )
         if pae_input not in ("gt", "teacher"):
             raise ValueError(f"unknown student.pae_input {pae_input!r}; choose 'gt' or 'teacher'")
         if latent_loss not in LATENT_LOSSES:
             raise ValueError(
                 f"unknown student.latent_loss {latent_loss!r}; choose one of {LATENT_LOSSES}"
             )
+        super().__init__(optimizer, scheduler, teacher=teacher, pae=pae, scene_names=scene_names)
         self.save_hyperparameters(
             {
                 "teacher_config": teacher_config,
@@ -63,20 +119,9 @@ class StudentModule(PaeModule):
                 "pae_input": pae_input,
             }
         )
-        self.scene_names = list(scene_names)
-        self.teacher = teacher.eval().requires_grad_(False)
-        self.pae = pae
         self.loss = loss
         self.latent_loss = latent_loss
         self.pae_input = pae_input
-        self.evaluation = PoseEvaluation(STUDENT_METHODS, scene_names)
-        self.register_mean_pose_baseline(len(scene_names))
-        self.eval_outputs: list[dict[str, Tensor]] = []
-
-    def train(self, mode: bool = True) -> StudentModule:
-        super().train(mode)
-        self.teacher.eval()
-        return self
 
     def student_loss(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         """Loss terms for a cached-latent or image batch."""
@@ -107,35 +152,5 @@ class StudentModule(PaeModule):
         self.log_dict({"train/s_x": self.loss.s_x, "train/s_q": self.loss.s_q})
         return terms["loss"]
 
-    def on_validation_epoch_start(self) -> None:
-        self.eval_outputs = []
-
-    def on_test_epoch_start(self) -> None:
-        self.eval_outputs = []
-
     def trainable_parameters(self) -> list[nn.Parameter]:
         return list(self.pae.parameters()) + list(self.loss.parameters())
-
-    def evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
-        gt, scene, index = batch["pose"], batch["scene"], batch["index"]
-        answer = self.teacher.estimate(batch["image"], scene)
-        student_pose = self.teacher.regress(self.pae(answer.pose, answer.scene))
-        student_gt_pose = self.teacher.regress(self.pae(gt, scene))
-        predictions = {
-            "teacher": answer.raw_pose,
-            "student": student_pose,
-            "student_gt": student_gt_pose,
-            "mean_pose": self.mean_poses[scene],
-        }
-        for method, pred in predictions.items():
-            self.evaluation.update(split, method, pred, gt, scene, index)
-        self.eval_outputs.append(
-            {
-                "z": answer.latents.joint(),
-                "estimate": answer.pose,
-                "pose": gt,
-                "scene": scene,
-                "scene_estimate": answer.scene,
-                "index": index,
-            }
-        )

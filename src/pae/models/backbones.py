@@ -9,9 +9,7 @@ import torch
 import torchvision
 from torch import Tensor, nn
 
-
-class BackboneError(RuntimeError):
-    """A backbone that cannot be built as configured (unknown name, weights unavailable)."""
+from pae.errors import BackboneError
 
 
 def _small_cnn() -> tuple[nn.Module, int]:

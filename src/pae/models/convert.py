@@ -26,7 +26,8 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from pae.checkpoints import CheckpointError, read_checkpoint
+from pae.checkpoints import read_checkpoint
+from pae.errors import CheckpointError
 from pae.models.ms_transformer import MSTransformer
 from pae.models.pae import PoseAutoEncoder
 

@@ -11,10 +11,13 @@ from pae.models.base import Latents
 
 
 class FourierFeatures(nn.Module):
-    """gamma(p) = (p, sin(2^0 p), cos(2^0 p), ..., sin(2^{L-1} p), cos(2^{L-1} p)) per coordinate.
+    """gamma(p) = (p, sin(2^0 p), cos(2^0 p), ..., sin(2^{L-1} p), cos(2^{L-1} p)).
 
     [..., d0] -> [..., d0 * (2L + 1)] with the input included, [..., d0 * 2L] without;
-    L = 0 returns the raw input.
+    L = 0 returns the raw input. Order: the input p₁…p_d0, then band by band, coordinate by
+    coordinate, sin then cos: sin(2⁰p₁), cos(2⁰p₁), sin(2⁰p₂), …, cos(2^{L−1}p_d0). (The
+    public code orders each band as sin of all coordinates, then cos of all; see
+    ``pae.models.convert.fourier_permutation``.)
     """
 
     def __init__(self, L: int = 6, include_input: bool = True) -> None:

@@ -1,21 +1,23 @@
-"""Test-time refinement: a per-scene pose index (kNN) and affine combinations of PAE encodings."""
+"""Test-time refinement: a per-scene pose index (kNN), affine weights over PAE encodings
+(``weights``, the MLP weight regressor in ``regressor``), the position refiner (``refiner``)
+and refiners that search latent space (``latent``). ``reference`` holds per-query test
+oracles and benchmark baselines; it is not exported here."""
 
-from pae.refine.affine import (
-    AffineFit,
-    PositionRefiner,
-    RefinementResult,
-    closed_form_weights,
-    combine_orientations,
-    init_weight_regressor,
-    perturb_positions,
-    refine_affine,
-    refine_affine_per_query,
-    regressor_hidden_sizes,
-)
 from pae.refine.index import PoseIndex
 from pae.refine.latent import LatentRetrievalRefiner, PoseDescentRefiner
+from pae.refine.refiner import (
+    ORIENTATION_MODES,
+    PositionRefiner,
+    RefinementResult,
+    combine_orientations,
+    perturb_positions,
+)
+from pae.refine.regressor import init_weight_regressor, regressor_hidden_sizes
+from pae.refine.weights import WEIGHT_MODELS, AffineFit, closed_form_weights, refine_affine
 
 __all__ = [
+    "ORIENTATION_MODES",
+    "WEIGHT_MODELS",
     "AffineFit",
     "LatentRetrievalRefiner",
     "PoseDescentRefiner",
@@ -27,6 +29,5 @@ __all__ = [
     "init_weight_regressor",
     "perturb_positions",
     "refine_affine",
-    "refine_affine_per_query",
     "regressor_hidden_sizes",
 ]

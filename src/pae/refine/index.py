@@ -62,7 +62,7 @@ class PoseIndex:
         scenes: Tensor | np.ndarray | None = None,
         *,
         distance: PoseDistance = "normalized",
-        rot_weight: float = 0.1,
+        rot_weight: float = 0.01,
         chunk_size: int = 256,
     ) -> None:
         if distance not in ("normalized", "fixed"):

@@ -1,6 +1,6 @@
 """Refinements that search the PAE's latent space instead of pose space (train poses only).
 
-Both share :class:`~pae.refine.affine.PositionRefiner`'s call signature
+Both share :class:`~pae.refine.refiner.PositionRefiner`'s call signature
 ``(query_latents, initial_poses, scenes) -> RefinementResult`` and its factory signature
 ``(index, pae, **options)``, so the refinement callback runs them side by side:
 
@@ -19,26 +19,26 @@ import torch
 from torch import Tensor
 
 from pae.models.base import Latents
-from pae.refine.affine import (
+from pae.refine.index import PoseIndex
+from pae.refine.refiner import (
     OrientationMode,
     PoseEncoder,
     RefinementResult,
-    WeightModel,
-    combine_orientations,
-    refine_affine,
+    refine_with_neighbours,
 )
-from pae.refine.index import PoseIndex
+from pae.refine.weights import WeightModel
 
 
-def _scenes_or_default(
-    query_latents: Latents, scenes: Tensor | None, batch: int, device: torch.device
+def _query_scenes(
+    index: PoseIndex, scenes: Tensor | None, batch: int, device: torch.device
 ) -> Tensor:
-    """[B] scene of each query: given, else the latents' classifier argmax, else scene 0."""
+    """[B] scene of each query: as given (``PoseRegressor.estimate`` assigns them), or the
+    index's only scene."""
     if scenes is not None:
         return scenes.to(device, torch.long)
-    if query_latents.scene_logits is not None:
-        return query_latents.scene_logits.argmax(dim=-1).to(device)
-    return torch.zeros(batch, dtype=torch.long, device=device)
+    if len(index.scene_ids) != 1:
+        raise ValueError(f"the index holds {len(index.scene_ids)} scenes: pass the queries' scenes")
+    return torch.full((batch,), index.scene_ids[0], dtype=torch.long, device=device)
 
 
 class LatentRetrievalRefiner:
@@ -47,7 +47,7 @@ class LatentRetrievalRefiner:
     Every train pose of the index is encoded once per call (one batched PAE pass); each query
     retrieves, within its scene, the k encodings nearest its latent ``[z_x, z_q]`` (L2), and
     the refined position is ``Σ aᵢ xᵢ`` with weights fitted as in
-    :func:`~pae.refine.affine.refine_affine` (default: the exact closed form).
+    :func:`~pae.refine.weights.refine_affine` (default: the exact closed form).
     """
 
     def __init__(
@@ -79,7 +79,7 @@ class LatentRetrievalRefiner:
         """query_latents x, q [B, d]; initial_poses [B, 7]; scenes [B] long or None."""
         device = initial_poses.device
         batch = initial_poses.shape[0]
-        scenes = _scenes_or_default(query_latents, scenes, batch, device)
+        scenes = _query_scenes(self.index, scenes, batch, device)
         store_poses = self.index.poses.to(device)
         store_scenes = self.index.scenes.to(device)
         with torch.no_grad():
@@ -96,21 +96,18 @@ class LatentRetrievalRefiner:
                 distances = torch.cdist(query[rows], encoded[members])
                 nearest = distances.topk(self.k, dim=1, largest=False).indices
                 indices[rows] = members[nearest]
-        neighbour_poses = store_poses[indices]  # [B, k, 7]
-        fit = refine_affine(
+        poses, weights = refine_with_neighbours(
             query,
             encoded[indices],
-            neighbour_poses,
+            store_poses[indices],
+            initial_poses,
+            self.orientation,
             weight_model=self.weight_model,
             iterations=self.iterations,
             lr=self.lr,
             generator=self.generator,
         )
-        orientation = combine_orientations(
-            neighbour_poses[..., 3:], fit.weights, initial_poses[:, 3:], self.orientation
-        )
-        poses = torch.cat([fit.positions, orientation], dim=1).to(initial_poses.dtype)
-        return RefinementResult(poses, fit.weights, indices)
+        return RefinementResult(poses, weights, indices)
 
 
 class PoseDescentRefiner:
@@ -147,9 +144,9 @@ class PoseDescentRefiner:
     def __call__(
         self, query_latents: Latents, initial_poses: Tensor, scenes: Tensor | None = None
     ) -> RefinementResult:
-        """query_latents x, q [B, d]; initial_poses [B, 7]; scenes [B] long or None."""
+        """query_latents x, q [B, d]; initial_poses [B, 7]; scenes [B] long (a multi-scene
+        PAE needs them), or None."""
         batch = initial_poses.shape[0]
-        scenes = _scenes_or_default(query_latents, scenes, batch, initial_poses.device)
         with torch.inference_mode(False), torch.enable_grad():
             target = query_latents.joint().detach().clone()
             pose = initial_poses.detach().clone().float()

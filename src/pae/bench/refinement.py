@@ -1,4 +1,5 @@
-"""Timings of test-time refinement: batched vs per-query weight fitting, and the pose index."""
+"""Timings of test-time refinement: batched vs per-query weight fitting, the first layer's
+series against the plain sum it replaces, and the pose index."""
 
 from __future__ import annotations
 
@@ -12,15 +13,16 @@ import torch
 from torch import Tensor
 
 from pae.data.labels import LabelTable, read_labels
-from pae.refine.affine import (
+from pae.refine.index import PoseIndex
+from pae.refine.reference import WeightRegressor, first_layer_gain_direct, refine_affine_per_query
+from pae.refine.regressor import (
     ADAM_BETAS,
     ADAM_EPS,
-    _WeightRegressor,
-    refine_affine,
-    refine_affine_per_query,
+    SERIES_RATIO,
+    _FirstLayerGain,
     regressor_hidden_sizes,
 )
-from pae.refine.index import PoseIndex
+from pae.refine.weights import refine_affine
 
 
 def _seconds(run: Callable[[], object]) -> float:
@@ -44,7 +46,7 @@ def refine_public_loop(
     [B, 3] (m). The AdamW moments carry over from query to query, as in the script, so it is
     a timing reference only; ``refine_affine_per_query`` is the correctness reference."""
     batch, k, dim = neighbour_latents.shape
-    model = _WeightRegressor(k, dim, regressor_hidden_sizes(k))
+    model = WeightRegressor(k, dim, regressor_hidden_sizes(k))
     optimiser = torch.optim.AdamW(
         model.parameters(), lr=lr, betas=ADAM_BETAS, eps=ADAM_EPS, weight_decay=weight_decay
     )
@@ -137,6 +139,41 @@ def bench_refinement(
         "bench/refine/roofline_fraction": flops / (gflops * 1e9) * 1e3 / batched_ms,
         "bench/refine/softmax_logits_ms_per_query": logits * per_query_ms,
         "bench/refine/closed_form_ms_per_query": closed * per_query_ms,
+    }
+
+
+def bench_first_layer_gain(
+    batch: int = 64, k: int = 3, latent_dim: int = 256, repeats: int = 20, seed: int = 0
+) -> dict[str, float]:
+    """Milliseconds of one ``_FirstLayerGain`` step (the MLP weight model's closed-form first
+    layer) on one ``refine_affine`` chunk's sizes (``batch`` queries, n = k·2·latent_dim
+    inputs, h = 64k hidden units, float32 working dtype), against the plain chunked sum it
+    replaces (``first_layer_gain_direct``); each includes one third of its preparation (a
+    fit prepares once and takes 3 steps). Best of ``repeats``; ``series_speedup`` is their
+    ratio."""
+    generator = torch.Generator().manual_seed(seed)
+    inputs = torch.randn(batch, 2 * k * latent_dim, generator=generator, dtype=torch.float64)
+    inputs = inputs.abs()
+    scale = 1e-3 * torch.rand(batch, regressor_hidden_sizes(k)[0], generator=generator)
+    scale = scale.double()
+    ratio = SERIES_RATIO[torch.float32]
+
+    def series() -> None:
+        gain = _FirstLayerGain(inputs, ADAM_EPS, ratio)
+        for _ in range(3):
+            gain(scale)
+
+    def direct() -> None:
+        for _ in range(3):
+            first_layer_gain_direct(inputs, scale, ADAM_EPS)
+
+    series(), direct()
+    series_ms = min(_seconds(series) for _ in range(repeats)) * 1e3 / 3
+    direct_ms = min(_seconds(direct) for _ in range(repeats)) * 1e3 / 3
+    return {
+        "bench/refine/first_layer_series_ms": series_ms,
+        "bench/refine/first_layer_direct_ms": direct_ms,
+        "bench/refine/first_layer_series_speedup": direct_ms / series_ms,
     }
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 import torch
 from torch.utils.data import DataLoader
 
+from pae.bench.refinement import bench_first_layer_gain, bench_index, bench_refinement
 from pae.data.datamodule import PoseDataModule
 from pae.data.latents import TeacherLatentDataModule
 from pae.data.synthetic import measure_render_speed, write_synthetic_dataset
@@ -25,9 +26,8 @@ from pae.losses import LearnedPoseLoss
 from pae.models.backbones import Backbone
 from pae.models.pae import PoseAutoEncoder
 from pae.models.posenet import PoseNet
-from pae.refine.benchmarks import bench_index, bench_refinement
 
-REFERENCE_LABELS = Path(__file__).resolve().parents[3] / "shared" / "reference" / "labels"
+REFERENCE_LABELS = Path(__file__).resolve().parents[4] / "shared" / "reference" / "labels"
 
 
 def _student_epoch_seconds(module: StudentModule, loader: DataLoader, preprocess=None) -> float:
@@ -187,6 +187,7 @@ def main(argv: list[str] | None = None) -> int:
             figures |= bench_sweep(root, 2, args.train_frames, 20, 64)
     if "refine" in chosen:
         figures |= bench_refinement(n_queries=args.queries)
+        figures |= bench_first_layer_gain()
     if "pae" in chosen:
         figures |= bench_pae()
     train_files = sorted(args.labels.glob("*/*_train.csv")) if args.labels.is_dir() else []

@@ -1,0 +1,68 @@
+"""The benchmark harnesses (pae-bench): figures that agree with each other and with known sizes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from pae.bench.refinement import (
+    bench_first_layer_gain,
+    bench_index,
+    bench_refinement,
+    mlp_flops_per_query,
+)
+from tests.test_refine import random_poses
+
+
+def test_mlp_flops_per_query_on_known_sizes() -> None:
+    # k=3, D=512: layers 1536 -> 192 -> 96 -> 48 -> 3, 318,096 multiply-adds per pass;
+    # 3 iterations of forward + backward (3 passes) and a last forward: 10 passes, 2 FLOP each
+    assert mlp_flops_per_query(3, 512, 3) == 2 * 318_096 * 10
+    assert mlp_flops_per_query(1, 2, 0) == 2 * (2 * 64 + 64 * 32 + 32 * 16 + 16 * 1)
+
+
+def test_bench_refinement_figures_agree_with_each_other() -> None:
+    figures = bench_refinement(n_queries=40, public_queries=10)
+    batched = figures["bench/refine/batched_ms_per_query"]
+    per_query = figures["bench/refine/per_query_ms_per_query"]
+    public = figures["bench/refine/public_loop_ms_per_query"]
+    assert figures["bench/refine/speedup"] == pytest.approx(public / batched)
+    assert figures["bench/refine/speedup_vs_per_query"] == pytest.approx(per_query / batched)
+    assert figures["bench/refine/mflop_per_query"] == pytest.approx(6.36192)
+    seconds_at_roofline = 6.36192e6 / (figures["bench/refine/matmul_gflops"] * 1e9)
+    assert figures["bench/refine/roofline_fraction"] == pytest.approx(
+        seconds_at_roofline * 1e3 / batched
+    )
+    # one batched call against 40 optimiser loops: batched is the faster under any load
+    assert per_query > batched
+
+
+def test_bench_index_on_label_files(tmp_path: Path) -> None:
+    generator = torch.Generator().manual_seed(13)
+    header = "scene,split,seq,img_path,t1,t2,t3,q1,q2,q3,q4\n"
+    files = []
+    for scene, n_train in (("alpha", 40), ("beta", 25)):
+        for split, n in (("train", n_train), ("test", 10)):
+            poses = random_poses(n, generator)
+            poses[:, 3:] *= torch.where(poses[:, 3:4] < 0, -1.0, 1.0)
+            rows = [
+                f"{scene},{split},seq1,{scene}/seq1/frame{i:05d}.png,"
+                + ",".join(f"{v:.9f}" for v in pose.tolist())
+                for i, pose in enumerate(poses)
+            ]
+            path = tmp_path / f"{scene}_{split}.csv"
+            path.write_text(header + "\n".join(rows) + "\n")
+            if split == "train":
+                files.append(path)
+    figures = bench_index(files, n_queries=15, k=3)
+    assert figures["bench/index/n_poses"] == 65
+    assert figures["bench/index/memory_mb"] > 0 and figures["bench/index/ms_per_query"] > 0
+
+
+def test_bench_first_layer_gain_figures() -> None:
+    figures = bench_first_layer_gain(batch=8, repeats=2)
+    series = figures["bench/refine/first_layer_series_ms"]
+    direct = figures["bench/refine/first_layer_direct_ms"]
+    assert figures["bench/refine/first_layer_series_speedup"] == pytest.approx(direct / series)
