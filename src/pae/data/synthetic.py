@@ -1062,9 +1062,7 @@ def write_synthetic_dataset(
 
     def render(folder: Path) -> SyntheticSummary:
         started = time.perf_counter()
-        _render(
-            folder, scenes, train_frames, test_frames, size, seed, test_offset_m, train_lane_m
-        )
+        _render(folder, scenes, train_frames, test_frames, size, seed, test_offset_m, train_lane_m)
         seconds = time.perf_counter() - started
         return SyntheticSummary(
             root=str(folder),
