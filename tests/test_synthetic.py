@@ -334,3 +334,29 @@ def test_measure_render_speed(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(synthetic, "time", types.SimpleNamespace(perf_counter=lambda: next(ticks)))
     assert measure_render_speed(frames=5, size=16) == 5 / 2.5
     assert rendered == [(1, 16), (5, 16)]  # a warm-up frame, then the timed batch
+
+
+def test_train_lanes_and_yaw_stray_shape_the_sequences() -> None:
+    """Against the same sequences on the route with no yaw stray: ``train_lane_m`` moves each
+    train camera by exactly the lane, horizontally, alternately left and right of the route
+    (test cameras stay, ``test_offset_m`` 0); ``yaw_stray_rad`` bounds the yaw change."""
+    lane, stray = 0.6, 0.15
+    scene = make_scene(0, 0, 0.0, lane)
+    base = make_sequences(0, scene, 600, 100, 0, 0.0, 0.0, 0.0)
+    moved = make_sequences(0, scene, 600, 100, 0, 0.0, lane, stray)
+    train_index = 0
+    for before, after in zip(base, moved, strict=True):
+        shift = after.poses[:, :3] - before.poses[:, :3]
+        forward = [pose_rotation_translation(s.poses)[0][:, :, 2] for s in (before, after)]
+        yaw = [np.arctan2(f[:, 1], f[:, 0]) for f in forward]
+        turn = np.abs(np.angle(np.exp(1j * (yaw[1] - yaw[0]))))
+        assert turn.max() <= stray + 1e-6 and turn.max() > 0.5 * stray
+        if before.split == "test":
+            np.testing.assert_allclose(shift, 0.0, atol=1e-9)
+            continue
+        np.testing.assert_allclose(np.linalg.norm(shift, axis=1), lane, atol=1e-6)
+        assert np.abs(shift[:, 2]).max() < 1e-9
+        heading = np.diff(before.poses[:, :2], axis=0)
+        side = np.sign(heading[:, 0] * shift[1:, 1] - heading[:, 1] * shift[1:, 0])
+        assert np.mean(side == (-1) ** train_index) > 0.8
+        train_index += 1

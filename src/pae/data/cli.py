@@ -3,7 +3,7 @@
 ::
 
     pae-data synth OUT [--scenes N --train-frames N --test-frames N --test-offset M
-                        --train-lane M --size PX --seed S] [--overwrite]
+                        --train-lane M --yaw-stray RAD --size PX --seed S] [--overwrite]
     pae-data synth OUT --poses LABELS.csv [LABELS.csv ...] [--size PX --seed S] [--overwrite]
     pae-data convert {cambridge,7scenes} RAW_ROOT OUT_DIR
     pae-data check LABELS.csv ROOT
@@ -41,6 +41,7 @@ def _synth(args: argparse.Namespace) -> int:
                 ("--test-frames", args.test_frames),
                 ("--test-offset", args.test_offset),
                 ("--train-lane", args.train_lane),
+                ("--yaw-stray", args.yaw_stray),
             )
             if value is not None
         ]
@@ -65,6 +66,7 @@ def _synth(args: argparse.Namespace) -> int:
             seed=args.seed,
             test_offset_m=chosen(args.test_offset, synthetic.DEFAULT_TEST_OFFSET_M),
             train_lane_m=chosen(args.train_lane, synthetic.DEFAULT_TRAIN_LANE_M),
+            yaw_stray_rad=chosen(args.yaw_stray, synthetic.DEFAULT_YAW_STRAY_RAD),
             overwrite=args.overwrite,
         )
     print(dataset.summary())
@@ -149,6 +151,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="M",
         help="lateral offset of the train sequences from the route in metres, alternately "
         "left and right (default: 0, on the route)",
+    )
+    synth.add_argument(
+        "--yaw-stray",
+        type=float,
+        metavar="RAD",
+        help="how far each sequence's yaw strays from the route's heading (default: 0.5)",
     )
     synth.add_argument(
         "--poses",

@@ -94,8 +94,8 @@ about 0.09 m away)."""
 DEFAULT_TRAIN_LANE_M = 0.0
 """Lateral offset (m) of the train sequences from the route, alternately left and right."""
 
-SEQUENCE_YAW_STRAY_RAD = 0.5
-"""How far (rad) a sequence's yaw strays from the route's heading."""
+DEFAULT_YAW_STRAY_RAD = 0.5
+"""How far (rad) a sequence's yaw strays from the route's heading, at most."""
 
 TRAIN_SEQUENCES = 6
 TEST_SEQUENCES = 2
@@ -843,12 +843,13 @@ def _trajectory(
     start: float,
     rng: np.random.Generator,
     offset_m: float = 0.0,
+    yaw_stray_rad: float = DEFAULT_YAW_STRAY_RAD,
 ) -> np.ndarray:
     """Smooth camera path of ``frames`` poses ``[frames, 7]`` along the scene's route.
 
     The sequence walks 55–75 % of the route from route time ``start``, ``offset_m`` to the
-    left of it (negative: to the right), straying from that path by up to 0.35 m and about
-    30° of yaw; pitch stays within about −14…+8° and roll within ±5°.
+    left of it (negative: to the right), straying from that path by up to 0.35 m and
+    ``yaw_stray_rad`` of yaw; pitch stays within about −14…+8° and roll within ±5°.
     """
     if scene.route is None:
         raise ValueError(f"scene {scene.name} has no camera route")
@@ -865,7 +866,7 @@ def _trajectory(
         ],
         axis=1,
     )
-    yaw = route_yaw + SEQUENCE_YAW_STRAY_RAD * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3))
+    yaw = route_yaw + yaw_stray_rad * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3))
     pitch = np.radians(-3.0) + np.radians(11.0) * _smooth_wave(rng, t, (0.5, 1.5), (0.8, 0.2))
     roll = np.radians(5.0) * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3))
     rotations = _look_rotations(yaw, pitch, roll)
@@ -881,6 +882,7 @@ def make_sequences(
     seed: int = 0,
     test_offset_m: float = 0.0,
     train_lane_m: float = 0.0,
+    yaw_stray_rad: float = DEFAULT_YAW_STRAY_RAD,
 ) -> list[CameraSequence]:
     """Train sequences ``seq-01…`` then test sequences (numbered on) of scene ``scene_index``.
 
@@ -900,7 +902,7 @@ def make_sequences(
         start = (index_in_split + rng.uniform(0, 0.3)) / count
         lane = train_lane_m if split == "train" else test_offset_m
         offset = lane * (-1) ** index_in_split
-        poses = _trajectory(scene, frames, start, rng, offset)
+        poses = _trajectory(scene, frames, start, rng, offset, yaw_stray_rad)
         appearance = Appearance.random(rng)
         sequences.append(
             CameraSequence(
@@ -1039,6 +1041,7 @@ def write_synthetic_dataset(
     test_offset_m: float = DEFAULT_TEST_OFFSET_M,
     overwrite: bool = False,
     train_lane_m: float = DEFAULT_TRAIN_LANE_M,
+    yaw_stray_rad: float = DEFAULT_YAW_STRAY_RAD,
 ) -> SyntheticSummary:
     """Render the benchmark into ``out`` (see :func:`write_whole`): images first, label files
     last.
@@ -1059,10 +1062,20 @@ def write_synthetic_dataset(
     for name, value in (("test_offset_m", test_offset_m), ("train_lane_m", train_lane_m)):
         if not (math.isfinite(value) and 0 <= value <= 1.0):
             raise ValueError(f"{name} must lie in [0, 1] m, got {value!r}")
+    if not (math.isfinite(yaw_stray_rad) and 0 <= yaw_stray_rad <= math.pi / 2):
+        raise ValueError(f"yaw_stray_rad must lie in [0, pi/2], got {yaw_stray_rad!r}")
 
     def render(folder: Path) -> SyntheticSummary:
         started = time.perf_counter()
-        _render(folder, scenes, train_frames, test_frames, size, seed, test_offset_m, train_lane_m)
+        _render(
+            folder,
+            scenes,
+            train_frames,
+            test_frames,
+            size,
+            seed,
+            (test_offset_m, train_lane_m, yaw_stray_rad),
+        )
         seconds = time.perf_counter() - started
         return SyntheticSummary(
             root=str(folder),
@@ -1084,17 +1097,25 @@ def _render(
     test_frames: int,
     size: int,
     seed: int,
-    test_offset_m: float,
-    train_lane_m: float,
+    layout: tuple[float, float, float],
 ) -> None:
-    """Render every scene into `out`: images first, label files last."""
+    """Render every scene into `out`: images first, label files last. ``layout``: the test
+    offset, train lane (m) and yaw stray (rad) of :func:`make_sequences`."""
+    test_offset_m, train_lane_m, yaw_stray_rad = layout
     camera = PinholeCamera(size)
     label_tables: dict[tuple[str, str], LabelTable] = {}
     for index in range(scenes):
         scene = make_scene(index, seed, test_offset_m, train_lane_m)
         rows: dict[str, list[tuple[str, str, np.ndarray]]] = {"train": [], "test": []}
         sequences = make_sequences(
-            index, scene, train_frames, test_frames, seed, test_offset_m, train_lane_m
+            index,
+            scene,
+            train_frames,
+            test_frames,
+            seed,
+            test_offset_m,
+            train_lane_m,
+            yaw_stray_rad,
         )
         for sequence in sequences:
             paths = [

@@ -25,6 +25,7 @@ def default_root(
     test_offset_m: float,
     poses: list[str] | None,
     train_lane_m: float = 0.0,
+    yaw_stray_rad: float = 0.5,
 ) -> str:
     """The folder a synthetic dataset renders into: named by its settings, or, for
     ``poses``, by a digest of the label files' contents (so edited files render anew)."""
@@ -40,6 +41,7 @@ def default_root(
         f"{RENDER_FOLDER}/scenes{scenes}_train{train_frames}_test{test_frames}_px{size}"
         f"_seed{render_seed}_offset{test_offset_m:g}"
         + (f"_lane{train_lane_m:g}" if train_lane_m else "")
+        + (f"_yaw{yaw_stray_rad:g}" if yaw_stray_rad != 0.5 else "")
     )
 
 
@@ -48,7 +50,8 @@ class SyntheticDataModule(PoseDataModule):
 
     Without ``poses``: the benchmark's rooms and routes (``scenes``, frames per scene, the
     lateral offsets of the test and train sequences from the route, ``test_offset_m`` and
-    ``train_lane_m``). With ``poses``
+    ``train_lane_m``, and how far their yaw strays from the route's heading,
+    ``yaw_stray_rad``). With ``poses``
     (label files, e.g. a real dataset's train and test labels): one image per row at that
     row's pose, in a world built around them (``pae-data synth --poses``). ``root`` None
     picks a folder under ``data/synthetic`` named by these settings. A non-empty ``root``
@@ -67,6 +70,7 @@ class SyntheticDataModule(PoseDataModule):
         test_offset_m: float = synthetic.DEFAULT_TEST_OFFSET_M,
         poses: list[str] | None = None,
         train_lane_m: float = 0.0,
+        yaw_stray_rad: float = 0.5,
         **kwargs: Any,
     ) -> None:
         poses = [str(p) for p in poses] if poses else None
@@ -80,6 +84,7 @@ class SyntheticDataModule(PoseDataModule):
                 test_offset_m,
                 poses,
                 train_lane_m,
+                yaw_stray_rad,
             )
         labels = Path(root) / "labels"
         super().__init__(
@@ -97,6 +102,7 @@ class SyntheticDataModule(PoseDataModule):
             "seed": render_seed,
             "test_offset_m": test_offset_m,
             "train_lane_m": train_lane_m,
+            "yaw_stray_rad": yaw_stray_rad,
         }
 
     def prepare_data(self) -> None:
