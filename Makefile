@@ -31,8 +31,8 @@ test-all: $(STAMP)  ## every test, the slow ones included
 	$(PY) -m pytest -q -m ''
 
 lint: $(STAMP)  ## ruff
-	$(VENV)/bin/ruff check src tests
-	$(VENV)/bin/ruff format --check src tests
+	$(VENV)/bin/ruff check src tests experiments
+	$(VENV)/bin/ruff format --check src tests experiments
 
 bench: $(STAMP)  ## benchmarks: one JSON object of bench/... figures
 	$(PY) -m pae.bench
