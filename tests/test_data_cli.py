@@ -325,7 +325,7 @@ def test_synth_passes_arguments_and_prints_summary(
     fake = types.ModuleType("pae.data.synthetic")
     fake.DEFAULT_SCENES, fake.DEFAULT_TRAIN_FRAMES, fake.DEFAULT_TEST_FRAMES = 3, 40, 20
     fake.DEFAULT_SIZE, fake.DEFAULT_TEST_OFFSET_M, fake.DEFAULT_TRAIN_LANE_M = 64, 0.7, 0.0
-    fake.DEFAULT_YAW_STRAY_RAD = 0.5
+    fake.DEFAULT_YAW_STRAY_RAD, fake.DEFAULT_STRAY_M = 0.5, 0.35
     fake.write_synthetic_dataset = write_synthetic_dataset
     monkeypatch.setitem(sys.modules, "pae.data.synthetic", fake)
     monkeypatch.setattr(pae.data, "synthetic", fake, raising=False)
@@ -345,6 +345,7 @@ def test_synth_passes_arguments_and_prints_summary(
                 test_offset_m=0.7,
                 train_lane_m=0.0,
                 yaw_stray_rad=0.5,
+                stray_m=0.35,
                 overwrite=False,
             ),
         ),
@@ -359,6 +360,7 @@ def test_synth_passes_arguments_and_prints_summary(
                 test_offset_m=0.0,
                 train_lane_m=0.5,
                 yaw_stray_rad=0.5,
+                stray_m=0.35,
                 overwrite=False,
             ),
         ),

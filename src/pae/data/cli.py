@@ -3,7 +3,8 @@
 ::
 
     pae-data synth OUT [--scenes N --train-frames N --test-frames N --test-offset M
-                        --train-lane M --yaw-stray RAD --size PX --seed S] [--overwrite]
+                        --train-lane M --yaw-stray RAD --stray M --size PX --seed S]
+                        [--overwrite]
     pae-data synth OUT --poses LABELS.csv [LABELS.csv ...] [--size PX --seed S] [--overwrite]
     pae-data convert {cambridge,7scenes} RAW_ROOT OUT_DIR
     pae-data check LABELS.csv ROOT
@@ -42,6 +43,7 @@ def _synth(args: argparse.Namespace) -> int:
                 ("--test-offset", args.test_offset),
                 ("--train-lane", args.train_lane),
                 ("--yaw-stray", args.yaw_stray),
+                ("--stray", args.stray),
             )
             if value is not None
         ]
@@ -67,6 +69,7 @@ def _synth(args: argparse.Namespace) -> int:
             test_offset_m=chosen(args.test_offset, synthetic.DEFAULT_TEST_OFFSET_M),
             train_lane_m=chosen(args.train_lane, synthetic.DEFAULT_TRAIN_LANE_M),
             yaw_stray_rad=chosen(args.yaw_stray, synthetic.DEFAULT_YAW_STRAY_RAD),
+            stray_m=chosen(args.stray, synthetic.DEFAULT_STRAY_M),
             overwrite=args.overwrite,
         )
     print(dataset.summary())
@@ -157,6 +160,12 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         metavar="RAD",
         help="how far each sequence's yaw strays from the route's heading (default: 0.5)",
+    )
+    synth.add_argument(
+        "--stray",
+        type=float,
+        metavar="M",
+        help="how far each camera strays horizontally from its lane (default: 0.35)",
     )
     synth.add_argument(
         "--poses",

@@ -94,6 +94,8 @@ about 0.09 m away)."""
 DEFAULT_TRAIN_LANE_M = 0.0
 """Lateral offset (m) of the train sequences from the route, alternately left and right."""
 
+DEFAULT_STRAY_M = 0.35
+"""How far (m) a sequence's camera strays horizontally from its lane, at most."""
 DEFAULT_YAW_STRAY_RAD = 0.5
 """How far (rad) a sequence's yaw strays from the route's heading, at most."""
 
@@ -844,11 +846,12 @@ def _trajectory(
     rng: np.random.Generator,
     offset_m: float = 0.0,
     yaw_stray_rad: float = DEFAULT_YAW_STRAY_RAD,
+    stray_m: float = DEFAULT_STRAY_M,
 ) -> np.ndarray:
     """Smooth camera path of ``frames`` poses ``[frames, 7]`` along the scene's route.
 
     The sequence walks 55–75 % of the route from route time ``start``, ``offset_m`` to the
-    left of it (negative: to the right), straying from that path by up to 0.35 m and
+    left of it (negative: to the right), straying from that path by up to ``stray_m`` and
     ``yaw_stray_rad`` of yaw; pitch stays within about −14…+8° and roll within ±5°.
     """
     if scene.route is None:
@@ -860,8 +863,8 @@ def _trajectory(
         route_position = route_position + offset_m * _route_normals(scene.route, tau)
     position = route_position + np.stack(
         [
-            0.35 * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3)),
-            0.35 * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3)),
+            stray_m * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3)),
+            stray_m * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3)),
             0.1 * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3)),
         ],
         axis=1,
@@ -883,6 +886,7 @@ def make_sequences(
     test_offset_m: float = 0.0,
     train_lane_m: float = 0.0,
     yaw_stray_rad: float = DEFAULT_YAW_STRAY_RAD,
+    stray_m: float = DEFAULT_STRAY_M,
 ) -> list[CameraSequence]:
     """Train sequences ``seq-01…`` then test sequences (numbered on) of scene ``scene_index``.
 
@@ -902,7 +906,7 @@ def make_sequences(
         start = (index_in_split + rng.uniform(0, 0.3)) / count
         lane = train_lane_m if split == "train" else test_offset_m
         offset = lane * (-1) ** index_in_split
-        poses = _trajectory(scene, frames, start, rng, offset, yaw_stray_rad)
+        poses = _trajectory(scene, frames, start, rng, offset, yaw_stray_rad, stray_m)
         appearance = Appearance.random(rng)
         sequences.append(
             CameraSequence(
@@ -1042,6 +1046,7 @@ def write_synthetic_dataset(
     overwrite: bool = False,
     train_lane_m: float = DEFAULT_TRAIN_LANE_M,
     yaw_stray_rad: float = DEFAULT_YAW_STRAY_RAD,
+    stray_m: float = DEFAULT_STRAY_M,
 ) -> SyntheticSummary:
     """Render the benchmark into ``out`` (see :func:`write_whole`): images first, label files
     last.
@@ -1059,7 +1064,11 @@ def write_synthetic_dataset(
     ):
         if int(value) != value or value < low:
             raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
-    for name, value in (("test_offset_m", test_offset_m), ("train_lane_m", train_lane_m)):
+    for name, value in (
+        ("test_offset_m", test_offset_m),
+        ("train_lane_m", train_lane_m),
+        ("stray_m", stray_m),
+    ):
         if not (math.isfinite(value) and 0 <= value <= 1.0):
             raise ValueError(f"{name} must lie in [0, 1] m, got {value!r}")
     if not (math.isfinite(yaw_stray_rad) and 0 <= yaw_stray_rad <= math.pi / 2):
@@ -1074,7 +1083,7 @@ def write_synthetic_dataset(
             test_frames,
             size,
             seed,
-            (test_offset_m, train_lane_m, yaw_stray_rad),
+            (test_offset_m, train_lane_m, yaw_stray_rad, stray_m),
         )
         seconds = time.perf_counter() - started
         return SyntheticSummary(
@@ -1097,11 +1106,11 @@ def _render(
     test_frames: int,
     size: int,
     seed: int,
-    layout: tuple[float, float, float],
+    layout: tuple[float, float, float, float],
 ) -> None:
     """Render every scene into `out`: images first, label files last. ``layout``: the test
-    offset, train lane (m) and yaw stray (rad) of :func:`make_sequences`."""
-    test_offset_m, train_lane_m, yaw_stray_rad = layout
+    offset, train lane (m), yaw stray (rad) and stray (m) of :func:`make_sequences`."""
+    test_offset_m, train_lane_m, yaw_stray_rad, stray_m = layout
     camera = PinholeCamera(size)
     label_tables: dict[tuple[str, str], LabelTable] = {}
     for index in range(scenes):
@@ -1116,6 +1125,7 @@ def _render(
             test_offset_m,
             train_lane_m,
             yaw_stray_rad,
+            stray_m,
         )
         for sequence in sequences:
             paths = [

@@ -26,6 +26,7 @@ def default_root(
     poses: list[str] | None,
     train_lane_m: float = 0.0,
     yaw_stray_rad: float = 0.5,
+    stray_m: float = 0.35,
 ) -> str:
     """The folder a synthetic dataset renders into: named by its settings, or, for
     ``poses``, by a digest of the label files' contents (so edited files render anew)."""
@@ -42,6 +43,7 @@ def default_root(
         f"_seed{render_seed}_offset{test_offset_m:g}"
         + (f"_lane{train_lane_m:g}" if train_lane_m else "")
         + (f"_yaw{yaw_stray_rad:g}" if yaw_stray_rad != 0.5 else "")
+        + (f"_stray{stray_m:g}" if stray_m != 0.35 else "")
     )
 
 
@@ -50,8 +52,8 @@ class SyntheticDataModule(PoseDataModule):
 
     Without ``poses``: the benchmark's rooms and routes (``scenes``, frames per scene, the
     lateral offsets of the test and train sequences from the route, ``test_offset_m`` and
-    ``train_lane_m``, and how far their yaw strays from the route's heading,
-    ``yaw_stray_rad``). With ``poses``
+    ``train_lane_m``, how far they stray from their lanes, ``stray_m``, and their yaw from
+    the route's heading, ``yaw_stray_rad``). With ``poses``
     (label files, e.g. a real dataset's train and test labels): one image per row at that
     row's pose, in a world built around them (``pae-data synth --poses``). ``root`` None
     picks a folder under ``data/synthetic`` named by these settings. A non-empty ``root``
@@ -71,6 +73,7 @@ class SyntheticDataModule(PoseDataModule):
         poses: list[str] | None = None,
         train_lane_m: float = 0.0,
         yaw_stray_rad: float = 0.5,
+        stray_m: float = 0.35,
         **kwargs: Any,
     ) -> None:
         poses = [str(p) for p in poses] if poses else None
@@ -85,6 +88,7 @@ class SyntheticDataModule(PoseDataModule):
                 poses,
                 train_lane_m,
                 yaw_stray_rad,
+                stray_m,
             )
         labels = Path(root) / "labels"
         super().__init__(
@@ -103,6 +107,7 @@ class SyntheticDataModule(PoseDataModule):
             "test_offset_m": test_offset_m,
             "train_lane_m": train_lane_m,
             "yaw_stray_rad": yaw_stray_rad,
+            "stray_m": stray_m,
         }
 
     def prepare_data(self) -> None:
