@@ -20,6 +20,7 @@ GROUPS = {
         "student",
         "decoder",
         "rpr",
+        "iapr",
         "refine",
         "trainer",
         "logger",

@@ -329,6 +329,20 @@ def fit_decoder(
     return _fit_and_test(cfg, step_dir, "decoder", module, data, cfg.decoder.max_epochs)
 
 
+def init_backbone_from_teacher(model: torch.nn.Module, teacher: PoseRegressor, key: str) -> None:
+    """Copy the teacher's backbone weights into `model.backbone` (same backbone config);
+    a ConfigError naming `key` when they do not fit."""
+    source = getattr(teacher, "backbone", None)
+    try:
+        model.backbone.load_state_dict(source.state_dict())
+    except (AttributeError, RuntimeError):
+        raise ConfigError(
+            f"{key}=teacher: the teacher's backbone does not match this model's backbone "
+            f"(use {key}=null)"
+        ) from None
+    rank_zero_info(f"{key}: backbone initialised from the teacher's")
+
+
 def fit_rpr(
     cfg: DictConfig, step_dir: Path, pae_ckpt: str | Path | None, decoder_ckpt: str | Path | None
 ) -> tuple[Metrics, Path]:
@@ -341,8 +355,11 @@ def fit_rpr(
         _check_data(cfg, path, loaded, data)
     rpr_config = OmegaConf.to_container(cfg.rpr.model, resolve=True)
     rpr_config["backbone"]["pretrained"] = False
+    model = instantiate(cfg.rpr.model)
+    if cfg.rpr.get("init_backbone") == "teacher":
+        init_backbone_from_teacher(model, teacher.model, "rpr.init_backbone")
     module = RPRModule(
-        instantiate(cfg.rpr.model),
+        model,
         teacher.model,
         pae.model,
         decoder.model,
@@ -357,6 +374,7 @@ def fit_rpr(
             "rpr_config": rpr_config,
         },
         pair_k=cfg.rpr.pair_k,
+        pair_offset=OmegaConf.to_container(cfg.rpr.pair_offset) if cfg.rpr.pair_offset else None,
     )
     return _fit_and_test(cfg, step_dir, "rpr", module, data, cfg.rpr.max_epochs)
 
