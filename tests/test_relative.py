@@ -257,3 +257,19 @@ def test_psnr_baseline_is_the_mean_train_image() -> None:
     # an image off by 0.1 everywhere: 20 dB; a perfect one: capped at 100 dB
     assert psnr_db(targets + 0.1, targets) == pytest.approx(torch.full((2,), 20.0), abs=1e-3)
     assert psnr_db(targets, targets) == pytest.approx(torch.full((2,), 100.0))
+
+
+def test_bench_reports_storage_and_time_per_method() -> None:
+    from pae.bench_methods import bench_methods
+
+    figures = bench_methods(scenes=1, train_frames=16, size=32, crop=28, queries=2)
+    for method in ("teacher", "refined", "vrpr", "rpr_image", "iapr_3"):
+        assert figures[f"bench/deploy/{method}/ms_per_query"] > 0
+        parts = ("networks", "poses", "images")
+        total = sum(figures[f"bench/deploy/{method}/{p}_bytes"] for p in parts)
+        assert figures[f"bench/deploy/{method}/total_bytes"] == total
+    assert figures["bench/deploy/rpr_image/images_bytes"] == 16 * 3 * 32 * 32
+    for method in ("teacher", "iapr_3"):  # keep nothing but networks
+        assert figures[f"bench/deploy/{method}/poses_bytes"] == 0
+        assert figures[f"bench/deploy/{method}/images_bytes"] == 0
+    assert figures["bench/deploy/vrpr/images_bytes"] == 0
