@@ -374,7 +374,9 @@ def fit_rpr(
             "rpr_config": rpr_config,
         },
         pair_k=cfg.rpr.pair_k,
-        pair_offset=OmegaConf.to_container(cfg.rpr.pair_offset) if cfg.rpr.pair_offset else None,
+        pair_offset=OmegaConf.to_container(cfg.rpr.pair_offset, resolve=True)
+        if cfg.rpr.pair_offset
+        else None,
     )
     return _fit_and_test(cfg, step_dir, "rpr", module, data, cfg.rpr.max_epochs)
 

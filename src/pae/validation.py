@@ -171,6 +171,9 @@ def validate_train_config(cfg: DictConfig) -> None:
     _boolean(cfg, "iapr.refine_orientation")
     _choice(cfg, "iapr.init_backbone", ("teacher", None))
     _choice(cfg, "rpr.init_backbone", ("teacher", None))
+    if _value(cfg, "rpr.pair_offset") is not None:
+        _number(cfg, "rpr.pair_offset.position_m", 0, strict=False)
+        _number(cfg, "rpr.pair_offset.orientation_deg", 0, strict=False)
     _boolean(cfg, "backbone.pretrained")
     _file(cfg, "backbone.weights_path")
     for key in ("teacher_ckpt", "pae_ckpt", "decoder_ckpt"):
