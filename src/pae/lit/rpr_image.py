@@ -21,8 +21,7 @@ class TrainImages:
     """The train split's images by row, as network input (evaluation pre-processing).
 
     Rows are read as one batch through the train dataset (a single indexing operation with
-    the in-memory image cache, batched decoding otherwise). `memory_bytes`: what a
-    deployment keeps to answer these reads (uint8 images at the stored resolution).
+    the in-memory image cache, batched decoding otherwise).
     """
 
     def __init__(self, datamodule: Any) -> None:
@@ -36,11 +35,6 @@ class TrainImages:
         """rows [B] long indices into the train split -> images [B, 3, crop, crop]."""
         batch = self.dataset.__getitems__(rows.cpu().tolist())
         return self.preprocess(batch["image"].to(device), train=False)
-
-    @property
-    def memory_bytes(self) -> int:
-        height, width = self.dataset.__getitems__([0])["image"].shape[-2:]
-        return len(self.dataset) * 3 * int(height) * int(width)
 
 
 class ImageRPRModule(PaeModule):
