@@ -21,6 +21,7 @@ GROUPS = {
         "student",
         "decoder",
         "rpr",
+        "iapr",
         "refine",
         "trainer",
         "logger",

@@ -189,8 +189,11 @@ def test_relative_pose_matches_matrices() -> None:
         T[:, :3, 3] = pose[:, :3].numpy()
         return T
 
+    # rotation: the query's in the reference camera's frame; translation: world frame
     expected = np.linalg.inv(homogeneous(p_ref)) @ homogeneous(p)
-    np.testing.assert_allclose(homogeneous(relative_pose(p_ref, p)), expected, atol=1e-10)
+    relative = homogeneous(relative_pose(p_ref, p))
+    np.testing.assert_allclose(relative[:, :3, :3], expected[:, :3, :3], atol=1e-10)
+    np.testing.assert_allclose(relative[:, :3, 3], (p[:, :3] - p_ref[:, :3]).numpy(), atol=1e-12)
 
 
 def test_relative_pose_broadcasts_one_reference() -> None:

@@ -76,6 +76,21 @@ def test_pipeline_writes_metrics_checkpoints_and_events(pipeline_run: Path) -> N
         assert list((pipeline_run / step).glob("events.out.tfevents.*"))
 
 
+def test_full_stage_reports_the_relative_regressors(pipeline_run: Path) -> None:
+    metrics = json.loads((pipeline_run / "metrics.json").read_text())
+    teacher_rot = metrics["test/teacher/rot_median_deg"]
+    for method in ("rpr_image", "rpr_image_test_store", "vrpr"):  # position only
+        assert metrics[f"test/{method}/pos_median_m"] >= 0
+        assert metrics[f"test/{method}/rot_median_deg"] == pytest.approx(teacher_rot, rel=1e-4)
+    for method in ("rpr_reference", "rpr_reference_test_store", "iapr_1", "iapr_2", "iapr_3"):
+        for figure in ("pos_median_m", "rot_median_deg"):
+            assert metrics[f"test/{method}/{figure}"] >= 0
+    assert "test/iapr_4/pos_median_m" not in metrics
+    assert metrics["test/decoder/psnr_db"] > 0 and metrics["test/decoder/psnr_mean_image_db"] > 0
+    for step in ("rpr_image", "iapr"):
+        assert (pipeline_run / step / "checkpoints" / "last.ckpt").is_file()
+
+
 def test_tensorboard_gets_trajectory_plot_and_hparams(pipeline_run: Path) -> None:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 

@@ -5,9 +5,11 @@ Conventions (shared by the whole package):
 - A pose tensor has shape ``[..., 7]``: position ``x, y, z`` in metres (world frame) followed by
   the orientation ``qw, qx, qy, qz``, a unit quaternion with the scalar part first.
 - Poses are camera-to-world: ``X_world = R(q) @ X_camera + t``.
-- Relative poses are expressed in the reference camera's frame (``relative_pose``, inverted by
-  ``compose_pose``): the one relative-pose convention of the package; the virtual RPR
-  regresses it.
+- A relative pose (``relative_pose``, inverted by ``compose_pose``) is the world-frame
+  translation from the reference to the query camera, ``t_query − t_ref`` (m), and the
+  rotation ``conj(q_ref) ⊗ q_query`` (the query's orientation in the reference camera's
+  frame): the one relative-pose convention of the package; the RPRs and the iterative APR
+  regress it.
 - Quaternions are Hamilton quaternions; ``q`` and ``-q`` are the same rotation and stored poses
   are canonicalised to ``qw >= 0``.
 
@@ -166,12 +168,12 @@ def pose_errors(pred: Tensor, gt: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def relative_pose(p_ref: Tensor, p_query: Tensor) -> Tensor:
-    """Pose ``[..., 7]`` of the query camera expressed in the reference camera's frame.
+    """Pose ``[..., 7]`` of the query camera relative to the reference camera.
 
-    ``t = R_refᵀ (t_query − t_ref)`` and ``q = conj(q_ref) ⊗ q_query`` (canonicalised).
+    ``t = t_query − t_ref`` (world frame, m) and ``q = conj(q_ref) ⊗ q_query`` (canonicalised).
     """
     q_ref_inv = quaternion_conjugate(normalize_quaternion(p_ref[..., 3:]))
-    t = quaternion_apply(q_ref_inv, p_query[..., :3] - p_ref[..., :3])
+    t = p_query[..., :3] - p_ref[..., :3]
     q = quaternion_multiply(q_ref_inv, normalize_quaternion(p_query[..., 3:]))
     return torch.cat(_broadcast_leading(t, canonicalize_quaternion(q)), dim=-1)
 
@@ -182,7 +184,7 @@ def compose_pose(p_ref: Tensor, p_rel: Tensor) -> Tensor:
     Inverse of :func:`relative_pose`: ``compose_pose(p_ref, relative_pose(p_ref, p)) == p``.
     """
     q_ref = normalize_quaternion(p_ref[..., 3:])
-    t = p_ref[..., :3] + quaternion_apply(q_ref, p_rel[..., :3])
+    t = p_ref[..., :3] + p_rel[..., :3]
     q = quaternion_multiply(q_ref, normalize_quaternion(p_rel[..., 3:]))
     return torch.cat(_broadcast_leading(t, canonicalize_quaternion(q)), dim=-1)
 

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import lightning as L
+import torch
 from hydra.utils import instantiate
 from lightning.pytorch.loggers import Logger, TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_info
@@ -37,6 +38,7 @@ from pae.lit.decoder import DecoderModule
 from pae.lit.rpr import RPRModule
 from pae.lit.student import StudentEvaluator, StudentModule
 from pae.lit.teacher import TeacherModule
+from pae.models.base import PoseRegressor
 from pae.reporting import first_line
 
 Metrics = dict[str, float]
@@ -322,6 +324,20 @@ def fit_decoder(
     return _fit_and_test(cfg, step_dir, "decoder", module, data, cfg.decoder.max_epochs)
 
 
+def init_backbone_from_teacher(model: torch.nn.Module, teacher: PoseRegressor, key: str) -> None:
+    """Copy the teacher's backbone weights into `model.backbone` (same backbone config);
+    a ConfigError naming `key` when they do not fit."""
+    source = getattr(teacher, "backbone", None)
+    try:
+        model.backbone.load_state_dict(source.state_dict())
+    except (AttributeError, RuntimeError):
+        raise ConfigError(
+            f"{key}=teacher: the teacher's backbone does not match this model's backbone "
+            f"(use {key}=null)"
+        ) from None
+    rank_zero_info(f"{key}: backbone initialised from the teacher's")
+
+
 def fit_rpr(
     cfg: DictConfig,
     step_dir: Path,
@@ -341,8 +357,11 @@ def fit_rpr(
         _check_data(cfg, path, loaded, data)
     rpr_config = OmegaConf.to_container(cfg.rpr.model, resolve=True)
     rpr_config["backbone"]["pretrained"] = False
+    model = instantiate(cfg.rpr.model)
+    if cfg.rpr.get("init_backbone") == "teacher":
+        init_backbone_from_teacher(model, teacher.model, "rpr.init_backbone")
     module = RPRModule(
-        instantiate(cfg.rpr.model),
+        model,
         teacher.model,
         pae.model,
         decoder.model,
@@ -356,6 +375,9 @@ def fit_rpr(
             "rpr_config": rpr_config,
         },
         pair_k=cfg.rpr.pair_k,
+        pair_offset=OmegaConf.to_container(cfg.rpr.pair_offset, resolve=True)
+        if cfg.rpr.pair_offset
+        else None,
     )
     return _fit_and_test(cfg, step_dir, "rpr", module, data, cfg.rpr.max_epochs)
 

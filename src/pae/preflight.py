@@ -23,6 +23,7 @@ RESUMABLE_CHANGES = (
     "student.max_epochs",
     "decoder.max_epochs",
     "rpr.max_epochs",
+    "iapr.max_epochs",
     "trainer.",
     "callbacks.",
     "logger.",

@@ -1,4 +1,5 @@
-"""`pae-train`: train a teacher APR, a student PAE, or both (Hydra; see conf/train.yaml)."""
+"""`pae-train`: train a teacher APR, a student PAE, or any of the later steps (Hydra; see
+conf/train.yaml)."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from omegaconf import DictConfig
 from pae import CONFIG_DIR
 from pae.atomic import write_json_atomic
 from pae.pipeline import fit_decoder, fit_rpr, fit_student, fit_teacher
+from pae.pipeline_relative import fit_iapr, fit_rpr_image
 from pae.reporting import format_results_table, reporting_errors
 from pae.validation import apply_renamed_keys, validate_train_config
 
@@ -34,6 +36,10 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
             step_metrics, ckpt["student"] = fit_student(cfg, step_dir, ckpt["teacher"])
         elif step == "decoder":
             step_metrics, ckpt["decoder"] = fit_decoder(cfg, step_dir, ckpt["student"])
+        elif step == "rpr_image":
+            step_metrics, _ = fit_rpr_image(cfg, step_dir, ckpt["teacher"])
+        elif step == "iapr":
+            step_metrics, _ = fit_iapr(cfg, step_dir, ckpt["student"])
         else:
             step_metrics, _ = fit_rpr(cfg, step_dir, ckpt["student"], ckpt["decoder"])
         metrics |= step_metrics

@@ -20,12 +20,16 @@ RENAMED_KEYS = {"pae_ckpt": "student_ckpt"}
 deprecation warning."""
 _WARNED: set[str] = set()
 
-STEPS = ("teacher", "student", "decoder", "rpr")
-"""The steps of pae-train, each with its config group (max_epochs, optimizer, ...)."""
+STEPS = ("teacher", "student", "decoder", "rpr", "rpr_image", "iapr")
+"""The steps of pae-train."""
+GROUPS = ("teacher", "student", "decoder", "rpr", "iapr")
+"""The config groups of the steps (max_epochs, optimizer, ...); rpr_image trains with rpr's."""
 NEEDS = {
     "student": (("teacher_ckpt", "teacher"),),
     "decoder": (("student_ckpt", "student"),),
     "rpr": (("student_ckpt", "student"), ("decoder_ckpt", "decoder")),
+    "rpr_image": (("teacher_ckpt", "teacher"),),
+    "iapr": (("student_ckpt", "student"),),
 }
 """Per step: the checkpoint keys it needs unless an earlier step of the run produces them."""
 
@@ -177,7 +181,7 @@ def validate_train_config(cfg: DictConfig) -> None:
         raise ConfigError(f"unknown stage.steps {unknown}; choose from {list(STEPS)}")
     _validate_common(cfg)
     _boolean(cfg, "resume")
-    for group in STEPS:
+    for group in GROUPS:
         _integer(cfg, f"{group}.max_epochs", 0)
         _number(cfg, f"{group}.optimizer.lr", 0, strict=True)
         _number(cfg, f"{group}.optimizer.weight_decay", 0, strict=False, optional=True)
@@ -192,6 +196,15 @@ def validate_train_config(cfg: DictConfig) -> None:
     _choice(cfg, "student.latent_loss", LATENT_LOSSES)
     _boolean(cfg, "student.cache_latents")
     _integer(cfg, "rpr.pair_k", 1)
+    _integer(cfg, "iapr.iterations", 1)
+    _number(cfg, "iapr.start.position_m", 0, strict=False)
+    _number(cfg, "iapr.start.orientation_deg", 0, strict=False)
+    _boolean(cfg, "iapr.refine_orientation")
+    _choice(cfg, "iapr.init_backbone", ("teacher", None))
+    _choice(cfg, "rpr.init_backbone", ("teacher", None))
+    if _value(cfg, "rpr.pair_offset") is not None:
+        _number(cfg, "rpr.pair_offset.position_m", 0, strict=False)
+        _number(cfg, "rpr.pair_offset.orientation_deg", 0, strict=False)
     _boolean(cfg, "backbone.pretrained")
     _file(cfg, "backbone.weights_path")
     for key in ("teacher_ckpt", "student_ckpt", "decoder_ckpt"):

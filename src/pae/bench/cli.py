@@ -17,6 +17,7 @@ from pathlib import Path
 import torch
 from torch.utils.data import DataLoader
 
+from pae.bench.methods import bench_methods
 from pae.bench.refinement import bench_first_layer_gain, bench_index, bench_refinement
 from pae.data.datamodule import PoseDataModule
 from pae.data.latents import TeacherLatentDataModule
@@ -162,12 +163,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--only",
         nargs="+",
-        choices=("synthetic", "student", "refine", "pae", "index", "sweep"),
+        choices=("synthetic", "student", "refine", "pae", "index", "sweep", "deploy"),
         help="run only these benchmarks (default: all)",
     )
     args = parser.parse_args(argv)
     torch.manual_seed(0)
-    chosen = set(args.only or ("synthetic", "student", "refine", "pae", "index", "sweep"))
+    everything = ("synthetic", "student", "refine", "pae", "index", "sweep", "deploy")
+    chosen = set(args.only or everything)
     figures: dict[str, float] = {}
     if "synthetic" in chosen:
         figures["bench/synthetic/frames_per_s"] = measure_render_speed()
@@ -190,6 +192,8 @@ def main(argv: list[str] | None = None) -> int:
         figures |= bench_first_layer_gain()
     if "pae" in chosen:
         figures |= bench_pae()
+    if "deploy" in chosen:
+        figures |= bench_methods()
     train_files = sorted(args.labels.glob("*/*_train.csv")) if args.labels.is_dir() else []
     if train_files and "index" in chosen:
         figures |= bench_index(train_files)

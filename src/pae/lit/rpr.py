@@ -3,13 +3,19 @@ the query image and an image decoded from a train pose's PAE encoding."""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
 from torch import Tensor, nn
 
 from pae.data.transforms import ImageTransform
-from pae.geometry import compose_pose, relative_pose
+from pae.geometry import (
+    canonicalize_quaternion,
+    compose_pose,
+    quaternion_multiply,
+    relative_pose,
+)
 from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import PoseEvaluation
 from pae.losses import LearnedPoseLoss
@@ -20,17 +26,61 @@ from pae.models.rpr import SiameseRPR
 from pae.refine.index import PoseIndex
 
 
+def perturb_poses(
+    poses: Tensor,
+    position_m: float,
+    orientation_deg: float,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """Starting poses around poses [B, 7] (unit q): each moved by a distance uniform in
+    [0, 2·position_m] (median position_m) in a uniformly random direction, and rotated by an
+    angle uniform in [0, 2·orientation_deg] about a uniformly random axis -> [B, 7], qw >= 0."""
+    b, device, dtype = poses.shape[0], poses.device, poses.dtype
+
+    def directions() -> Tensor:
+        v = torch.randn(b, 3, generator=generator, dtype=dtype).to(device)
+        return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+    def amounts(scale: float) -> Tensor:
+        return (2 * scale * torch.rand(b, 1, generator=generator, dtype=dtype)).to(device)
+
+    position = poses[:, :3] + amounts(position_m) * directions()
+    half = amounts(orientation_deg) * (math.pi / 360.0)
+    turn = torch.cat([half.cos(), half.sin() * directions()], dim=-1)
+    rotation = canonicalize_quaternion(quaternion_multiply(poses[:, 3:], turn))
+    return torch.cat([position, rotation], dim=-1)
+
+
+def nearby_references(
+    index: PoseIndex,
+    poses: Tensor,
+    scenes: Tensor,
+    own: Tensor,
+    count: int,
+    around: Tensor | None = None,
+) -> Tensor:
+    """Training references: for each pose [B, 7] of the store's rows `own` [B], one of the
+    `count` stored poses (same scene) nearest to it, or to `around` [B, 7] (e.g. the poses
+    moved as a pose estimate errs), drawn at random, never the row itself -> indices [B]
+    into `index.poses`."""
+    poses = poses if around is None else around
+    candidates = index.query(poses, scenes, count)[0].to(poses.device)
+    itself = candidates == own.to(poses.device).unsqueeze(1)
+    choice = torch.rand(candidates.shape, device=poses.device).masked_fill(itself, -1).argmax(1)
+    return candidates.gather(1, choice[:, None])[:, 0]
+
+
 class RPRModule(PaeModule):
     """Trains a SiameseRPR on (query image, decoded image of a nearby train pose) pairs.
 
     Training references: one of the `pair_k` nearest train poses of the query's true pose
-    (never the query's own row), decoded by the frozen PAE + decoder — the same kind of
-    reference the RPR sees at test time. The RPR regresses the query's pose relative to the
-    reference in the package's one convention, the reference camera's frame
-    (``pae.geometry.relative_pose``). Evaluation: the teacher estimates the pose, the nearest
-    train pose of the estimate is decoded, and the relative translation moves that reference
-    position: `vrpr` position = ``compose_pose(reference, relative)``'s, i.e. reference +
-    R_ref · translation (orientation: the teacher's).
+    (never the query's own row) — or, with `pair_offset` ({position_m, orientation_deg}),
+    of that pose moved by `perturb_poses` as a teacher's estimate errs — decoded by the
+    frozen PAE + decoder: the same kind of reference the RPR sees at test time. The RPR
+    regresses the query's pose relative to the reference (``pae.geometry.relative_pose``).
+    Evaluation: the teacher estimates the pose, the nearest train pose of the estimate is
+    decoded, and the relative translation moves that reference position: `vrpr` position =
+    ``compose_pose(reference, relative)``'s (orientation: the teacher's).
     """
 
     def __init__(
@@ -45,6 +95,7 @@ class RPRModule(PaeModule):
         configs: dict[str, Any],
         scheduler: SchedulerFactory | None = None,
         pair_k: int = 5,
+        pair_offset: dict[str, float] | None = None,
     ) -> None:
         super().__init__(optimizer, scheduler)
         self.save_hyperparameters({**configs, "scene_names": list(scene_names)})
@@ -54,6 +105,7 @@ class RPRModule(PaeModule):
         self.decoder = decoder.eval().requires_grad_(False)
         self.loss = loss
         self.pair_k = pair_k
+        self.pair_offset = dict(pair_offset) if pair_offset else None
         self.evaluation = PoseEvaluation(["teacher", "vrpr"], scene_names)
         self.index: PoseIndex | None = None
         self.pair_count = pair_k + 1
@@ -79,11 +131,9 @@ class RPRModule(PaeModule):
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         assert self.index is not None
         pose, scene = batch["pose"], batch["scene"]
-        indices, _ = self.index.query(pose, scene, self.pair_count)
-        candidates = indices.to(pose.device)
-        own = candidates == batch["index"].unsqueeze(1)
-        choice = torch.rand(candidates.shape, device=pose.device).masked_fill(own, -1).argmax(1)
-        reference = self.index.poses.to(pose.device)[candidates.gather(1, choice[:, None])[:, 0]]
+        around = perturb_poses(pose, **self.pair_offset) if self.pair_offset else None
+        chosen = nearby_references(self.index, pose, scene, batch["index"], self.pair_count, around)
+        reference = self.index.poses.to(pose.device)[chosen]
         images = self.virtual_reference(reference, scene, batch["image"].shape[-1])
         terms = self.loss(self.rpr(batch["image"], images), relative_pose(reference, pose))
         self.log_dict(

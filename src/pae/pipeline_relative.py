@@ -1,0 +1,94 @@
+"""The steps of the relative regressors that read the query image at test time: the image
+RPR (real train images as references, `rpr_image`) and the iterative APR (`iapr_{n}`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from pae.checkpoints import load_pae, load_teacher
+from pae.lit.iapr import IAPRModule
+from pae.lit.rpr_image import ImageRPRModule
+from pae.pipeline import (
+    Metrics,
+    _check_data,
+    _fit_and_test,
+    _required,
+    build_data,
+    init_backbone_from_teacher,
+)
+
+
+def _without_pretrained(model_config: DictConfig) -> dict:
+    """A model config as stored in a checkpoint: the weights come from the state dict."""
+    config = OmegaConf.to_container(model_config, resolve=True)
+    config["backbone"]["pretrained"] = False
+    config["backbone"]["weights_path"] = None
+    return config
+
+
+def fit_rpr_image(
+    cfg: DictConfig, step_dir: Path, teacher_ckpt: str | Path | None
+) -> tuple[Metrics, Path]:
+    """Train the Siamese RPR (the `rpr` group's model and training settings) on real
+    train-image pairs, then test `rpr_image` and its audits (`test/rpr_image/...`)."""
+    teacher_ckpt = _required(teacher_ckpt, "teacher_ckpt", "rpr_image")
+    teacher = load_teacher(teacher_ckpt)
+    data = build_data(cfg)
+    _check_data(cfg, teacher_ckpt, teacher, data)
+    model = instantiate(cfg.rpr.model)
+    if cfg.rpr.get("init_backbone") == "teacher":
+        init_backbone_from_teacher(model, teacher.model, "rpr.init_backbone")
+    module = ImageRPRModule(
+        model,
+        teacher.model,
+        loss=instantiate(cfg.rpr.loss),
+        optimizer=instantiate(cfg.rpr.optimizer),
+        scheduler=instantiate(cfg.rpr.scheduler) if cfg.rpr.get("scheduler") else None,
+        scene_names=data.scene_names,
+        configs={
+            "teacher_config": teacher.config,
+            "rpr_config": _without_pretrained(cfg.rpr.model),
+        },
+        pair_k=cfg.rpr.pair_k,
+        pair_offset=OmegaConf.to_container(cfg.rpr.pair_offset, resolve=True)
+        if cfg.rpr.pair_offset
+        else None,
+    )
+    return _fit_and_test(cfg, step_dir, "rpr_image", module, data, cfg.rpr.max_epochs)
+
+
+def fit_iapr(
+    cfg: DictConfig, step_dir: Path, student_ckpt: str | Path | None
+) -> tuple[Metrics, Path]:
+    """Train the iterative APR on a frozen PAE (and its teacher, from a student checkpoint),
+    then test `iapr_1` .. `iapr_{iterations}` from the teacher's estimates."""
+    student_ckpt = _required(student_ckpt, "student_ckpt", "iapr")
+    teacher, pae = load_teacher(student_ckpt), load_pae(student_ckpt)
+    data = build_data(cfg)
+    _check_data(cfg, student_ckpt, pae, data)
+    settings = cfg.iapr
+    model = instantiate(settings.model)
+    if settings.init_backbone == "teacher":
+        init_backbone_from_teacher(model, teacher.model, "iapr.init_backbone")
+    module = IAPRModule(
+        model,
+        teacher.model,
+        pae.model,
+        loss=instantiate(settings.loss),
+        optimizer=instantiate(settings.optimizer),
+        scheduler=instantiate(settings.scheduler) if settings.get("scheduler") else None,
+        scene_names=data.scene_names,
+        configs={
+            "teacher_config": teacher.config,
+            "pae_config": pae.config,
+            "iapr_config": _without_pretrained(settings.model),
+        },
+        position_m=settings.start.position_m,
+        orientation_deg=settings.start.orientation_deg,
+        iterations=settings.iterations,
+        refine_orientation=settings.refine_orientation,
+    )
+    return _fit_and_test(cfg, step_dir, "iapr", module, data, settings.max_epochs)
