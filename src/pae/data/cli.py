@@ -145,27 +145,27 @@ def build_parser() -> argparse.ArgumentParser:
         "--test-offset",
         type=float,
         metavar="M",
-        help="lateral offset of the test sequences from the train route in metres "
-        "(default: 0.7; 0 puts them on the route)",
+        help="lateral offset of the test sequences from the route in metres, alternately "
+        "left and right (default: 0, on the route)",
     )
     synth.add_argument(
         "--train-lane",
         type=float,
         metavar="M",
         help="lateral offset of the train sequences from the route in metres, alternately "
-        "left and right (default: 0, on the route)",
+        "left and right (default: 0.5)",
     )
     synth.add_argument(
         "--yaw-stray",
         type=float,
         metavar="RAD",
-        help="how far each sequence's yaw strays from the route's heading (default: 0.5)",
+        help="how far each sequence's yaw strays from the route's heading (default: 0.15)",
     )
     synth.add_argument(
         "--stray",
         type=float,
         metavar="M",
-        help="how far each camera strays horizontally from its lane (default: 0.35)",
+        help="how far each camera strays horizontally from its lane (default: 0.1)",
     )
     synth.add_argument(
         "--poses",

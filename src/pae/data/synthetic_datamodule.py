@@ -24,9 +24,9 @@ def default_root(
     render_seed: int,
     test_offset_m: float,
     poses: list[str] | None,
-    train_lane_m: float = 0.0,
-    yaw_stray_rad: float = 0.5,
-    stray_m: float = 0.35,
+    train_lane_m: float = 0.5,
+    yaw_stray_rad: float = 0.15,
+    stray_m: float = 0.1,
 ) -> str:
     """The folder a synthetic dataset renders into: named by its settings, or, for
     ``poses``, by a digest of the label files' contents (so edited files render anew)."""
@@ -40,10 +40,8 @@ def default_root(
         return f"{RENDER_FOLDER}/poses-{digest.hexdigest()[:12]}_px{size}_seed{render_seed}"
     return (
         f"{RENDER_FOLDER}/scenes{scenes}_train{train_frames}_test{test_frames}_px{size}"
-        f"_seed{render_seed}_offset{test_offset_m:g}"
-        + (f"_lane{train_lane_m:g}" if train_lane_m else "")
-        + (f"_yaw{yaw_stray_rad:g}" if yaw_stray_rad != 0.5 else "")
-        + (f"_stray{stray_m:g}" if stray_m != 0.35 else "")
+        f"_seed{render_seed}_offset{test_offset_m:g}_lane{train_lane_m:g}"
+        f"_yaw{yaw_stray_rad:g}_stray{stray_m:g}"
     )
 
 
@@ -71,9 +69,9 @@ class SyntheticDataModule(PoseDataModule):
         render_seed: int = 0,
         test_offset_m: float = synthetic.DEFAULT_TEST_OFFSET_M,
         poses: list[str] | None = None,
-        train_lane_m: float = 0.0,
-        yaw_stray_rad: float = 0.5,
-        stray_m: float = 0.35,
+        train_lane_m: float = 0.5,
+        yaw_stray_rad: float = 0.15,
+        stray_m: float = 0.1,
         **kwargs: Any,
     ) -> None:
         poses = [str(p) for p in poses] if poses else None
