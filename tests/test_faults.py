@@ -238,6 +238,8 @@ def test_resume_that_cannot_work_stops_before_the_run_dir_is_touched(
         ("pae.L=abc", "pae.L must be an integer >= 0, got 'abc'"),
         ("pae.L=-1", "pae.L must be an integer >= 0, got -1"),
         ("data.crop=40", "data.crop=40 is larger than data.shorter_edge=32"),
+        ("data.train_lane_m=-0.5", "data.train_lane_m must be a number >= 0, got -0.5"),
+        ("data.yaw_stray_rad=2", "data.yaw_stray_rad must be <= 1.5708, got 2"),
         ("backbone.weights_path=/nope.pt", "backbone.weights_path=/nope.pt: no such file"),
         ("teacher_ckpt=/nope.ckpt", "teacher_ckpt=/nope.ckpt: no such file"),
     ],

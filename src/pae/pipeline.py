@@ -164,7 +164,7 @@ def _fit_and_test(
     return metrics, step_dir / "checkpoints" / "last.ckpt"
 
 
-def _optimisation(group: DictConfig) -> dict[str, Any]:
+def optimisation(group: DictConfig) -> dict[str, Any]:
     """A trained group's optimizer and scheduler factories (scheduler=null: a constant rate)."""
     scheduler = group.get("scheduler")
     return {
@@ -196,7 +196,7 @@ def fit_teacher(cfg: DictConfig, step_dir: Path) -> tuple[Metrics, Path]:
     module = TeacherModule(
         teacher,
         loss=instantiate(cfg.teacher.loss),
-        **_optimisation(cfg.teacher),
+        **optimisation(cfg.teacher),
         scene_names=data.scene_names,
         teacher_config=_teacher_config(cfg, data.n_scenes),
         scene_loss_weight=cfg.teacher.scene_loss_weight,
@@ -261,7 +261,7 @@ def fit_student(
             teacher.model,
             instantiate(pae_config),
             loss=instantiate(cfg.student.loss),
-            **_optimisation(cfg.student),
+            **optimisation(cfg.student),
             scene_names=data.scene_names,
             teacher_config=teacher.config,
             pae_config=pae_config,
@@ -316,7 +316,7 @@ def fit_decoder(
     module = DecoderModule(
         pae.model,
         instantiate(decoder_config),
-        **_optimisation(cfg.decoder),
+        **optimisation(cfg.decoder),
         scene_names=data.scene_names,
         pae_config=pae.config,
         decoder_config=decoder_config,
@@ -338,6 +338,35 @@ def init_backbone_from_teacher(model: torch.nn.Module, teacher: PoseRegressor, k
     rank_zero_info(f"{key}: backbone initialised from the teacher's")
 
 
+def stored_model_config(model_config: DictConfig) -> dict[str, Any]:
+    """A model config as stored in a checkpoint: the weights come from the state dict, so
+    no pretrained download and no weights file."""
+    config = OmegaConf.to_container(model_config, resolve=True)
+    config["backbone"]["pretrained"] = False
+    config["backbone"]["weights_path"] = None
+    return config
+
+
+def relative_model(cfg: DictConfig, group: str, teacher: PoseRegressor) -> torch.nn.Module:
+    """The model of a relative regressor's group (`rpr`, `iapr`), its backbone copied from
+    the teacher's when `{group}.init_backbone` is `teacher`."""
+    settings = cfg[group]
+    model = instantiate(settings.model)
+    if settings.get("init_backbone") == "teacher":
+        init_backbone_from_teacher(model, teacher, f"{group}.init_backbone")
+    return model
+
+
+def rpr_pairs(cfg: DictConfig) -> dict[str, Any]:
+    """How an RPR draws its training references: `pair_k` and `pair_offset` (None: around
+    the true pose)."""
+    offset = cfg.rpr.get("pair_offset")
+    return {
+        "pair_k": cfg.rpr.pair_k,
+        "pair_offset": OmegaConf.to_container(offset, resolve=True) if offset else None,
+    }
+
+
 def fit_rpr(
     cfg: DictConfig,
     step_dir: Path,
@@ -355,29 +384,21 @@ def fit_rpr(
     data = build_data(cfg)
     for path, loaded in ((student_ckpt, pae), (decoder_ckpt, decoder)):
         _check_data(cfg, path, loaded, data)
-    rpr_config = OmegaConf.to_container(cfg.rpr.model, resolve=True)
-    rpr_config["backbone"]["pretrained"] = False
-    model = instantiate(cfg.rpr.model)
-    if cfg.rpr.get("init_backbone") == "teacher":
-        init_backbone_from_teacher(model, teacher.model, "rpr.init_backbone")
     module = RPRModule(
-        model,
+        relative_model(cfg, "rpr", teacher.model),
         teacher.model,
         pae.model,
         decoder.model,
         loss=instantiate(cfg.rpr.loss),
-        **_optimisation(cfg.rpr),
+        **optimisation(cfg.rpr),
         scene_names=data.scene_names,
         configs={
             "teacher_config": teacher.config,
             "pae_config": pae.config,
             "decoder_config": decoder.config,
-            "rpr_config": rpr_config,
+            "rpr_config": stored_model_config(cfg.rpr.model),
         },
-        pair_k=cfg.rpr.pair_k,
-        pair_offset=OmegaConf.to_container(cfg.rpr.pair_offset, resolve=True)
-        if cfg.rpr.pair_offset
-        else None,
+        **rpr_pairs(cfg),
     )
     return _fit_and_test(cfg, step_dir, "rpr", module, data, cfg.rpr.max_epochs)
 

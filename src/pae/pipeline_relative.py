@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from pae.checkpoints import load_pae, load_teacher
 from pae.lit.iapr import IAPRModule
@@ -17,16 +17,11 @@ from pae.pipeline import (
     _fit_and_test,
     _required,
     build_data,
-    init_backbone_from_teacher,
+    optimisation,
+    relative_model,
+    rpr_pairs,
+    stored_model_config,
 )
-
-
-def _without_pretrained(model_config: DictConfig) -> dict:
-    """A model config as stored in a checkpoint: the weights come from the state dict."""
-    config = OmegaConf.to_container(model_config, resolve=True)
-    config["backbone"]["pretrained"] = False
-    config["backbone"]["weights_path"] = None
-    return config
 
 
 def fit_rpr_image(
@@ -38,24 +33,17 @@ def fit_rpr_image(
     teacher = load_teacher(teacher_ckpt)
     data = build_data(cfg)
     _check_data(cfg, teacher_ckpt, teacher, data)
-    model = instantiate(cfg.rpr.model)
-    if cfg.rpr.get("init_backbone") == "teacher":
-        init_backbone_from_teacher(model, teacher.model, "rpr.init_backbone")
     module = ImageRPRModule(
-        model,
+        relative_model(cfg, "rpr", teacher.model),
         teacher.model,
         loss=instantiate(cfg.rpr.loss),
-        optimizer=instantiate(cfg.rpr.optimizer),
-        scheduler=instantiate(cfg.rpr.scheduler) if cfg.rpr.get("scheduler") else None,
+        **optimisation(cfg.rpr),
         scene_names=data.scene_names,
         configs={
             "teacher_config": teacher.config,
-            "rpr_config": _without_pretrained(cfg.rpr.model),
+            "rpr_config": stored_model_config(cfg.rpr.model),
         },
-        pair_k=cfg.rpr.pair_k,
-        pair_offset=OmegaConf.to_container(cfg.rpr.pair_offset, resolve=True)
-        if cfg.rpr.pair_offset
-        else None,
+        **rpr_pairs(cfg),
     )
     return _fit_and_test(cfg, step_dir, "rpr_image", module, data, cfg.rpr.max_epochs)
 
@@ -70,21 +58,17 @@ def fit_iapr(
     data = build_data(cfg)
     _check_data(cfg, student_ckpt, pae, data)
     settings = cfg.iapr
-    model = instantiate(settings.model)
-    if settings.init_backbone == "teacher":
-        init_backbone_from_teacher(model, teacher.model, "iapr.init_backbone")
     module = IAPRModule(
-        model,
+        relative_model(cfg, "iapr", teacher.model),
         teacher.model,
         pae.model,
         loss=instantiate(settings.loss),
-        optimizer=instantiate(settings.optimizer),
-        scheduler=instantiate(settings.scheduler) if settings.get("scheduler") else None,
+        **optimisation(settings),
         scene_names=data.scene_names,
         configs={
             "teacher_config": teacher.config,
             "pae_config": pae.config,
-            "iapr_config": _without_pretrained(settings.model),
+            "iapr_config": stored_model_config(settings.model),
         },
         position_m=settings.start.position_m,
         orientation_deg=settings.start.orientation_deg,

@@ -3,6 +3,7 @@ training: types, ranges and paths, each failure a ConfigError naming its key."""
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -14,6 +15,14 @@ from pae.data.labels import read_labels
 from pae.errors import ConfigError
 from pae.losses import LATENT_LOSSES
 from pae.pipeline import refinement_callbacks
+
+SYNTHETIC_LAYOUT_BOUNDS = {
+    "test_offset_m": 1.0,
+    "train_lane_m": 1.0,
+    "stray_m": 1.0,
+    "yaw_stray_rad": math.pi / 2,
+}
+"""Upper bounds of the synthetic camera layout's settings (all >= 0), as rendering checks."""
 
 RENAMED_KEYS = {"pae_ckpt": "student_ckpt"}
 """Old key -> its new name. The old key is still read for one more release, with a one-line
@@ -109,6 +118,11 @@ def _train_set_size(cfg: DictConfig) -> int:
         _integer(cfg, "data.test_frames", 1)
         _integer(cfg, "data.size", 8)
         _integer(cfg, "data.render_seed", 0)
+        for key, high in SYNTHETIC_LAYOUT_BOUNDS.items():
+            if key in data:
+                _number(cfg, f"data.{key}", 0, strict=False)
+                if data[key] > high:
+                    raise ConfigError(f"data.{key} must be <= {high:g}, got {data[key]!r}")
         return data.scenes * data.train_frames
     if not Path(str(data.root)).is_dir():
         raise ConfigError(f"data.root={data.root}: no such directory")
