@@ -184,8 +184,16 @@ def test_closed_form_recovers_exact_affine_weights() -> None:
 
 
 @pytest.mark.parametrize("objective", ["l2", "mse"])
-@pytest.mark.parametrize("weight_model", ["mlp", "softmax_logits", "closed_form"])
-def test_batched_equals_per_query(weight_model: str, objective: str) -> None:
+@pytest.mark.parametrize(
+    ("weight_model", "engine"),
+    [
+        ("mlp", "fused"),
+        ("mlp", "batched"),
+        ("softmax_logits", "auto"),
+        ("closed_form", "auto"),
+    ],
+)
+def test_batched_equals_per_query(weight_model: str, engine: str, objective: str) -> None:
     generator = torch.Generator().manual_seed(5)
     batch, k, dim = 7, 3, 24
     query = torch.randn(batch, dim, generator=generator, dtype=torch.float64)
@@ -201,13 +209,61 @@ def test_batched_equals_per_query(weight_model: str, objective: str) -> None:
     else:
         init = None
     options = {"weight_model": weight_model, "objective": objective, "init": init}
-    batched = refine_affine(query, neighbours, poses, lr=0.02, chunk_size=3, **options)
+    batched = refine_affine(
+        query, neighbours, poses, lr=0.02, chunk_size=3, engine=engine, **options
+    )
     reference = refine_affine_per_query(query, neighbours, poses, lr=0.02, **options)
     untrained = refine_affine(query, neighbours, poses, iterations=0, **options)
     torch.testing.assert_close(batched.positions, reference.positions, atol=1e-10, rtol=0)
     torch.testing.assert_close(batched.weights, reference.weights, atol=1e-10, rtol=0)
     if weight_model != "closed_form":
         assert float((batched.weights - untrained.weights).abs().max()) > 1e-3
+
+
+@pytest.mark.parametrize("hidden", [None, (8,), (12, 6, 5, 4)])
+def test_fused_loop_equals_tensor_ops_on_drawn_regressors(hidden: tuple[int, ...] | None) -> None:
+    """The compiled per-query loop and the batched tensor path start from the same drawn
+    regressors (one later-layer draw shared by every query) and end at the same weights, in
+    float64 exactly up to rounding and in float32 on the benchmark's sizes (k = 3, D = 512)."""
+    generator = torch.Generator().manual_seed(9)
+    query = torch.randn(40, 16, generator=generator, dtype=torch.float64).relu()
+    neighbours = query.unsqueeze(1) + 0.3 * torch.randn(
+        40, 3, 16, generator=generator, dtype=torch.float64
+    )
+    poses = torch.randn(40, 3, 7, generator=generator, dtype=torch.float64)
+    fits = [
+        refine_affine(
+            query,
+            neighbours,
+            poses,
+            lr=0.05,
+            iterations=4,
+            hidden=hidden,
+            engine=engine,
+            generator=torch.Generator().manual_seed(3),
+        )
+        for engine in ("fused", "batched")
+    ]
+    torch.testing.assert_close(fits[0].weights, fits[1].weights, atol=1e-9, rtol=0)
+    assert float((fits[0].weights - 1 / 3).abs().max()) > 1e-2  # the fit moved the weights
+
+    query = torch.randn(24, 512, generator=generator)
+    neighbours = query.unsqueeze(1) + 0.3 * torch.randn(24, 3, 512, generator=generator)
+    poses = torch.randn(24, 3, 7, generator=generator)
+    fused, tensor_ops = (
+        refine_affine(
+            query, neighbours, poses, engine=engine, generator=torch.Generator().manual_seed(4)
+        )
+        for engine in ("fused", "batched")
+    )
+    assert fused.weights.dtype == torch.float32
+    torch.testing.assert_close(fused.weights, tensor_ops.weights, atol=2e-4, rtol=0)
+
+
+def test_refine_affine_rejects_an_unknown_engine() -> None:
+    query, neighbours = torch.zeros(2, 4), torch.randn(2, 3, 4)
+    with pytest.raises(ValueError, match="engine must be one of"):
+        refine_affine(query, neighbours, torch.zeros(2, 3, 7), engine="gpu")
 
 
 def test_first_layer_gain_matches_direct_sum() -> None:

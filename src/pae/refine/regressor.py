@@ -285,10 +285,13 @@ def fit_mlp_weights(
     generator: torch.Generator | None,
     init: Sequence[LayerParams] | None,
     chunk_size: int,
+    fused: Callable[..., Tensor] | None = None,
 ) -> Tensor:
     """Final softmax weights [B, k] of the batched weight regressors, one per query, each
     fitted with ``iterations`` AdamW steps on ``loss`` (see ``refine_affine``, which calls it).
-    query [B, D]; neighbours [B, k, D]; ``chunk_size`` queries at a time."""
+    query [B, D]; neighbours [B, k, D]; ``chunk_size`` queries at a time, or all of them by
+    ``fused(query, neighbours, first_preactivation, first_bias, layers, iterations, lr,
+    weight_decay)`` when given (``pae.refine.fused``, the same arithmetic compiled)."""
     batch, k, dim = neighbours.shape
     fan_in = k * dim
     if hidden is not None and (len(hidden) == 0 or min(hidden) < 1):
@@ -316,6 +319,10 @@ def fit_mlp_weights(
         (first_weight, first_bias), *layers = check_mlp_init(init, batch, k, dim)
         first_preactivation = torch.einsum(
             "bi,bio->bo", neighbours.reshape(batch, -1), first_weight.to(query)
+        )
+    if fused is not None:
+        return fused(
+            query, neighbours, first_preactivation, first_bias, layers, iterations, lr, weight_decay
         )
     chunks = []
     for start in range(0, batch, chunk_size):

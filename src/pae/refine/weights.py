@@ -26,10 +26,13 @@ from typing import Literal, NamedTuple
 import torch
 from torch import Tensor
 
+from pae.refine.fused import fit_mlp_weights_fused
 from pae.refine.regressor import ADAM_BETAS, ADAM_EPS, LayerParams, fit_mlp_weights
 
 WeightModel = Literal["softmax_logits", "mlp", "closed_form"]
 Objective = Literal["l2", "mse"]
+Engine = Literal["auto", "fused", "batched"]
+ENGINES: tuple[str, ...] = ("auto", "fused", "batched")
 InitParams = Tensor | Sequence[LayerParams]
 """Initial parameters: logits [B, k] for ``softmax_logits``, the MLP layers for ``mlp``."""
 WEIGHT_MODELS: tuple[str, ...] = ("softmax_logits", "mlp", "closed_form")
@@ -146,6 +149,7 @@ def refine_affine(
     init: InitParams | None = None,
     chunk_size: int = 64,
     ridge: float = 1e-6,
+    engine: Engine = "auto",
 ) -> AffineFit:
     """Affine weights for every query at once.
 
@@ -161,19 +165,30 @@ def refine_affine(
     layer's bias per query and the later layers once per call, shared as starting values,
     as ``nn.Linear`` does (U(±1/√fan_in)); the first layer's weights per query as
     N(0, 1/(3·fan_in)), the same variance, which lets x·W₁ be drawn directly (see
-    ``pae.refine.regressor``). The MLP path runs ``chunk_size`` queries at a time (their optimiser
-    state then stays in cache: 64 is fastest on CPU), which does not change the result.
+    ``pae.refine.regressor``). ``engine`` picks how the MLP is fitted: ``"fused"``, one
+    compiled loop per query (``pae.refine.fused``, CPU tensors only), or ``"batched"``,
+    tensor operations over ``chunk_size`` queries at a time (their optimiser state then stays
+    in cache: 64 is fastest on CPU); ``"auto"`` takes the fused loop on the CPU and the
+    batched path elsewhere. They give the same result up to rounding.
     Works under ``torch.no_grad`` and ``torch.inference_mode``; the outputs carry no autograd
     graph.
     """
     check_fit_inputs(
         query_latent, neighbour_latents, neighbour_poses, weight_model, objective, iterations
     )
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
+    on_cpu = query_latent.device.type == "cpu"
+    if engine == "fused" and not on_cpu:
+        raise ValueError(f"engine 'fused' runs on the CPU only, got {query_latent.device} tensors")
     batch, k, _ = neighbour_latents.shape
     loss = functools.partial(matching_loss, objective=objective)
+    fused = weight_model == "mlp" and on_cpu and engine != "batched"
     with torch.inference_mode(False), torch.enable_grad():
-        query = query_latent.detach().clone()
-        neighbours = neighbour_latents.detach().to(query.dtype).clone()
+        query = query_latent.detach()
+        neighbours = neighbour_latents.detach().to(query.dtype)
+        if not fused:  # tensors made under inference mode cannot enter autograd: copy them
+            query, neighbours = query.clone(), neighbours.clone()
         if weight_model == "closed_form":
             with torch.no_grad():
                 weights = closed_form_weights(query, neighbours, ridge)
@@ -205,6 +220,7 @@ def refine_affine(
                 generator,
                 init,
                 chunk_size,
+                functools.partial(fit_mlp_weights_fused, mse=objective == "mse") if fused else None,
             )
         weights = weights.detach()
         return AffineFit(weights, positions_of(weights, neighbour_poses.detach()))
