@@ -59,6 +59,7 @@ def test_bench_index_on_label_files(tmp_path: Path) -> None:
     figures = bench_index(files, n_queries=15, k=3)
     assert figures["bench/index/n_poses"] == 65
     assert figures["bench/index/memory_mb"] > 0 and figures["bench/index/ms_per_query"] > 0
+    assert figures["bench/index/same_as_tensor_search"] == 1.0
 
 
 def test_bench_first_layer_gain_figures() -> None:

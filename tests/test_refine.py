@@ -83,13 +83,18 @@ def multi_scene_store() -> tuple[Tensor, Tensor]:
     return poses[order], scenes[order]
 
 
+@pytest.mark.parametrize("engine", ["fused", "batched"])
 @pytest.mark.parametrize("distance", ["normalized", "fixed"])
-def test_index_matches_brute_force(multi_scene_store: tuple[Tensor, Tensor], distance: str) -> None:
+def test_index_matches_brute_force(
+    multi_scene_store: tuple[Tensor, Tensor], distance: str, engine: str
+) -> None:
     poses, scenes = multi_scene_store
     generator = torch.Generator().manual_seed(1)
     queries = random_poses(60, generator)
     query_scenes = torch.tensor([3, 0, 7])[torch.randint(0, 3, (60,), generator=generator)]
-    index = PoseIndex(poses, scenes, distance=distance, rot_weight=0.05, chunk_size=7)
+    index = PoseIndex(
+        poses, scenes, distance=distance, rot_weight=0.05, chunk_size=7, engine=engine
+    )
     indices, distances = index.query(queries, query_scenes, k=5)
     expected_indices, expected_distances = brute_force(
         index.poses.double().numpy(),
@@ -103,6 +108,32 @@ def test_index_matches_brute_force(multi_scene_store: tuple[Tensor, Tensor], dis
     assert indices.dtype == torch.long and indices.shape == (60, 5)
     np.testing.assert_array_equal(indices.numpy(), expected_indices)
     np.testing.assert_allclose(distances.numpy(), expected_distances, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("distance", ["normalized", "fixed"])
+def test_index_engines_agree_on_a_dense_trajectory(distance: str) -> None:
+    """Poses along a walked path, a few centimetres and degrees apart, queried from near the
+    path: the fused search (which skips poses by a lower bound) finds what the tensor search
+    finds."""
+    generator = torch.Generator().manual_seed(11)
+    t = torch.linspace(0, 6 * math.pi, 3000, dtype=torch.float64)
+    path = torch.stack([3 * torch.cos(t), 3 * torch.sin(t), 0.2 * t], dim=1)
+    yaw = t / 2 + 0.05 * torch.randn(3000, generator=generator, dtype=torch.float64)
+    zeros = torch.zeros_like(yaw)
+    stored = torch.cat([path, torch.stack([yaw.cos(), zeros, zeros, yaw.sin()], 1)], dim=1)
+    rows = torch.randint(0, 3000, (200,), generator=generator)
+    queries = stored[rows] + 0.05 * torch.randn(200, 7, generator=generator, dtype=torch.float64)
+    found = [
+        PoseIndex(stored, distance=distance, engine=engine).query(queries, k=5)
+        for engine in ("fused", "batched")
+    ]
+    assert torch.equal(found[0][0], found[1][0])
+    torch.testing.assert_close(found[0][1], found[1][1], rtol=1e-6, atol=1e-7)
+
+
+def test_index_rejects_an_unknown_engine() -> None:
+    with pytest.raises(ValueError, match="engine must be one of"):
+        PoseIndex(torch.tensor([[0.0, 0, 0, 1, 0, 0, 0]]), engine="gpu")
 
 
 def test_index_never_returns_another_scene(multi_scene_store: tuple[Tensor, Tensor]) -> None:

@@ -198,6 +198,8 @@ def bench_index(label_files: Sequence[Path], n_queries: int = 1000, k: int = 3) 
 
     label_files are ``*_train.csv`` label files; the queries are ``n_queries`` poses drawn
     (fixed seed) from the matching ``*_test.csv`` files, each searched within its scene.
+    Times the default (compiled) search and the tensor search (``engine="batched"``) and
+    reports whether they return the same neighbours (1.0).
     """
     if not label_files:
         raise ValueError("bench_index needs at least one train label file")
@@ -205,13 +207,19 @@ def bench_index(label_files: Sequence[Path], n_queries: int = 1000, k: int = 3) 
     test = LabelTable.concat(read_labels(_test_file(Path(path))) for path in label_files)
     names = train.scene_names
     index = PoseIndex(train.poses, train.scene_ids(names))
+    tensor_index = PoseIndex(train.poses, train.scene_ids(names), engine="batched")
     rows = np.random.default_rng(0).choice(len(test), size=min(n_queries, len(test)), replace=False)
     queries = torch.from_numpy(test.poses[rows]).float()
     scenes = torch.from_numpy(test.scene_ids(names)[rows])
     index.query(queries[:8], scenes[:8], k)
+    tensor_index.query(queries[:8], scenes[:8], k)
     seconds = _seconds(lambda: index.query(queries, scenes, k))
+    tensor_seconds = _seconds(lambda: tensor_index.query(queries, scenes, k))
+    found, tensor_found = index.query(queries, scenes, k), tensor_index.query(queries, scenes, k)
     return {
         "bench/index/memory_mb": index.memory_bytes / 1e6,
         "bench/index/ms_per_query": seconds * 1e3 / len(rows),
+        "bench/index/tensor_ops_ms_per_query": tensor_seconds * 1e3 / len(rows),
+        "bench/index/same_as_tensor_search": float(torch.equal(found[0], tensor_found[0])),
         "bench/index/n_poses": float(len(index)),
     }

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 
 import numba
@@ -376,12 +376,19 @@ def fit_mlp_weights_fused(
             out[part],
         )
 
-    threads = max(1, min(torch.get_num_threads(), batch // 16))
-    bounds = np.linspace(0, batch, threads + 1).astype(int)
+    run_in_parts(run, batch, min_rows=16)
+    return torch.from_numpy(out).to(query.device)
+
+
+def run_in_parts(run: Callable[[slice], None], rows: int, min_rows: int) -> None:
+    """Call ``run`` on consecutive row ranges covering ``rows`` rows, one range per thread of
+    ``torch.get_num_threads()`` (at least ``min_rows`` rows each) at once: for compiled
+    functions that release the GIL."""
+    threads = max(1, min(torch.get_num_threads(), rows // min_rows))
+    bounds = np.linspace(0, rows, threads + 1).astype(int)
     parts = [slice(lo, hi) for lo, hi in itertools.pairwise(bounds)]
     if threads == 1:
         run(parts[0])
-    else:
-        with ThreadPoolExecutor(threads) as pool:
-            list(pool.map(run, parts))
-    return torch.from_numpy(out).to(query.device)
+        return
+    with ThreadPoolExecutor(threads) as pool:
+        list(pool.map(run, parts))

@@ -5,13 +5,94 @@ from __future__ import annotations
 import math
 from typing import Literal
 
+import numba
 import numpy as np
 import torch
 from torch import Tensor
 
 from pae.geometry import canonicalize_quaternion
+from pae.refine.fused import run_in_parts
 
 PoseDistance = Literal["normalized", "fixed"]
+SearchEngine = Literal["auto", "fused", "batched"]
+SEARCH_ENGINES: tuple[str, ...] = ("auto", "fused", "batched")
+_DEGREES_PER_HALF_TURN = 360.0 / math.pi
+"""Rotation angle in degrees per radian of acos(|q·q'|) (the angle is twice that)."""
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _nearest(
+    query_positions: np.ndarray,
+    query_quaternions: np.ndarray,
+    positions: np.ndarray,
+    quaternions: np.ndarray,
+    normalized: bool,
+    rot_weight: float,
+    indices: np.ndarray,
+    distances: np.ndarray,
+) -> None:
+    """k nearest stored poses of each query, by ``PoseIndex``'s distance, in float64.
+
+    query_positions [b, 3], query_quaternions [b, 4] (unit), positions [M, 3], quaternions
+    [M, 4] (unit); writes indices [b, k] (rows of the M) and distances [b, k], nearest first.
+    One pass gathers the distances' maxima; the second skips a stored pose without its arc
+    cosine when a lower bound of its distance (acos(c) ≥ √(2(1 − c))) already exceeds the
+    k-th best so far.
+    """
+    count = positions.shape[0]
+    k = indices.shape[1]
+    tiny = 2.2250738585072014e-308
+    position = np.empty(count)
+    cosine = np.empty(count)
+    for row in range(query_positions.shape[0]):
+        qx, qy, qz = query_positions[row, 0], query_positions[row, 1], query_positions[row, 2]
+        qw, qa, qb, qc = (
+            query_quaternions[row, 0],
+            query_quaternions[row, 1],
+            query_quaternions[row, 2],
+            query_quaternions[row, 3],
+        )
+        farthest = 0.0
+        least_cosine = 1.0
+        for j in range(count):
+            dx, dy, dz = qx - positions[j, 0], qy - positions[j, 1], qz - positions[j, 2]
+            position[j] = math.sqrt(dx * dx + dy * dy + dz * dz)
+            dot = (
+                qw * quaternions[j, 0]
+                + qa * quaternions[j, 1]
+                + qb * quaternions[j, 2]
+                + qc * quaternions[j, 3]
+            )
+            cosine[j] = min(abs(dot), 1.0)
+            farthest = max(farthest, position[j])
+            least_cosine = min(least_cosine, cosine[j])
+        position_scale, angle_scale, angle_factor = 1.0, 1.0, rot_weight
+        if normalized:
+            position_scale = max(farthest, tiny)
+            angle_scale = max(math.acos(least_cosine) * _DEGREES_PER_HALF_TURN, tiny)
+            angle_factor = 1.0
+        best = np.full(k, np.inf)
+        found = np.full(k, -1)
+        for j in range(count):
+            distance = position[j] / position_scale
+            if distance >= best[k - 1]:
+                continue
+            bound = math.sqrt(2.0 * (1.0 - cosine[j])) * _DEGREES_PER_HALF_TURN
+            if distance + angle_factor * (1.0 - 1e-9) * bound / angle_scale >= best[k - 1]:
+                continue
+            angle = math.acos(cosine[j]) * _DEGREES_PER_HALF_TURN
+            distance += angle_factor * (angle / angle_scale)
+            if distance >= best[k - 1]:
+                continue
+            slot = k - 1
+            while slot > 0 and best[slot - 1] > distance:
+                best[slot] = best[slot - 1]
+                found[slot] = found[slot - 1]
+                slot -= 1
+            best[slot] = distance
+            found[slot] = j
+        indices[row] = found
+        distances[row] = best
 
 
 def _as_tensor(values: Tensor | np.ndarray, dtype: torch.dtype, name: str) -> Tensor:
@@ -52,8 +133,10 @@ class PoseIndex:
       which measures orientation by ‖q − q'‖ instead, a distance that depends on the signs);
     - ``"fixed"``: ``‖Δx‖ + rot_weight · angle`` with ``rot_weight`` in metres per degree.
 
-    Distances are computed in float64 over ``chunk_size`` queries at a time, so memory
-    stays bounded by ``chunk_size × (largest scene)``.
+    Distances are computed in float64. ``engine``: ``"fused"`` searches with a compiled loop
+    per query that skips most arc cosines (``_nearest``; CPU only), ``"batched"`` with tensor
+    operations over ``chunk_size`` queries at a time (memory bounded by ``chunk_size ×
+    (largest scene)``); ``"auto"`` takes the first on the CPU and the second elsewhere.
     """
 
     def __init__(
@@ -64,9 +147,12 @@ class PoseIndex:
         distance: PoseDistance = "normalized",
         rot_weight: float = 0.01,
         chunk_size: int = 256,
+        engine: SearchEngine = "auto",
     ) -> None:
         if distance not in ("normalized", "fixed"):
             raise ValueError(f"distance must be 'normalized' or 'fixed', got {distance!r}")
+        if engine not in SEARCH_ENGINES:
+            raise ValueError(f"engine must be one of {SEARCH_ENGINES}, got {engine!r}")
         if not (math.isfinite(rot_weight) and rot_weight >= 0):
             raise ValueError(f"rot_weight must be a finite number >= 0, got {rot_weight}")
         if chunk_size < 1:
@@ -89,6 +175,9 @@ class PoseIndex:
         self.distance: PoseDistance = distance
         self.rot_weight = float(rot_weight)
         self.chunk_size = int(chunk_size)
+        self.engine: SearchEngine = engine
+        if engine == "fused" and poses_t.device.type != "cpu":
+            raise ValueError(f"engine 'fused' searches on the CPU only, got {poses_t.device} poses")
         # One float32 copy, each scene's poses contiguous (kept in the given order when they
         # are already; else stably sorted by scene, keeping that permutation as int32).
         run_ids, run_counts = torch.unique_consecutive(scenes_t, return_counts=True)
@@ -154,6 +243,7 @@ class PoseIndex:
             distance=self.distance,
             rot_weight=self.rot_weight,
             chunk_size=self.chunk_size,
+            engine=self.engine if torch.device(device).type == "cpu" else "batched",
         )
 
     def query(
@@ -203,6 +293,14 @@ class PoseIndex:
             positions, quaternions = block[:, :3], block[:, 3:]
             quaternions = quaternions / quaternions.norm(dim=1, keepdim=True)
             rows = torch.nonzero(scenes_t == scene).squeeze(1).to(self.device)
+            if self.device.type == "cpu" and self.engine != "batched":
+                found, best = self._search_fused(
+                    query_positions[rows], query_quaternions[rows], positions, quaternions, k
+                )
+                found += start
+                indices[rows] = found if self._order is None else self._order[found].long()
+                distances[rows] = best.float()
+                continue
             for chunk in rows.split(self.chunk_size):
                 dist = self._distances(
                     query_positions[chunk], query_quaternions[chunk], positions, quaternions
@@ -212,6 +310,35 @@ class PoseIndex:
                 indices[chunk] = found if self._order is None else self._order[found].long()
                 distances[chunk] = best.float()
         return indices.to(out_device), distances.to(out_device)
+
+    def _search_fused(
+        self,
+        positions: Tensor,
+        quaternions: Tensor,
+        stored_positions: Tensor,
+        stored_quaternions: Tensor,
+        k: int,
+    ) -> tuple[Tensor, Tensor]:
+        """``_nearest`` over b queries and one scene's M stored poses (float64): local
+        indices [b, k] and distances [b, k], nearest first."""
+        arrays = [t.contiguous().numpy() for t in (positions, quaternions)]
+        stored = [t.contiguous().numpy() for t in (stored_positions, stored_quaternions)]
+        indices = np.empty((len(positions), k), dtype=np.int64)
+        distances = np.empty((len(positions), k))
+        normalized, weight = self.distance == "normalized", self.rot_weight
+
+        def run(part: slice) -> None:
+            _nearest(
+                *(a[part] for a in arrays),
+                *stored,
+                normalized,
+                weight,
+                indices[part],
+                distances[part],
+            )
+
+        run_in_parts(run, len(positions), min_rows=64)
+        return torch.from_numpy(indices), torch.from_numpy(distances)
 
     def _distances(
         self,
