@@ -31,6 +31,19 @@ NaN and infinity keep their meaning. ``error_model="numpy"``: a division by zero
 NaN as in numpy and torch instead of raising, which also lets divisions vectorise."""
 
 
+@numba.njit(cache=True, nogil=True)
+def insert_sorted(values: np.ndarray, labels: np.ndarray, value: float, label: int) -> None:
+    """Insert ``value`` (with ``label``) into the ascending ``values`` [m] (and ``labels``
+    [m]), dropping the last entry; the caller has checked that value < values[-1]."""
+    slot = values.shape[0] - 1
+    while slot > 0 and values[slot - 1] > value:
+        values[slot] = values[slot - 1]
+        labels[slot] = labels[slot - 1]
+        slot -= 1
+    values[slot] = value
+    labels[slot] = label
+
+
 @numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
 def _prepare_gain(
     a: np.ndarray, smallest: np.ndarray, sums: np.ndarray, where: np.ndarray, rest: np.ndarray
@@ -44,15 +57,8 @@ def _prepare_gain(
     smallest[:] = np.inf
     where[:] = -1
     for i in range(n):
-        value = a[i]
-        if value > 0.0 and value < smallest[m - 1]:
-            slot = m - 1
-            while slot > 0 and smallest[slot - 1] > value:
-                smallest[slot] = smallest[slot - 1]
-                where[slot] = where[slot - 1]
-                slot -= 1
-            smallest[slot] = value
-            where[slot] = i
+        if a[i] > 0.0 and a[i] < smallest[m - 1]:
+            insert_sorted(smallest, where, a[i], i)
     rest[:] = a
     for slot in range(m):
         if where[slot] >= 0:

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from pae.geometry import canonicalize_quaternion
-from pae.refine.fused import run_in_parts
+from pae.refine.fused import insert_sorted, run_in_parts
 
 PoseDistance = Literal["normalized", "fixed"]
 SearchEngine = Literal["auto", "fused", "batched"]
@@ -82,15 +82,8 @@ def _nearest(
                 continue
             angle = math.acos(cosine[j]) * _DEGREES_PER_HALF_TURN
             distance += angle_factor * (angle / angle_scale)
-            if distance >= best[k - 1]:
-                continue
-            slot = k - 1
-            while slot > 0 and best[slot - 1] > distance:
-                best[slot] = best[slot - 1]
-                found[slot] = found[slot - 1]
-                slot -= 1
-            best[slot] = distance
-            found[slot] = j
+            if distance < best[k - 1]:
+                insert_sorted(best, found, distance, j)
         indices[row] = found
         distances[row] = best
 
