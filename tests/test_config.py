@@ -174,3 +174,15 @@ def test_old_key_pae_ckpt_is_read_as_student_ckpt_with_one_warning(capsys) -> No
     )
     with pytest.raises(ConfigError, match="pae_ckpt is the old name of student_ckpt"):
         apply_renamed_keys(_compose("eval", ["pae_ckpt=/x.ckpt", "student_ckpt=/y.ckpt"]))
+
+
+def test_entry_points_load_no_torch_before_a_run() -> None:
+    """A sweep's launching process (joblib, submitit) starts its jobs without importing torch:
+    it is imported by the jobs, which train."""
+    code = (
+        "import sys, pae.train, pae.evaluate, pae.preflight; "
+        "print(sorted({'torch', 'lightning'} & set(sys.modules)))"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "[]"
