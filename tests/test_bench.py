@@ -67,3 +67,30 @@ def test_bench_first_layer_gain_figures() -> None:
     series = figures["bench/refine/first_layer_series_ms"]
     direct = figures["bench/refine/first_layer_direct_ms"]
     assert figures["bench/refine/first_layer_series_speedup"] == pytest.approx(direct / series)
+
+
+def test_bench_sweep_splits_the_speedup_into_cache_and_parallel_shares(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    from pae.bench import cli
+
+    commands: list[tuple[str, ...]] = []
+
+    def fake_train(*overrides: str) -> float:
+        commands.append(overrides)
+        if "hydra/launcher=joblib" in overrides:
+            return 5.0
+        return 20.0 if "student.latent_cache_dir=null" in overrides else 8.0
+
+    monkeypatch.setattr(cli, "_train", fake_train)
+    figures = cli.bench_sweep(tmp_path, 2, 10, 2, 32)
+    assert figures["bench/sweep/speedup"] == pytest.approx(20.0 / 5.0)
+    assert figures["bench/sweep/cache_speedup"] == pytest.approx(20.0 / 8.0)
+    assert figures["bench/sweep/parallel_speedup"] == pytest.approx(8.0 / 5.0)
+    teacher, uncached, cached, parallel = commands
+    assert "stage=teacher" in teacher
+    for sweep in (uncached, cached, parallel):
+        assert {"-m", "stage=student", "pae.L=0,3,6", "refine=none"} <= set(sweep)
+    caches = [next(o for o in c if o.startswith("student.latent_cache_dir=")) for c in commands[2:]]
+    assert len(set(caches)) == 2  # each cached sweep starts with its own empty cache
+    assert "hydra/launcher=joblib" not in cached and "hydra.launcher.n_jobs=2" in parallel

@@ -287,7 +287,7 @@ def test_check_and_loaders_agree_on_image_size(
     assert "wide.csv:7: image is 32x48 px, unlike the 32x32 px" in capsys.readouterr().out
     message = r"wide\.png: image is 32x48 px, unlike the 32x32 px of the first image"
     with pytest.raises(ImageError, match=message):
-        PoseDataset(read_labels(labels), root, table.scene_names, 32, cache=True)
+        PoseDataset(read_labels(labels), root, table.scene_names, 32, cache=True).load()
     dataset = PoseDataset(read_labels(labels), root, table.scene_names, 32, cache=False)
     with pytest.raises(ImageError, match=message):
         dataset.__getitems__(list(range(8)))

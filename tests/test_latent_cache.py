@@ -117,3 +117,43 @@ def test_unwritable_cache_folder_is_refused_before_the_run(tmp_path: Path) -> No
     with pytest.raises(ConfigError, match=r"student\.latent_cache_dir"):
         _check_latent_cache(config)
     _check_latent_cache(OmegaConf.create({"student": {"latent_cache_dir": None}}))
+
+
+def test_a_cache_hit_reads_no_train_image_and_runs_no_teacher(
+    tiny_root: Path, tmp_path: Path
+) -> None:
+    from pae.data.datamodule import PoseDataModule
+    from pae.data.latents import TeacherLatentDataModule
+    from pae.models.backbones import Backbone
+    from pae.models.posenet import PoseNet
+
+    teacher = PoseNet(Backbone("small_cnn", pool="flatten", spatial=2), latent_dim=16).eval()
+    checkpoint = tmp_path / "teacher.ckpt"
+    torch.save(teacher.state_dict(), checkpoint)
+    passes: list[int] = []
+    teacher.register_forward_pre_hook(lambda module, args: passes.append(len(args[0])))
+
+    def job() -> tuple[TeacherLatentDataModule, PoseDataModule]:
+        images = PoseDataModule(
+            root=str(tiny_root),
+            train_labels=str(tiny_root / "labels" / "all_train.csv"),
+            test_labels=str(tiny_root / "labels" / "all_test.csv"),
+            shorter_edge=32,
+            crop=28,
+            cache_images=True,
+        )
+        latents = TeacherLatentDataModule(
+            images, teacher, cache=LatentCache(tmp_path / "cache"), teacher_ckpt=checkpoint
+        )
+        latents.setup("fit")
+        return latents, images
+
+    first, images = job()
+    assert first.cache_hit is False and sum(passes) == 48
+    assert images.datasets["train"]._cached is not None
+    passes.clear()
+    second, images = job()
+    assert second.cache_hit is True and passes == []
+    assert images.datasets["train"]._cached is None  # never decoded
+    assert images.datasets["test"]._cached is not None  # read at setup, before training
+    assert torch.equal(second.latents.tensors["z_x"], first.latents.tensors["z_x"])

@@ -1,24 +1,31 @@
-"""`pae-eval`: evaluate trained checkpoints with test-time refinement (Hydra; conf/eval.yaml)."""
+"""`pae-eval`: evaluate trained checkpoints with test-time refinement (Hydra; conf/eval.yaml).
+
+Torch, Lightning and the pipeline are imported when a run starts, as in `pae-train`.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import hydra
-import lightning as L
 from hydra.core.hydra_config import HydraConfig
-from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig
 
-from pae import CONFIG_DIR
+from pae import CONFIG_DIR, sleeping_openmp_threads
 from pae.atomic import write_json_atomic
-from pae.pipeline import evaluate_checkpoints
 from pae.reporting import format_results_table, reporting_errors
 from pae.validation import apply_renamed_keys, validate_eval_config
+
+sleeping_openmp_threads()
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="eval")
 def main(cfg: DictConfig) -> float | None:
+    import lightning as L
+    from lightning.pytorch.utilities import rank_zero_only
+
+    from pae.pipeline import evaluate_checkpoints
+
     with reporting_errors("pae-eval"):
         apply_renamed_keys(cfg, "pae-eval")
         validate_eval_config(cfg)

@@ -1,5 +1,6 @@
 """Checks that run before Hydra creates or writes anything in a run directory: the settings,
-the run directory itself, and whether a resumed run can continue with the given settings."""
+the run directory itself, and whether a resumed run can continue with the given settings.
+Only the resume checks load torch: a sweep's launching process runs the others without it."""
 
 from __future__ import annotations
 
@@ -10,9 +11,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from pae.checkpoints import newest_readable_checkpoint
 from pae.errors import ConfigError
-from pae.pipeline import flat_config
 from pae.reporting import reporting_errors
 from pae.validation import apply_renamed_keys, validate_eval_config, validate_train_config
 
@@ -59,6 +58,8 @@ def _checkpoint_folders(run_dir: Path) -> list[Path]:
 
 def _changed_settings(old: DictConfig, new: DictConfig) -> list[str]:
     """Keys whose value differs between two run configs, except RESUMABLE_CHANGES."""
+    from pae.pipeline import flat_config
+
     before, after = flat_config(old, sep="."), flat_config(new, sep=".")
     changed = []
     for key in sorted(before.keys() | after.keys()):
@@ -70,6 +71,8 @@ def _changed_settings(old: DictConfig, new: DictConfig) -> list[str]:
 def check_resume(cfg: DictConfig, run_dir: Path) -> None:
     """resume=true continues `run_dir` only if it is an earlier run with the same settings
     (RESUMABLE_CHANGES aside) and every step folder with checkpoints has a readable one."""
+    from pae.checkpoints import newest_readable_checkpoint
+
     saved = run_dir / ".hydra" / "config.yaml"
     if not saved.is_file():
         raise ConfigError(

@@ -1,27 +1,35 @@
 """`pae-train`: train a teacher APR, a student PAE, or any of the later steps (Hydra; see
-conf/train.yaml)."""
+conf/train.yaml).
+
+Torch, Lightning and the steps are imported when a run starts, in the process that trains: the
+process that launches a sweep's jobs (joblib, submitit) starts them without loading those.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import hydra
-import lightning as L
 from hydra.core.hydra_config import HydraConfig
-from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig
 
-from pae import CONFIG_DIR
+from pae import CONFIG_DIR, sleeping_openmp_threads
 from pae.atomic import write_json_atomic
-from pae.pipeline import fit_decoder, fit_rpr, fit_student, fit_teacher
-from pae.pipeline_relative import fit_iapr, fit_rpr_image
 from pae.reporting import format_results_table, reporting_errors
 from pae.validation import apply_renamed_keys, validate_train_config
+
+sleeping_openmp_threads()
 
 
 def run(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
     """Check every setting, then run the stage's steps; metrics.json is rewritten atomically
     after each finished step (by the first process only under DDP)."""
+    import lightning as L
+    from lightning.pytorch.utilities import rank_zero_only
+
+    from pae.pipeline import fit_decoder, fit_rpr, fit_student, fit_teacher
+    from pae.pipeline_relative import fit_iapr, fit_rpr_image
+
     apply_renamed_keys(cfg, "pae-train")
     validate_train_config(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
@@ -50,6 +58,8 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="train")
 def main(cfg: DictConfig) -> float | None:
+    from lightning.pytorch.utilities import rank_zero_only
+
     with reporting_errors("pae-train"):
         run_dir = Path(HydraConfig.get().runtime.output_dir)
         metrics = run(cfg, run_dir)

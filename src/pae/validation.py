@@ -13,8 +13,6 @@ from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from pae.data.labels import read_labels
 from pae.errors import ConfigError
-from pae.losses import LATENT_LOSSES
-from pae.pipeline import refinement_callbacks
 
 SYNTHETIC_LAYOUT_BOUNDS = {
     "test_offset_m": 1.0,
@@ -176,6 +174,8 @@ def validate_refine(cfg: DictConfig) -> None:
         _number(cfg, "refine.rot_weight", 0, strict=False)
     if "guess_sigma_m" in refine:
         _number(cfg, "refine.guess_sigma_m", 0, strict=False, optional=True)
+    from pae.pipeline import refinement_callbacks
+
     refinement_callbacks(cfg)
 
 
@@ -189,6 +189,8 @@ def _validate_common(cfg: DictConfig) -> None:
 
 def validate_train_config(cfg: DictConfig) -> None:
     """All of pae-train's settings (conf/train.yaml); raises ConfigError naming the key."""
+    from pae.losses import LATENT_LOSSES
+
     steps = cfg.stage.steps
     unknown = [step for step in steps if step not in STEPS]
     if unknown:

@@ -10,7 +10,7 @@ import lightning as L
 import numpy as np
 import torch
 from torch import Tensor
-from torch.utils.data import DataLoader, Dataset, WeightedRandomSampler
+from torch.utils.data import DataLoader, WeightedRandomSampler
 
 from pae.data.dataset import PoseDataset, collate_batch
 from pae.data.labels import LabelTable, read_labels
@@ -27,7 +27,9 @@ class PoseDataModule(L.LightningDataModule):
     `balance_scenes` samples scenes equally often in multi-scene training.
     `pose_loss_init` records the initial s_x, s_q of the learned pose loss that suit the
     dataset's error scale (the configs of the pose losses read it). `scenes` keeps only
-    those scenes of the label files (None: all).
+    those scenes of the label files (None: all). With `cache_images`, setup decodes the
+    val/test images (a bad image fails the run before training) and the train images are
+    decoded when first loaded: a student whose teacher latents are cached never reads them.
     """
 
     def __init__(
@@ -94,6 +96,8 @@ class PoseDataModule(L.LightningDataModule):
                     cache=self.cache_images,
                 )
             self.datasets[split] = cached[path]
+        self.datasets["val"].load()
+        self.datasets["test"].load()
 
     def _keep_scenes(self, table: LabelTable) -> LabelTable:
         if self.keep_scenes is None:
@@ -123,7 +127,8 @@ class PoseDataModule(L.LightningDataModule):
             "train_poses_sha256": hashlib.sha256(poses.tobytes()).hexdigest(),
         }
 
-    def _loader(self, dataset: Dataset, batch_size: int, **kwargs: Any) -> DataLoader:
+    def _loader(self, dataset: PoseDataset, batch_size: int, **kwargs: Any) -> DataLoader:
+        dataset.load()  # here, once: loader workers get the decoded images
         return DataLoader(
             dataset,
             batch_size=batch_size,

@@ -22,8 +22,8 @@ class PoseDataset(Dataset):
     Images are read with OpenCV relative to `root` (a path escaping it is a LabelError) and
     must all have the size of the first (ImageError naming the file otherwise, as
     `pae-data check` reports); they are resized so their shorter edge is `shorter_edge` px,
-    a batch at a time on `workers` threads. With cache=True all images are decoded once
-    into one uint8 tensor and a batch is a single indexing operation.
+    a batch at a time on `workers` threads. With cache=True all images are decoded once, on
+    first use (or `load`), into one uint8 tensor and a batch is a single indexing operation.
     """
 
     def __init__(
@@ -51,9 +51,19 @@ class PoseDataset(Dataset):
         self.paths = [str(self.root / p) for p in table.img_path]
         self.image_size = image_size(self.paths[0]) if self.paths else None
         self.workers = max(1, workers)
-        self.images: Tensor | None = None
-        if cache:
-            self.images = self._decode(self.paths)
+        self.cache = cache
+        self._cached: Tensor | None = None
+
+    def load(self) -> None:
+        """Decode every image into the cache now (cache=True; done once)."""
+        if self.cache and self._cached is None:
+            self._cached = self._decode(self.paths)
+
+    @property
+    def images(self) -> Tensor | None:
+        """All images, uint8 [N, 3, H, W], with cache=True (decoded on first use); else None."""
+        self.load()
+        return self._cached
 
     def _decode(self, paths: list[str]) -> Tensor:
         """Decode images on `workers` threads (OpenCV releases the GIL) -> uint8 [N, 3, H, W]."""
