@@ -11,12 +11,10 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from pae import CONFIG_DIR, sleeping_openmp_threads
+from pae import CONFIG_DIR
 from pae.atomic import write_json_atomic
 from pae.reporting import format_results_table, reporting_errors
 from pae.validation import apply_renamed_keys, validate_eval_config
-
-sleeping_openmp_threads()
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="eval")
