@@ -13,7 +13,6 @@ element, in the inputs' dtype. Queries are split over ``torch.get_num_threads()`
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -130,24 +129,30 @@ def _adamw(
     params: np.ndarray,
     avg: np.ndarray,
     avg_sq: np.ndarray,
-    out_grad: np.ndarray,
+    base: int,
+    grads: np.ndarray,
+    grad_base: int,
+    count: int,
     value: float,
     settings: np.ndarray,
     step_size: float,
     root: float,
 ) -> None:
-    """One AdamW step of parameters [m] whose gradient is ``value`` · out_grad [m] (one row of
-    a weight, or a bias with value 1), moments ``avg``, ``avg_sq`` updated in place;
-    ``settings`` and the step's ``step_size``, ``root`` as in ``_fit_rows``."""
+    """One AdamW step of ``count`` parameters from ``base`` (one row of a weight, or a bias
+    with ``value`` 1) whose gradient is ``value`` · grads[grad_base + j], moments ``avg``,
+    ``avg_sq`` updated in place; ``settings`` and the step's ``step_size``, ``root`` as in
+    ``_fit_rows``. Indices are unsigned: numba then checks no negative index, and the loop
+    vectorises."""
     beta1, beta2, eps, keep = settings[0], settings[1], settings[2], settings[3]
     one = beta1 / beta1
-    for j in range(params.shape[0]):
-        grad = value * out_grad[j]
-        first = beta1 * avg[j] + (one - beta1) * grad
-        second = beta2 * avg_sq[j] + (one - beta2) * grad * grad
-        avg[j] = first
-        avg_sq[j] = second
-        params[j] = keep * params[j] - step_size * first / (np.sqrt(second) * root + eps)
+    for j in range(np.uint64(count)):
+        at = np.uint64(base) + j
+        grad = value * grads[np.uint64(grad_base) + j]
+        first = beta1 * avg[at] + (one - beta1) * grad
+        second = beta2 * avg_sq[at] + (one - beta2) * grad * grad
+        avg[at] = first
+        avg_sq[at] = second
+        params[at] = keep * params[at] - step_size * first / (np.sqrt(second) * root + eps)
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
@@ -227,17 +232,18 @@ def _fit_rows(
                 fan_in, fan_out = sizes[layer], sizes[layer + 1]
                 unit_out = unit_in + fan_in
                 bias_at = offset + fan_in * fan_out
-                layer_out = units[unit_out : unit_out + fan_out]
-                layer_out[:] = params[bias_at : bias_at + fan_out]
+                out_at = np.uint64(unit_out)
+                for j in range(np.uint64(fan_out)):
+                    units[out_at + j] = params[np.uint64(bias_at) + j]
                 for i in range(fan_in):
                     value = units[unit_in + i]
                     if value != 0:
-                        weight = params[offset + i * fan_out : offset + (i + 1) * fan_out]
-                        for j in range(fan_out):
-                            layer_out[j] += value * weight[j]
+                        base = np.uint64(offset + i * fan_out)
+                        for j in range(np.uint64(fan_out)):
+                            units[out_at + j] += value * params[base + j]
                 if layer < layers - 1:
-                    for j in range(fan_out):
-                        layer_out[j] = max(layer_out[j], zero)
+                    for j in range(np.uint64(fan_out)):
+                        units[out_at + j] = max(units[out_at + j], zero)
                 offset = bias_at + fan_out
                 unit_in = unit_out
             logits = units[unit_in : unit_in + k]
@@ -285,28 +291,39 @@ def _fit_rows(
                 unit_out = unit_in
                 unit_in = unit_out - fan_in
                 offset -= fan_in * fan_out + fan_out
-                biases = slice(offset + fan_in * fan_out, offset + fan_in * fan_out + fan_out)
                 _adamw(
-                    params[biases],
-                    avg[biases],
-                    avg_sq[biases],
-                    grads[unit_out : unit_out + fan_out],
+                    params,
+                    avg,
+                    avg_sq,
+                    offset + fan_in * fan_out,
+                    grads,
+                    unit_out,
+                    fan_out,
                     one,
                     settings,
                     step_size,
                     root,
                 )
-                out_grad = grads[unit_out : unit_out + fan_out]
                 for i in range(fan_in):
                     value = units[unit_in + i]
-                    row_at = slice(offset + i * fan_out, offset + (i + 1) * fan_out)
-                    weight = params[row_at]
+                    base = offset + i * fan_out
                     back = zero
-                    for j in range(fan_out):
-                        back += weight[j] * out_grad[j]
+                    for j in range(np.uint64(fan_out)):
+                        back += params[np.uint64(base) + j] * grads[np.uint64(unit_out) + j]
                     grads[unit_in + i] = back if value > 0 else zero
-                    moments = avg[row_at], avg_sq[row_at]
-                    _adamw(weight, *moments, out_grad, value, settings, step_size, root)
+                    _adamw(
+                        params,
+                        avg,
+                        avg_sq,
+                        base,
+                        grads,
+                        unit_out,
+                        fan_out,
+                        value,
+                        settings,
+                        step_size,
+                        root,
+                    )
             # the first layer: bias by AdamW, x·W₁ by its closed form (its moments are x ⊗ μ
             # and x² ⊗ ν, with μ, ν those of the bias)
             for j in range(h):
@@ -382,19 +399,18 @@ def fit_mlp_weights_fused(
             out[part],
         )
 
-    run_in_parts(run, batch, min_rows=16)
+    run_in_parts(run, batch, min_rows=32)
     return torch.from_numpy(out).to(query.device)
 
 
 def run_in_parts(run: Callable[[slice], None], rows: int, min_rows: int) -> None:
-    """Call ``run`` on consecutive row ranges covering ``rows`` rows, one range per thread of
-    ``torch.get_num_threads()`` (at least ``min_rows`` rows each) at once: for compiled
-    functions that release the GIL."""
-    threads = max(1, min(torch.get_num_threads(), rows // min_rows))
-    bounds = np.linspace(0, rows, threads + 1).astype(int)
-    parts = [slice(lo, hi) for lo, hi in itertools.pairwise(bounds)]
+    """Call ``run`` on consecutive row ranges of ``min_rows`` rows covering ``rows`` rows,
+    on ``torch.get_num_threads()`` threads at once, each taking the next range when it is
+    done (queries differ in cost): for compiled functions that release the GIL."""
+    parts = [slice(lo, min(lo + min_rows, rows)) for lo in range(0, rows, min_rows)]
+    threads = max(1, min(torch.get_num_threads(), len(parts)))
     if threads == 1:
-        run(parts[0])
+        run(slice(0, rows))
         return
     with ThreadPoolExecutor(threads) as pool:
         list(pool.map(run, parts))

@@ -24,6 +24,8 @@ _DEGREES_PER_HALF_TURN = 360.0 / math.pi
 def _nearest(
     query_positions: np.ndarray,
     query_quaternions: np.ndarray,
+    starts: np.ndarray,
+    ends: np.ndarray,
     positions: np.ndarray,
     quaternions: np.ndarray,
     normalized: bool,
@@ -33,18 +35,19 @@ def _nearest(
 ) -> None:
     """k nearest stored poses of each query, by ``PoseIndex``'s distance, in float64.
 
-    query_positions [b, 3], query_quaternions [b, 4] (unit), positions [M, 3], quaternions
-    [M, 4] (unit); writes indices [b, k] (rows of the M) and distances [b, k], nearest first.
+    query_positions [b, 3], query_quaternions [b, 4] (unit), positions [N, 3], quaternions
+    [N, 4] (unit); query i is searched among rows starts[i] to ends[i] (its scene's block);
+    writes indices [b, k] (rows of the N) and distances [b, k], nearest first.
     One pass gathers the distances' maxima; the second skips a stored pose without its arc
     cosine when a lower bound of its distance (acos(c) ≥ √(2(1 − c))) already exceeds the
     k-th best so far.
     """
-    count = positions.shape[0]
     k = indices.shape[1]
     tiny = 2.2250738585072014e-308
-    position = np.empty(count)
-    cosine = np.empty(count)
+    position = np.empty(positions.shape[0])
+    cosine = np.empty(positions.shape[0])
     for row in range(query_positions.shape[0]):
+        first, count = starts[row], ends[row] - starts[row]
         qx, qy, qz = query_positions[row, 0], query_positions[row, 1], query_positions[row, 2]
         qw, qa, qb, qc = (
             query_quaternions[row, 0],
@@ -55,13 +58,14 @@ def _nearest(
         farthest = 0.0
         least_cosine = 1.0
         for j in range(count):
-            dx, dy, dz = qx - positions[j, 0], qy - positions[j, 1], qz - positions[j, 2]
+            at = first + j
+            dx, dy, dz = qx - positions[at, 0], qy - positions[at, 1], qz - positions[at, 2]
             position[j] = math.sqrt(dx * dx + dy * dy + dz * dz)
             dot = (
-                qw * quaternions[j, 0]
-                + qa * quaternions[j, 1]
-                + qb * quaternions[j, 2]
-                + qc * quaternions[j, 3]
+                qw * quaternions[at, 0]
+                + qa * quaternions[at, 1]
+                + qb * quaternions[at, 2]
+                + qc * quaternions[at, 3]
             )
             cosine[j] = min(abs(dot), 1.0)
             farthest = max(farthest, position[j])
@@ -83,7 +87,7 @@ def _nearest(
             angle = math.acos(cosine[j]) * _DEGREES_PER_HALF_TURN
             distance += angle_factor * (angle / angle_scale)
             if distance < best[k - 1]:
-                insert_sorted(best, found, distance, j)
+                insert_sorted(best, found, distance, first + j)
         indices[row] = found
         distances[row] = best
 
@@ -271,29 +275,23 @@ class PoseIndex:
         query_positions = query_poses[:, :3]
         query_quaternions = _unit_canonical_quaternions(query_poses[:, 3:], "query poses")
 
-        indices = torch.empty(batch, k, dtype=torch.long, device=self.device)
-        distances = torch.empty(batch, k, dtype=torch.float32, device=self.device)
-        for scene in torch.unique(scenes_t).tolist():
+        present = torch.unique(scenes_t).tolist()
+        for scene in present:
             size = self.scene_size(scene)
             if size == 0:
                 raise ValueError(f"scene {scene} has no stored poses (stored: {self.scene_ids})")
             if size < k:
                 raise ValueError(f"scene {scene} holds {size} stored poses, fewer than k={k}")
+        if self.device.type == "cpu" and self.engine != "batched":
+            found, best = self._search_fused(query_positions, query_quaternions, scenes_t, k)
+            found = found if self._order is None else self._order[found].long()
+            return found.to(out_device), best.float().to(out_device)
+        indices = torch.empty(batch, k, dtype=torch.long, device=self.device)
+        distances = torch.empty(batch, k, dtype=torch.float32, device=self.device)
+        for scene in present:
             start, end = self._scene_blocks[scene]
-            block = self._store[start:end].double()
-            # renormalised in float64: a float32 norm error of 1e-7 would otherwise read as
-            # an angle of ~0.03° through acos near 1
-            positions, quaternions = block[:, :3], block[:, 3:]
-            quaternions = quaternions / quaternions.norm(dim=1, keepdim=True)
+            positions, quaternions = self._block64(start, end)
             rows = torch.nonzero(scenes_t == scene).squeeze(1).to(self.device)
-            if self.device.type == "cpu" and self.engine != "batched":
-                found, best = self._search_fused(
-                    query_positions[rows], query_quaternions[rows], positions, quaternions, k
-                )
-                found += start
-                indices[rows] = found if self._order is None else self._order[found].long()
-                distances[rows] = best.float()
-                continue
             for chunk in rows.split(self.chunk_size):
                 dist = self._distances(
                     query_positions[chunk], query_quaternions[chunk], positions, quaternions
@@ -304,20 +302,31 @@ class PoseIndex:
                 distances[chunk] = best.float()
         return indices.to(out_device), distances.to(out_device)
 
+    def _block64(self, start: int, end: int) -> tuple[Tensor, Tensor]:
+        """Stored rows start..end in float64: positions [M, 3], quaternions [M, 4],
+        renormalised in float64 (a float32 norm error of 1e-7 would otherwise read as an
+        angle of ~0.03° through acos near 1)."""
+        block = self._store[start:end].double()
+        quaternions = block[:, 3:]
+        return block[:, :3], quaternions / quaternions.norm(dim=1, keepdim=True)
+
     def _search_fused(
-        self,
-        positions: Tensor,
-        quaternions: Tensor,
-        stored_positions: Tensor,
-        stored_quaternions: Tensor,
-        k: int,
+        self, positions: Tensor, quaternions: Tensor, scenes: Tensor, k: int
     ) -> tuple[Tensor, Tensor]:
-        """``_nearest`` over b queries and one scene's M stored poses (float64): local
-        indices [b, k] and distances [b, k], nearest first."""
-        arrays = [t.contiguous().numpy() for t in (positions, quaternions)]
-        stored = [t.contiguous().numpy() for t in (stored_positions, stored_quaternions)]
-        indices = np.empty((len(positions), k), dtype=np.int64)
-        distances = np.empty((len(positions), k))
+        """``_nearest`` over B queries (float64 positions [B, 3], unit quaternions [B, 4],
+        scene ids [B]), each within its scene's block: store rows [B, k] and distances
+        [B, k] (float64), nearest first. Queries run in scene order, so each thread's rows
+        read few blocks."""
+        order = torch.argsort(scenes, stable=True)
+        in_order = scenes[order]
+        bounds = torch.empty(len(order), 2, dtype=torch.long)
+        for scene in torch.unique(in_order).tolist():
+            bounds[in_order == scene] = torch.tensor(self._scene_blocks[scene])
+        stored = [t.contiguous().numpy() for t in self._block64(0, len(self))]
+        arrays = [positions[order].contiguous().numpy(), quaternions[order].contiguous().numpy()]
+        arrays += [bounds[:, 0].contiguous().numpy(), bounds[:, 1].contiguous().numpy()]
+        indices = np.empty((len(order), k), dtype=np.int64)
+        distances = np.empty((len(order), k))
         normalized, weight = self.distance == "normalized", self.rot_weight
 
         def run(part: slice) -> None:
@@ -330,8 +339,11 @@ class PoseIndex:
                 distances[part],
             )
 
-        run_in_parts(run, len(positions), min_rows=64)
-        return torch.from_numpy(indices), torch.from_numpy(distances)
+        run_in_parts(run, len(order), min_rows=32)
+        found = torch.empty_like(torch.from_numpy(indices))
+        best = torch.empty_like(torch.from_numpy(distances))
+        found[order], best[order] = torch.from_numpy(indices), torch.from_numpy(distances)
+        return found, best
 
     def _distances(
         self,
