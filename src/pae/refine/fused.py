@@ -137,19 +137,25 @@ def _adamw(
     settings: np.ndarray,
     step_size: float,
     root: float,
+    fresh: bool,
 ) -> None:
     """One AdamW step of ``count`` parameters from ``base`` (one row of a weight, or a bias
     with ``value`` 1) whose gradient is ``value`` · grads[grad_base + j], moments ``avg``,
     ``avg_sq`` updated in place; ``settings`` and the step's ``step_size``, ``root`` as in
-    ``_fit_rows``. Indices are unsigned: numba then checks no negative index, and the loop
+    ``_fit_rows``; ``fresh``: the first step, whose moments start at zero (not read). Indices
+    are unsigned: numba then checks no negative index, and the loop
     vectorises."""
     beta1, beta2, eps, keep = settings[0], settings[1], settings[2], settings[3]
     one = beta1 / beta1
     for j in range(np.uint64(count)):
         at = np.uint64(base) + j
         grad = value * grads[np.uint64(grad_base) + j]
-        first = beta1 * avg[at] + (one - beta1) * grad
-        second = beta2 * avg_sq[at] + (one - beta2) * grad * grad
+        if fresh:  # zero moments: nothing to read
+            first = (one - beta1) * grad
+            second = (one - beta2) * grad * grad
+        else:
+            first = beta1 * avg[at] + (one - beta1) * grad
+            second = beta2 * avg_sq[at] + (one - beta2) * grad * grad
         avg[at] = first
         avg_sq[at] = second
         params[at] = keep * params[at] - step_size * first / (np.sqrt(second) * root + eps)
@@ -215,8 +221,6 @@ def _fit_rows(
             a[i] = abs(float(inputs[row, i]))
         _prepare_gain(a, smallest, sums, where, rest)
         params[:] = start[row if start.shape[0] > 1 else 0]
-        avg[:] = 0
-        avg_sq[:] = 0
         projected[:] = first_preactivation[row]
         bias[:] = first_bias[row]
         first_avg[:] = 0
@@ -303,6 +307,7 @@ def _fit_rows(
                     settings,
                     step_size,
                     root,
+                    step == 0,
                 )
                 for i in range(fan_in):
                     value = units[unit_in + i]
@@ -323,6 +328,7 @@ def _fit_rows(
                         settings,
                         step_size,
                         root,
+                        step == 0,
                     )
             # the first layer: bias by AdamW, x·W₁ by its closed form (its moments are x ⊗ μ
             # and x² ⊗ ν, with μ, ν those of the bias)
