@@ -214,6 +214,7 @@ def _fit_rows(
     a = np.empty(width, dtype=np.float64)
     smallest = np.empty(smallest_count, dtype=np.float64)
     sums = np.empty((smallest_count + 1, 5), dtype=np.float64)
+    count_sums = smallest_count  # the row of sums over every positive input
     where = np.empty(smallest_count, dtype=np.int64)
     rest = np.empty(width, dtype=np.float64)
     for row in range(rows):
@@ -338,7 +339,17 @@ def _fit_rows(
                 first_avg_sq[j] = beta2 * first_avg_sq[j] + (one - beta2) * grad * grad
                 spread = np.sqrt(first_avg_sq[j]) * root
                 bias[j] = keep * bias[j] - step_size * first_avg[j] / (spread + eps)
-                gain = _gain(a, smallest, sums, float(spread), eps64, ratio)
+                scale = float(spread)
+                if scale > 0.0 and smallest[0] >= ratio * eps64 / scale:
+                    # every input in the series' range (the usual case): _gain's series
+                    # with all the sums, inline
+                    factor = -eps64 / scale
+                    gain = sums[count_sums, 4]
+                    for power in (3, 2, 1, 0):
+                        gain = sums[count_sums, power] + factor * gain
+                    gain /= scale
+                else:
+                    gain = _gain(a, smallest, sums, scale, eps64, ratio)
                 projected[j] = keep * projected[j] - step_size * first_avg[j] * gain
 
 
