@@ -295,6 +295,8 @@ def test_refine_affine_rejects_an_unknown_engine() -> None:
     query, neighbours = torch.zeros(2, 4), torch.randn(2, 3, 4)
     with pytest.raises(ValueError, match="engine must be one of"):
         refine_affine(query, neighbours, torch.zeros(2, 3, 7), engine="gpu")
+    with pytest.raises(ValueError, match="float32 or float64 CPU tensors"):
+        refine_affine(query.bfloat16(), neighbours, torch.zeros(2, 3, 7), engine="fused")
 
 
 def test_first_layer_gain_matches_direct_sum() -> None:

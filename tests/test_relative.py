@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -115,15 +116,21 @@ class ExactRPR(torch.nn.Module):
         return self.relative
 
 
-def test_image_rpr_refines_exactly_with_an_exact_relative_pose(tiny_data: PoseDataModule) -> None:
-    module = ImageRPRModule(
+def image_rpr_module(data: PoseDataModule, **options: Any) -> ImageRPRModule:
+    """An image RPR step with small untrained networks for ``data``'s scenes."""
+    return ImageRPRModule(
         SiameseRPR(small_backbone(), latent_dim=16),
         PoseNet(small_backbone(), latent_dim=16, n_scenes=2),
         LearnedPoseLoss(),
         torch.optim.Adam,
-        tiny_data.scene_names,
+        data.scene_names,
         configs={},
+        **options,
     )
+
+
+def test_image_rpr_refines_exactly_with_an_exact_relative_pose(tiny_data: PoseDataModule) -> None:
+    module = image_rpr_module(tiny_data)
     module.use_data(tiny_data)
     truth = tiny_data.datasets["test"].poses[:6]
     scene = tiny_data.datasets["test"].scenes[:6]
@@ -143,15 +150,7 @@ def test_image_rpr_refines_exactly_with_an_exact_relative_pose(tiny_data: PoseDa
 def test_image_rpr_training_pairs_use_train_poses_and_images_only(
     tiny_data: PoseDataModule,
 ) -> None:
-    module = ImageRPRModule(
-        SiameseRPR(small_backbone(), latent_dim=16),
-        PoseNet(small_backbone(), latent_dim=16, n_scenes=2),
-        LearnedPoseLoss(),
-        torch.optim.Adam,
-        tiny_data.scene_names,
-        configs={},
-        pair_k=3,
-    )
+    module = image_rpr_module(tiny_data, pair_k=3)
     train_poses = tiny_data.datasets["train"].poses.clone()
     batch = train_batch(tiny_data)
     test_poses, recorder = hide_test_split(tiny_data)

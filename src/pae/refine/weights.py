@@ -166,10 +166,10 @@ def refine_affine(
     as ``nn.Linear`` does (U(±1/√fan_in)); the first layer's weights per query as
     N(0, 1/(3·fan_in)), the same variance, which lets x·W₁ be drawn directly (see
     ``pae.refine.regressor``). ``engine`` picks how the MLP is fitted: ``"fused"``, one
-    compiled loop per query (``pae.refine.fused``, CPU tensors only), or ``"batched"``,
-    tensor operations over ``chunk_size`` queries at a time (their optimiser state then stays
-    in cache: 64 is fastest on CPU); ``"auto"`` takes the fused loop on the CPU and the
-    batched path elsewhere. They give the same result up to rounding.
+    compiled loop per query (``pae.refine.fused``, float32 or float64 CPU tensors), or
+    ``"batched"``, tensor operations over ``chunk_size`` queries at a time (their optimiser
+    state then stays in cache: 64 is fastest on CPU); ``"auto"`` takes the fused loop where
+    it can run and the batched path elsewhere. They give the same result up to rounding.
     Works under ``torch.no_grad`` and ``torch.inference_mode``; the outputs carry no autograd
     graph.
     """
@@ -179,11 +179,15 @@ def refine_affine(
     if engine not in ENGINES:
         raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
     on_cpu = query_latent.device.type == "cpu"
-    if engine == "fused" and not on_cpu:
-        raise ValueError(f"engine 'fused' runs on the CPU only, got {query_latent.device} tensors")
+    compilable = on_cpu and query_latent.dtype in (torch.float32, torch.float64)
+    if engine == "fused" and not compilable:
+        raise ValueError(
+            "engine 'fused' runs on float32 or float64 CPU tensors, got "
+            f"{query_latent.dtype} on {query_latent.device}"
+        )
     batch, k, _ = neighbour_latents.shape
     loss = functools.partial(matching_loss, objective=objective)
-    fused = weight_model == "mlp" and on_cpu and engine != "batched"
+    fused = weight_model == "mlp" and compilable and engine != "batched"
     with torch.inference_mode(False), torch.enable_grad():
         query = query_latent.detach()
         neighbours = neighbour_latents.detach().to(query.dtype)
