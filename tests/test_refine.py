@@ -291,6 +291,42 @@ def test_fused_loop_equals_tensor_ops_on_drawn_regressors(hidden: tuple[int, ...
     torch.testing.assert_close(fused.weights, tensor_ops.weights, atol=2e-4, rtol=0)
 
 
+def test_fused_loop_follows_units_that_switch_off_and_on() -> None:
+    """The compiled loop skips the AdamW arithmetic of weight rows whose input unit is off
+    and whose moments are still zero; units that switch off and back on between steps (a
+    large learning rate) must still give the per-query oracle's weights. The oracle's ReLU
+    outputs are recorded to show that such switches happen here."""
+    generator = torch.Generator().manual_seed(12)
+    batch, k, dim = 30, 3, 8
+    query = torch.randn(batch, dim, generator=generator, dtype=torch.float64)
+    neighbours = query.unsqueeze(1) + torch.randn(
+        batch, k, dim, generator=generator, dtype=torch.float64
+    )
+    poses = torch.randn(batch, k, 7, generator=generator, dtype=torch.float64)
+    init = init_weight_regressor(
+        batch, k, dim, hidden=(6, 5, 4), generator=generator, dtype=torch.float64
+    )
+    options = {"init": init, "lr": 0.3, "iterations": 6}
+    masks: dict[nn.Module, list[Tensor]] = {}  # keyed by the module itself, kept alive
+
+    def record(module: nn.Module, _: object, output: Tensor) -> None:
+        if isinstance(module, nn.ReLU):
+            masks.setdefault(module, []).append(output.detach().reshape(-1) > 0)
+
+    handle = nn.modules.module.register_module_forward_hook(record)
+    try:
+        reference = refine_affine_per_query(query, neighbours, poses, **options)
+    finally:
+        handle.remove()
+    history = [torch.stack(steps) for steps in masks.values()]  # per ReLU: [steps, width]
+    assert len(history) == 3 * batch
+    # units off at the first step and on later, and units that switch off
+    assert sum(int(((~steps[0]) & steps[1:].any(dim=0)).sum()) for steps in history) > 0
+    assert sum(int((steps[:-1] & ~steps[1:]).sum()) for steps in history) > 0
+    fused = refine_affine(query, neighbours, poses, engine="fused", **options)
+    torch.testing.assert_close(fused.weights, reference.weights, atol=1e-10, rtol=0)
+
+
 def test_refine_affine_rejects_an_unknown_engine() -> None:
     query, neighbours = torch.zeros(2, 4), torch.randn(2, 3, 4)
     with pytest.raises(ValueError, match="engine must be one of"):

@@ -43,44 +43,65 @@ def insert_sorted(values: np.ndarray, labels: np.ndarray, value: float, label: i
     labels[slot] = label
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _copy(source: np.ndarray, target: np.ndarray) -> None:
+    """target[i] = source[i] for the length of ``source`` (1-D); a plain loop, which numba
+    compiles to a vectorised copy (slice assignment takes a slower general path)."""
+    for i in range(np.uint64(source.shape[0])):
+        target[i] = source[i]
+
+
 @numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
-def _prepare_gain(
-    a: np.ndarray, smallest: np.ndarray, sums: np.ndarray, where: np.ndarray, rest: np.ndarray
-) -> None:
+def _prepare_gain(a: np.ndarray, smallest: np.ndarray, sums: np.ndarray, where: np.ndarray) -> None:
     """Fill ``smallest`` [m] with the m smallest positive values of a [n] (ascending, inf
-    where fewer) and ``sums`` [m + 1, 5] with the power sums (aᵢ, 1, aᵢ⁻¹, aᵢ⁻², aᵢ⁻³) of the
-    other positive values plus the c largest of ``smallest`` in row c. ``where`` [m] and
-    ``rest`` [n] are scratch space."""
+    where fewer; among equal values the first ones) and ``sums`` [m + 1, 5] with the power
+    sums (aᵢ, 1, aᵢ⁻¹, aᵢ⁻², aᵢ⁻³) of the other positive values plus the c largest of
+    ``smallest`` in row c. ``where`` [m] is scratch space; ``a`` is left as it was."""
     n = a.shape[0]
     m = smallest.shape[0]
-    smallest[:] = np.inf
-    where[:] = -1
-    for i in range(n):
-        if a[i] > 0.0 and a[i] < smallest[m - 1]:
-            insert_sorted(smallest, where, a[i], i)
-    rest[:] = a
     for slot in range(m):
+        smallest[slot] = np.inf
+        where[slot] = -1
+    # the largest of m block minima bounds the m-th smallest value (the minima are m
+    # distinct entries), so the search below skips most entries at one comparison each
+    block = n // m
+    bound = np.inf if block == 0 else 0.0
+    for first in range(0, m * block, max(block, 1)):
+        least = np.inf
+        for i in range(first, first + block):
+            value = a[i]
+            least = value if value > 0.0 and value < least else least
+        bound = max(bound, least)
+    for i in range(n):
+        value = a[i]
+        if value <= bound and value > 0.0 and value < smallest[m - 1]:
+            insert_sorted(smallest, where, value, i)
+    for slot in range(m):  # leave the m smallest out of the sums, then put them back
         if where[slot] >= 0:
-            rest[where[slot]] = 0.0
-    total, count, first, second, third = 0.0, 0.0, 0.0, 0.0, 0.0
-    for i in range(n):  # branch-free, so that it vectorises: zeros add nothing
-        value = rest[i]
+            a[where[slot]] = 0.0
+    total, count, first_power, second, third = 0.0, 0.0, 0.0, 0.0, 0.0
+    for i in range(np.uint64(n)):  # branch-free, so that it vectorises: zeros add nothing
+        value = a[i]
         positive = value > 0.0
         inverse = 1.0 / value if positive else 0.0
         total += value
         count += 1.0 if positive else 0.0
-        first += inverse
+        first_power += inverse
         second += inverse * inverse
         third += inverse * inverse * inverse
+    for slot in range(m):
+        if where[slot] >= 0:
+            a[where[slot]] = smallest[slot]
     sums[0, 0], sums[0, 1], sums[0, 2], sums[0, 3], sums[0, 4] = (
         total,
         count,
-        first,
+        first_power,
         second,
         third,
     )
     for c in range(1, m + 1):
-        sums[c, :] = sums[c - 1, :]
+        for power in range(5):
+            sums[c, power] = sums[c - 1, power]
         value = smallest[m - c]
         if value < np.inf:
             inverse = 1.0 / value
@@ -89,6 +110,29 @@ def _prepare_gain(
             sums[c, 2] += inverse
             sums[c, 3] += inverse * inverse
             sums[c, 4] += inverse * inverse * inverse
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+def _power_sums(source: np.ndarray, a: np.ndarray, sums: np.ndarray) -> float:
+    """a [n] = |source| in float64, ``sums`` [5] = the power sums (aᵢ, 1, aᵢ⁻¹, aᵢ⁻², aᵢ⁻³)
+    over its positive values, as ``_prepare_gain``'s last row; returns the least positive
+    value (inf if none)."""
+    total, count, first, second, third = 0.0, 0.0, 0.0, 0.0, 0.0
+    for i in range(np.uint64(a.shape[0])):  # branch-free, so that it vectorises
+        value = abs(float(source[i]))
+        a[i] = value
+        positive = value > 0.0
+        inverse = 1.0 / value if positive else 0.0
+        total += value
+        count += 1.0 if positive else 0.0
+        first += inverse
+        second += inverse * inverse
+        third += inverse * inverse * inverse
+    sums[0], sums[1], sums[2], sums[3], sums[4] = total, count, first, second, third
+    least = np.inf
+    for i in range(np.uint64(a.shape[0])):
+        least = min(least, a[i] if a[i] > 0.0 else np.inf)
+    return least
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
@@ -162,6 +206,36 @@ def _adamw(
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+def _add_scaled(
+    target: np.ndarray, at: int, value: float, source: np.ndarray, base: int, count: int
+) -> None:
+    """target[at + j] += value · source[base + j] for j < count (a compiled function of its
+    own, so that the loop is vectorised before it is inlined)."""
+    for j in range(np.uint64(count)):
+        target[np.uint64(at) + j] += value * source[np.uint64(base) + j]
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+def _dot(
+    left: np.ndarray, left_at: int, right: np.ndarray, right_at: int, count: int, zero: float
+) -> float:
+    """Σⱼ left[left_at + j] · right[right_at + j] for j < count, from ``zero`` (their dtype's)."""
+    total = zero
+    for j in range(np.uint64(count)):
+        total += left[np.uint64(left_at) + j] * right[np.uint64(right_at) + j]
+    return total
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+def _decay(params: np.ndarray, base: int, count: int, keep: float) -> None:
+    """AdamW's step of ``count`` parameters from ``base`` whose gradient and moments are all
+    zero: the weight decay alone (the Adam term is 0 / (0 + eps) = 0)."""
+    for j in range(np.uint64(count)):
+        at = np.uint64(base) + j
+        params[at] = keep * params[at]
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
 def _fit_rows(
     query: np.ndarray,
     inputs: np.ndarray,
@@ -185,6 +259,11 @@ def _fit_rows(
     β₂, eps, 1 − lr·weight decay) and ``schedule`` [iterations, 2] = (lr / (1 − β₁ᵗ),
     1 / √(1 − β₂ᵗ)) for steps t = 1, 2, …. The loss is ‖z − Σ aᵢ ẑᵢ‖₂, or its mean square
     when ``mse``.
+
+    A weight row whose input unit is exactly zero (a ReLU that is off) has a zero gradient;
+    while it has had no other, its moments are zero too and its AdamW step is the weight
+    decay alone (``_decay``), which skips the square root and division of about half the
+    rows. Its input gradient is zero, so its backward dot product is skipped as well.
     """
     rows, dim = query.shape
     width = inputs.shape[1]
@@ -205,6 +284,7 @@ def _fit_rows(
         total_units += sizes[layer]
     units = np.empty(total_units, dtype=start.dtype)  # every layer's output, after ReLU
     grads = np.empty(total_units, dtype=start.dtype)
+    moving = np.empty(total_units, dtype=np.bool_)  # a weight row whose moments are not zero
     projected = np.empty(h, dtype=start.dtype)
     bias = np.empty(h, dtype=start.dtype)
     first_avg = np.empty(h, dtype=start.dtype)
@@ -214,18 +294,19 @@ def _fit_rows(
     a = np.empty(width, dtype=np.float64)
     smallest = np.empty(smallest_count, dtype=np.float64)
     sums = np.empty((smallest_count + 1, 5), dtype=np.float64)
-    count_sums = smallest_count  # the row of sums over every positive input
     where = np.empty(smallest_count, dtype=np.int64)
-    rest = np.empty(width, dtype=np.float64)
+    full = np.empty(5, dtype=np.float64)
     for row in range(rows):
-        for i in range(width):
-            a[i] = abs(float(inputs[row, i]))
-        _prepare_gain(a, smallest, sums, where, rest)
-        params[:] = start[row if start.shape[0] > 1 else 0]
-        projected[:] = first_preactivation[row]
-        bias[:] = first_bias[row]
-        first_avg[:] = 0
-        first_avg_sq[:] = 0
+        least = _power_sums(inputs[row], a, full)
+        prepared = False  # ``smallest`` and ``sums``, for _gain, made when first needed
+        _copy(start[row if start.shape[0] > 1 else 0], params)
+        _copy(first_preactivation[row], projected)
+        _copy(first_bias[row], bias)
+        for j in range(h):
+            first_avg[j] = zero
+            first_avg_sq[j] = zero
+        for j in range(total_units):
+            moving[j] = False
         for step in range(iterations + 1):
             # forward: every layer's output into ``units``, logits last
             for j in range(h):
@@ -251,18 +332,19 @@ def _fit_rows(
                         units[out_at + j] = max(units[out_at + j], zero)
                 offset = bias_at + fan_out
                 unit_in = unit_out
-            logits = units[unit_in : unit_in + k]
-            largest = logits.max()
+            largest = units[unit_in]
+            for j in range(1, k):
+                largest = max(largest, units[unit_in + j])
             norm = 0.0
             for j in range(k):
-                out[row, j] = math.exp(logits[j] - largest)
+                out[row, j] = math.exp(units[unit_in + j] - largest)
                 norm += out[row, j]
             for j in range(k):
                 out[row, j] /= norm
             if step == iterations:
                 break
             # loss gradient with respect to the softmax weights, then the logits
-            combined[:] = query[row]
+            _copy(query[row], combined)
             for j in range(k):
                 neighbour = inputs[row, j * dim : (j + 1) * dim]
                 share = out[row, j]
@@ -313,10 +395,16 @@ def _fit_rows(
                 for i in range(fan_in):
                     value = units[unit_in + i]
                     base = offset + i * fan_out
-                    back = zero
-                    for j in range(np.uint64(fan_out)):
-                        back += params[np.uint64(base) + j] * grads[np.uint64(unit_out) + j]
-                    grads[unit_in + i] = back if value > 0 else zero
+                    if value == 0:
+                        grads[unit_in + i] = zero
+                        if not moving[unit_in + i]:
+                            _decay(params, base, fan_out, keep)
+                            continue
+                    else:
+                        back = zero
+                        for j in range(np.uint64(fan_out)):
+                            back += params[np.uint64(base) + j] * grads[np.uint64(unit_out) + j]
+                        grads[unit_in + i] = back if value > 0 else zero
                     _adamw(
                         params,
                         avg,
@@ -329,8 +417,9 @@ def _fit_rows(
                         settings,
                         step_size,
                         root,
-                        step == 0,
+                        not moving[unit_in + i],
                     )
+                    moving[unit_in + i] = True
             # the first layer: bias by AdamW, x·W₁ by its closed form (its moments are x ⊗ μ
             # and x² ⊗ ν, with μ, ν those of the bias)
             for j in range(h):
@@ -340,15 +429,18 @@ def _fit_rows(
                 spread = np.sqrt(first_avg_sq[j]) * root
                 bias[j] = keep * bias[j] - step_size * first_avg[j] / (spread + eps)
                 scale = float(spread)
-                if scale > 0.0 and smallest[0] >= ratio * eps64 / scale:
+                if scale > 0.0 and least >= ratio * eps64 / scale:
                     # every input in the series' range (the usual case): _gain's series
                     # with all the sums, inline
                     factor = -eps64 / scale
-                    gain = sums[count_sums, 4]
+                    gain = full[4]
                     for power in (3, 2, 1, 0):
-                        gain = sums[count_sums, power] + factor * gain
+                        gain = full[power] + factor * gain
                     gain /= scale
                 else:
+                    if not prepared:
+                        _prepare_gain(a, smallest, sums, where)
+                        prepared = True
                     gain = _gain(a, smallest, sums, scale, eps64, ratio)
                 projected[j] = keep * projected[j] - step_size * first_avg[j] * gain
 
