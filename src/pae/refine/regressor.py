@@ -14,6 +14,7 @@ import itertools
 import math
 from collections.abc import Callable, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -274,6 +275,17 @@ def _fit_chunk(
         return weights_now()
 
 
+def _scaled_by_norms(noise: Tensor, inputs: Tensor, factor: float) -> Tensor:
+    """noise [B, h] · ‖inputs[b]‖₂ · factor, inputs [B, n]. On the CPU with numpy, whose
+    operations run on the calling thread: a multi-threaded torch operation here would leave
+    its worker threads spinning on the cores the compiled fit is about to use."""
+    if noise.device.type != "cpu" or noise.dtype not in (torch.float32, torch.float64):
+        return noise * torch.linalg.vector_norm(inputs, dim=-1, keepdim=True) * factor
+    values = inputs.detach().numpy()
+    norms = np.sqrt(np.einsum("bi,bi->b", values, values))[:, None]
+    return torch.from_numpy(noise.numpy() * norms * noise.numpy().dtype.type(factor))
+
+
 def fit_mlp_weights(
     query: Tensor,
     neighbours: Tensor,
@@ -300,13 +312,9 @@ def fit_mlp_weights(
         sizes = [fan_in, *(regressor_hidden_sizes(k) if hidden is None else hidden), k]
         width = sizes[1]
         bound = 1.0 / math.sqrt(fan_in)
-        norms = torch.linalg.vector_norm(neighbours.reshape(batch, -1), dim=-1, keepdim=True)
-        first_preactivation = (
-            _empty_for_draw((batch, width), generator, query)
-            .normal_(generator=generator)
-            .to(query.device)
-            * norms
-            * (bound / math.sqrt(3.0))
+        noise = _empty_for_draw((batch, width), generator, query).normal_(generator=generator)
+        first_preactivation = _scaled_by_norms(
+            noise.to(query.device), neighbours.reshape(batch, -1), bound / math.sqrt(3.0)
         )
         first_bias = _uniform((batch, width), bound, generator, query)
         # one draw of the later layers' initial values serves every query (each still starts
