@@ -236,6 +236,53 @@ def _decay(params: np.ndarray, base: int, count: int, keep: float) -> None:
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+def _first_layer_step(
+    grads: np.ndarray,
+    first_avg: np.ndarray,
+    first_avg_sq: np.ndarray,
+    bias: np.ndarray,
+    spreads: np.ndarray,
+    settings: np.ndarray,
+    step_size: float,
+    root: float,
+) -> None:
+    """The first layer's AdamW step for the bias b₁ [h] (gradient ``grads`` [h], moments
+    updated in place), and the spreads [h] = √ν̂ of the step's denominator."""
+    beta1, beta2, eps, keep = settings[0], settings[1], settings[2], settings[3]
+    one = beta1 / beta1
+    for j in range(np.uint64(bias.shape[0])):
+        grad = grads[j]
+        first = beta1 * first_avg[j] + (one - beta1) * grad
+        second = beta2 * first_avg_sq[j] + (one - beta2) * grad * grad
+        first_avg[j] = first
+        first_avg_sq[j] = second
+        spread = np.sqrt(second) * root
+        spreads[j] = spread
+        bias[j] = keep * bias[j] - step_size * first / (spread + eps)
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+def _series_gains(
+    spreads: np.ndarray, gains: np.ndarray, full: np.ndarray, least: float, eps: float, ratio: float
+) -> bool:
+    """gains[j] = Σᵢ aᵢ² / (aᵢ·s + eps) at s = spreads[j] (float64): 0 where s = 0, by the
+    series over every input (``full``, the sums of ``_power_sums``) where the least positive
+    input ``least`` is in its range, and NaN where it is not (``_gain`` must sum those);
+    returns whether any is NaN. Branch-free, so that it vectorises."""
+    pending = False
+    for j in range(np.uint64(spreads.shape[0])):
+        scale = float(spreads[j])
+        factor = -eps / scale
+        gain = full[4]
+        for power in (3, 2, 1, 0):
+            gain = full[power] + factor * gain
+        outside = not (scale <= 0.0) and not (least >= ratio * eps / scale)
+        gains[j] = np.nan if outside else (gain / scale if scale > 0.0 else 0.0)
+        pending |= outside
+    return pending
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
 def _fit_rows(
     query: np.ndarray,
     inputs: np.ndarray,
@@ -289,6 +336,8 @@ def _fit_rows(
     bias = np.empty(h, dtype=start.dtype)
     first_avg = np.empty(h, dtype=start.dtype)
     first_avg_sq = np.empty(h, dtype=start.dtype)
+    spreads = np.empty(h, dtype=start.dtype)
+    gains = np.empty(h, dtype=np.float64)
     combined = np.empty(dim, dtype=start.dtype)
     weight_grad = np.empty(k, dtype=start.dtype)
     a = np.empty(width, dtype=np.float64)
@@ -422,27 +471,18 @@ def _fit_rows(
                     moving[unit_in + i] = True
             # the first layer: bias by AdamW, x·W₁ by its closed form (its moments are x ⊗ μ
             # and x² ⊗ ν, with μ, ν those of the bias)
+            _first_layer_step(
+                grads[:h], first_avg, first_avg_sq, bias, spreads, settings, step_size, root
+            )
+            if _series_gains(spreads, gains, full, least, eps64, ratio):
+                if not prepared:
+                    _prepare_gain(a, smallest, sums, where)
+                    prepared = True
+                for j in range(h):
+                    if np.isnan(gains[j]):
+                        gains[j] = _gain(a, smallest, sums, float(spreads[j]), eps64, ratio)
             for j in range(h):
-                grad = grads[j]
-                first_avg[j] = beta1 * first_avg[j] + (one - beta1) * grad
-                first_avg_sq[j] = beta2 * first_avg_sq[j] + (one - beta2) * grad * grad
-                spread = np.sqrt(first_avg_sq[j]) * root
-                bias[j] = keep * bias[j] - step_size * first_avg[j] / (spread + eps)
-                scale = float(spread)
-                if scale > 0.0 and least >= ratio * eps64 / scale:
-                    # every input in the series' range (the usual case): _gain's series
-                    # with all the sums, inline
-                    factor = -eps64 / scale
-                    gain = full[4]
-                    for power in (3, 2, 1, 0):
-                        gain = full[power] + factor * gain
-                    gain /= scale
-                else:
-                    if not prepared:
-                        _prepare_gain(a, smallest, sums, where)
-                        prepared = True
-                    gain = _gain(a, smallest, sums, scale, eps64, ratio)
-                projected[j] = keep * projected[j] - step_size * first_avg[j] * gain
+                projected[j] = keep * projected[j] - step_size * first_avg[j] * gains[j]
 
 
 def _numpy(tensor: Tensor) -> np.ndarray:
