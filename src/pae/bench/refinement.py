@@ -4,6 +4,7 @@ series against the plain sum it replaces, and the pose index."""
 from __future__ import annotations
 
 import itertools
+import math
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -25,10 +26,14 @@ from pae.refine.regressor import (
 from pae.refine.weights import refine_affine
 
 
-def _seconds(run: Callable[[], object]) -> float:
-    start = time.perf_counter()
-    run()
-    return time.perf_counter() - start
+def _seconds(run: Callable[[], object], repeats: int = 1) -> float:
+    """Wall-clock seconds of ``run()``, the least of ``repeats`` runs."""
+    best = math.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        run()
+        best = min(best, time.perf_counter() - start)
+    return best
 
 
 def refine_public_loop(
@@ -83,7 +88,7 @@ def matmul_gflops(size: int = 1024, repeats: int = 5) -> float:
     """Measured float32 matrix-product speed of this machine (GFLOP/s, best of ``repeats``)."""
     a, b = torch.randn(size, size), torch.randn(size, size)
     a @ b
-    best = min(_seconds(lambda: a @ b) for _ in range(repeats))
+    best = _seconds(lambda: a @ b, repeats)
     return 2 * size**3 / best / 1e9
 
 
@@ -94,17 +99,21 @@ def bench_refinement(
     iterations: int = 3,
     seed: int = 0,
     public_queries: int = 100,
+    repeats: int = 3,
 ) -> dict[str, float]:
     """Milliseconds per query of the MLP weight model: batched, the cleaned per-query
     reference, and the public script's loop (``refine_public_loop``, on the first
     ``public_queries`` queries), all on the same random inputs: query latents
     [n, 2·latent_dim], neighbour latents near them [n, k, 2·latent_dim], poses [n, k, 7].
-    Each is warmed up on a few queries first (which also compiles the fused loop). "batched"
-    is ``refine_affine``'s default on the CPU (``engine="auto"``: the fused compiled loop);
-    ``tensor_ops`` is its ``engine="batched"`` path. ``speedup`` is public loop / batched;
-    ``roofline_fraction`` is the time the stored-weight arithmetic (``mlp_flops_per_query``)
-    needs at the measured matrix-product speed, over the batched time. Also times the
-    batched ``softmax_logits`` and ``closed_form`` models on the same inputs.
+    Each is warmed up on a few queries first (which also compiles the fused loop); the
+    batched path, its tensor-operation path and the public loop each take the least time of
+    ``repeats`` runs, so that a busy moment on a shared machine does not decide the ratio.
+    "batched" is ``refine_affine``'s default on the CPU (``engine="auto"``: the fused
+    compiled loop); ``tensor_ops`` is its ``engine="batched"`` path. ``speedup`` is public
+    loop / batched; ``roofline_fraction`` is the time the stored-weight arithmetic
+    (``mlp_flops_per_query``) needs at the measured matrix-product speed, over the batched
+    time. Also times the batched ``softmax_logits`` and ``closed_form`` models on the same
+    inputs.
     """
     generator = torch.Generator().manual_seed(seed)
     dim = 2 * latent_dim
@@ -119,13 +128,14 @@ def bench_refinement(
     refine_affine(query[warm], neighbours[warm], poses[warm], engine="batched", **options)
     refine_affine_per_query(query[warm], neighbours[warm], poses[warm], **options)
     refine_public_loop(query[warm], neighbours[warm], poses[warm], iterations)
-    batched = _seconds(lambda: refine_affine(query, neighbours, poses, **options))
+    batched = _seconds(lambda: refine_affine(query, neighbours, poses, **options), repeats)
     tensor_ops = _seconds(
-        lambda: refine_affine(query, neighbours, poses, engine="batched", **options)
+        lambda: refine_affine(query, neighbours, poses, engine="batched", **options), repeats
     )
     per_query = _seconds(lambda: refine_affine_per_query(query, neighbours, poses, **options))
     loop = _seconds(
-        lambda: refine_public_loop(query[public], neighbours[public], poses[public], iterations)
+        lambda: refine_public_loop(query[public], neighbours[public], poses[public], iterations),
+        repeats,
     )
     logits = _seconds(
         lambda: refine_affine(query, neighbours, poses, weight_model="softmax_logits", **options)
