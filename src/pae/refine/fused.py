@@ -119,7 +119,7 @@ def _power_sums(source: np.ndarray, a: np.ndarray, sums: np.ndarray) -> float:
     value (inf if none)."""
     total, count, first, second, third = 0.0, 0.0, 0.0, 0.0, 0.0
     for i in range(np.uint64(a.shape[0])):  # branch-free, so that it vectorises
-        value = abs(float(source[i]))
+        value = abs(np.float64(source[i]))  # numba's float() would keep float32
         a[i] = value
         positive = value > 0.0
         inverse = 1.0 / value if positive else 0.0
@@ -271,7 +271,7 @@ def _series_gains(
     returns whether any is NaN. Branch-free, so that it vectorises."""
     pending = False
     for j in range(np.uint64(spreads.shape[0])):
-        scale = float(spreads[j])
+        scale = np.float64(spreads[j])
         factor = -eps / scale
         gain = full[4]
         for power in (3, 2, 1, 0):
@@ -322,7 +322,7 @@ def _fit_rows(
     one = beta1 / beta1
     zero = beta1 - beta1
     iterations = schedule.shape[0]
-    eps64 = float(eps)
+    eps64 = np.float64(ADAM_EPS)  # the first layer's gain, in float64 as in _FirstLayerGain
     params = np.empty(count, dtype=start.dtype)
     avg = np.empty(count, dtype=start.dtype)
     avg_sq = np.empty(count, dtype=start.dtype)
@@ -480,7 +480,7 @@ def _fit_rows(
                     prepared = True
                 for j in range(h):
                     if np.isnan(gains[j]):
-                        gains[j] = _gain(a, smallest, sums, float(spreads[j]), eps64, ratio)
+                        gains[j] = _gain(a, smallest, sums, np.float64(spreads[j]), eps64, ratio)
             for j in range(h):
                 projected[j] = keep * projected[j] - step_size * first_avg[j] * gains[j]
 

@@ -21,6 +21,25 @@ _DEGREES_PER_HALF_TURN = 360.0 / math.pi
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def _unit_rows64(store: np.ndarray, positions: np.ndarray, quaternions: np.ndarray) -> None:
+    """Stored rows [N, 7] (float32) into float64 positions [N, 3] and quaternions [N, 4]
+    renormalised in float64, as ``PoseIndex._block64`` gives them, on the calling thread
+    (multi-threaded tensor operations here would leave their threads spinning beside the
+    search's)."""
+    for row in range(store.shape[0]):
+        for axis in range(3):
+            positions[row, axis] = store[row, axis]
+        norm = 0.0
+        for axis in range(4):
+            value = np.float64(store[row, 3 + axis])  # numba's float() keeps float32
+            quaternions[row, axis] = value
+            norm += value * value
+        norm = math.sqrt(norm)
+        for axis in range(4):
+            quaternions[row, axis] /= norm
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _nearest(
     query_positions: np.ndarray,
     query_quaternions: np.ndarray,
@@ -322,7 +341,8 @@ class PoseIndex:
         bounds = torch.empty(len(order), 2, dtype=torch.long)
         for scene in torch.unique(in_order).tolist():
             bounds[in_order == scene] = torch.tensor(self._scene_blocks[scene])
-        stored = [t.contiguous().numpy() for t in self._block64(0, len(self))]
+        stored = [np.empty((len(self), 3)), np.empty((len(self), 4))]
+        _unit_rows64(self._store.numpy(), *stored)
         arrays = [positions[order].contiguous().numpy(), quaternions[order].contiguous().numpy()]
         arrays += [bounds[:, 0].contiguous().numpy(), bounds[:, 1].contiguous().numpy()]
         indices = np.empty((len(order), k), dtype=np.int64)
