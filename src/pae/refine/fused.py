@@ -318,7 +318,7 @@ def _fit_rows(
     h = sizes[0]
     layers = sizes.shape[0] - 1
     count = start.shape[1]
-    beta1, eps, keep = settings[0], settings[2], settings[3]
+    beta1, keep = settings[0], settings[3]
     one = beta1 / beta1
     zero = beta1 - beta1
     iterations = schedule.shape[0]
