@@ -52,6 +52,22 @@ def _copy(source: np.ndarray, target: np.ndarray) -> None:
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+def _sum_powers(a: np.ndarray, sums: np.ndarray) -> None:
+    """sums [5] = Σ over the positive values of a [n] of (aᵢ, 1, aᵢ⁻¹, aᵢ⁻², aᵢ⁻³)."""
+    total, count, first, second, third = 0.0, 0.0, 0.0, 0.0, 0.0
+    for i in range(np.uint64(a.shape[0])):  # branch-free, so that it vectorises
+        value = a[i]
+        positive = value > 0.0
+        inverse = 1.0 / value if positive else 0.0
+        total += value
+        count += 1.0 if positive else 0.0
+        first += inverse
+        second += inverse * inverse
+        third += inverse * inverse * inverse
+    sums[0], sums[1], sums[2], sums[3], sums[4] = total, count, first, second, third
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
 def _prepare_gain(a: np.ndarray, smallest: np.ndarray, sums: np.ndarray, where: np.ndarray) -> None:
     """Fill ``smallest`` [m] with the m smallest positive values of a [n] (ascending, inf
     where fewer; among equal values the first ones) and ``sums`` [m + 1, 5] with the power
@@ -79,26 +95,10 @@ def _prepare_gain(a: np.ndarray, smallest: np.ndarray, sums: np.ndarray, where: 
     for slot in range(m):  # leave the m smallest out of the sums, then put them back
         if where[slot] >= 0:
             a[where[slot]] = 0.0
-    total, count, first_power, second, third = 0.0, 0.0, 0.0, 0.0, 0.0
-    for i in range(np.uint64(n)):  # branch-free, so that it vectorises: zeros add nothing
-        value = a[i]
-        positive = value > 0.0
-        inverse = 1.0 / value if positive else 0.0
-        total += value
-        count += 1.0 if positive else 0.0
-        first_power += inverse
-        second += inverse * inverse
-        third += inverse * inverse * inverse
+    _sum_powers(a, sums[0])
     for slot in range(m):
         if where[slot] >= 0:
             a[where[slot]] = smallest[slot]
-    sums[0, 0], sums[0, 1], sums[0, 2], sums[0, 3], sums[0, 4] = (
-        total,
-        count,
-        first_power,
-        second,
-        third,
-    )
     for c in range(1, m + 1):
         for power in range(5):
             sums[c, power] = sums[c - 1, power]
@@ -114,24 +114,14 @@ def _prepare_gain(a: np.ndarray, smallest: np.ndarray, sums: np.ndarray, where: 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
 def _power_sums(source: np.ndarray, a: np.ndarray, sums: np.ndarray) -> float:
-    """a [n] = |source| in float64, ``sums`` [5] = the power sums (aᵢ, 1, aᵢ⁻¹, aᵢ⁻², aᵢ⁻³)
-    over its positive values, as ``_prepare_gain``'s last row; returns the least positive
-    value (inf if none)."""
-    total, count, first, second, third = 0.0, 0.0, 0.0, 0.0, 0.0
-    for i in range(np.uint64(a.shape[0])):  # branch-free, so that it vectorises
-        value = abs(np.float64(source[i]))  # numba's float() would keep float32
-        a[i] = value
-        positive = value > 0.0
-        inverse = 1.0 / value if positive else 0.0
-        total += value
-        count += 1.0 if positive else 0.0
-        first += inverse
-        second += inverse * inverse
-        third += inverse * inverse * inverse
-    sums[0], sums[1], sums[2], sums[3], sums[4] = total, count, first, second, third
+    """a [n] = |source| in float64, ``sums`` [5] = its power sums (``_sum_powers``), as
+    ``_prepare_gain``'s last row; returns the least positive value (inf if none)."""
     least = np.inf
     for i in range(np.uint64(a.shape[0])):
-        least = min(least, a[i] if a[i] > 0.0 else np.inf)
+        value = abs(np.float64(source[i]))  # numba's float() would keep float32
+        a[i] = value
+        least = min(least, value if value > 0.0 else np.inf)
+    _sum_powers(a, sums)
     return least
 
 
