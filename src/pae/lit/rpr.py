@@ -4,6 +4,7 @@ the query image and an image decoded from a train pose's PAE encoding."""
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from typing import Any
 
 import torch
@@ -70,17 +71,99 @@ def nearby_references(
     return candidates.gather(1, choice[:, None])[:, 0]
 
 
-class RPRModule(PaeModule):
-    """Trains a SiameseRPR on (query image, decoded image of a nearby train pose) pairs.
+class PairedRPRModule(PaeModule, ABC):
+    """What the RPR modules share: a SiameseRPR trained on (query image, reference image)
+    pairs against a frozen teacher, the references drawn among the train poses near the
+    query's pose.
 
     Training references: one of the `pair_k` nearest train poses of the query's true pose
     (never the query's own row) — or, with `pair_offset` ({position_m, orientation_deg}),
-    of that pose moved by `perturb_poses` as a teacher's estimate errs — decoded by the
-    frozen PAE + decoder: the same kind of reference the RPR sees at test time. The RPR
-    regresses the query's pose relative to the reference (``pae.geometry.relative_pose``).
-    Evaluation: the teacher estimates the pose, the nearest train pose of the estimate is
-    decoded, and the relative translation moves that reference position: `vrpr` position =
-    ``compose_pose(reference, relative)``'s (orientation: the teacher's).
+    of that pose moved by `perturb_poses` as a teacher's estimate errs, so that the pairs'
+    offsets resemble those met at test time. The RPR regresses the query's pose relative to
+    the reference (``pae.geometry.relative_pose``). Subclasses give the reference images
+    (``reference_images``) and the evaluation.
+    """
+
+    def __init__(
+        self,
+        rpr: SiameseRPR,
+        teacher: PoseRegressor,
+        loss: LearnedPoseLoss,
+        optimizer: OptimizerFactory,
+        scene_names: list[str],
+        configs: dict[str, Any],
+        methods: list[str],
+        scheduler: SchedulerFactory | None = None,
+        pair_k: int = 5,
+        pair_offset: dict[str, float] | None = None,
+    ) -> None:
+        super().__init__(optimizer, scheduler)
+        self.save_hyperparameters({**configs, "scene_names": list(scene_names)})
+        self.rpr = rpr
+        self.teacher = teacher.eval().requires_grad_(False)
+        self.loss = loss
+        self.pair_k = pair_k
+        self.pair_offset = dict(pair_offset) if pair_offset else None
+        self.evaluation = PoseEvaluation(methods, scene_names)
+        self.index: PoseIndex | None = None
+        self.pair_count = pair_k + 1
+
+    def frozen(self) -> list[nn.Module]:
+        """The networks that stay in evaluation mode while the RPR trains."""
+        return [self.teacher]
+
+    def train(self, mode: bool = True) -> PairedRPRModule:
+        super().train(mode)
+        for network in self.frozen():
+            network.eval()
+        return self
+
+    def use_data(self, datamodule: Any) -> None:
+        """Take the train poses (the retrieval store) from the data module."""
+        poses, scenes = datamodule.train_poses()
+        self.index = PoseIndex(poses, scenes)
+        self.pair_count = min(self.pair_k + 1, int(torch.bincount(scenes).min()))
+
+    def setup(self, stage: str) -> None:
+        self.use_data(self.trainer.datamodule)
+
+    def training_pairs(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        """A train batch -> (reference rows [B] of the train split, reference poses [B, 7])."""
+        assert self.index is not None
+        pose = batch["pose"]
+        around = perturb_poses(pose, **self.pair_offset) if self.pair_offset else None
+        rows = nearby_references(
+            self.index, pose, batch["scene"], batch["index"], self.pair_count, around
+        )
+        return rows, self.index.poses.to(pose.device)[rows]
+
+    @abstractmethod
+    def reference_images(self, rows: Tensor, poses: Tensor, scenes: Tensor, like: Tensor) -> Tensor:
+        """Reference images [B, 3, crop, crop] shaped like the query images ``like``, for the
+        train rows ``rows`` [B] at poses [B, 7] of scenes [B]."""
+
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        rows, reference = self.training_pairs(batch)
+        images = self.reference_images(rows, reference, batch["scene"], batch["image"])
+        terms = self.loss(self.rpr(batch["image"], images), relative_pose(reference, batch["pose"]))
+        self.log_dict(
+            {"train/loss": terms.total, "train/pos_loss": terms.position},
+            batch_size=len(reference),
+        )
+        return terms.total
+
+    def trainable_parameters(self) -> list[nn.Parameter]:
+        return list(self.rpr.parameters()) + list(self.loss.parameters())
+
+
+class RPRModule(PairedRPRModule):
+    """Trains a SiameseRPR on (query image, decoded image of a nearby train pose) pairs.
+
+    The references (see ``PairedRPRModule``) are decoded by the frozen PAE + decoder: the
+    same kind of reference the RPR sees at test time. Evaluation: the teacher estimates the
+    pose, the nearest train pose of the estimate is decoded, and the relative translation
+    moves that reference position: `vrpr` position = ``compose_pose(reference, relative)``'s
+    (orientation: the teacher's).
     """
 
     def __init__(
@@ -97,29 +180,23 @@ class RPRModule(PaeModule):
         pair_k: int = 5,
         pair_offset: dict[str, float] | None = None,
     ) -> None:
-        super().__init__(optimizer, scheduler)
-        self.save_hyperparameters({**configs, "scene_names": list(scene_names)})
-        self.rpr = rpr
-        self.teacher = teacher.eval().requires_grad_(False)
+        super().__init__(
+            rpr,
+            teacher,
+            loss,
+            optimizer,
+            scene_names,
+            configs,
+            ["teacher", "vrpr"],
+            scheduler,
+            pair_k,
+            pair_offset,
+        )
         self.pae = pae.eval().requires_grad_(False)
         self.decoder = decoder.eval().requires_grad_(False)
-        self.loss = loss
-        self.pair_k = pair_k
-        self.pair_offset = dict(pair_offset) if pair_offset else None
-        self.evaluation = PoseEvaluation(["teacher", "vrpr"], scene_names)
-        self.index: PoseIndex | None = None
-        self.pair_count = pair_k + 1
 
-    def train(self, mode: bool = True) -> RPRModule:
-        super().train(mode)
-        for frozen in (self.teacher, self.pae, self.decoder):
-            frozen.eval()
-        return self
-
-    def setup(self, stage: str) -> None:
-        poses, scenes = self.trainer.datamodule.train_poses()
-        self.index = PoseIndex(poses, scenes)
-        self.pair_count = min(self.pair_k + 1, int(torch.bincount(scenes).min()))
+    def frozen(self) -> list[nn.Module]:
+        return [self.teacher, self.pae, self.decoder]
 
     def virtual_reference(self, poses: Tensor, scenes: Tensor, crop: int) -> Tensor:
         """Decoded images of poses [B, 7] as network input [B, 3, crop, crop]."""
@@ -128,22 +205,8 @@ class RPRModule(PaeModule):
         images = nn.functional.interpolate(images, size=(crop, crop), mode="bilinear")
         return ImageTransform.normalize_batch(images)
 
-    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
-        assert self.index is not None
-        pose, scene = batch["pose"], batch["scene"]
-        around = perturb_poses(pose, **self.pair_offset) if self.pair_offset else None
-        chosen = nearby_references(self.index, pose, scene, batch["index"], self.pair_count, around)
-        reference = self.index.poses.to(pose.device)[chosen]
-        images = self.virtual_reference(reference, scene, batch["image"].shape[-1])
-        terms = self.loss(self.rpr(batch["image"], images), relative_pose(reference, pose))
-        self.log_dict(
-            {"train/loss": terms.total, "train/pos_loss": terms.position},
-            batch_size=len(pose),
-        )
-        return terms.total
-
-    def trainable_parameters(self) -> list[nn.Parameter]:
-        return list(self.rpr.parameters()) + list(self.loss.parameters())
+    def reference_images(self, rows: Tensor, poses: Tensor, scenes: Tensor, like: Tensor) -> Tensor:
+        return self.virtual_reference(poses, scenes, like.shape[-1])
 
     def evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
         assert self.index is not None

@@ -6,16 +6,13 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
-from pae.geometry import relative_pose
-from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
-from pae.lit.evaluation import PoseEvaluation
-from pae.lit.rpr import nearby_references, perturb_poses
+from pae.lit.base import OptimizerFactory, SchedulerFactory
+from pae.lit.rpr import PairedRPRModule
 from pae.losses import LearnedPoseLoss
 from pae.models.base import PoseRegressor
 from pae.models.rpr import SiameseRPR
-from pae.refine.index import PoseIndex
 
 
 class TrainImages:
@@ -38,14 +35,11 @@ class TrainImages:
         return self.preprocess(batch["image"].to(device), train=False)
 
 
-class ImageRPRModule(PaeModule):
+class ImageRPRModule(PairedRPRModule):
     """Trains a SiameseRPR on pairs of real train images and evaluates it as a refinement.
 
     Training pairs: the query is a train image (augmented), its reference the real train
-    image of one of the `pair_k` train poses nearest to its pose (never itself) — or, with
-    `pair_offset` ({position_m, orientation_deg}), nearest to its pose moved by
-    `perturb_poses` as a teacher's estimate errs, so the pairs' offsets resemble those met at
-    test time; the target is `relative_pose(reference pose, query pose)`.
+    image of a train pose near its pose (``PairedRPRModule``).
 
     Evaluation (each method's orientation is reported; only positions are refined, so the
     RPR methods keep the teacher's orientation):
@@ -70,65 +64,30 @@ class ImageRPRModule(PaeModule):
         pair_k: int = 5,
         pair_offset: dict[str, float] | None = None,
     ) -> None:
-        super().__init__(optimizer, scheduler)
-        self.save_hyperparameters({**configs, "scene_names": list(scene_names)})
-        self.rpr = rpr
-        self.teacher = teacher.eval().requires_grad_(False)
-        self.loss = loss
-        self.pair_k = pair_k
-        self.pair_offset = dict(pair_offset) if pair_offset else None
-        self.evaluation = PoseEvaluation(
-            [
-                "teacher",
-                "rpr_image",
-                "rpr_reference",
-                "rpr_image_test_store",
-                "rpr_reference_test_store",
-            ],
+        methods = ["teacher", "rpr_image", "rpr_reference"]
+        methods += ["rpr_image_test_store", "rpr_reference_test_store"]
+        super().__init__(
+            rpr,
+            teacher,
+            loss,
+            optimizer,
             scene_names,
+            configs,
+            methods,
+            scheduler,
+            pair_k,
+            pair_offset,
         )
-        self.index: PoseIndex | None = None
         self.images: TrainImages | None = None
-        self.pair_count = pair_k + 1
-
-    def train(self, mode: bool = True) -> ImageRPRModule:
-        super().train(mode)
-        self.teacher.eval()
-        return self
 
     def use_data(self, datamodule: Any) -> None:
         """Take the train poses (the retrieval store) and train images from the data module."""
-        poses, scenes = datamodule.train_poses()
-        self.index = PoseIndex(poses, scenes)
+        super().use_data(datamodule)
         self.images = TrainImages(datamodule)
-        self.pair_count = min(self.pair_k + 1, int(torch.bincount(scenes).min()))
 
-    def setup(self, stage: str) -> None:
-        self.use_data(self.trainer.datamodule)
-
-    def training_pairs(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
-        """A train batch -> (reference rows [B] of the train split, reference poses [B, 7])."""
-        assert self.index is not None
-        pose = batch["pose"]
-        around = perturb_poses(pose, **self.pair_offset) if self.pair_offset else None
-        rows = nearby_references(
-            self.index, pose, batch["scene"], batch["index"], self.pair_count, around
-        )
-        return rows, self.index.poses.to(pose.device)[rows]
-
-    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+    def reference_images(self, rows: Tensor, poses: Tensor, scenes: Tensor, like: Tensor) -> Tensor:
         assert self.images is not None
-        rows, reference = self.training_pairs(batch)
-        images = self.images(rows, batch["image"].device)
-        terms = self.loss(self.rpr(batch["image"], images), relative_pose(reference, batch["pose"]))
-        self.log_dict(
-            {"train/loss": terms.total, "train/pos_loss": terms.position},
-            batch_size=len(reference),
-        )
-        return terms.total
-
-    def trainable_parameters(self) -> list[nn.Parameter]:
-        return list(self.rpr.parameters()) + list(self.loss.parameters())
+        return self.images(rows, like.device)
 
     def refine(self, images: Tensor, estimate: Tensor, scene: Tensor) -> tuple[Tensor, Tensor]:
         """Query images and pose estimates [B, 7] (unit q) -> (refined poses [B, 7]: the
