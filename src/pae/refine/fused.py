@@ -51,7 +51,7 @@ def _copy(source: np.ndarray, target: np.ndarray) -> None:
         target[i] = source[i]
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
 def _sum_powers(a: np.ndarray, sums: np.ndarray) -> None:
     """sums [5] = Σ over the positive values of a [n] of (aᵢ, 1, aᵢ⁻¹, aᵢ⁻², aᵢ⁻³)."""
     total, count, first, second, third = 0.0, 0.0, 0.0, 0.0, 0.0
@@ -112,7 +112,7 @@ def _prepare_gain(a: np.ndarray, smallest: np.ndarray, sums: np.ndarray, where: 
             sums[c, 4] += inverse * inverse * inverse
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
 def _power_sums(source: np.ndarray, a: np.ndarray, sums: np.ndarray) -> float:
     """a [n] = |source| in float64, ``sums`` [5] = its power sums (``_sum_powers``), as
     ``_prepare_gain``'s last row; returns the least positive value (inf if none)."""
@@ -125,7 +125,7 @@ def _power_sums(source: np.ndarray, a: np.ndarray, sums: np.ndarray) -> float:
     return least
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
 def _gain(
     a: np.ndarray,
     smallest: np.ndarray,
@@ -158,7 +158,7 @@ def _gain(
     return total
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
 def _adamw(
     params: np.ndarray,
     avg: np.ndarray,
@@ -195,28 +195,7 @@ def _adamw(
         params[at] = keep * params[at] - step_size * first / (np.sqrt(second) * root + eps)
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
-def _add_scaled(
-    target: np.ndarray, at: int, value: float, source: np.ndarray, base: int, count: int
-) -> None:
-    """target[at + j] += value · source[base + j] for j < count (a compiled function of its
-    own, so that the loop is vectorised before it is inlined)."""
-    for j in range(np.uint64(count)):
-        target[np.uint64(at) + j] += value * source[np.uint64(base) + j]
-
-
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
-def _dot(
-    left: np.ndarray, left_at: int, right: np.ndarray, right_at: int, count: int, zero: float
-) -> float:
-    """Σⱼ left[left_at + j] · right[right_at + j] for j < count, from ``zero`` (their dtype's)."""
-    total = zero
-    for j in range(np.uint64(count)):
-        total += left[np.uint64(left_at) + j] * right[np.uint64(right_at) + j]
-    return total
-
-
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
 def _decay(params: np.ndarray, base: int, count: int, keep: float) -> None:
     """AdamW's step of ``count`` parameters from ``base`` whose gradient and moments are all
     zero: the weight decay alone (the Adam term is 0 / (0 + eps) = 0)."""
@@ -225,7 +204,7 @@ def _decay(params: np.ndarray, base: int, count: int, keep: float) -> None:
         params[at] = keep * params[at]
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
 def _first_layer_step(
     grads: np.ndarray,
     first_avg: np.ndarray,
@@ -251,7 +230,7 @@ def _first_layer_step(
         bias[j] = keep * bias[j] - step_size * first / (spread + eps)
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
 def _series_gains(
     spreads: np.ndarray, gains: np.ndarray, full: np.ndarray, least: float, eps: float, ratio: float
 ) -> bool:
