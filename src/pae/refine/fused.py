@@ -125,37 +125,61 @@ def _power_sums(source: np.ndarray, a: np.ndarray, sums: np.ndarray) -> float:
     return least
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
-def _gain(
+@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+def _band_gains(
     a: np.ndarray,
     smallest: np.ndarray,
     sums: np.ndarray,
-    s: float,
+    spreads: np.ndarray,
+    gains: np.ndarray,
     eps: float,
     ratio: float,
-) -> float:
-    """Σᵢ aᵢ² / (aᵢ·s + eps) as ``_FirstLayerGain`` evaluates it (float64; s = 0 gives 0)."""
-    if s <= 0.0:
-        return 0.0
+    scratch: np.ndarray,
+) -> None:
+    """gains[j] = Σᵢ aᵢ² / (aᵢ·s + eps) at s = spreads[j] > 0 for the units that
+    ``_series_gains`` left NaN (some input below the series' range, aᵢ·s < ratio·eps), as
+    ``_FirstLayerGain`` evaluates it (float64): the series over the sums without the inputs
+    below the unit's threshold (``_prepare_gain``'s sums row), plus those inputs' terms
+    summed directly; when every one of the m smallest inputs is below it, all n terms
+    directly. The units are taken together, so that the direct terms vectorise across them.
+    ``scratch`` [5, h] is working space."""
     m = smallest.shape[0]
-    threshold = ratio * eps / s
-    below = 0
-    while below < m and smallest[below] < threshold:
-        below += 1
-    reach = m - below
-    if reach == 0 and m < a.shape[0]:
-        total = 0.0
-        for i in range(a.shape[0]):
-            total += a[i] * a[i] / (a[i] * s + eps)
-        return total
-    factor = -eps / s
-    series = sums[reach, 4]
-    for power in (3, 2, 1, 0):
-        series = sums[reach, power] + factor * series
-    total = series / s
-    for i in range(below):
-        total += smallest[i] * smallest[i] / (smallest[i] * s + eps)
-    return total
+    units, scales, thresholds = scratch[0], scratch[1], scratch[2]
+    counts, direct = scratch[3], scratch[4]
+    pending = 0
+    limit = 0.0
+    for j in range(gains.shape[0]):
+        if np.isnan(gains[j]):
+            units[pending] = j
+            scales[pending] = spreads[j]
+            thresholds[pending] = ratio * eps / np.float64(spreads[j])
+            counts[pending] = 0.0
+            direct[pending] = 0.0
+            if thresholds[pending] > limit:  # (a NaN threshold counts no input)
+                limit = thresholds[pending]
+            pending += 1
+    for i in range(m):  # ascending: stop at the first input above every threshold
+        value = smallest[i]
+        if not value < limit:
+            break
+        for p in range(np.uint64(pending)):
+            inside = value < thresholds[p]
+            counts[p] += 1.0 if inside else 0.0
+            direct[p] += value * value / (value * scales[p] + eps) if inside else 0.0
+    for p in range(pending):
+        s = scales[p]
+        reach = m - int(counts[p])
+        if reach == 0 and m < a.shape[0]:
+            total = 0.0
+            for i in range(a.shape[0]):
+                total += a[i] * a[i] / (a[i] * s + eps)
+        else:
+            factor = -eps / s
+            total = sums[reach, 4]
+            for power in (3, 2, 1, 0):
+                total = sums[reach, power] + factor * total
+            total = total / s + direct[p]
+        gains[int(units[p])] = total
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
@@ -236,7 +260,7 @@ def _series_gains(
 ) -> bool:
     """gains[j] = Σᵢ aᵢ² / (aᵢ·s + eps) at s = spreads[j] (float64): 0 where s = 0, by the
     series over every input (``full``, the sums of ``_power_sums``) where the least positive
-    input ``least`` is in its range, and NaN where it is not (``_gain`` must sum those);
+    input ``least`` is in its range, and NaN where it is not (``_band_gains`` sums those);
     returns whether any is NaN. Branch-free, so that it vectorises."""
     pending = False
     for j in range(np.uint64(spreads.shape[0])):
@@ -307,6 +331,7 @@ def _fit_rows(
     first_avg_sq = np.empty(h, dtype=start.dtype)
     spreads = np.empty(h, dtype=start.dtype)
     gains = np.empty(h, dtype=np.float64)
+    scratch = np.empty((5, h), dtype=np.float64)
     combined = np.empty(dim, dtype=start.dtype)
     weight_grad = np.empty(k, dtype=start.dtype)
     a = np.empty(width, dtype=np.float64)
@@ -316,7 +341,7 @@ def _fit_rows(
     full = np.empty(5, dtype=np.float64)
     for row in range(rows):
         least = _power_sums(inputs[row], a, full)
-        prepared = False  # ``smallest`` and ``sums``, for _gain, made when first needed
+        prepared = False  # ``smallest`` and ``sums``, for _band_gains, made when first needed
         _copy(start[row if start.shape[0] > 1 else 0], params)
         _copy(first_preactivation[row], projected)
         _copy(first_bias[row], bias)
@@ -447,9 +472,7 @@ def _fit_rows(
                 if not prepared:
                     _prepare_gain(a, smallest, sums, where)
                     prepared = True
-                for j in range(h):
-                    if np.isnan(gains[j]):
-                        gains[j] = _gain(a, smallest, sums, np.float64(spreads[j]), eps64, ratio)
+                _band_gains(a, smallest, sums, spreads, gains, eps64, ratio, scratch)
             for j in range(h):
                 projected[j] = keep * projected[j] - step_size * first_avg[j] * gains[j]
 
