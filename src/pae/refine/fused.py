@@ -125,6 +125,17 @@ def _power_sums(source: np.ndarray, a: np.ndarray, sums: np.ndarray) -> float:
     return least
 
 
+@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
+def _series(sums: np.ndarray, s: float, eps: float) -> float:
+    """Σᵢ aᵢ² / (aᵢ·s + eps) by ``_FirstLayerGain``'s series, (1/s)·Σₚ₌₀⁴ (−eps/s)ᵖ·Σᵢ
+    aᵢ^(1−p), from the power sums ``sums`` [5] of ``_sum_powers`` (Horner in −eps/s)."""
+    factor = -eps / s
+    total = sums[4]
+    for power in (3, 2, 1, 0):
+        total = sums[power] + factor * total
+    return total / s
+
+
 @numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
 def _band_gains(
     a: np.ndarray,
@@ -174,11 +185,7 @@ def _band_gains(
             for i in range(a.shape[0]):
                 total += a[i] * a[i] / (a[i] * s + eps)
         else:
-            factor = -eps / s
-            total = sums[reach, 4]
-            for power in (3, 2, 1, 0):
-                total = sums[reach, power] + factor * total
-            total = total / s + direct[p]
+            total = _series(sums[reach], s, eps) + direct[p]
         gains[int(units[p])] = total
 
 
@@ -200,7 +207,7 @@ def _adamw(
     """One AdamW step of ``count`` parameters from ``base`` (one row of a weight, or a bias
     with ``value`` 1) whose gradient is ``value`` · grads[grad_base + j], moments ``avg``,
     ``avg_sq`` updated in place; ``settings`` and the step's ``step_size``, ``root`` as in
-    ``_fit_rows``; ``fresh``: the first step, whose moments start at zero (not read). Indices
+    ``_fit_rows``; ``fresh``: the moments are still zero (not read). Indices
     are unsigned: numba then checks no negative index, and the loop
     vectorises."""
     beta1, beta2, eps, keep = settings[0], settings[1], settings[2], settings[3]
@@ -265,7 +272,7 @@ def _series_gains(
     pending = False
     for j in range(np.uint64(spreads.shape[0])):
         scale = np.float64(spreads[j])
-        factor = -eps / scale
+        factor = -eps / scale  # _series written out: a call here stops the loop vectorising
         gain = full[4]
         for power in (3, 2, 1, 0):
             gain = full[power] + factor * gain

@@ -281,9 +281,9 @@ def _scaled_by_norms(noise: Tensor, inputs: Tensor, factor: float) -> Tensor:
     its worker threads spinning on the cores the compiled fit is about to use."""
     if noise.device.type != "cpu" or noise.dtype not in (torch.float32, torch.float64):
         return noise * torch.linalg.vector_norm(inputs, dim=-1, keepdim=True) * factor
-    values = inputs.detach().numpy()
+    values, draws = inputs.detach().numpy(), noise.numpy()
     norms = np.sqrt(np.einsum("bi,bi->b", values, values))[:, None]
-    return torch.from_numpy(noise.numpy() * norms * noise.numpy().dtype.type(factor))
+    return torch.from_numpy(draws * norms * draws.dtype.type(factor))
 
 
 def fit_mlp_weights(
