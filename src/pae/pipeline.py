@@ -142,7 +142,7 @@ def _teacher_config(cfg: DictConfig, n_scenes: int) -> dict[str, Any]:
     return config
 
 
-def _fit_and_test(
+def fit_and_test(
     cfg: DictConfig,
     step_dir: Path,
     name: str,
@@ -182,10 +182,10 @@ def _frozen(
 ) -> tuple[str | Path, LoadedModel, PoseDataModule]:
     """The checkpoint a step needs (`key`), its model and the step's data (no augmentation),
     checked to belong together."""
-    path = _required(path, key, stage)
+    path = required(path, key, stage)
     loaded = load(path)
     data = build_data(cfg, augment=False)
-    _check_data(cfg, path, loaded, data)
+    check_data(cfg, path, loaded, data)
     return path, loaded, data
 
 
@@ -201,7 +201,7 @@ def fit_teacher(cfg: DictConfig, step_dir: Path) -> tuple[Metrics, Path]:
         teacher_config=_teacher_config(cfg, data.n_scenes),
         scene_loss_weight=cfg.teacher.scene_loss_weight,
     )
-    return _fit_and_test(cfg, step_dir, "teacher", module, data, cfg.teacher.max_epochs)
+    return fit_and_test(cfg, step_dir, "teacher", module, data, cfg.teacher.max_epochs)
 
 
 def _check_fingerprint(
@@ -223,7 +223,7 @@ def _check_fingerprint(
         )
 
 
-def _check_data(
+def check_data(
     cfg: DictConfig, path: str | Path, loaded: LoadedModel, data: PoseDataModule
 ) -> None:
     """The checkpoint was trained on this data, and its models fit this data's scene count."""
@@ -271,7 +271,7 @@ def fit_student(
     except ValueError as err:  # latent sizes or options that do not fit: name the key
         raise ConfigError(str(err)) from None
     if not cfg.student.cache_latents:
-        return _fit_and_test(
+        return fit_and_test(
             cfg,
             step_dir,
             "student",
@@ -287,7 +287,7 @@ def fit_student(
         cache=LatentCache(folder) if folder else None,
         teacher_ckpt=teacher_ckpt,
     )
-    metrics, last = _fit_and_test(
+    metrics, last = fit_and_test(
         cfg,
         step_dir,
         "student",
@@ -301,7 +301,7 @@ def fit_student(
     return metrics, last
 
 
-def _required(path: str | Path | None, key: str, stage: str) -> str | Path:
+def required(path: str | Path | None, key: str, stage: str) -> str | Path:
     if path is None:
         raise ConfigError(f"stage={stage} needs {key}=PATH")
     return path
@@ -321,7 +321,7 @@ def fit_decoder(
         pae_config=pae.config,
         decoder_config=decoder_config,
     )
-    return _fit_and_test(cfg, step_dir, "decoder", module, data, cfg.decoder.max_epochs)
+    return fit_and_test(cfg, step_dir, "decoder", module, data, cfg.decoder.max_epochs)
 
 
 def init_backbone_from_teacher(model: torch.nn.Module, teacher: PoseRegressor, key: str) -> None:
@@ -374,8 +374,8 @@ def fit_rpr(
     decoder_ckpt: str | Path | None,
 ) -> tuple[Metrics, Path]:
     """Train the Siamese RPR on virtual references, then test virtual RPR (`test/vrpr/...`)."""
-    student_ckpt = _required(student_ckpt, "student_ckpt", "rpr")
-    decoder_ckpt = _required(decoder_ckpt, "decoder_ckpt", "rpr")
+    student_ckpt = required(student_ckpt, "student_ckpt", "rpr")
+    decoder_ckpt = required(decoder_ckpt, "decoder_ckpt", "rpr")
     teacher, pae, decoder = (
         load_teacher(student_ckpt),
         load_pae(student_ckpt),
@@ -383,7 +383,7 @@ def fit_rpr(
     )
     data = build_data(cfg)
     for path, loaded in ((student_ckpt, pae), (decoder_ckpt, decoder)):
-        _check_data(cfg, path, loaded, data)
+        check_data(cfg, path, loaded, data)
     module = RPRModule(
         relative_model(cfg, "rpr", teacher.model),
         teacher.model,
@@ -400,7 +400,7 @@ def fit_rpr(
         },
         **rpr_pairs(cfg),
     )
-    return _fit_and_test(cfg, step_dir, "rpr", module, data, cfg.rpr.max_epochs)
+    return fit_and_test(cfg, step_dir, "rpr", module, data, cfg.rpr.max_epochs)
 
 
 def evaluate_checkpoints(cfg: DictConfig, run_dir: Path) -> Metrics:
@@ -409,8 +409,8 @@ def evaluate_checkpoints(cfg: DictConfig, run_dir: Path) -> Metrics:
     teacher = load_teacher(teacher_path)
     pae = load_pae(cfg.student_ckpt)
     data = build_data(cfg, augment=False)
-    _check_data(cfg, teacher_path, teacher, data)
-    _check_data(cfg, cfg.student_ckpt, pae, data)
+    check_data(cfg, teacher_path, teacher, data)
+    check_data(cfg, cfg.student_ckpt, pae, data)
     if pae.model.latent_dim != teacher.model.latent_dim:
         raise CheckpointError(
             f"{cfg.student_ckpt}: PAE latent size {pae.model.latent_dim} does not match the "

@@ -13,12 +13,12 @@ from pae.lit.iapr import IAPRModule
 from pae.lit.rpr_image import ImageRPRModule
 from pae.pipeline import (
     Metrics,
-    _check_data,
-    _fit_and_test,
-    _required,
     build_data,
+    check_data,
+    fit_and_test,
     optimisation,
     relative_model,
+    required,
     rpr_pairs,
     stored_model_config,
 )
@@ -29,10 +29,10 @@ def fit_rpr_image(
 ) -> tuple[Metrics, Path]:
     """Train the Siamese RPR (the `rpr` group's model and training settings) on real
     train-image pairs, then test `rpr_image` and its audits (`test/rpr_image/...`)."""
-    teacher_ckpt = _required(teacher_ckpt, "teacher_ckpt", "rpr_image")
+    teacher_ckpt = required(teacher_ckpt, "teacher_ckpt", "rpr_image")
     teacher = load_teacher(teacher_ckpt)
     data = build_data(cfg)
-    _check_data(cfg, teacher_ckpt, teacher, data)
+    check_data(cfg, teacher_ckpt, teacher, data)
     module = ImageRPRModule(
         relative_model(cfg, "rpr", teacher.model),
         teacher.model,
@@ -45,7 +45,7 @@ def fit_rpr_image(
         },
         **rpr_pairs(cfg),
     )
-    return _fit_and_test(cfg, step_dir, "rpr_image", module, data, cfg.rpr.max_epochs)
+    return fit_and_test(cfg, step_dir, "rpr_image", module, data, cfg.rpr.max_epochs)
 
 
 def fit_iapr(
@@ -53,10 +53,10 @@ def fit_iapr(
 ) -> tuple[Metrics, Path]:
     """Train the iterative APR on a frozen PAE (and its teacher, from a student checkpoint),
     then test `iapr_1` .. `iapr_{iterations}` from the teacher's estimates."""
-    student_ckpt = _required(student_ckpt, "student_ckpt", "iapr")
+    student_ckpt = required(student_ckpt, "student_ckpt", "iapr")
     teacher, pae = load_teacher(student_ckpt), load_pae(student_ckpt)
     data = build_data(cfg)
-    _check_data(cfg, student_ckpt, pae, data)
+    check_data(cfg, student_ckpt, pae, data)
     settings = cfg.iapr
     module = IAPRModule(
         relative_model(cfg, "iapr", teacher.model),
@@ -75,4 +75,4 @@ def fit_iapr(
         iterations=settings.iterations,
         refine_orientation=settings.refine_orientation,
     )
-    return _fit_and_test(cfg, step_dir, "iapr", module, data, settings.max_epochs)
+    return fit_and_test(cfg, step_dir, "iapr", module, data, settings.max_epochs)

@@ -23,6 +23,8 @@ RESUMABLE_CHANGES = (
     "decoder.max_epochs",
     "rpr.max_epochs",
     "iapr.max_epochs",
+    "scene_model.max_epochs",
+    "render_compare.",
     "trainer.",
     "callbacks.",
     "logger.",

@@ -39,6 +39,8 @@ METHOD_ORDER = (
     "guess_refined_test_store",
     "rpr_image_test_store",
     "rpr_reference_test_store",
+    "render_compare",
+    "render_compare_oracle",
     "mean_pose",
 )
 """Row order of the results tables; other methods (refinement alternatives) follow
@@ -46,6 +48,15 @@ METHOD_ORDER = (
 TEST_STORE_SUFFIX = "_test_store"
 """Methods whose name ends so read the evaluated split's labels (they retrieve among its own
 poses, or by its true poses): audits."""
+ORACLE_SUFFIX = "_oracle"
+"""Methods whose name ends so know what no method may (the true scene): bounds."""
+
+
+def marked(method: str) -> str:
+    """A table row's label: ``*`` after audits, ``†`` after bounds."""
+    if method.endswith(TEST_STORE_SUFFIX):
+        return f"{method} *"
+    return f"{method} †" if method.endswith(ORACLE_SUFFIX) else method
 
 
 def table_methods(metrics: Mapping[str, float], split: str = "test") -> list[str]:
@@ -112,12 +123,16 @@ def format_results_table(metrics: Mapping[str, float], split: str = "test") -> s
             prefix = f"{split}/{method}/" if column == "overall" else f"{split}/{method}/{column}/"
             pos, rot = metrics.get(prefix + "pos_median_m"), metrics.get(prefix + "rot_median_deg")
             cells.append("-" if pos is None else f"{pos:.3f} / {rot:.2f}")
-        label = f"{method} *" if method.endswith(TEST_STORE_SUFFIX) else method
-        lines.append(f"{label:<{width}}" + "".join(f"{c:>18}" for c in cells))
+        lines.append(f"{marked(method):<{width}}" + "".join(f"{c:>18}" for c in cells))
     if any(m.endswith(TEST_STORE_SUFFIX) for m in methods):
         lines.append(
             f"* uses {split} labels: retrieves among the {split} split's own poses (as the "
             "authors' public scripts do) or by the true pose: an audit, not a result"
+        )
+    if any(m.endswith(ORACLE_SUFFIX) for m in methods):
+        lines.append(
+            "† renders the true scene (the synthetic benchmark's own renderer): a bound, "
+            "not a method"
         )
     accuracy = metrics.get(f"{split}/teacher/scene_accuracy")
     if accuracy is not None:
@@ -309,7 +324,7 @@ def compare_table(runs: Sequence[Path], names: Sequence[str], split: str = "test
                 "" if not baseline or method in WITHOUT_CHANGE else f" ({pos / baseline - 1:+.1%})"
             )
             cells.append(f"{pos:.3f} / {rot:.2f}{change}")
-        label = f"{method} *" if method.endswith(TEST_STORE_SUFFIX) else method
+        label = marked(method)
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     for key, label in (
         ("gt_to_train_m", "test camera → nearest train camera [m]"),

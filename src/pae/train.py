@@ -27,6 +27,7 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
 
     from pae.pipeline import fit_decoder, fit_rpr, fit_student, fit_teacher
     from pae.pipeline_relative import fit_iapr, fit_rpr_image
+    from pae.pipeline_scene import fit_scene_model
 
     apply_renamed_keys(cfg, "pae-train")
     validate_train_config(cfg)
@@ -46,6 +47,8 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
             step_metrics, _ = fit_rpr_image(cfg, step_dir, ckpt["teacher"])
         elif step == "iapr":
             step_metrics, _ = fit_iapr(cfg, step_dir, ckpt["student"])
+        elif step == "scene_model":
+            step_metrics, _ = fit_scene_model(cfg, step_dir, ckpt)
         else:
             step_metrics, _ = fit_rpr(cfg, step_dir, ckpt["student"], ckpt["decoder"])
         metrics |= step_metrics

@@ -27,9 +27,9 @@ RENAMED_KEYS = {"pae_ckpt": "student_ckpt"}
 deprecation warning."""
 _WARNED: set[str] = set()
 
-STEPS = ("teacher", "student", "decoder", "rpr", "rpr_image", "iapr")
+STEPS = ("teacher", "student", "decoder", "rpr", "rpr_image", "iapr", "scene_model")
 """The steps of pae-train."""
-GROUPS = ("teacher", "student", "decoder", "rpr", "iapr")
+GROUPS = ("teacher", "student", "decoder", "rpr", "iapr", "scene_model")
 """The config groups of the steps (max_epochs, optimizer, ...); rpr_image trains with rpr's."""
 NEEDS = {
     "student": (("teacher_ckpt", "teacher"),),
@@ -37,6 +37,7 @@ NEEDS = {
     "rpr": (("student_ckpt", "student"), ("decoder_ckpt", "decoder")),
     "rpr_image": (("teacher_ckpt", "teacher"),),
     "iapr": (("student_ckpt", "student"),),
+    "scene_model": (("teacher_ckpt", "teacher"),),
 }
 """Per step: the checkpoint keys it needs unless an earlier step of the run produces them."""
 
@@ -225,11 +226,40 @@ def validate_train_config(cfg: DictConfig) -> None:
     _file(cfg, "backbone.weights_path")
     for key in ("teacher_ckpt", "student_ckpt", "decoder_ckpt"):
         _file(cfg, key)
+    _validate_scene_model(cfg)
     for index, step in enumerate(steps):
         for key, producer in NEEDS.get(step, ()):
             if _value(cfg, key) is None and producer not in steps[:index]:
                 raise ConfigError(f"stage={cfg.stage.name} needs {key}=PATH")
     validate_data(cfg, train=True)
+
+
+def _validate_scene_model(cfg: DictConfig) -> None:
+    """scene_model.* and render_compare.refiner.*: ranges; names and options are checked
+    when the step builds them."""
+    if _value(cfg, "scene_model") is None:
+        return
+    _choice(cfg, "scene_model.name", ("voxel_grid", "pae_decoder", "oracle"))
+    for key in ("batches_per_epoch", "rays_per_batch", "quality_size", "quality_images"):
+        _integer(cfg, f"scene_model.{key}", 1)
+    _integer(cfg, "scene_model.model.num_voxels", 8)
+    _integer(cfg, "scene_model.model.samples_per_ray", 1)
+    _number(cfg, "scene_model.tv_weight", 0, strict=False)
+    _boolean(cfg, "scene_model.model.contract")
+    margin = _value(cfg, "scene_model.model.margin_m")
+    values = list(margin) if isinstance(margin, ListConfig) else [margin]
+    if len(values) not in (1, 3) or not all(
+        (_is_int(v) or isinstance(v, float)) and v >= 0 for v in values
+    ):
+        raise ConfigError(
+            f"scene_model.model.margin_m must be one number >= 0 or three, got {margin!r}"
+        )
+    if _value(cfg, "render_compare") is not None:
+        for key in ("rounds", "gradient_steps", "refresh_every"):
+            _integer(cfg, f"render_compare.refiner.{key}", 0)
+        for key in ("candidates", "resolution", "reference_size", "chunk"):
+            _integer(cfg, f"render_compare.refiner.{key}", 1)
+        _choice(cfg, "render_compare.refiner.score", ("zncc", "features"))
 
 
 def validate_eval_config(cfg: DictConfig) -> None:

@@ -12,10 +12,11 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, WeightedRandomSampler
 
+from pae.data.camera import Intrinsics, resized_size
 from pae.data.dataset import PoseDataset, collate_batch
 from pae.data.labels import LabelTable, read_labels
 from pae.data.transforms import ImageTransform
-from pae.errors import LabelError
+from pae.errors import ConfigError, LabelError
 
 
 class PoseDataModule(L.LightningDataModule):
@@ -26,7 +27,10 @@ class PoseDataModule(L.LightningDataModule):
     for training batches only when `augment` is true; evaluation uses the centre crop.
     `balance_scenes` samples scenes equally often in multi-scene training.
     `pose_loss_init` records the initial s_x, s_q of the learned pose loss that suit the
-    dataset's error scale (the configs of the pose losses read it). `scenes` keeps only
+    dataset's error scale (the configs of the pose losses read it). `camera` gives the
+    intrinsics of the images as stored (`fx, fy, cx, cy` in px, `width`, `height`; see
+    pae.data.camera), which `intrinsics` carries through the loaders' resize and crop; None
+    where unknown (render-and-compare then cannot run). `scenes` keeps only
     those scenes of the label files (None: all). With `cache_images`, setup decodes the
     val/test images (a bad image fails the run before training) and the train images are
     decoded when first loaded: a student whose teacher latents are cached never reads them.
@@ -49,8 +53,11 @@ class PoseDataModule(L.LightningDataModule):
         balance_scenes: bool = False,
         pose_loss_init: dict[str, float] | None = None,
         scenes: list[str] | None = None,
+        camera: dict[str, float] | None = None,
     ) -> None:
         super().__init__()
+        self.camera = Intrinsics(**camera) if camera else None
+        self.crop = crop
         self.root = Path(root)
         self.label_paths = {"train": train_labels, "val": val_labels or test_labels}
         self.label_paths["test"] = test_labels
@@ -117,6 +124,42 @@ class PoseDataModule(L.LightningDataModule):
         """The train poses [N, 7] and scene ids [N] (the store for pose retrieval)."""
         dataset = self.datasets["train"]
         return dataset.poses, dataset.scenes
+
+    def intrinsics(self, split: str, crop: bool = True) -> Tensor:
+        """Intrinsics [N, 4] (fx, fy, cx, cy in px) of the split's images as the networks see
+        them (resized, centre-cropped; ``crop=False``: resized only, as the dataset holds
+        them). ConfigError when the data has no camera."""
+        if self.camera is None:
+            raise ConfigError(
+                "data.camera is not set: render-and-compare needs the camera's intrinsics "
+                "(fx, fy, cx, cy, width, height of the images as stored)"
+            )
+        dataset = self.datasets[split]
+        height, width = dataset.image_size or (self.camera.height, self.camera.width)
+        camera = (
+            self.camera.resized(width, height)
+            if (width, height)
+            != (
+                self.camera.width,
+                self.camera.height,
+            )
+            else self.camera
+        )
+        camera = (
+            camera.preprocessed(self.shorter_edge, self.crop)
+            if crop
+            else camera.resized(*resized_size(width, height, self.shorter_edge))
+        )
+        return torch.tensor(camera.vector(), dtype=torch.float32).expand(len(dataset), 4)
+
+    def appearance_ids(self, split: str = "train") -> tuple[Tensor, int]:
+        """Index [N] of each row's (scene, sequence) among the split's, and their count:
+        what a scene model's per-sequence appearance is keyed on."""
+        table = self.tables[split]
+        keys = [f"{scene}/{seq}" for scene, seq in zip(table.scene, table.seq, strict=True)]
+        names = sorted(set(keys))
+        index = {key: i for i, key in enumerate(names)}
+        return torch.tensor([index[key] for key in keys], dtype=torch.long), len(names)
 
     def fingerprint(self) -> dict[str, Any]:
         """What identifies the training data: its scene names and a SHA-256 of its train poses

@@ -70,6 +70,7 @@ __all__ = [
     "render_frames",
     "room_textures",
     "scene_name",
+    "shade_rays",
     "world_to_camera",
     "write_label_files",
     "write_synthetic_dataset",
@@ -713,9 +714,10 @@ def _cast(
 
 def _shade(
     scene: SyntheticScene, origins: np.ndarray, directions: np.ndarray, ambient: float
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """Linear colours ``[B, R, 3]`` float32 of rays (origins ``[3, B, 1]``, directions
-    ``[3, B, R]``): bilinearly sampled texture × (ambient + point light)."""
+    ``[3, B, R]``): bilinearly sampled texture × (ambient + point light), and the distance
+    ``[B, R]`` to the hit along each direction (in units of its length)."""
     tables = scene._tables
     face, t = _cast(scene, origins, directions)
     x, y, z = (origins[k] + t * directions[k] for k in range(3))
@@ -744,7 +746,19 @@ def _shade(
     )
     cosine = along_normal * tables.normal_sign[face] / np.sqrt(distance_sq)
     direct = np.maximum(cosine, 0.0) * 2.2 / (1.0 + distance_sq / (6.0 * scene.scale**2))
-    return colour * (ambient + (1.0 - ambient) * direct)[..., None]
+    return colour * (ambient + (1.0 - ambient) * direct)[..., None], t
+
+
+def shade_rays(
+    scene: SyntheticScene, origins: np.ndarray, directions: np.ndarray, ambient: float = 0.45
+) -> tuple[np.ndarray, np.ndarray]:
+    """Exact colours and hit distances of rays from origins ``[N, 3]`` (inside the room)
+    along directions ``[N, 3]``: linear RGB ``[N, 3]`` float32 (no camera response) and the
+    distance ``[N]`` to the first hit in units of each direction's length."""
+    origins = np.asarray(origins, dtype=np.float32).T[:, :, None]
+    directions = np.asarray(directions, dtype=np.float32).T[:, :, None]
+    colour, t = _shade(scene, origins, directions, ambient)
+    return colour[:, 0], t[:, 0]
 
 
 def render_batch(
@@ -771,7 +785,7 @@ def render_batch(
         stop = min(start + frames_per_chunk, len(poses))
         directions = np.einsum("bij,nj->ibn", rotations[start:stop], local).astype(np.float32)
         origins = positions[start:stop].T[:, :, None].astype(np.float32)
-        colour = _shade(scene, origins, directions, appearance.ambient)
+        colour, _ = _shade(scene, origins, directions, appearance.ambient)
         colour = colour.reshape(stop - start, supersample * supersample, size, size, 3).mean(1)
         colour = np.clip(colour * tint + np.float32(appearance.bias), 0.0, 1.0)
         colour **= np.float32(appearance.gamma)

@@ -89,6 +89,10 @@ class SyntheticDataModule(PoseDataModule):
                 stray_m,
             )
         labels = Path(root) / "labels"
+        if kwargs.get("camera") is None:
+            camera = synthetic.PinholeCamera(size)
+            f, c = camera.focal_px, camera.principal_point
+            kwargs["camera"] = {"fx": f, "fy": f, "cx": c, "cy": c, "width": size, "height": size}
         super().__init__(
             root=root,
             train_labels=str(labels / "all_train.csv"),
@@ -133,3 +137,23 @@ class SyntheticDataModule(PoseDataModule):
     def setup(self, stage: str | None = None) -> None:
         self.prepare_data()
         super().setup(stage)
+
+    def oracle_scenes(self) -> list[synthetic.SyntheticScene]:
+        """The true scenes the images were rendered from, in ``scene_names`` order: what the
+        ``oracle`` scene model renders (a bound that knows the scene, not a method)."""
+        seed = self.render_args["seed"]
+        if self.poses:
+            from pae.data.labels import LabelTable, read_labels
+            from pae.data.synthetic_poses import scenes_at_poses
+
+            table = LabelTable.concat(read_labels(path) for path in self.poses)
+            worlds = dict(zip(table.scene_names, scenes_at_poses(table, seed), strict=True))
+        else:
+            args = self.render_args
+            worlds = {
+                synthetic.scene_name(i): synthetic.make_scene(
+                    i, seed, args["test_offset_m"], args["train_lane_m"]
+                )
+                for i in range(args["scenes"])
+            }
+        return [worlds[name] for name in self.scene_names]

@@ -119,6 +119,16 @@ def write_dataset_at_poses(
     return write_whole(out, overwrite, lambda folder: _render_rows(folder, table, size, seed))
 
 
+def scenes_at_poses(table: LabelTable, seed: int = 0) -> list[SyntheticScene]:
+    """The worlds :func:`write_dataset_at_poses` renders ``table``'s rows in, one per scene
+    (sorted names), each built around all of that scene's camera positions."""
+    scene_column = np.asarray(table.scene)
+    return [
+        make_scene_around(name, index, table.poses[scene_column == name, :3], seed)
+        for index, name in enumerate(table.scene_names)
+    ]
+
+
 def _render_rows(out: Path, table: LabelTable, size: int, seed: int) -> SyntheticSummary:
     """Render every row of ``table`` into ``out`` (see :func:`write_dataset_at_poses`)."""
     started = time.perf_counter()
@@ -126,9 +136,10 @@ def _render_rows(out: Path, table: LabelTable, size: int, seed: int) -> Syntheti
     scene_column = np.asarray(table.scene)
     tables: dict[tuple[str, str], LabelTable] = {}
     img_path = list(table.img_path)
+    worlds = scenes_at_poses(table, seed)
     for index, name in enumerate(table.scene_names):
         rows = np.flatnonzero(scene_column == name)
-        scene = make_scene_around(name, index, table.poses[rows, :3], seed)
+        scene = worlds[index]
         sequences: dict[tuple[str, str], list[int]] = {}
         for row in rows.tolist():
             sequences.setdefault((table.split[row], table.seq[row]), []).append(row)

@@ -1,0 +1,108 @@
+"""Pinhole camera intrinsics, kept consistent through every resize and crop of the images.
+
+Convention (OpenCV's, and the synthetic benchmark's): the centre of pixel ``(u, v)`` (column,
+row) lies at integer coordinates ``(u, v)``; the camera frame has ``x`` right, ``y`` down and
+looks along ``+z``. Resizing by ``s`` maps ``u -> (u + 0.5)·s - 0.5`` (what OpenCV's resize
+and ``F.interpolate`` do), so ``fx -> fx·s`` and ``cx -> (cx + 0.5)·s - 0.5``; cropping at
+``(left, top)`` moves the principal point by ``-(left, top)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+from torch import Tensor
+
+
+def resized_size(width: int, height: int, shorter_edge: int) -> tuple[int, int]:
+    """(width, height) in px after scaling the shorter edge to ``shorter_edge`` px (the
+    loaders' rounding)."""
+    scale = shorter_edge / min(width, height)
+    if scale == 1.0:
+        return width, height
+    return max(shorter_edge, round(width * scale)), max(shorter_edge, round(height * scale))
+
+
+def centre_crop_origin(width: int, height: int, crop: int) -> tuple[int, int]:
+    """(left, top) in px of the centre ``crop × crop`` window (the evaluation crop)."""
+    return (width - crop) // 2, (height - crop) // 2
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Focal lengths ``fx, fy`` and principal point ``cx, cy`` in px of ``width × height``
+    images (``fx``, ``fy`` may be per image: then ``focal`` rows override them)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def resized(self, width: int, height: int) -> Intrinsics:
+        """The same camera for images resized to ``width × height`` px."""
+        sx, sy = width / self.width, height / self.height
+        return Intrinsics(
+            self.fx * sx,
+            self.fy * sy,
+            (self.cx + 0.5) * sx - 0.5,
+            (self.cy + 0.5) * sy - 0.5,
+            width,
+            height,
+        )
+
+    def cropped(self, left: int, top: int, width: int, height: int) -> Intrinsics:
+        """The same camera for the ``width × height`` window at ``(left, top)``."""
+        return replace(self, cx=self.cx - left, cy=self.cy - top, width=width, height=height)
+
+    def preprocessed(self, shorter_edge: int, crop: int) -> Intrinsics:
+        """After the loaders' resize (shorter edge -> ``shorter_edge``) and the evaluation
+        centre crop (``crop × crop``)."""
+        width, height = resized_size(self.width, self.height, shorter_edge)
+        resized = self.resized(width, height)
+        left, top = centre_crop_origin(width, height, crop)
+        return resized.cropped(left, top, crop, crop)
+
+    def with_focal(self, focal_px: float) -> Intrinsics:
+        """The same camera with ``fx = fy = focal_px``."""
+        return replace(self, fx=float(focal_px), fy=float(focal_px))
+
+    def vector(self) -> list[float]:
+        """``[fx, fy, cx, cy]``."""
+        return [self.fx, self.fy, self.cx, self.cy]
+
+    def matrix(self) -> np.ndarray:
+        """Calibration matrix ``K`` ``[3, 3]`` float64."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+
+def scale_intrinsics(vectors: Tensor, scale_x: float, scale_y: float) -> Tensor:
+    """Intrinsics ``[..., 4]`` (fx, fy, cx, cy) for images resized by ``scale_x, scale_y``."""
+    fx, fy, cx, cy = vectors.unbind(-1)
+    return torch.stack(
+        [fx * scale_x, fy * scale_y, (cx + 0.5) * scale_x - 0.5, (cy + 0.5) * scale_y - 0.5], -1
+    )
+
+
+def project(points_camera: Tensor, intrinsics: Tensor) -> Tensor:
+    """Pixel coordinates ``[..., 2]`` (u, v) of camera-frame points ``[..., 3]``;
+    ``intrinsics`` ``[..., 4]`` broadcasts against the points' leading dimensions."""
+    fx, fy, cx, cy = intrinsics.unbind(-1)
+    z = points_camera[..., 2].clamp_min(1e-6)
+    u = fx * points_camera[..., 0] / z + cx
+    v = fy * points_camera[..., 1] / z + cy
+    return torch.stack([u, v], -1)
+
+
+def pixel_directions(intrinsics: Tensor, width: int, height: int) -> Tensor:
+    """Camera-frame ray directions ``[B, height, width, 3]`` (``z = 1``) through the pixel
+    centres of ``B`` cameras with intrinsics ``[B, 4]``."""
+    fx, fy, cx, cy = (v[:, None, None] for v in intrinsics.unbind(-1))
+    u = torch.arange(width, dtype=intrinsics.dtype, device=intrinsics.device)[None, None, :]
+    v = torch.arange(height, dtype=intrinsics.dtype, device=intrinsics.device)[None, :, None]
+    x = ((u - cx) / fx).expand(-1, height, width)
+    y = ((v - cy) / fy).expand(-1, height, width)
+    return torch.stack([x, y, torch.ones_like(x)], -1)

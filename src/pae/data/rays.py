@@ -1,0 +1,131 @@
+"""Training batches of camera rays for scene models: random pixels of the train images."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor
+from torch.utils.data import DataLoader, IterableDataset
+
+from pae.data.datamodule import PoseDataModule
+from pae.geometry import quaternion_to_matrix
+
+
+class RayBatches(IterableDataset):
+    """``batches`` batches of ``rays_per_batch`` random pixels of the train images, each
+    ``{"origins": [R, 3], "directions": [R, 3] (camera z = 1), "rgb": [R, 3] in [0, 1],
+    "scene": [R], "appearance": [R]}`` (drawn from torch's global generator, so seeded runs
+    repeat).
+
+    images: uint8 [N, 3, H, W] as the dataset holds them; poses [N, 7]; intrinsics [N, 4] of
+    those images; scenes, appearance: ids [N].
+    """
+
+    def __init__(
+        self,
+        images: Tensor,
+        poses: Tensor,
+        intrinsics: Tensor,
+        scenes: Tensor,
+        appearance: Tensor,
+        rays_per_batch: int,
+        batches: int,
+    ) -> None:
+        super().__init__()
+        self.images = images
+        self.rotations = quaternion_to_matrix(poses[:, 3:].double()).float()
+        self.positions = poses[:, :3].float()
+        self.intrinsics = intrinsics.float()
+        self.scenes = scenes
+        self.appearance = appearance
+        self.rays_per_batch = rays_per_batch
+        self.batches = batches
+
+    def __len__(self) -> int:
+        return self.batches
+
+    def batch(self) -> dict[str, Tensor]:
+        """One random batch of rays."""
+        n, _, h, w = self.images.shape
+        r = self.rays_per_batch
+        row = torch.randint(n, (r,))
+        v, u = torch.randint(h, (r,)), torch.randint(w, (r,))
+        fx, fy, cx, cy = self.intrinsics[row].unbind(-1)
+        local = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones(r)], -1)
+        return {
+            "origins": self.positions[row],
+            "directions": torch.einsum("rij,rj->ri", self.rotations[row], local),
+            "rgb": self.images[row, :, v, u].float() / 255.0,
+            "scene": self.scenes[row],
+            "appearance": self.appearance[row],
+        }
+
+    def __iter__(self) -> Iterator[dict[str, Tensor]]:
+        for _ in range(self.batches):
+            yield self.batch()
+
+
+class RayDataModule(L.LightningDataModule):
+    """Training batches of train-image rays (:class:`RayBatches`); validation and test
+    batches are the wrapped PoseDataModule's images (queries for render-and-compare)."""
+
+    def __init__(self, images: PoseDataModule, rays_per_batch: int, batches_per_epoch: int) -> None:
+        super().__init__()
+        self.images = images
+        self.rays_per_batch = rays_per_batch
+        self.batches_per_epoch = batches_per_epoch
+
+    def setup(self, stage: str | None = None) -> None:
+        self.images.setup(stage)
+
+    @property
+    def scene_names(self) -> list[str]:
+        return self.images.scene_names
+
+    @property
+    def n_scenes(self) -> int:
+        return self.images.n_scenes
+
+    @property
+    def datasets(self) -> dict[str, Any]:
+        return self.images.datasets
+
+    def intrinsics(self, split: str, crop: bool = True) -> Tensor:
+        return self.images.intrinsics(split, crop)
+
+    def preprocess(self, images: Tensor, train: bool) -> Tensor:
+        return self.images.preprocess(images, train)
+
+    def train_poses(self) -> tuple[Tensor, Tensor]:
+        return self.images.train_poses()
+
+    def fingerprint(self) -> dict[str, Any]:
+        return self.images.fingerprint()
+
+    def train_dataloader(self) -> DataLoader:
+        dataset = self.images.datasets["train"]
+        appearance, _ = self.images.appearance_ids("train")
+        rays = RayBatches(
+            dataset.__getitems__(list(range(len(dataset))))["image"],
+            dataset.poses,
+            self.images.intrinsics("train", crop=False),
+            dataset.scenes,
+            appearance,
+            self.rays_per_batch,
+            self.batches_per_epoch,
+        )
+        return DataLoader(rays, batch_size=None)
+
+    def val_dataloader(self) -> DataLoader:
+        return self.images.val_dataloader()
+
+    def test_dataloader(self) -> DataLoader:
+        return self.images.test_dataloader()
+
+    def on_after_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
+        if isinstance(batch, dict) and batch.get("image") is not None:
+            batch = {**batch, "image": self.images.preprocess(batch["image"], train=False)}
+        return batch

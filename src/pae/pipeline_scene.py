@@ -1,0 +1,115 @@
+"""The scene-model step: fit a scene model from the train images, poses and intrinsics, then
+test render-and-compare refinement of a frozen teacher (`test/render_compare/...`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from pae.checkpoints import load_decoder, load_pae, load_teacher
+from pae.data.rays import RayDataModule
+from pae.errors import ConfigError
+from pae.lit.scene_model import SceneModelModule
+from pae.models.scene_model import PaeDecoderSceneModel, SceneModel
+from pae.models.voxel_grid import camera_bounds
+from pae.pipeline import (
+    Metrics,
+    build_data,
+    build_trainer,
+    check_data,
+    collect_metrics,
+    fit_and_test,
+    log_hparams,
+    optimisation,
+    required,
+)
+
+SCENE_MODELS = ("voxel_grid", "pae_decoder", "oracle")
+
+
+def train_bounds(data: Any, margin_m: Any) -> list[list[list[float]]]:
+    """Per scene: the train camera positions' bounds [2, 3] plus ``margin_m`` (never the
+    scene's geometry)."""
+    poses, scenes = data.train_poses()
+    return [camera_bounds(poses[scenes == s, :3], margin_m).tolist() for s in range(data.n_scenes)]
+
+
+def render_compare_callback(cfg: DictConfig) -> Any:
+    """The callback of the `render_compare` group (refiner settings checked on creation)."""
+    try:
+        return instantiate(cfg.render_compare, _convert_="all")
+    except Exception as err:  # an unknown or bad refiner option: one line
+        message = " ".join(str(err).split())
+        raise ConfigError(f"render_compare: {message[:300]}") from None
+
+
+def build_scene_model(
+    cfg: DictConfig, data: Any, ckpt: dict[str, str | Path | None]
+) -> tuple[SceneModel, dict[str, Any]]:
+    """The configured scene model and the config a checkpoint stores to rebuild it."""
+    settings = cfg.scene_model
+    name = settings.name
+    if name == "voxel_grid":
+        _, count = data.appearance_ids("train")
+        config = OmegaConf.to_container(settings.model, resolve=True)
+        config["bounds"] = train_bounds(data, config.pop("margin_m"))
+        config["n_appearances"] = count
+        return instantiate(config), {"scene_model_config": config}
+    if name == "pae_decoder":
+        student = required(ckpt["student"], "student_ckpt", "scene_model=pae_decoder")
+        decoder_path = required(ckpt["decoder"], "decoder_ckpt", "scene_model=pae_decoder")
+        pae, decoder = load_pae(student), load_decoder(decoder_path)
+        for path, loaded in ((student, pae), (decoder_path, decoder)):
+            check_data(cfg, path, loaded, data)
+        return PaeDecoderSceneModel(pae.model, decoder.model), {}
+    if name == "oracle":
+        from pae.callbacks.render_compare import oracle_scenes
+        from pae.models.oracle_scene import OracleSceneModel
+
+        scenes = oracle_scenes(data)
+        if scenes is None:
+            raise ConfigError(
+                "scene_model=oracle renders the synthetic benchmark's true scenes; this data "
+                "has none (use scene_model=voxel_grid)"
+            )
+        return OracleSceneModel(scenes), {}
+    raise ConfigError(f"unknown scene_model.name {name!r}; choose one of {list(SCENE_MODELS)}")
+
+
+def fit_scene_model(
+    cfg: DictConfig, step_dir: Path, ckpt: dict[str, str | Path | None]
+) -> tuple[Metrics, Path | None]:
+    """Fit the configured scene model (voxel_grid; pae_decoder and oracle have nothing to
+    fit), then test render-and-compare from the teacher's estimates -> (metrics, the last
+    checkpoint or None)."""
+    teacher_path = required(ckpt["teacher"], "teacher_ckpt", "render_compare")
+    teacher = load_teacher(teacher_path)
+    images = build_data(cfg, augment=False)
+    check_data(cfg, teacher_path, teacher, images)
+    scene_model, configs = build_scene_model(cfg, images, ckpt)
+    settings = cfg.scene_model
+    data = RayDataModule(images, settings.rays_per_batch, settings.batches_per_epoch)
+    module = SceneModelModule(
+        scene_model,
+        teacher.model,
+        **optimisation(settings),
+        scene_names=images.scene_names,
+        configs={"teacher_config": teacher.config, **configs},
+        tv_weight=settings.tv_weight,
+        quality_size=settings.quality_size,
+        quality_images=settings.quality_images,
+    )
+    callbacks = [render_compare_callback(cfg)]
+    if any(p.requires_grad for p in scene_model.parameters()) and settings.max_epochs > 0:
+        metrics, last = fit_and_test(
+            cfg, step_dir, "scene_model", module, data, settings.max_epochs, callbacks
+        )
+        return metrics | collect_metrics(module.trainer, ("bench/render_compare",)), last
+    trainer = build_trainer(cfg, step_dir, 0, callbacks)
+    trainer.test(module, datamodule=data, verbose=False)
+    metrics = collect_metrics(trainer, ("test/", "bench/"))
+    log_hparams(trainer, cfg, metrics)
+    return metrics, None

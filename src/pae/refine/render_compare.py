@@ -1,0 +1,381 @@
+"""Render-and-compare pose refinement against a scene model learned from the train images.
+
+Starting from the teacher's estimate, a sampling search moves each query's pose (position
+and orientation): every round draws ``candidates`` 6-DoF perturbations around the best pose
+so far, scores them by how well the scene model rendered there matches the query image, keeps
+the best and shrinks the steps of queries that found nothing better. Optional gradient steps
+then polish the pose through the differentiable projection.
+
+Scores are appearance-invariant: the zero-mean normalised cross-correlation (ZNCC) of blurred
+grey images, or (``score="features"``) the mean cosine similarity of feature maps of a
+given extractor (the teacher's backbone). A model with depth is rendered once per query (at
+the best pose, with a wider field of view) and its surface points are projected into each
+candidate camera; a model without depth renders every candidate's image.
+
+Every query of a call is refined at once, in chunks of ``chunk`` queries: no Python loop runs
+per query. The random draws come from one generator in query order (``draws``), so a query's
+result does not depend on the batch it is refined in.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from pae.data.camera import project, scale_intrinsics
+from pae.geometry import (
+    canonicalize_quaternion,
+    normalize_quaternion,
+    quaternion_multiply,
+    quaternion_to_matrix,
+)
+from pae.models.scene_model import SceneModel, camera_rays
+from pae.refine.render_score import compiled_zncc_scores
+
+SCORES = ("zncc", "features")
+ENGINES = ("auto", "compiled", "torch")
+"""auto: the compiled ZNCC scorer for CPU tensors (``pae.refine.render_score``), tensor
+operations otherwise; compiled: always (ZNCC only); torch: always tensor operations."""
+FeatureExtractor = Callable[[Tensor], Tensor]
+"""RGB images [B, 3, H, W] in [0, 1] -> feature maps [B, C, h, w]."""
+
+
+class RenderCompareResult(NamedTuple):
+    """poses [B, 7] refined; score [B] of the refined pose; initial_score [B] of the start."""
+
+    poses: Tensor
+    score: Tensor
+    initial_score: Tensor
+
+
+def grey(images: Tensor) -> Tensor:
+    """RGB [B, 3, H, W] -> luma [B, 1, H, W] (ITU-R 601)."""
+    weights = images.new_tensor([0.299, 0.587, 0.114]).view(1, 3, 1, 1)
+    return (images * weights).sum(1, keepdim=True)
+
+
+def gaussian_blur(images: Tensor, sigma_px: float) -> Tensor:
+    """Separable Gaussian blur of [B, C, H, W] (σ in px; 0: unchanged), edges replicated."""
+    if sigma_px <= 0:
+        return images
+    radius = max(1, math.ceil(3 * sigma_px))
+    x = torch.arange(-radius, radius + 1, dtype=images.dtype, device=images.device)
+    kernel = torch.exp(-0.5 * (x / sigma_px) ** 2)
+    kernel = kernel / kernel.sum()
+    c = images.shape[1]
+    padded = F.pad(images, (radius, radius, radius, radius), mode="replicate")
+    rows = F.conv2d(padded, kernel.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
+    return F.conv2d(rows, kernel.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+
+
+def zncc(a: Tensor, b: Tensor, weights: Tensor) -> Tensor:
+    """Weighted zero-mean normalised cross-correlation over the last dimension of a, b
+    [..., P] with weights [..., P] >= 0 -> [...] in [-1, 1] (0 where a side is flat)."""
+    total = weights.sum(-1, keepdim=True).clamp_min(1e-9)
+    a = a - (weights * a).sum(-1, keepdim=True) / total
+    b = b - (weights * b).sum(-1, keepdim=True) / total
+    cov = (weights * a * b).sum(-1)
+    var = (weights * a * a).sum(-1) * (weights * b * b).sum(-1)
+    return cov / var.clamp_min(1e-12).sqrt()
+
+
+def rotation_vector_to_quaternion(vector: Tensor) -> Tensor:
+    """Axis-angle vectors [..., 3] (rad) -> unit quaternions [..., 4] (w first)."""
+    angle = vector.norm(dim=-1, keepdim=True)
+    half = angle / 2
+    scale = torch.where(angle > 1e-9, torch.sin(half) / angle.clamp_min(1e-9), 0.5 - angle**2 / 48)
+    return torch.cat([torch.cos(half), vector * scale], -1)
+
+
+def perturb(poses: Tensor, steps: Tensor) -> Tensor:
+    """Poses [..., 7] moved by steps [..., 6]: a world-frame translation (m) and a rotation
+    vector (rad) in the camera frame (``R' = R · exp(ω)``)."""
+    position = poses[..., :3] + steps[..., :3]
+    q = quaternion_multiply(poses[..., 3:], rotation_vector_to_quaternion(steps[..., 3:]))
+    return torch.cat([position, canonicalize_quaternion(normalize_quaternion(q))], -1)
+
+
+class _Queries(NamedTuple):
+    """One chunk of queries prepared for scoring."""
+
+    target: Tensor  # [B, C, h, w] blurred grey query (or its feature maps)
+    intrinsics: Tensor  # [B, 4] of the compare resolution
+    scenes: Tensor  # [B]
+
+
+class _Surface(NamedTuple):
+    """A model's surface seen from the reference cameras of a chunk."""
+
+    points: Tensor  # [B, P, 3] world
+    values: Tensor  # [B, C, P] grey (or features) of the rendering at those points
+    valid: Tensor  # [B, P] float: the model explains that pixel
+
+
+class RenderCompareRefiner:
+    """Render-and-compare refinement of APR estimates against ``scene_model``.
+
+    rounds, candidates: the sampling search (candidate 0 of every round is the best pose so
+    far); position_sigma_m, orientation_sigma_deg: the first round's step sizes (standard
+    deviations per axis); shrink: the factor on a query's steps after a round without
+    improvement; resolution: the compare images' width in px; blur_sigma_px: at that width;
+    reference_size, reference_fov_scale: the reference rendering's width in px and its field
+    of view relative to the query's; refresh_every: rounds between reference renderings at
+    the current best pose (0: one rendering, at the start); min_overlap: the share of
+    reference points a candidate must see, else it scores -2; gradient_steps, gradient_lr:
+    Adam steps on the pose after the search (translation in m, rotation in rad); score:
+    ``zncc`` or ``features`` (needs ``features``); chunk: queries scored at once; engine: see
+    ``ENGINES``.
+    """
+
+    def __init__(
+        self,
+        scene_model: SceneModel,
+        rounds: int = 14,
+        candidates: int = 32,
+        position_sigma_m: float = 0.25,
+        orientation_sigma_deg: float = 4.0,
+        shrink: float = 0.6,
+        resolution: int = 32,
+        blur_sigma_px: float = 1.0,
+        reference_size: int = 32,
+        reference_fov_scale: float = 1.3,
+        refresh_every: int = 0,
+        min_overlap: float = 0.4,
+        gradient_steps: int = 0,
+        gradient_lr: float = 0.01,
+        score: str = "zncc",
+        features: FeatureExtractor | None = None,
+        seed: int = 0,
+        chunk: int = 64,
+        engine: str = "auto",
+    ) -> None:
+        if score not in SCORES:
+            raise ValueError(f"unknown render_compare.score {score!r}; choose one of {SCORES}")
+        if engine not in ENGINES:
+            raise ValueError(f"unknown render_compare.engine {engine!r}; choose one of {ENGINES}")
+        if engine == "compiled" and score != "zncc":
+            raise ValueError("render_compare.engine=compiled scores zncc only; use auto or torch")
+        if score == "features" and features is None:
+            raise ValueError("render_compare.score=features needs a feature extractor")
+        if rounds < 0 or candidates < 1 or resolution < 4 or reference_size < 4:
+            raise ValueError(
+                "render_compare needs rounds >= 0, candidates >= 1, resolution >= 4 and "
+                "reference_size >= 4"
+            )
+        self.scene_model = scene_model
+        self.rounds = rounds
+        self.candidates = candidates
+        self.sigma = (position_sigma_m, math.radians(orientation_sigma_deg))
+        self.shrink = shrink
+        self.resolution = resolution
+        self.blur_sigma_px = blur_sigma_px
+        self.reference_size = reference_size
+        self.reference_fov_scale = reference_fov_scale
+        self.refresh_every = refresh_every
+        self.min_overlap = min_overlap
+        self.gradient_steps = gradient_steps
+        self.gradient_lr = gradient_lr
+        self.score = score
+        self.features = features
+        self.seed = seed
+        self.chunk = chunk
+        self.engine = engine
+
+    def draws(self, n_queries: int, device: torch.device | str = "cpu") -> Tensor:
+        """The search's standard-normal draws [n_queries, rounds, candidates, 6], in query
+        order, from the refiner's seed."""
+        generator = torch.Generator().manual_seed(self.seed)
+        shape = (n_queries, self.rounds, self.candidates, 6)
+        return torch.randn(shape, generator=generator).to(device)
+
+    @torch.no_grad()
+    def prepare_queries(self, images: Tensor, intrinsics: Tensor, scenes: Tensor) -> _Queries:
+        """Query images [B, 3, H, W] (RGB in [0, 1]) with intrinsics [B, 4] -> what the
+        score compares against, at the compare resolution."""
+        h, w = images.shape[-2:]
+        width = self.resolution
+        height = max(4, round(h * width / w))
+        small = F.interpolate(images, size=(height, width), mode="area")
+        scaled = scale_intrinsics(intrinsics, width / w, height / h)
+        if self.score == "features":
+            assert self.features is not None
+            maps = self.features(small)
+            fh, fw = maps.shape[-2:]
+            return _Queries(maps, scale_intrinsics(scaled, fw / width, fh / height), scenes)
+        return _Queries(gaussian_blur(grey(small), self.blur_sigma_px), scaled, scenes)
+
+    def _reference_intrinsics(self, queries: _Queries) -> tuple[Tensor, int, int]:
+        """Intrinsics [B, 4] of the reference renderings (a wider view centred like the
+        query's), their width and height in px."""
+        _, _, h, w = queries.target.shape
+        width = self.reference_size
+        height = max(4, round(h * width / w))
+        scale = width / w / self.reference_fov_scale
+        fx, fy, _, _ = queries.intrinsics.unbind(-1)
+        centre_x = torch.full_like(fx, (width - 1) / 2)
+        centre_y = torch.full_like(fy, (height - 1) / 2)
+        return torch.stack([fx * scale, fy * scale, centre_x, centre_y], -1), width, height
+
+    @torch.no_grad()
+    def surface(self, poses: Tensor, queries: _Queries) -> _Surface:
+        """Render the scene model at poses [B, 7] with the reference camera: its surface
+        points, their grey values (or features) and where the model explains the image."""
+        intrinsics, width, height = self._reference_intrinsics(queries)
+        rendering = self.scene_model.render(poses, queries.scenes, intrinsics, width, height)
+        assert rendering.depth is not None and rendering.opacity is not None
+        origins, directions = camera_rays(poses, intrinsics, width, height)
+        points = origins + rendering.depth.flatten(1)[..., None] * directions
+        if self.score == "features":
+            assert self.features is not None
+            maps = self.features(rendering.rgb)
+            values = F.interpolate(maps, size=(height, width), mode="bilinear").flatten(2)
+        else:
+            target_fx = queries.intrinsics[:, 0]
+            sigma = float(self.blur_sigma_px * (intrinsics[:, 0] / target_fx).mean())
+            values = gaussian_blur(grey(rendering.rgb), sigma).flatten(2)
+        valid = (rendering.opacity.flatten(1) > 0.5).to(points.dtype)
+        return _Surface(points, values, valid)
+
+    def _score_projected(self, poses: Tensor, queries: _Queries, surface: _Surface) -> Tensor:
+        """Scores [B, M] of candidate poses [B, M, 7]: the surface projected into each
+        candidate camera, compared with the query where it lands inside the image."""
+        b, m = poses.shape[:2]
+        rotation = quaternion_to_matrix(poses[..., 3:])  # [B, M, 3, 3]
+        relative = surface.points[:, None] - poses[..., None, :3]  # [B, M, P, 3]
+        local = torch.einsum("bmji,bmpj->bmpi", rotation, relative)
+        h, w = queries.target.shape[-2:]
+        uv = project(local, queries.intrinsics[:, None, None])
+        inside = (
+            (local[..., 2] > 0.05)
+            & (uv[..., 0] >= 0)
+            & (uv[..., 0] <= w - 1)
+            & (uv[..., 1] >= 0)
+            & (uv[..., 1] <= h - 1)
+        )
+        weights = inside.to(uv.dtype) * surface.valid[:, None]
+        grid = torch.stack([uv[..., 0] / (w - 1) * 2 - 1, uv[..., 1] / (h - 1) * 2 - 1], -1)
+        sampled = F.grid_sample(
+            queries.target, grid.view(b, m, -1, 2), align_corners=True, padding_mode="border"
+        )  # [B, C, M, P]
+        values = surface.values[:, :, None].expand_as(sampled)
+        if self.score == "features":
+            cosine = F.cosine_similarity(sampled, values, dim=1)  # [B, M, P]
+            total = weights.sum(-1).clamp_min(1e-9)
+            score = (cosine * weights).sum(-1) / total
+        else:
+            score = zncc(sampled[:, 0], values[:, 0], weights)
+        overlap = weights.sum(-1) / surface.valid.sum(-1, keepdim=True).clamp_min(1.0)
+        return torch.where(overlap >= self.min_overlap, score, torch.full_like(score, -2.0))
+
+    @torch.no_grad()
+    def _score_rendered(self, poses: Tensor, queries: _Queries) -> Tensor:
+        """Scores [B, M] of candidate poses [B, M, 7] by rendering each candidate's image."""
+        b, m = poses.shape[:2]
+        _, c, h, w = queries.target.shape
+        rendering = self.scene_model.render(
+            poses.reshape(b * m, 7),
+            queries.scenes.repeat_interleave(m),
+            queries.intrinsics.repeat_interleave(m, 0),
+            w,
+            h,
+        )
+        if self.score == "features":
+            assert self.features is not None
+            maps = self.features(rendering.rgb).view(b, m, c, h * w)
+            target = queries.target.flatten(2)[:, None]
+            return F.cosine_similarity(maps, target, dim=2).mean(-1)
+        rendered = gaussian_blur(grey(rendering.rgb), self.blur_sigma_px).view(b, m, h * w)
+        target = queries.target.view(b, 1, h * w).expand_as(rendered)
+        return zncc(rendered, target, torch.ones_like(rendered))
+
+    def _score(self, poses: Tensor, queries: _Queries, surface: _Surface | None) -> Tensor:
+        if surface is None:
+            return self._score_rendered(poses, queries)
+        if self.engine == "compiled" or (
+            self.engine == "auto" and self.score == "zncc" and poses.device.type == "cpu"
+        ):
+            return compiled_zncc_scores(
+                surface.points,
+                surface.values[:, 0],
+                surface.valid,
+                quaternion_to_matrix(poses[..., 3:]),
+                poses[..., :3],
+                queries.intrinsics,
+                queries.target[:, 0],
+                self.min_overlap,
+            )
+        return self._score_projected(poses, queries, surface)
+
+    def _surface_or_none(self, poses: Tensor, queries: _Queries) -> _Surface | None:
+        return self.surface(poses, queries) if self.scene_model.has_depth else None
+
+    @torch.no_grad()
+    def _search(self, initial: Tensor, queries: _Queries, draws: Tensor) -> tuple[Tensor, ...]:
+        """The sampling search for one chunk -> (best poses [B, 7], their scores [B], the
+        initial scores [B], the last reference surface)."""
+        best = initial
+        surface = self._surface_or_none(best, queries)
+        best_score = self._score(best[:, None], queries, surface)[:, 0]
+        initial_score = best_score
+        sigma = initial.new_tensor(self.sigma).repeat(len(initial), 1)  # [B, 2]
+        scale = torch.cat([sigma[:, :1].expand(-1, 3), sigma[:, 1:].expand(-1, 3)], 1)
+        for round_index in range(self.rounds):
+            if self.refresh_every and round_index and round_index % self.refresh_every == 0:
+                surface = self._surface_or_none(best, queries)
+                best_score = self._score(best[:, None], queries, surface)[:, 0]
+            steps = draws[:, round_index] * scale[:, None]
+            steps[:, 0] = 0.0  # candidate 0: the best pose so far
+            candidates = perturb(best[:, None].expand(-1, self.candidates, -1), steps)
+            scores = self._score(candidates, queries, surface)
+            top, pick = scores.max(1)
+            improved = top > best_score
+            chosen = candidates[torch.arange(len(best)), pick]
+            best = torch.where(improved[:, None], chosen, best)
+            best_score = torch.where(improved, top, best_score)
+            scale = torch.where(improved[:, None], scale, scale * self.shrink)
+        return best, best_score, initial_score, surface
+
+    def _polish(self, poses: Tensor, queries: _Queries, surface: _Surface | None) -> Tensor:
+        """Adam steps on a 6-DoF increment of each pose, maximising the projected score."""
+        if not self.gradient_steps or surface is None:
+            return poses
+        increment = torch.zeros(len(poses), 6, dtype=poses.dtype, requires_grad=True)
+        optimiser = torch.optim.Adam([increment], lr=self.gradient_lr)
+        for _ in range(self.gradient_steps):
+            moved = perturb(poses, increment)
+            loss = -self._score_projected(moved[:, None], queries, surface).sum()
+            optimiser.zero_grad()
+            loss.backward()
+            optimiser.step()
+        with torch.no_grad():
+            polished = perturb(poses, increment.detach())
+            before = self._score_projected(poses[:, None], queries, surface)[:, 0]
+            after = self._score_projected(polished[:, None], queries, surface)[:, 0]
+        return torch.where((after > before)[:, None], polished, poses)
+
+    def __call__(
+        self,
+        images: Tensor,
+        intrinsics: Tensor,
+        initial: Tensor,
+        scenes: Tensor,
+        draws: Tensor | None = None,
+    ) -> RenderCompareResult:
+        """Refine queries: images [B, 3, H, W] RGB in [0, 1] with intrinsics [B, 4] (px of
+        those images), initial poses [B, 7], scene ids [B]; draws as from :meth:`draws`."""
+        initial = torch.cat([initial[:, :3], normalize_quaternion(initial[:, 3:])], -1).float()
+        draws = self.draws(len(initial), initial.device) if draws is None else draws
+        poses, scores, initial_scores = [], [], []
+        for rows in torch.arange(len(initial), device=initial.device).split(self.chunk):
+            queries = self.prepare_queries(images[rows].float(), intrinsics[rows], scenes[rows])
+            best, score, start, surface = self._search(initial[rows], queries, draws[rows])
+            best = self._polish(best, queries, surface)
+            poses.append(best)
+            scores.append(score)
+            initial_scores.append(start)
+        return RenderCompareResult(torch.cat(poses), torch.cat(scores), torch.cat(initial_scores))
