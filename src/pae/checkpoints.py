@@ -124,6 +124,12 @@ def load_pae(path: str | Path) -> LoadedModel:
     return _load_model(path, "pae", "student")
 
 
+def load_scene_model(path: str | Path) -> LoadedModel:
+    """A scene-model checkpoint (the scene_model step with scene_model=voxel_grid) -> its
+    scene model (it also holds a copy of its teacher: load_teacher reads it)."""
+    return _load_model(path, "scene_model", "scene model")
+
+
 def load_decoder(path: str | Path) -> LoadedModel:
     """A decoder checkpoint (stage=decoder) -> its ImageDecoder."""
     return _load_model(path, "decoder", "decoder")

@@ -404,21 +404,28 @@ def fit_rpr(
 
 
 def evaluate_checkpoints(cfg: DictConfig, run_dir: Path) -> Metrics:
-    """Test a student checkpoint (and optionally another teacher) with the configured refinement."""
-    teacher_path = cfg.teacher_ckpt or cfg.student_ckpt
+    """Test a student checkpoint (and optionally another teacher) with the configured
+    refinement, and/or a scene-model checkpoint with render-and-compare refinement."""
+    metrics: Metrics = {}
+    teacher_path = cfg.teacher_ckpt or cfg.student_ckpt or cfg.get("scene_model_ckpt")
     teacher = load_teacher(teacher_path)
-    pae = load_pae(cfg.student_ckpt)
     data = build_data(cfg, augment=False)
     check_data(cfg, teacher_path, teacher, data)
-    check_data(cfg, cfg.student_ckpt, pae, data)
-    if pae.model.latent_dim != teacher.model.latent_dim:
-        raise CheckpointError(
-            f"{cfg.student_ckpt}: PAE latent size {pae.model.latent_dim} does not match the "
-            f"teacher's {teacher.model.latent_dim} ({teacher_path})"
-        )
-    module = StudentEvaluator(teacher.model, pae.model, data.scene_names)
-    trainer = build_trainer(cfg, run_dir, 0, refinement_callbacks(cfg))
-    trainer.test(module, datamodule=data, verbose=False)
-    metrics = collect_metrics(trainer)
-    log_hparams(trainer, cfg, metrics)
+    if cfg.student_ckpt:
+        pae = load_pae(cfg.student_ckpt)
+        check_data(cfg, cfg.student_ckpt, pae, data)
+        if pae.model.latent_dim != teacher.model.latent_dim:
+            raise CheckpointError(
+                f"{cfg.student_ckpt}: PAE latent size {pae.model.latent_dim} does not match "
+                f"the teacher's {teacher.model.latent_dim} ({teacher_path})"
+            )
+        module = StudentEvaluator(teacher.model, pae.model, data.scene_names)
+        trainer = build_trainer(cfg, run_dir, 0, refinement_callbacks(cfg))
+        trainer.test(module, datamodule=data, verbose=False)
+        metrics |= collect_metrics(trainer)
+        log_hparams(trainer, cfg, metrics)
+    if cfg.get("scene_model_ckpt"):
+        from pae.pipeline_scene import evaluate_scene_model
+
+        metrics |= evaluate_scene_model(cfg, run_dir, cfg.scene_model_ckpt, teacher, data)
     return metrics

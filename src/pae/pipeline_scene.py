@@ -6,10 +6,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from pae.checkpoints import load_decoder, load_pae, load_teacher
+from pae.checkpoints import LoadedModel, load_decoder, load_pae, load_scene_model, load_teacher
 from pae.data.rays import RayDataModule
 from pae.errors import ConfigError
 from pae.lit.scene_model import SceneModelModule
@@ -113,3 +114,24 @@ def fit_scene_model(
     metrics = collect_metrics(trainer, ("test/", "bench/"))
     log_hparams(trainer, cfg, metrics)
     return metrics, None
+
+
+def evaluate_scene_model(
+    cfg: DictConfig, run_dir: Path, path: str | Path, teacher: LoadedModel, data: Any
+) -> Metrics:
+    """Test render-and-compare (the `render_compare` group's settings) with the scene model
+    of checkpoint ``path`` from ``teacher``'s estimates on ``data`` (pae-eval)."""
+    loaded = load_scene_model(path)
+    check_data(cfg, path, loaded, data)
+    module = SceneModelModule(
+        loaded.model,
+        teacher.model,
+        optimizer=torch.optim.Adam,
+        scene_names=data.scene_names,
+        configs={"teacher_config": teacher.config, "scene_model_config": loaded.config},
+    )
+    trainer = build_trainer(cfg, run_dir / "render_compare", 0, [render_compare_callback(cfg)])
+    trainer.test(module, datamodule=data, verbose=False)
+    metrics = collect_metrics(trainer, ("test/", "bench/"))
+    log_hparams(trainer, cfg, metrics)
+    return metrics

@@ -265,8 +265,11 @@ def _validate_scene_model(cfg: DictConfig) -> None:
 def validate_eval_config(cfg: DictConfig) -> None:
     """All of pae-eval's settings (conf/eval.yaml); raises ConfigError naming the key."""
     _validate_common(cfg)
-    if _value(cfg, "student_ckpt") is None:
-        raise ConfigError("pae-eval needs student_ckpt=PATH (a checkpoint of stage=student)")
-    for key in ("student_ckpt", "teacher_ckpt"):
+    if _value(cfg, "student_ckpt") is None and _value(cfg, "scene_model_ckpt") is None:
+        raise ConfigError(
+            "pae-eval needs student_ckpt=PATH (a checkpoint of stage=student) or "
+            "scene_model_ckpt=PATH (a checkpoint of stage=render_compare)"
+        )
+    for key in ("student_ckpt", "teacher_ckpt", "scene_model_ckpt"):
         _file(cfg, key)
     validate_data(cfg, train=False)

@@ -19,6 +19,7 @@ from torch.utils.data import DataLoader
 
 from pae.bench.methods import bench_methods
 from pae.bench.refinement import bench_first_layer_gain, bench_index, bench_refinement
+from pae.bench.render_compare import bench_render_compare
 from pae.data.datamodule import PoseDataModule
 from pae.data.latents import TeacherLatentDataModule
 from pae.data.synthetic import measure_render_speed, write_synthetic_dataset
@@ -211,12 +212,30 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--only",
         nargs="+",
-        choices=("synthetic", "student", "refine", "pae", "index", "sweep", "deploy"),
+        choices=(
+            "synthetic",
+            "student",
+            "refine",
+            "pae",
+            "index",
+            "sweep",
+            "deploy",
+            "render_compare",
+        ),
         help="run only these benchmarks (default: all)",
     )
     args = parser.parse_args(argv)
     torch.manual_seed(0)
-    everything = ("synthetic", "student", "refine", "pae", "index", "sweep", "deploy")
+    everything = (
+        "synthetic",
+        "student",
+        "refine",
+        "pae",
+        "index",
+        "sweep",
+        "deploy",
+        "render_compare",
+    )
     chosen = set(args.only or everything)
     figures: dict[str, float] = {}
     if "synthetic" in chosen:
@@ -242,6 +261,8 @@ def main(argv: list[str] | None = None) -> int:
         figures |= bench_pae()
     if "deploy" in chosen:
         figures |= bench_methods()
+    if "render_compare" in chosen:
+        figures |= bench_render_compare()
     train_files = sorted(args.labels.glob("*/*_train.csv")) if args.labels.is_dir() else []
     if train_files and "index" in chosen:
         figures |= bench_index(train_files)

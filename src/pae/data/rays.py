@@ -2,20 +2,19 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Any
 
 import lightning as L
 import torch
 from torch import Tensor
-from torch.utils.data import DataLoader, IterableDataset
+from torch.utils.data import DataLoader, Dataset
 
 from pae.data.datamodule import PoseDataModule
 from pae.geometry import quaternion_to_matrix
 
 
-class RayBatches(IterableDataset):
-    """``batches`` batches of ``rays_per_batch`` random pixels of the train images, each
+class RayBatches(Dataset):
+    """``batches`` batches (items) of ``rays_per_batch`` random pixels of the train images, each
     ``{"origins": [R, 3], "directions": [R, 3] (camera z = 1), "rgb": [R, 3] in [0, 1],
     "scene": [R], "appearance": [R]}`` (drawn from torch's global generator, so seeded runs
     repeat).
@@ -47,8 +46,8 @@ class RayBatches(IterableDataset):
     def __len__(self) -> int:
         return self.batches
 
-    def batch(self) -> dict[str, Tensor]:
-        """One random batch of rays."""
+    def __getitem__(self, index: int) -> dict[str, Tensor]:
+        """A random batch of rays (whatever ``index``)."""
         n, _, h, w = self.images.shape
         r = self.rays_per_batch
         row = torch.randint(n, (r,))
@@ -62,10 +61,6 @@ class RayBatches(IterableDataset):
             "scene": self.scenes[row],
             "appearance": self.appearance[row],
         }
-
-    def __iter__(self) -> Iterator[dict[str, Tensor]]:
-        for _ in range(self.batches):
-            yield self.batch()
 
 
 class RayDataModule(L.LightningDataModule):

@@ -142,7 +142,7 @@ class RenderCompareRefiner:
         shrink: float = 0.6,
         resolution: int = 32,
         blur_sigma_px: float = 1.0,
-        reference_size: int = 32,
+        reference_size: int = 24,
         reference_fov_scale: float = 1.3,
         refresh_every: int = 0,
         min_overlap: float = 0.4,

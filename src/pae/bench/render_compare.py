@@ -1,0 +1,101 @@
+"""Render-and-compare speed, side by side in one run: the refiner's milliseconds per query
+(batched, as the callback runs it), the compiled scorer against the tensor one, and the
+compiled volume renderer against the ``grid_sample`` one, on the same inputs.
+
+The scene model is the default voxel grid (conf/scene_model/voxel_grid.yaml) over a room of
+the benchmark's size whose walls are opaque and whose inside is empty, so that rays stop
+where a trained grid's would (the speed depends on where rays stop, not on the colours).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import torch
+
+from pae.geometry import matrix_to_quaternion
+from pae.models.voxel_grid import VoxelGridSceneModel
+from pae.refine.render_compare import RenderCompareRefiner, perturb
+
+ROOM_HALF_M = (3.5, 3.0)
+"""Half the room's width and depth (m); the room spans z in [0, 2.8] m."""
+
+
+def room_grid(scenes: int = 2, num_voxels: int = 300_000) -> VoxelGridSceneModel:
+    """The default grid over bounds [-4, 4] x [-4, 4] x [-0.5, 3.3] m per scene, dense (raw
+    density +8) outside the room and empty (-8) inside, colours random."""
+    model = VoxelGridSceneModel([[[-4.0, -4.0, -0.5], [4.0, 4.0, 3.3]]] * scenes, 1, num_voxels)
+    generator = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for grid in model.grids:
+            nz, ny, nx = grid.grid.shape[2:]
+            z = torch.linspace(float(grid.lo[2]), float(grid.hi[2]), nz)[:, None, None]
+            y = torch.linspace(float(grid.lo[1]), float(grid.hi[1]), ny)[None, :, None]
+            x = torch.linspace(float(grid.lo[0]), float(grid.hi[0]), nx)[None, None, :]
+            inside = (x.abs() < ROOM_HALF_M[0]) & (y.abs() < ROOM_HALF_M[1]) & (z > 0) & (z < 2.8)
+            grid.grid[0, 0] = torch.where(inside, -8.0, 8.0)
+            grid.grid[0, 1:] = torch.randn(3, nz, ny, nx, generator=generator)
+    return model
+
+
+def _queries(n: int, scenes: int, size: int, seed: int) -> tuple[torch.Tensor, ...]:
+    """Random query images [n, 3, size, size], their intrinsics, start poses inside the
+    room (level cameras of random heading) and scene ids."""
+    generator = torch.Generator().manual_seed(seed)
+    images = torch.rand(n, 3, size, size, generator=generator)
+    f = (size / 2) / math.tan(math.radians(65.0) / 2)
+    intrinsics = torch.tensor([f, f, (size - 1) / 2, (size - 1) / 2]).expand(n, 4)
+    axes = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    level = matrix_to_quaternion(axes)  # camera z along world x, camera y down
+    position = torch.cat(
+        [torch.rand(n, 2, generator=generator) * 2 - 1, torch.full((n, 1), 1.4)], 1
+    )
+    start = torch.cat([position, level.expand(n, 4)], 1)
+    heading = torch.zeros(n, 6)
+    heading[:, 4] = torch.rand(n, generator=generator) * 2 * math.pi  # about the camera y axis
+    return images, intrinsics, perturb(start, heading), torch.arange(n) % scenes
+
+
+def _seconds(run) -> float:
+    start = time.perf_counter()
+    run()
+    return time.perf_counter() - start
+
+
+def bench_render_compare(queries: int = 250, scenes: int = 2, crop: int = 56) -> dict[str, float]:
+    """`bench/render_compare/ms_per_query` (default settings, batched), the compiled scorer's
+    and the compiled renderer's speed-ups over their tensor versions (same inputs)."""
+    model = room_grid(scenes)
+    images, intrinsics, start, scene_ids = _queries(queries, scenes, crop, seed=0)
+    refiner = RenderCompareRefiner(model)
+    refiner(images[:4], intrinsics[:4], start[:4], scene_ids[:4])  # compile, warm up
+    figures = {
+        "bench/render_compare/ms_per_query": 1000
+        * _seconds(lambda: refiner(images, intrinsics, start, scene_ids))
+        / queries
+    }
+    few = slice(0, 16)
+    compiled, tensor = (
+        _seconds(
+            lambda engine=engine: RenderCompareRefiner(model, engine=engine)(
+                images[few], intrinsics[few], start[few], scene_ids[few]
+            )
+        )
+        for engine in ("compiled", "torch")
+    )
+    figures["bench/render_compare/compiled_score_speedup"] = tensor / compiled
+    grid = model.grids[0]
+    rays = torch.randn(20_000, 3)
+    origins = torch.zeros(20_000, 3) + torch.tensor([0.0, 0.0, 1.4])
+    with torch.no_grad():
+        grid.composite(origins[:10], rays[:10], 48, 0.05, False, True)
+        fast, slow = (
+            _seconds(lambda c=c: grid.composite(origins, rays, 48, 0.05, False, c))
+            for c in (True, False)
+        )
+    figures["bench/render_compare/compiled_render_speedup"] = slow / fast
+    figures["bench/deploy/render_compare/scene_model_bytes"] = sum(
+        p.numel() * p.element_size() for p in model.parameters()
+    )
+    return figures

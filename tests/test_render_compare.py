@@ -1,0 +1,306 @@
+"""Render-and-compare: camera intrinsics, the voxel grid scene model, the refiner, the step."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from pae import CONFIG_DIR
+from pae.data.camera import Intrinsics, project, resized_size
+from pae.data.synthetic import (
+    Appearance,
+    PinholeCamera,
+    SyntheticScene,
+    furnish,
+    make_scene,
+    make_sequences,
+    render_batch,
+    room_textures,
+    world_to_camera,
+)
+from pae.data.synthetic_datamodule import SyntheticDataModule
+from pae.geometry import pose_errors
+from pae.models.oracle_scene import OracleSceneModel
+from pae.models.scene_model import camera_rays
+from pae.models.voxel_grid import VoxelGrid, VoxelGridSceneModel, camera_bounds
+from pae.refine.render_compare import RenderCompareRefiner, perturb
+from tests.conftest import TINY, tiny_data_overrides
+
+
+def _camera_pose(position: list[float], yaw: float = 0.3, pitch: float = -0.1) -> torch.Tensor:
+    """A camera-to-world pose [7] looking roughly along +x (world z up)."""
+    from pae.data.synthetic import _look_rotations
+    from pae.geometry import matrix_to_quaternion
+
+    rotation = _look_rotations(np.array([yaw]), np.array([pitch]), np.array([0.05]))
+    q = matrix_to_quaternion(torch.from_numpy(rotation))[0]
+    return torch.cat([torch.tensor(position, dtype=torch.float64), q]).float()
+
+
+def test_intrinsics_follow_resize_and_crop_when_projecting_known_points() -> None:
+    """A world point's pixel, mapped through the loaders' resize and centre crop, is where
+    the transformed intrinsics project it (7-Scenes' camera, 640x480 -> 256 -> 224)."""
+    camera = Intrinsics(585.0, 585.0, 320.0, 240.0, 640, 480)
+    pose = _camera_pose([0.1, -0.2, 1.3]).double().numpy()
+    points = np.array([[2.0, 0.3, 1.1], [3.0, -0.8, 1.9], [1.5, 0.2, 0.6]])
+    local = world_to_camera(points, pose)
+    pixels = local @ camera.matrix().T
+    pixels = pixels[:, :2] / pixels[:, 2:]
+    width, height = resized_size(640, 480, 256)
+    scale = np.array([width / 640, height / 480])
+    left, top = (width - 224) // 2, (height - 224) // 2
+    expected = (pixels + 0.5) * scale - 0.5 - np.array([left, top])
+    after = camera.preprocessed(256, 224)
+    got = project(torch.from_numpy(local), torch.tensor(after.vector(), dtype=torch.float64))
+    np.testing.assert_allclose(got.numpy(), expected, atol=1e-9)
+    assert (after.width, after.height) == (224, 224)
+
+
+def test_synthetic_intrinsics_put_a_box_corner_on_its_rendered_pixel(tiny_root: Path) -> None:
+    """The data module's intrinsics after its resize and crop project the synthetic camera's
+    rays back onto the pixels they were cast through (the renderer's own geometry)."""
+    data = SyntheticDataModule(
+        root=str(tiny_root), **TINY, crop=28, shorter_edge=TINY["size"], cache_images=True
+    )
+    data.setup()
+    k = data.intrinsics("test")[0].double()
+    camera = PinholeCamera(TINY["size"])
+    pose = data.datasets["test"].poses[0].double()
+    point = torch.tensor([1.0, 0.5, 1.2], dtype=torch.float64)
+    full = camera.project(point[None].numpy(), pose.numpy())[0]
+    crop_offset = (TINY["size"] - 28) // 2
+    local = torch.from_numpy(world_to_camera(point[None].numpy(), pose.numpy()))
+    np.testing.assert_allclose(project(local, k)[0].numpy(), full - crop_offset, atol=1e-9)
+
+
+@pytest.mark.parametrize("contract", [False, True])
+def test_compiled_volume_rendering_equals_the_grid_sample_path(contract: bool) -> None:
+    torch.manual_seed(0)
+    grid = VoxelGrid([[-2, -2, -0.5], [2, 2, 2.5]], num_voxels=4000, contract=contract)
+    with torch.no_grad():
+        grid.grid.normal_(0, 2)
+        grid.grid[:, 0] += torch.linspace(-3, 5, grid.grid.shape[2])[None, :, None, None]
+    origins = torch.zeros(300, 3) + torch.tensor([0.0, 0.0, 1.0])
+    directions = torch.randn(300, 3)
+    weights = torch.rand(300, 3)
+    outputs = []
+    for compiled in (True, False):
+        torch.manual_seed(1)
+        rgb, _, opacity = grid.composite(origins, directions, 32, 0.05, True, compiled)
+        grads = torch.autograd.grad((rgb * weights).sum(), [grid.grid, grid.background])
+        outputs.append((rgb, opacity, *grads))
+    for compiled, reference in zip(*outputs, strict=True):
+        scale = reference.abs().max().clamp_min(1.0)
+        assert (compiled - reference).abs().max() / scale < 2e-3
+
+
+def _one_box_scene() -> SyntheticScene:
+    """A room holding one textured box."""
+    rng = np.random.default_rng(3)
+    size = np.array([5.0, 4.0, 2.6])
+    from pae.data.synthetic import Box
+
+    lo = np.array([-size[0] / 2, -size[1] / 2, 0.0])
+    room = Box(lo, lo + size, room_textures(rng, size))
+    boxes = furnish(rng, room, np.array([-0.5, -0.5, 1.2]), np.array([0.5, 0.5, 1.6]), 0.4)[:1]
+    return SyntheticScene("box", room, boxes, np.array([0.5, 0.5, 2.1]), None)
+
+
+def test_a_grid_fitted_to_a_one_box_scene_renders_an_unseen_view() -> None:
+    """Trained on 48 views of a one-box room, the grid renders a view between them well
+    above what the mean train image explains (PSNR after a per-image gain and bias fit)."""
+    from pae.lit.scene_model import fitted_psnr_db
+
+    scene = _one_box_scene()
+    size = 24
+    camera = PinholeCamera(size)
+    rng = np.random.default_rng(0)
+    yaws = np.linspace(0, 2 * math.pi, 48, endpoint=False)
+    train = torch.stack(
+        [_camera_pose([*rng.uniform(-0.5, 0.5, 2), 1.4], yaw, -0.05) for yaw in yaws]
+    )
+    images = render_batch(scene, train.double().numpy(), camera, Appearance(), supersample=1)
+    target = torch.from_numpy(images).float().div(255).permute(0, 3, 1, 2)
+    k = torch.tensor([camera.focal_px, camera.focal_px, camera.principal_point] * 1)
+    k = torch.tensor([camera.focal_px, camera.focal_px, k[2], k[2]]).expand(len(train), 4)
+    model = VoxelGridSceneModel(
+        [camera_bounds(train[:, :3], [2.2, 2.2, 1.3]).tolist()], num_voxels=30_000
+    )
+    origins, directions = camera_rays(train, k, size, size)
+    colours = target.permute(0, 2, 3, 1).reshape(len(train), -1, 3)
+    optimiser = torch.optim.Adam(model.parameters(), lr=0.1)
+    torch.manual_seed(0)
+    for _ in range(120):
+        row, pixel = torch.randint(len(train), (2048,)), torch.randint(size * size, (2048,))
+        rgb, _, _ = model.render_rays(
+            origins[row, pixel], directions[row, pixel], torch.zeros(2048, dtype=torch.long), True
+        )
+        loss = (rgb - colours[row, pixel]).square().mean() + 1e-3 * model.total_variation()
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+    unseen = _camera_pose([0.2, -0.1, 1.45], yaws[5] + math.pi / 48, -0.05)[None]
+    truth = render_batch(scene, unseen.double().numpy(), camera, Appearance(), supersample=1)
+    truth = torch.from_numpy(truth).float().div(255).permute(0, 3, 1, 2)
+    with torch.no_grad():
+        rendered = model.render(unseen, torch.zeros(1, dtype=torch.long), k[:1], size, size).rgb
+    psnr = fitted_psnr_db(rendered, truth)
+    mean_image = fitted_psnr_db(target.mean(0, keepdim=True), truth)
+    assert psnr.item() > 20.0
+    assert psnr.item() > mean_image.item() + 5.0
+
+
+def _oracle_queries(n: int = 6) -> tuple[OracleSceneModel, torch.Tensor, torch.Tensor, ...]:
+    """Queries along benchmark scene 0's test walks (48 px), their intrinsics, true poses and
+    the true poses moved by about 0.3 m and 5 degrees."""
+    scene = make_scene(0)
+    camera = PinholeCamera(48)
+    poses = make_sequences(0, scene, train_frames=6, test_frames=4 * n)[-1].poses[::4]
+    truth = torch.from_numpy(poses).float()
+    images = render_batch(scene, poses, camera, Appearance(), supersample=1)
+    images = torch.from_numpy(images).float().div(255).permute(0, 3, 1, 2)
+    f, c = camera.focal_px, camera.principal_point
+    intrinsics = torch.tensor([f, f, c, c]).expand(len(truth), 4)
+    generator = torch.Generator().manual_seed(0)
+    steps = torch.cat(
+        [
+            0.18 * torch.randn(len(truth), 3, generator=generator),
+            0.05 * torch.randn(len(truth), 3, generator=generator),
+        ],
+        1,
+    )
+    return OracleSceneModel([scene]), images, intrinsics, truth, perturb(truth, steps)
+
+
+def test_refinement_against_the_true_scene_moves_estimates_towards_the_truth() -> None:
+    model, images, intrinsics, truth, start = _oracle_queries()
+    refiner = RenderCompareRefiner(model, rounds=8, candidates=16, resolution=24, reference_size=16)
+    result = refiner(images, intrinsics, start, torch.zeros(len(truth), dtype=torch.long))
+    before, _ = pose_errors(start, truth)
+    after, _ = pose_errors(result.poses, truth)
+    assert after.median() < 0.6 * before.median()
+    assert (result.score >= result.initial_score).all()
+
+
+def test_batched_search_equals_a_per_query_search_for_a_fixed_seed() -> None:
+    model, images, intrinsics, _, start = _oracle_queries(5)
+    refiner = RenderCompareRefiner(
+        model, rounds=4, candidates=8, resolution=16, reference_size=12, chunk=3, seed=7
+    )
+    scenes = torch.zeros(len(start), dtype=torch.long)
+    draws = refiner.draws(len(start))
+    batched = refiner(images, intrinsics, start, scenes).poses
+    for b in range(len(start)):
+        alone = refiner(
+            images[b : b + 1], intrinsics[b : b + 1], start[b : b + 1], scenes[:1], draws[b : b + 1]
+        ).poses
+        torch.testing.assert_close(alone[0], batched[b], atol=1e-5, rtol=0)
+
+
+def test_compiled_and_tensor_scores_agree() -> None:
+    model, images, intrinsics, _, start = _oracle_queries(4)
+    scenes = torch.zeros(len(start), dtype=torch.long)
+    results = [
+        RenderCompareRefiner(
+            model, rounds=3, candidates=8, resolution=16, reference_size=12, engine=engine
+        )(images, intrinsics, start, scenes)
+        for engine in ("compiled", "torch")
+    ]
+    torch.testing.assert_close(
+        results[0].initial_score, results[1].initial_score, atol=1e-4, rtol=0
+    )
+    torch.testing.assert_close(results[0].poses, results[1].poses, atol=1e-4, rtol=0)
+
+
+def test_bounds_come_from_the_train_cameras_only(tiny_root: Path) -> None:
+    from pae.data.datamodule import PoseDataModule
+    from pae.pipeline_scene import train_bounds
+
+    data = PoseDataModule(
+        str(tiny_root),
+        str(tiny_root / "labels" / "all_train.csv"),
+        str(tiny_root / "labels" / "all_test.csv"),
+        shorter_edge=TINY["size"],
+        crop=28,
+    )
+    data.setup()
+    poses, scenes = data.train_poses()
+    bounds = torch.tensor(train_bounds(data, [1.0, 2.0, 0.5]))
+    for s in range(data.n_scenes):
+        positions = poses[scenes == s, :3].double()
+        margin = torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64)
+        torch.testing.assert_close(bounds[s, 0].double(), positions.min(0).values - margin)
+        torch.testing.assert_close(bounds[s, 1].double(), positions.max(0).values + margin)
+
+
+def test_scene_model_rays_come_from_the_train_images_only(tiny_root: Path) -> None:
+    from pae.data.rays import RayDataModule
+
+    data = SyntheticDataModule(
+        root=str(tiny_root), **TINY, crop=28, shorter_edge=TINY["size"], cache_images=True
+    )
+    data.setup()
+    data.datasets["test"].poses.fill_(float("nan"))  # a test pose read would show up
+    rays = RayDataModule(data, rays_per_batch=512, batches_per_epoch=2)
+    batch = next(iter(rays.train_dataloader()))
+    train_positions = data.datasets["train"].poses[:, :3]
+    nearest = (batch["origins"][:, None] - train_positions[None]).norm(dim=-1).min(1).values
+    assert torch.isfinite(batch["directions"]).all()
+    assert nearest.max() < 1e-6
+
+
+def test_render_compare_step_logs_its_rows_and_marks_the_oracle(
+    tiny_root: Path, tmp_path: Path
+) -> None:
+    """stage=render_compare on the tiny benchmark: honest and oracle rows, the scene model's
+    quality, a timing; on data without true scenes the oracle row is absent."""
+    from pae.reporting import format_results_table
+    from pae.train import run
+
+    overrides = [
+        *tiny_data_overrides(tiny_root),
+        "data.batch_size=8",
+        "callbacks=minimal",
+        "+trainer.enable_progress_bar=false",
+        "teacher.max_epochs=1",
+        "scene_model.max_epochs=1",
+        "scene_model.batches_per_epoch=3",
+        "scene_model.rays_per_batch=1024",
+        "scene_model.model.num_voxels=8000",
+        "render_compare.refiner.rounds=2",
+        "render_compare.refiner.candidates=4",
+        "stage.steps=[teacher,scene_model]",
+    ]
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("train", overrides=overrides)
+    metrics = run(cfg, tmp_path)
+    for method in ("render_compare", "render_compare_oracle"):
+        assert math.isfinite(metrics[f"test/{method}/pos_median_m"])
+    assert "test/scene_model/psnr_db" in metrics
+    assert metrics["bench/render_compare/ms_per_query"] > 0
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved["test/render_compare/pos_median_m"] == metrics["test/render_compare/pos_median_m"]
+    table = format_results_table(metrics)
+    assert "render_compare_oracle †" in table and "render_compare †" not in table
+    assert "bound" in table
+
+
+def test_the_oracle_needs_synthetic_data(tiny_root: Path) -> None:
+    from pae.callbacks.render_compare import oracle_scenes
+    from pae.data.datamodule import PoseDataModule
+
+    plain = PoseDataModule(
+        str(tiny_root),
+        str(tiny_root / "labels" / "all_train.csv"),
+        str(tiny_root / "labels" / "all_test.csv"),
+    )
+    assert oracle_scenes(plain) is None
+    synthetic = SyntheticDataModule(root=str(tiny_root), **TINY)
+    synthetic.setup()
+    assert len(oracle_scenes(synthetic)) == TINY["scenes"]
