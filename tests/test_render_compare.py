@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -161,7 +162,7 @@ def _oracle_queries(n: int = 6) -> tuple[OracleSceneModel, torch.Tensor, torch.T
     the true poses moved by about 0.3 m and 5 degrees."""
     scene = make_scene(0)
     camera = PinholeCamera(48)
-    poses = make_sequences(0, scene, train_frames=6, test_frames=4 * n)[-1].poses[::4]
+    poses = make_sequences(0, scene, train_frames=6, test_frames=8 * n)[-1].poses[::4]
     truth = torch.from_numpy(poses).float()
     images = render_batch(scene, poses, camera, Appearance(), supersample=1)
     images = torch.from_numpy(images).float().div(255).permute(0, 3, 1, 2)
@@ -304,3 +305,88 @@ def test_the_oracle_needs_synthetic_data(tiny_root: Path) -> None:
     synthetic = SyntheticDataModule(root=str(tiny_root), **TINY)
     synthetic.setup()
     assert len(oracle_scenes(synthetic)) == TINY["scenes"]
+
+
+def test_a_focal_column_sets_each_rows_intrinsics(tiny_root: Path, tmp_path: Path) -> None:
+    """Per-image focal lengths (px at data.camera's size) are read, written back and carried
+    through the loaders' resize and crop; rows without the column keep the camera's."""
+    from pae.data.datamodule import PoseDataModule
+    from pae.data.labels import read_labels, write_labels
+
+    table = read_labels(tiny_root / "labels" / "all_train.csv")
+    focal = np.linspace(20.0, 30.0, len(table))
+    labels = tmp_path / "train.csv"
+    write_labels(labels, dataclasses.replace(table, focal=focal))
+    np.testing.assert_array_equal(read_labels(labels).focal, focal)
+    camera = {"fx": 25.0, "fy": 25.0, "cx": 15.5, "cy": 15.5, "width": 32, "height": 32}
+    data = PoseDataModule(
+        str(tiny_root),
+        str(labels),
+        str(tiny_root / "labels" / "all_test.csv"),
+        shorter_edge=64,
+        crop=56,
+        camera=camera,
+    )
+    data.setup()
+    train, test = data.intrinsics("train"), data.intrinsics("test")
+    np.testing.assert_allclose(train[:, 0].numpy(), 2 * focal, rtol=1e-6)
+    centre = (15.5 + 0.5) * 2 - 0.5 - (64 - 56) // 2  # resized, then cropped
+    np.testing.assert_allclose(test[0].numpy(), [50.0, 50.0, centre, centre], rtol=1e-6)
+
+
+def test_a_focal_column_with_a_bad_value_names_its_line(tmp_path: Path) -> None:
+    from pae.data.labels import LabelError, read_labels
+
+    labels = tmp_path / "bad.csv"
+    labels.write_text(
+        "scene,split,seq,img_path,t1,t2,t3,q1,q2,q3,q4,focal\n"
+        "a,train,s,a/1.png,0,0,0,1,0,0,0,500\n"
+        "a,train,s,a/2.png,0,0,0,1,0,0,0,-3\n"
+    )
+    with pytest.raises(LabelError, match=r"bad.csv:3: .*focal"):
+        read_labels(labels)
+
+
+def test_the_callback_refines_without_reading_the_true_poses(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The refined poses are the same whatever the evaluated split's true poses are: they
+    only enter the error figures."""
+    from types import SimpleNamespace
+
+    import pae.callbacks.render_compare as callback_module
+
+    model, images, intrinsics, truth, start = _oracle_queries(4)
+    n = len(truth)
+    refined: list[torch.Tensor] = []
+
+    def record(pred: torch.Tensor, gt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        refined.append(pred.clone())
+        return pose_errors(pred, gt)
+
+    monkeypatch.setattr(callback_module, "pose_errors", record)
+    callback = callback_module.RenderCompareRefinement(
+        {"rounds": 3, "candidates": 8, "resolution": 16, "reference_size": 12}, oracle=False
+    )
+    data = SimpleNamespace(intrinsics=lambda split: intrinsics)
+    trainer = SimpleNamespace(world_size=1, datamodule=data)
+    for gt in (truth, torch.full_like(truth, float("nan"))):
+        module = SimpleNamespace(
+            scene_model=model,
+            teacher=None,
+            scene_names=["scene00"],
+            log_dict=lambda figures: None,
+            eval_outputs=[
+                {
+                    "image": images,
+                    "estimate": start,
+                    "scene_estimate": torch.zeros(n, dtype=torch.long),
+                    "pose": gt,
+                    "scene": torch.zeros(n, dtype=torch.long),
+                    "index": torch.arange(n),
+                }
+            ],
+        )
+        callback.refine(trainer, module, "test")
+    assert torch.isfinite(refined[1]).all()
+    torch.testing.assert_close(refined[0], refined[1])

@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, WeightedRandomSampler
 
-from pae.data.camera import Intrinsics, resized_size
+from pae.data.camera import Intrinsics, centre_crop_origin, resized_size, scale_intrinsics
 from pae.data.dataset import PoseDataset, collate_batch
 from pae.data.labels import LabelTable, read_labels
 from pae.data.transforms import ImageTransform
@@ -128,29 +128,29 @@ class PoseDataModule(L.LightningDataModule):
     def intrinsics(self, split: str, crop: bool = True) -> Tensor:
         """Intrinsics [N, 4] (fx, fy, cx, cy in px) of the split's images as the networks see
         them (resized, centre-cropped; ``crop=False``: resized only, as the dataset holds
-        them). ConfigError when the data has no camera."""
+        them): ``data.camera``, with a label file's ``focal`` column per row, carried through
+        the images' size on disk, the loaders' resize and the crop. ConfigError when the data
+        has no camera."""
         if self.camera is None:
             raise ConfigError(
                 "data.camera is not set: render-and-compare needs the camera's intrinsics "
                 "(fx, fy, cx, cy, width, height of the images as stored)"
             )
-        dataset = self.datasets[split]
+        dataset, table = self.datasets[split], self.tables[split]
+        vectors = torch.tensor([self.camera.vector()], dtype=torch.float64).repeat(len(table), 1)
+        if table.focal is not None:
+            vectors[:, :2] = torch.from_numpy(table.focal)[:, None]
         height, width = dataset.image_size or (self.camera.height, self.camera.width)
-        camera = (
-            self.camera.resized(width, height)
-            if (width, height)
-            != (
-                self.camera.width,
-                self.camera.height,
-            )
-            else self.camera
-        )
-        camera = (
-            camera.preprocessed(self.shorter_edge, self.crop)
-            if crop
-            else camera.resized(*resized_size(width, height, self.shorter_edge))
-        )
-        return torch.tensor(camera.vector(), dtype=torch.float32).expand(len(dataset), 4)
+        vectors = scale_intrinsics(
+            vectors, width / self.camera.width, height / self.camera.height
+        )  # the images on disk may be stored at another size than the camera's
+        new_width, new_height = resized_size(width, height, self.shorter_edge)
+        vectors = scale_intrinsics(vectors, new_width / width, new_height / height)
+        if crop:
+            left, top = centre_crop_origin(new_width, new_height, self.crop)
+            vectors[:, 2] -= left
+            vectors[:, 3] -= top
+        return vectors.float()
 
     def appearance_ids(self, split: str = "train") -> tuple[Tensor, int]:
         """Index [N] of each row's (scene, sequence) among the split's, and their count:

@@ -7,8 +7,9 @@ The format is the one of the public MS-Transformer / PAE code::
 
 ``img_path`` is relative to a dataset root, ``t1..t3`` is the camera position in metres (world
 frame) and ``q1..q4`` the camera-to-world orientation as a quaternion with the scalar part
-first (``q1``). Columns are found by name, so their order does not matter and extra columns are
-ignored.
+first (``q1``). An optional ``focal`` column gives each image's focal length in px at the
+resolution of the data's camera (``data.camera``; e.g. Cambridge's per-image focal lengths). Columns are found by name, so
+their order does not matter and other extra columns are ignored.
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ LABEL_COLUMNS: tuple[str, ...] = (
 )
 TEXT_COLUMNS = LABEL_COLUMNS[:4]
 POSE_COLUMNS = LABEL_COLUMNS[4:]
+FOCAL_COLUMN = "focal"
 REQUIRED_TEXT_COLUMNS = ("scene", "split", "img_path")
 
 ZERO_QUATERNION_NORM = 1e-8
@@ -70,7 +72,7 @@ class LabelTable:
     ``poses`` is ``[N, 7]`` float64 (``x, y, z`` in metres, then ``qw, qx, qy, qz``).
     ``source`` names the file the rows came from and ``lines`` ``[N]`` holds each row's 1-based
     line number in it (the header is line 1; default: row ``i`` on line ``i + 2``); both serve
-    error messages only.
+    error messages only. ``focal`` ``[N]`` (px), when the file has the column, else None.
     """
 
     scene: list[str]
@@ -80,6 +82,7 @@ class LabelTable:
     poses: np.ndarray
     source: str = ""
     lines: np.ndarray | None = field(default=None, repr=False)
+    focal: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         poses = np.asarray(self.poses, dtype=np.float64).reshape(-1, 7)
@@ -98,6 +101,11 @@ class LabelTable:
             if len(lines) != len(poses):
                 raise ValueError(f"LabelTable: {len(lines)} line numbers for {len(poses)} rows")
         object.__setattr__(self, "lines", lines)
+        if self.focal is not None:
+            focal = np.asarray(self.focal, dtype=np.float64).reshape(-1)
+            if len(focal) != len(poses):
+                raise ValueError(f"LabelTable: {len(focal)} focal lengths for {len(poses)} rows")
+            object.__setattr__(self, "focal", focal)
 
     def __len__(self) -> int:
         return len(self.poses)
@@ -135,6 +143,7 @@ class LabelTable:
             poses=self.poses[idx],
             source=self.source,
             lines=self.lines[idx],
+            focal=None if self.focal is None else self.focal[idx],
         )
 
     @classmethod
@@ -144,6 +153,9 @@ class LabelTable:
         sources = {t.source for t in tables}
         source = sources.pop() if len(sources) == 1 else ""
         lines = np.concatenate([t.lines for t in tables]) if tables and source else None
+        with_focal = bool(tables) and all(t.focal is not None for t in tables)
+        if not with_focal and any(t.focal is not None for t in tables):
+            raise ValueError("LabelTable.concat: some tables have a focal column and some not")
         return cls(
             scene=[s for t in tables for s in t.scene],
             split=[s for t in tables for s in t.split],
@@ -152,6 +164,7 @@ class LabelTable:
             poses=np.concatenate([t.poses for t in tables]) if tables else np.zeros((0, 7)),
             source=source,
             lines=lines,
+            focal=np.concatenate([t.focal for t in tables]) if with_focal else None,
         )
 
 
@@ -198,6 +211,8 @@ def read_labels_lenient(path: str | os.PathLike[str]) -> tuple[LabelTable, list[
                 )
             text_at = [names.index(c) for c in TEXT_COLUMNS]
             pose_at = [names.index(c) for c in POSE_COLUMNS]
+            if FOCAL_COLUMN in names:
+                pose_at.append(names.index(FOCAL_COLUMN))
             texts: list[list[str]] = []
             values: list[list[float]] = []
             lines: list[int] = []
@@ -221,7 +236,10 @@ def read_labels_lenient(path: str | os.PathLike[str]) -> tuple[LabelTable, list[
     if not texts and not errors:
         raise LabelError(path_text, 1, "no data rows after the header")
 
-    poses = np.asarray(values, dtype=np.float64).reshape(-1, 7)
+    numbers = np.asarray(values, dtype=np.float64).reshape(len(values), -1)
+    poses, focal = numbers[:, :7].copy().reshape(-1, 7), None
+    if FOCAL_COLUMN in names:
+        focal = numbers[:, 7] if len(values) else np.zeros(0)
     poses[:, 3:], non_unit = _unit_canonical_quaternions(poses[:, 3:])
     if non_unit:
         warnings.warn(
@@ -238,6 +256,7 @@ def read_labels_lenient(path: str | os.PathLike[str]) -> tuple[LabelTable, list[
         poses=poses,
         source=path_text,
         lines=np.asarray(lines, dtype=np.int64),
+        focal=focal,
     )
     return table, errors
 
@@ -245,7 +264,8 @@ def read_labels_lenient(path: str | os.PathLike[str]) -> tuple[LabelTable, list[
 def _parse_row(
     row: list[str], n_fields: int, text_at: list[int], pose_at: list[int]
 ) -> tuple[list[str], list[float]]:
-    """Text fields and the 7 pose values of one row; ``ValueError`` naming the bad column."""
+    """Text fields and the 7 pose values of one row (then its focal length, when
+    ``pose_at`` has the focal column's index); ``ValueError`` naming the bad column."""
     if len(row) != n_fields:
         raise ValueError(f"expected {n_fields} fields, got {len(row)}")
     text = [row[i].strip() for i in text_at]
@@ -253,7 +273,8 @@ def _parse_row(
         if name in REQUIRED_TEXT_COLUMNS and not value:
             raise ValueError(f"column {name} is empty")
     pose = []
-    for name, i in zip(POSE_COLUMNS, pose_at, strict=True):
+    columns = (*POSE_COLUMNS, FOCAL_COLUMN)[: len(pose_at)]
+    for name, i in zip(columns, pose_at, strict=True):
         raw = row[i].strip()
         try:
             value = float(raw)
@@ -262,8 +283,10 @@ def _parse_row(
         if not np.isfinite(value):
             raise ValueError(f"column {name} is not finite: {raw!r}")
         pose.append(value)
-    if np.linalg.norm(pose[3:]) < ZERO_QUATERNION_NORM:
-        raise ValueError(f"quaternion (q1..q4) has zero norm: {pose[3:]}")
+    if np.linalg.norm(pose[3:7]) < ZERO_QUATERNION_NORM:
+        raise ValueError(f"quaternion (q1..q4) has zero norm: {pose[3:7]}")
+    if len(pose) > 7 and pose[7] <= 0:
+        raise ValueError(f"column {FOCAL_COLUMN} must be a focal length > 0 px: {pose[7]!r}")
     return text, pose
 
 
@@ -287,7 +310,8 @@ def write_labels(path: str | os.PathLike[str], table: LabelTable) -> None:
     """
     with atomic_write(path, newline="", encoding="utf-8") as handle:
         writer = csv.writer(handle, lineterminator="\n")
-        writer.writerow(LABEL_COLUMNS)
+        focal = None if table.focal is None else table.focal.tolist()
+        writer.writerow([*LABEL_COLUMNS, *([FOCAL_COLUMN] if focal is not None else [])])
         poses = table.poses.tolist()
         for i in range(len(table)):
             writer.writerow(
@@ -297,6 +321,7 @@ def write_labels(path: str | os.PathLike[str], table: LabelTable) -> None:
                     table.seq[i],
                     table.img_path[i],
                     *(repr(v + 0.0) for v in poses[i]),
+                    *([repr(focal[i] + 0.0)] if focal is not None else []),
                 ]
             )
 
