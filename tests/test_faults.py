@@ -242,6 +242,9 @@ def test_resume_that_cannot_work_stops_before_the_run_dir_is_touched(
         ("data.yaw_stray_rad=2", "data.yaw_stray_rad must be <= 1.5708, got 2"),
         ("backbone.weights_path=/nope.pt", "backbone.weights_path=/nope.pt: no such file"),
         ("teacher_ckpt=/nope.ckpt", "teacher_ckpt=/nope.ckpt: no such file"),
+        ("data.val_sequences=0", "data.val_sequences must be null, an integer >= 1"),
+        ("data.val_sequences=true", "data.val_sequences must be null, an integer >= 1"),
+        ("data.val_fraction=1", "data.val_fraction must be null or a number in (0, 1), got 1"),
     ],
 )
 def test_values_are_checked_before_anything_trains(

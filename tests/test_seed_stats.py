@@ -100,3 +100,12 @@ def test_a_repeated_seed_is_an_error(sweep: Path, capsys: pytest.CaptureFixture)
     assert "a second job of 'pae.L=0 teacher_ckpt=t/${seed}.ckpt' with seed=1" in (
         capsys.readouterr().err
     )
+
+
+def test_the_sweep_objective_is_a_validation_figure() -> None:
+    from pae.train import objective
+
+    metrics = {"test/student/pos_median_m": 0.1, "val/student/pos_median_m": 0.3}
+    assert objective(metrics) == 0.3
+    assert objective({"test/teacher/pos_median_m": 0.1, "val/teacher/pos_median_m": 0.2}) == 0.2
+    assert objective({"test/teacher/pos_median_m": 0.1}) is None

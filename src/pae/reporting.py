@@ -136,7 +136,7 @@ def format_results_table(metrics: Mapping[str, float], split: str = "test") -> s
     ratio = metrics.get(f"{diagnostics}gt_to_train_per_error")
     if ratio is not None:
         lines.append(
-            f"test-camera distance to the train poses / teacher median error: {ratio:.2f} "
+            f"{split}-camera distance to the train poses / teacher median error: {ratio:.2f} "
             "(Cambridge and 7-Scenes: 0.37-1.07, median about 0.7)"
         )
     return "\n".join(lines)
