@@ -109,3 +109,17 @@ def test_the_sweep_objective_is_a_validation_figure() -> None:
     assert objective(metrics) == 0.3
     assert objective({"test/teacher/pos_median_m": 0.1, "val/teacher/pos_median_m": 0.2}) == 0.2
     assert objective({"test/teacher/pos_median_m": 0.1}) is None
+
+
+def test_a_finished_sweep_writes_its_seed_table_to_report_md(
+    sweep: Path, capsys: pytest.CaptureFixture
+) -> None:
+    from omegaconf import OmegaConf
+
+    from pae.reporting import SweepReport
+
+    SweepReport().on_multirun_end(OmegaConf.create({"hydra": {"sweep": {"dir": str(sweep)}}}))
+    report = (sweep / "report.md").read_text()
+    assert "| pae.L=6 seed=2 |" in report  # the job table, then the variants over seeds
+    assert "| pae.L=6 | 0,1,2 | 2.000 ± 1.000 (3) | 3.000 ± 1.100 (3) |" in report
+    assert report.strip() in capsys.readouterr().out

@@ -328,15 +328,21 @@ def compare_table(runs: Sequence[Path], names: Sequence[str], split: str = "test
 
 class SweepReport(Callback):
     """Hydra callback: at the end of a sweep, print its `pae-report` table and write it to
-    `<sweep dir>/report.md` (failed jobs listed below the table)."""
+    `<sweep dir>/report.md` (failed jobs listed below the table, then mean ± sd over seeds
+    when jobs differ only by seed)."""
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        from pae.seed_stats import seed_report
+
         sweep_dir = Path(config.hydra.sweep.dir)
         try:
             table = sweep_table(sweep_dir)
-        except FileNotFoundError as err:
+            seeds = seed_report(sweep_dir, None, [])
+        except (FileNotFoundError, ValueError) as err:
             print(f"pae-report: {err}", file=sys.stderr)
             return
+        if seeds is not None:
+            table += "\n\n" + seeds
         write_text_atomic(sweep_dir / "report.md", table + "\n")
         print(table)
         print(f"report: {sweep_dir / 'report.md'}")
