@@ -114,8 +114,8 @@ def _seed(run_dir: Path, overrides: list[str]) -> int | None:
 
 def seed_variants(root: str | Path) -> Variants:
     """The finished jobs below `root` (readable metrics.json) grouped by their overrides other
-    than the seed (and launcher or trainer settings), then by seed. Variants are named by the
-    overrides in which they differ (all of them when there is one variant)."""
+    than the seed (and launcher or trainer settings; in any order), then by seed. Variants are
+    named by the overrides in which they differ (all of them when there is one variant)."""
     keyed: dict[tuple[str, ...], dict[int, Metrics]] = {}
     for path in sorted(Path(root).rglob("metrics.json")):
         run_dir = path.parent
@@ -127,7 +127,7 @@ def seed_variants(root: str | Path) -> Variants:
         seed = _seed(run_dir, overrides)
         if seed is None or not isinstance(metrics, dict):
             continue
-        key = tuple(o for o in overrides if not o.startswith(HIDDEN_OVERRIDES))
+        key = tuple(sorted(o for o in overrides if not o.startswith(HIDDEN_OVERRIDES)))
         jobs = keyed.setdefault(key, {})
         if seed in jobs:
             raise ValueError(f"{run_dir}: a second job of '{' '.join(key)}' with seed={seed}")
