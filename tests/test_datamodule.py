@@ -1,8 +1,10 @@
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
+from pae.data import datamodule
 from pae.data.datamodule import PoseDataModule
 from pae.data.labels import LabelError, read_labels, write_labels
 from pae.data.latents import TeacherLatentDataModule
@@ -29,9 +31,21 @@ def test_splits_scene_ids_and_train_poses(tiny_root: Path) -> None:
     assert data.scene_names == ["scene00", "scene01"]
     poses, scenes = data.train_poses()
     table = read_labels(tiny_root / "labels" / "all_train.csv")
-    assert torch.allclose(poses, torch.as_tensor(table.poses, dtype=torch.float32))
-    assert torch.equal(scenes.bincount(), torch.tensor([24, 24]))
-    assert len(data.datasets["test"]) == 24 and data.datasets["val"] is data.datasets["test"]
+    held_out = np.asarray(table.seq) == "seq-06"
+    assert torch.allclose(poses, torch.as_tensor(table.poses[~held_out], dtype=torch.float32))
+    assert torch.equal(scenes.bincount(), torch.tensor([20, 20]))
+    assert data.tables["val"].seq == ["seq-06"] * 8 and len(data.datasets["test"]) == 24
+
+
+def test_val_sequences_null_validates_on_test_with_a_warning(
+    tiny_root: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(datamodule, "_WARNED", set())
+    data = _data(tiny_root, val_sequences=None)
+    poses, _ = data.train_poses()
+    assert len(poses) == 48 and data.datasets["val"] is data.datasets["test"]
+    warning = capsys.readouterr().err.strip()
+    assert "\n" not in warning and "validation reads the test split" in warning
 
 
 def test_cached_and_uncached_batches_are_identical(tiny_root: Path) -> None:
@@ -85,7 +99,7 @@ def test_teacher_latents_are_cached_once_in_train_order(tiny_root: Path) -> None
     cached = TeacherLatentDataModule(data, teacher)
     cached.setup("fit")
     latents = cached.latents
-    assert latents is not None and len(latents) == 48
+    assert latents is not None and len(latents) == 40  # the held-out seq-06 rows excluded
     images = data.preprocess(data.datasets["train"].images[:4], train=False)
     with torch.no_grad():
         pose, z = teacher(images)

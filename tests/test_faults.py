@@ -140,7 +140,8 @@ def test_last_checkpoint_after_every_training_epoch(
     with pytest.raises(RuntimeError, match="interrupted"):
         run(cfg, tmp_path)
     steps = read_checkpoint(tmp_path / "checkpoints" / "last.ckpt")["global_step"]
-    assert steps == 3 * (TINY["scenes"] * TINY["train_frames"] // 8), "epochs 0-2 are kept"
+    train_rows = TINY["scenes"] * TINY["train_frames"] * 5 // 6  # seq-06 of 6 is held out
+    assert steps == 3 * (train_rows // 8), "epochs 0-2 are kept"
 
 
 def test_checkpoints_are_written_whole(
@@ -242,6 +243,9 @@ def test_resume_that_cannot_work_stops_before_the_run_dir_is_touched(
         ("data.yaw_stray_rad=2", "data.yaw_stray_rad must be <= 1.5708, got 2"),
         ("backbone.weights_path=/nope.pt", "backbone.weights_path=/nope.pt: no such file"),
         ("teacher_ckpt=/nope.ckpt", "teacher_ckpt=/nope.ckpt: no such file"),
+        ("data.val_sequences=0", "data.val_sequences must be null, an integer >= 1"),
+        ("data.val_sequences=true", "data.val_sequences must be null, an integer >= 1"),
+        ("data.val_fraction=1", "data.val_fraction must be null or a number in (0, 1), got 1"),
     ],
 )
 def test_values_are_checked_before_anything_trains(

@@ -149,7 +149,7 @@ def test_a_cache_hit_reads_no_train_image_and_runs_no_teacher(
         return latents, images
 
     first, images = job()
-    assert first.cache_hit is False and sum(passes) == 48
+    assert first.cache_hit is False and sum(passes) == 40  # the train rows left after seq-06
     assert images.datasets["train"]._cached is not None
     passes.clear()
     second, images = job()

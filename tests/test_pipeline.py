@@ -76,6 +76,26 @@ def test_pipeline_writes_metrics_checkpoints_and_events(pipeline_run: Path) -> N
         assert list((pipeline_run / step).glob("events.out.tfevents.*"))
 
 
+def test_val_figures_come_from_held_out_train_sequences(
+    pipeline_run: Path, tiny_root: Path
+) -> None:
+    import hashlib
+
+    from pae.checkpoints import DATA_FINGERPRINT_KEY, read_checkpoint
+    from pae.data.labels import read_labels
+
+    metrics = json.loads((pipeline_run / "metrics.json").read_text())
+    for method in (*EXPECTED_METHODS, "vrpr", "rpr_image", "iapr_1"):
+        assert metrics[f"val/{method}/pos_median_m"] >= 0
+    assert metrics["val/teacher/pos_median_m"] != metrics["test/teacher/pos_median_m"]
+    table = read_labels(tiny_root / "labels" / "all_train.csv")
+    kept = np.ascontiguousarray(table.poses[np.asarray(table.seq) != "seq-06"])
+    for step in ("teacher", "student"):  # trained, and stored for retrieval, without seq-06
+        checkpoint = read_checkpoint(pipeline_run / step / "checkpoints" / "last.ckpt")
+        fingerprint = checkpoint[DATA_FINGERPRINT_KEY]["train_poses_sha256"]
+        assert fingerprint == hashlib.sha256(kept.tobytes()).hexdigest()
+
+
 def test_full_stage_reports_the_relative_regressors(pipeline_run: Path) -> None:
     metrics = json.loads((pipeline_run / "metrics.json").read_text())
     teacher_rot = metrics["test/teacher/rot_median_deg"]
@@ -101,6 +121,12 @@ def test_tensorboard_gets_trajectory_plot_and_hparams(pipeline_run: Path) -> Non
     assert "test/refined_test_store/pos_median_m" in events.Tags()["scalars"]
     assert "val/refined/pos_median_m" in events.Tags()["scalars"]
     assert "hparams/test/refined/pos_median_m" in events.Tags()["scalars"]
+    assert "hparams/val/refined/pos_median_m" in events.Tags()["scalars"]
+    from tensorboard.plugins.hparams import plugin_data_pb2
+
+    content = events.PluginTagToContent("hparams")["_hparams_/session_start_info"]
+    hparams = plugin_data_pb2.HParamsPluginData.FromString(content).session_start_info.hparams
+    assert hparams["seed"].number_value == 0 and hparams["refine/seed"].number_value == 0
     decoder_events = EventAccumulator(str(pipeline_run / "decoder"))
     decoder_events.Reload()
     assert "test/reconstructions" in decoder_events.Tags()["images"]
@@ -319,7 +345,9 @@ def test_real_data_layout_trains_end_to_end(tiny_root: Path, tmp_path: Path) -> 
     original = read_labels(tiny_root / "labels" / "all_test.csv")
     original = original.select([i for i, s in enumerate(original.scene) if s == "scene01"])
     np.testing.assert_allclose(converted.poses, original.poses, atol=1e-6)
-    train = read_labels(raw / "labels" / "scene01_train.csv").poses
+    train_table = read_labels(raw / "labels" / "scene01_train.csv")
+    held_out = np.asarray(train_table.seq) == max(train_table.seq)  # the validation sequence
+    train = train_table.poses[~held_out]  # the mean pose is the remaining train rows' mean
     distances = np.linalg.norm(converted.poses[:, :3] - train[:, :3].mean(axis=0), axis=1)
     assert metrics["test/mean_pose/pos_median_m"] == pytest.approx(np.median(distances), rel=1e-5)
     teacher = load_teacher(tmp_path / "run" / "checkpoints" / "last.ckpt")

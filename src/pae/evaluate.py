@@ -32,9 +32,10 @@ def main(cfg: DictConfig) -> float | None:
         metrics = evaluate_checkpoints(cfg, run_dir)
         if rank_zero_only.rank == 0:  # under DDP every process holds the same figures
             write_json_atomic(run_dir / "metrics.json", metrics)
+            print(format_results_table(metrics, "val"))
             print(format_results_table(metrics))
             print(f"metrics: {run_dir / 'metrics.json'}")
-        return metrics.get("test/refined/pos_median_m")
+        return metrics.get("val/refined/pos_median_m")  # a sweeper's objective: never test
 
 
 if __name__ == "__main__":

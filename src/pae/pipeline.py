@@ -97,6 +97,7 @@ def _resume_path(cfg: DictConfig, step_dir: Path, data: L.LightningDataModule) -
 
 
 def collect_metrics(trainer: L.Trainer, prefixes: tuple[str, ...] = ("test/",)) -> Metrics:
+    """The trainer's logged figures whose keys start with one of `prefixes`."""
     return {
         key: float(value)
         for key, value in trainer.callback_metrics.items()
@@ -142,6 +143,17 @@ def _teacher_config(cfg: DictConfig, n_scenes: int) -> dict[str, Any]:
     return config
 
 
+def validate_and_test(
+    trainer: L.Trainer, module: L.LightningModule, data: L.LightningDataModule
+) -> Metrics:
+    """The `val/` figures (the validation split: model selection reads these), then the
+    `test/` figures (the final report) of the module as it is now."""
+    trainer.validate(module, datamodule=data, verbose=False)
+    metrics = collect_metrics(trainer, ("val/",))
+    trainer.test(module, datamodule=data, verbose=False)
+    return metrics | collect_metrics(trainer)
+
+
 def fit_and_test(
     cfg: DictConfig,
     step_dir: Path,
@@ -151,14 +163,14 @@ def fit_and_test(
     epochs: int,
     callbacks: list[L.Callback] | None = None,
 ) -> tuple[Metrics, Path]:
-    """Fit, test, record `bench/{name}/fit_s` -> (metrics, path of the last checkpoint)."""
+    """Fit, validate, test, record `bench/{name}/fit_s` -> (metrics, path of the last
+    checkpoint)."""
     trainer = build_trainer(cfg, step_dir, epochs, callbacks or [])
     start = time.perf_counter()
     resume_from = _resume_path(cfg, step_dir, data)
     trainer.fit(module, datamodule=data, ckpt_path=resume_from, weights_only=True)
     fit_s = time.perf_counter() - start
-    trainer.test(module, datamodule=data, verbose=False)
-    metrics = collect_metrics(trainer)
+    metrics = validate_and_test(trainer, module, data)
     metrics[f"bench/{name}/fit_s"] = fit_s
     log_hparams(trainer, cfg, metrics)
     return metrics, step_dir / "checkpoints" / "last.ckpt"
@@ -421,8 +433,7 @@ def evaluate_checkpoints(cfg: DictConfig, run_dir: Path) -> Metrics:
             )
         module = StudentEvaluator(teacher.model, pae.model, data.scene_names)
         trainer = build_trainer(cfg, run_dir, 0, refinement_callbacks(cfg))
-        trainer.test(module, datamodule=data, verbose=False)
-        metrics |= collect_metrics(trainer)
+        metrics |= validate_and_test(trainer, module, data)
         log_hparams(trainer, cfg, metrics)
     if cfg.get("scene_model_ckpt"):
         from pae.pipeline_scene import evaluate_scene_model

@@ -26,6 +26,7 @@ from pae.pipeline import (
     log_hparams,
     optimisation,
     required,
+    validate_and_test,
 )
 
 SCENE_MODELS = ("voxel_grid", "pae_decoder", "oracle")
@@ -110,8 +111,8 @@ def fit_scene_model(
         )
         return metrics | collect_metrics(module.trainer, ("bench/render_compare",)), last
     trainer = build_trainer(cfg, step_dir, 0, callbacks)
-    trainer.test(module, datamodule=data, verbose=False)
-    metrics = collect_metrics(trainer, ("test/", "bench/"))
+    metrics = validate_and_test(trainer, module, data)
+    metrics |= collect_metrics(trainer, ("bench/",))
     log_hparams(trainer, cfg, metrics)
     return metrics, None
 
@@ -131,7 +132,7 @@ def evaluate_scene_model(
         configs={"teacher_config": teacher.config, "scene_model_config": loaded.config},
     )
     trainer = build_trainer(cfg, run_dir / "render_compare", 0, [render_compare_callback(cfg)])
-    trainer.test(module, datamodule=data, verbose=False)
-    metrics = collect_metrics(trainer, ("test/", "bench/"))
+    metrics = validate_and_test(trainer, module, data)
+    metrics |= collect_metrics(trainer, ("bench/",))
     log_hparams(trainer, cfg, metrics)
     return metrics

@@ -151,7 +151,7 @@ def format_results_table(metrics: Mapping[str, float], split: str = "test") -> s
     ratio = metrics.get(f"{diagnostics}gt_to_train_per_error")
     if ratio is not None:
         lines.append(
-            f"test-camera distance to the train poses / teacher median error: {ratio:.2f} "
+            f"{split}-camera distance to the train poses / teacher median error: {ratio:.2f} "
             "(Cambridge and 7-Scenes: 0.37-1.07, median about 0.7)"
         )
     return "\n".join(lines)
@@ -222,7 +222,7 @@ def _job_name(run_dir: Path, root: Path) -> str:
     overrides_file = run_dir / ".hydra" / "overrides.yaml"
     if not overrides_file.is_file():
         return str(run_dir.relative_to(root)) or "."
-    overrides = [str(o) for o in OmegaConf.load(overrides_file)]
+    overrides = [str(o) for o in OmegaConf.to_container(OmegaConf.load(overrides_file))]
     shown = [o for o in overrides if not o.startswith(("hydra.", "+trainer.", "trainer."))]
     shown = [o for o in shown if not o.startswith(("teacher_ckpt=", "student_ckpt=", "pae_ckpt="))]
     return " ".join(shown) or "(defaults)"
@@ -343,39 +343,59 @@ def compare_table(runs: Sequence[Path], names: Sequence[str], split: str = "test
 
 class SweepReport(Callback):
     """Hydra callback: at the end of a sweep, print its `pae-report` table and write it to
-    `<sweep dir>/report.md` (failed jobs listed below the table)."""
+    `<sweep dir>/report.md` (failed jobs listed below the table, then mean ± sd over seeds
+    when jobs differ only by seed)."""
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        from pae.seed_stats import seed_report
+
         sweep_dir = Path(config.hydra.sweep.dir)
         try:
             table = sweep_table(sweep_dir)
-        except FileNotFoundError as err:
+            seeds = seed_report(sweep_dir, None, [])
+        except (FileNotFoundError, ValueError) as err:
             print(f"pae-report: {err}", file=sys.stderr)
             return
+        if seeds is not None:
+            table += "\n\n" + seeds
         write_text_atomic(sweep_dir / "report.md", table + "\n")
         print(table)
         print(f"report: {sweep_dir / 'report.md'}")
 
 
 def main(argv: list[str] | None = None) -> int:
-    """`pae-report DIR`: the results of a run or a sweep as a markdown table;
-    `pae-report --compare RUN [RUN ...] --names A,B,...`: methods × runs."""
+    """`pae-report DIR`: the results of a run or a sweep as a markdown table (and, for jobs
+    that differ only by seed, mean ± sd per variant); `pae-report DIR --compare`: paired
+    differences between the sweep's variants over their seeds; `pae-report --compare RUN
+    [RUN ...] --names A,B,...`: methods × runs (runs that are seed sweeps: paired)."""
+    from pae.seed_stats import seed_report
+
     parser = argparse.ArgumentParser(prog="pae-report", description=sweep_table.__doc__)
     parser.add_argument("directory", type=Path, nargs="?")
     parser.add_argument("--split", default="test", choices=("test", "val"))
     parser.add_argument(
-        "--compare", type=Path, nargs="+", metavar="RUN", help="run directories as columns"
+        "--compare",
+        type=Path,
+        nargs="*",
+        metavar="RUN",
+        help="run directories as columns; with DIR and no RUN: the sweep's variants, paired",
     )
     parser.add_argument("--names", help="comma-separated column names for --compare")
+    parser.add_argument("--baseline", help="DIR --compare: the variant to compare against")
     args = parser.parse_args(argv)
-    if (args.directory is None) == (args.compare is None):
-        parser.error("give either DIR or --compare RUN [RUN ...]")
+    if (args.directory is None) == (not args.compare):  # DIR [--compare] or --compare RUN...
+        parser.error("give DIR, DIR --compare, or --compare RUN [RUN ...]")
     try:
-        if args.compare:
-            names = args.names.split(",") if args.names else [p.name for p in args.compare]
+        names = args.names.split(",") if args.names else [p.name for p in args.compare or ()]
+        seeds = seed_report(
+            args.directory, args.compare, names, split=args.split, baseline=args.baseline
+        )
+        if args.compare and seeds is None:
             print(compare_table(args.compare, names, args.split))
-        else:
+        elif args.directory is not None and args.compare is None:
             print(sweep_table(args.directory, args.split))
+        if seeds is not None:
+            print(("\n" if args.compare is None else "") + seeds)
     except (OSError, ValueError) as err:
         print(f"pae-report: error: {err}", file=sys.stderr)
         return 1

@@ -65,9 +65,18 @@ def main(cfg: DictConfig) -> float | None:
         run_dir = Path(HydraConfig.get().runtime.output_dir)
         metrics = run(cfg, run_dir)
         if rank_zero_only.rank == 0:
+            print(format_results_table(metrics, "val"))
             print(format_results_table(metrics))
+            if cfg.get("table_footnote"):
+                print(cfg.table_footnote)
             print(f"metrics: {run_dir / 'metrics.json'}")
-        return metrics.get("test/student/pos_median_m", metrics.get("test/teacher/pos_median_m"))
+        return objective(metrics)
+
+
+def objective(metrics: dict[str, float]) -> float | None:
+    """What an optimising sweeper minimises: a validation figure, never a test one (the
+    student's median position error, else the teacher's)."""
+    return metrics.get("val/student/pos_median_m", metrics.get("val/teacher/pos_median_m"))
 
 
 if __name__ == "__main__":

@@ -138,6 +138,24 @@ def _train_set_size(cfg: DictConfig) -> int:
     return int(np.isin(np.asarray(table.scene), list(scenes)).sum())
 
 
+def _validate_holdout(cfg: DictConfig) -> None:
+    """data.val_sequences: null, an integer >= 1 or a list of sequence names;
+    data.val_fraction: null or a number in (0, 1)."""
+    sequences = _value(cfg, "data.val_sequences")
+    names = isinstance(sequences, ListConfig) and all(isinstance(s, str) for s in sequences)
+    names = names and len(sequences) > 0
+    if not (sequences is None or (_is_int(sequences) and sequences >= 1) or names):
+        raise ConfigError(
+            "data.val_sequences must be null, an integer >= 1 (the last n train sequences of "
+            f"each scene) or a list of sequence names, got {sequences!r}"
+        )
+    fraction = _value(cfg, "data.val_fraction")
+    if fraction is not None and not (
+        isinstance(fraction, int | float) and not isinstance(fraction, bool) and 0 < fraction < 1
+    ):
+        raise ConfigError(f"data.val_fraction must be null or a number in (0, 1), got {fraction!r}")
+
+
 def validate_data(cfg: DictConfig, train: bool = True) -> None:
     """data.*: sizes, batch sizes (train: at most the train set), workers, paths."""
     crop = _integer(cfg, "data.crop", 1)
@@ -151,6 +169,7 @@ def validate_data(cfg: DictConfig, train: bool = True) -> None:
     _integer(cfg, "data.num_workers", 0)
     for key in ("augment", "cache_images", "balance_scenes"):
         _boolean(cfg, f"data.{key}")
+    _validate_holdout(cfg)
     batch_size = _integer(cfg, "data.batch_size", 1)
     n_train = _train_set_size(cfg)
     if train and batch_size > n_train:

@@ -3,17 +3,20 @@
 from __future__ import annotations
 
 import hashlib
+import sys
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 import numpy as np
 import torch
+from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 from torch import Tensor
 from torch.utils.data import DataLoader, WeightedRandomSampler
 
 from pae.data.camera import Intrinsics, centre_crop_origin, resized_size, scale_intrinsics
 from pae.data.dataset import PoseDataset, collate_batch
+from pae.data.holdout import HeldOut, held_out_rows
 from pae.data.labels import LabelTable, read_labels
 from pae.data.transforms import ImageTransform
 from pae.errors import ConfigError, LabelError
@@ -22,7 +25,12 @@ from pae.errors import ConfigError, LabelError
 class PoseDataModule(L.LightningDataModule):
     """Pose-labelled images from label files (see README, "Data") under `root`.
 
-    `val_labels` defaults to `test_labels` (the benchmarks have no validation split).
+    The validation split: `val_labels` when given; otherwise rows held out of the train
+    labels, neither trained on nor stored for retrieval (`train_poses`, the fingerprint):
+    `val_sequences` whole train sequences per scene and, for scenes with too few sequences
+    (or label files without them), the last `val_fraction` of their rows (pae.data.holdout).
+    `val_sequences` None: validation reads the test split (said once on stderr), the old
+    protocol, for comparisons with it only.
     Augmentation (random crop + colour jitter) runs batched on the device after transfer,
     for training batches only when `augment` is true; evaluation uses the centre crop.
     `balance_scenes` samples scenes equally often in multi-scene training.
@@ -54,6 +62,8 @@ class PoseDataModule(L.LightningDataModule):
         pose_loss_init: dict[str, float] | None = None,
         scenes: list[str] | None = None,
         camera: dict[str, float] | None = None,
+        val_sequences: HeldOut = 1,
+        val_fraction: float | None = 0.1,
     ) -> None:
         super().__init__()
         self.camera = Intrinsics(**camera) if camera else None
@@ -61,6 +71,8 @@ class PoseDataModule(L.LightningDataModule):
         self.root = Path(root)
         self.label_paths = {"train": train_labels, "val": val_labels or test_labels}
         self.label_paths["test"] = test_labels
+        carve = val_labels is None and val_sequences is not None
+        self.holdout = (val_sequences, val_fraction) if carve else None
         self.shorter_edge = shorter_edge
         self.batch_size = batch_size
         self.eval_batch_size = eval_batch_size
@@ -79,9 +91,10 @@ class PoseDataModule(L.LightningDataModule):
     def setup(self, stage: str | None = None) -> None:
         if self.datasets:
             return
-        self.tables = {
-            split: self._keep_scenes(read_labels(path)) for split, path in self.label_paths.items()
+        read = {
+            path: self._keep_scenes(read_labels(path)) for path in set(self.label_paths.values())
         }
+        self.tables = {split: read[path] for split, path in self.label_paths.items()}
         self.scene_names = self.tables["train"].scene_names
         for table in self.tables.values():
             unknown = sorted(set(table.scene_names) - set(self.scene_names))
@@ -92,19 +105,33 @@ class PoseDataModule(L.LightningDataModule):
                     f"scenes {unknown} do not occur in the train labels "
                     f"{self.tables['train'].source}",
                 )
-        cached: dict[str, PoseDataset] = {}
-        for split, path in self.label_paths.items():
-            if path not in cached:
-                cached[path] = PoseDataset(
-                    self.tables[split],
-                    self.root,
-                    self.scene_names,
-                    self.shorter_edge,
-                    cache=self.cache_images,
+        if self.holdout is not None:
+            self._hold_out(*self.holdout)
+        elif self.tables["val"] is self.tables["test"]:
+            _warn_val_is_test()
+        datasets: dict[int, PoseDataset] = {}
+        for split, table in self.tables.items():
+            if id(table) not in datasets:
+                datasets[id(table)] = PoseDataset(
+                    table, self.root, self.scene_names, self.shorter_edge, cache=self.cache_images
                 )
-            self.datasets[split] = cached[path]
+            self.datasets[split] = datasets[id(table)]
         self.datasets["val"].load()
         self.datasets["test"].load()
+
+    def _hold_out(self, sequences: HeldOut, fraction: float | None) -> None:
+        """Move the held-out train rows into the val table (see pae.data.holdout)."""
+        train = self.tables["train"]
+        mask, held = held_out_rows(train, sequences, fraction)
+        if not mask.any():
+            raise LabelError(
+                train.source,
+                None,
+                f"data.val_sequences={sequences} with data.val_fraction={fraction} holds out "
+                "no train rows (set data.val_fraction, or give data.val_labels)",
+            )
+        self.tables["val"], self.tables["train"] = train.select(mask), train.select(~mask)
+        rank_zero_info("validation split, held out of the train labels: " + "; ".join(held))
 
     def _keep_scenes(self, table: LabelTable) -> LabelTable:
         if self.keep_scenes is None:
@@ -211,3 +238,18 @@ class PoseDataModule(L.LightningDataModule):
             training = self.trainer is not None and self.trainer.training
             batch = {**batch, "image": self.preprocess(image, training)}
         return batch
+
+
+_WARNED: set[str] = set()
+
+
+@rank_zero_only
+def _warn_val_is_test() -> None:
+    """Say once per process that the val split is the test split."""
+    if "val_is_test" not in _WARNED:
+        _WARNED.add("val_is_test")
+        print(
+            "pae: warning: data.val_sequences=null: validation reads the test split, so val/ "
+            "figures are test figures",
+            file=sys.stderr,
+        )

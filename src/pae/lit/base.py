@@ -25,7 +25,7 @@ class EvaluationModule(L.LightningModule):
 
     def register_mean_pose_baseline(self, n_scenes: int) -> None:
         """Keep `mean_poses` [n_scenes, 7], the mean train pose per scene (the `mean_pose`
-        baseline), filled from the data module when fitting or testing starts."""
+        baseline), filled from the data module when fitting, validating or testing starts."""
         self.register_buffer("mean_poses", torch.zeros(n_scenes, 7))
 
     def _fill_mean_poses(self) -> None:
@@ -34,6 +34,9 @@ class EvaluationModule(L.LightningModule):
             self.mean_poses.copy_(mean_pose_per_scene(poses, scenes, len(self.mean_poses)))
 
     def on_fit_start(self) -> None:
+        self._fill_mean_poses()
+
+    def on_validation_start(self) -> None:
         self._fill_mean_poses()
 
     def on_test_start(self) -> None:

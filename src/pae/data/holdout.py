@@ -1,0 +1,77 @@
+"""The validation split carved from the train labels: whole train sequences held out per scene
+(or, for a scene without enough sequences, the last fraction of its rows), so that model
+selection never reads the test split."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+
+import numpy as np
+
+from pae.data.labels import LabelTable
+from pae.errors import LabelError
+
+HeldOut = int | Sequence[str]
+"""``data.val_sequences``: n (the last n train sequences of every scene, in numeric order), or
+sequence names (``seq-06`` in every scene that has it, ``scene/seq`` in one)."""
+
+
+def natural_key(name: str) -> list[int | str]:
+    """Sort key that orders ``seq2`` before ``seq10`` (digit runs compare as numbers)."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name)]
+
+
+def _tail(rows: np.ndarray, fraction: float) -> np.ndarray:
+    """The last ``ceil(fraction · n)`` of ``rows`` [n >= 2] (file order): at least one, never
+    all."""
+    count = min(max(1, int(np.ceil(fraction * len(rows)))), len(rows) - 1)
+    return rows[len(rows) - count :]
+
+
+def held_out_rows(
+    table: LabelTable, sequences: HeldOut, fraction: float | None
+) -> tuple[np.ndarray, list[str]]:
+    """Which train rows form the validation split -> (mask [N] bool, one line per scene
+    saying what it holds out).
+
+    Per scene: with ``sequences`` an int n, its last n train sequences when it has more than
+    n; with names, those of its sequences; a scene with too few sequences (or none named)
+    falls back to the last ``fraction`` of its rows in file order (a contiguous block: nearby
+    frames are alike); with ``fraction`` None it holds out nothing. A named sequence that no
+    scene has, or a scene left without train rows, is a LabelError naming the file.
+    """
+    scene = np.asarray(table.scene)
+    seq = np.asarray(table.seq)
+    mask = np.zeros(len(table), dtype=bool)
+    named = [] if isinstance(sequences, int) else [str(s) for s in sequences]
+    held: list[str] = []
+    for name in table.scene_names:
+        rows = np.flatnonzero(scene == name)
+        names = sorted({s for s in seq[rows] if s}, key=natural_key)
+        if isinstance(sequences, int):
+            chosen = names[-sequences:] if len(names) > sequences else []
+        else:
+            chosen = [s for s in names if s in named or f"{name}/{s}" in named]
+        if chosen:
+            picked = rows[np.isin(seq[rows], chosen)]
+            what = f"{name}: sequence{'s' if len(chosen) > 1 else ''} {', '.join(chosen)}"
+        elif fraction is not None and len(rows) > 1:
+            picked = _tail(rows, fraction)
+            what = f"{name}: its last rows (val_fraction={fraction:g})"
+        else:
+            held.append(f"{name}: nothing held out ({len(names)} train sequence(s))")
+            continue
+        if len(picked) == len(rows):
+            raise LabelError(
+                table.source, None, f"data.val_sequences holds out every train row of {name}"
+            )
+        mask[picked] = True
+        held.append(f"{what}, {len(picked)} of {len(rows)} rows")
+    known = set(seq) | {f"{a}/{b}" for a, b in zip(scene, seq, strict=True)}
+    unknown = sorted(set(named) - known)
+    if unknown:
+        raise LabelError(
+            table.source, None, f"data.val_sequences: no train rows of sequences {unknown}"
+        )
+    return mask, held
