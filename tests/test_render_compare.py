@@ -392,3 +392,19 @@ def test_the_callback_refines_without_reading_the_true_poses(
         callback.refine(trainer, module, "test")
     assert torch.isfinite(refined[1]).all()
     torch.testing.assert_close(refined[0], refined[1])
+
+
+def test_gradient_steps_run_inside_an_evaluation_loop() -> None:
+    """Lightning evaluates in inference mode; the gradient steps still run there and never
+    lower a query's score."""
+    model, images, intrinsics, _, start = _oracle_queries(3)
+    scenes = torch.zeros(len(start), dtype=torch.long)
+    settings = {"rounds": 2, "candidates": 4, "resolution": 16, "reference_size": 12}
+    with torch.inference_mode():
+        plain = RenderCompareRefiner(model, **settings)(images, intrinsics, start, scenes)
+        polished = RenderCompareRefiner(model, gradient_steps=5, **settings)(
+            images, intrinsics, start, scenes
+        )
+    assert torch.isfinite(polished.poses).all()
+    assert not torch.equal(plain.poses, polished.poses)
+    assert (polished.score >= plain.score).all()

@@ -1,7 +1,9 @@
 """Print a markdown table of render-and-compare runs: one row per run directory (a run, or
-every job of a sweep), named by its command-line overrides, with the teacher's and each
-render-and-compare method's median position / orientation error on the test split, the
-change in median position against the teacher, and the honest search's ms per query.
+every job of a sweep), named by its command-line overrides, with the median position /
+orientation error of the teacher and of render-and-compare on the validation split (held-out
+train sequences: what settings are chosen on) and on the test split, the change in median
+position against the teacher, the test split's oracle bound, the honest search's ms per
+query and the scene model's PSNR at the test poses.
 
     python experiments/render_compare/table.py outputs/multirun/eval/<date> [more dirs]
 """
@@ -12,7 +14,13 @@ import json
 import sys
 from pathlib import Path
 
-METHODS = ("teacher", "render_compare", "render_compare_oracle")
+COLUMNS = (
+    ("val", "teacher"),
+    ("val", "render_compare"),
+    ("test", "teacher"),
+    ("test", "render_compare"),
+    ("test", "render_compare_oracle"),
+)
 
 
 def runs(root: Path) -> list[Path]:
@@ -21,6 +29,7 @@ def runs(root: Path) -> list[Path]:
 
 
 def name(run: Path) -> str:
+    """The run's command-line overrides (checkpoint and Hydra paths left out)."""
     overrides = run / ".hydra" / "overrides.yaml"
     if not overrides.is_file():
         return run.name
@@ -29,26 +38,28 @@ def name(run: Path) -> str:
     return " ".join(kept) or "(defaults)"
 
 
+def cell(metrics: dict[str, float], split: str, method: str) -> str:
+    pos = metrics.get(f"{split}/{method}/pos_median_m")
+    rot = metrics.get(f"{split}/{method}/rot_median_deg")
+    if pos is None:
+        return "-"
+    teacher = metrics.get(f"{split}/teacher/pos_median_m")
+    change = "" if method == "teacher" or not teacher else f" ({pos / teacher - 1:+.1%})"
+    return f"{pos:.3f} / {rot:.2f}{change}"
+
+
 def row(run: Path) -> str:
     metrics = json.loads((run / "metrics.json").read_text())
-    teacher = metrics.get("test/teacher/pos_median_m")
-    cells = []
-    for method in METHODS:
-        pos = metrics.get(f"test/{method}/pos_median_m")
-        rot = metrics.get(f"test/{method}/rot_median_deg")
-        if pos is None:
-            cells.append("-")
-            continue
-        change = "" if method == "teacher" or not teacher else f" ({pos / teacher - 1:+.1%})"
-        cells.append(f"{pos:.3f} / {rot:.2f}{change}")
+    cells = [cell(metrics, split, method) for split, method in COLUMNS]
     ms = metrics.get("bench/render_compare/ms_per_query")
     quality = metrics.get("test/scene_model/psnr_db")
-    extra = [f"{ms:.1f}" if ms else "-", f"{quality:.1f}" if quality else "-"]
-    return f"| {name(run)} | " + " | ".join(cells + extra) + " |"
+    cells += [f"{ms:.1f}" if ms else "-", f"{quality:.1f}" if quality else "-"]
+    return f"| {name(run)} | " + " | ".join(cells) + " |"
 
 
 def main(argv: list[str]) -> int:
-    header = ["run", *METHODS, "ms/query", "PSNR at test poses [dB]"]
+    header = ["run", *(f"{split} {method}" for split, method in COLUMNS)]
+    header += ["ms/query", "PSNR at test poses [dB]"]
     print("| " + " | ".join(header) + " |")
     print("|---" * len(header) + "|")
     for root in argv:

@@ -340,23 +340,33 @@ class RenderCompareRefiner:
             scale = torch.where(improved[:, None], scale, scale * self.shrink)
         return best, best_score, initial_score, surface
 
-    def _polish(self, poses: Tensor, queries: _Queries, surface: _Surface | None) -> Tensor:
-        """Adam steps on a 6-DoF increment of each pose, maximising the projected score."""
+    def _polish(
+        self, poses: Tensor, scores: Tensor, queries: _Queries, surface: _Surface | None
+    ) -> tuple[Tensor, Tensor]:
+        """Adam steps on a 6-DoF increment of each pose, maximising the projected score; a
+        query keeps its pose where they do not raise its score -> (poses, scores)."""
         if not self.gradient_steps or surface is None:
-            return poses
-        increment = torch.zeros(len(poses), 6, dtype=poses.dtype, requires_grad=True)
-        optimiser = torch.optim.Adam([increment], lr=self.gradient_lr)
-        for _ in range(self.gradient_steps):
-            moved = perturb(poses, increment)
-            loss = -self._score_projected(moved[:, None], queries, surface).sum()
-            optimiser.zero_grad()
-            loss.backward()
-            optimiser.step()
+            return poses, scores
+        # evaluation loops run in inference mode: these steps need autograd, on copies
+        with torch.inference_mode(False), torch.enable_grad():
+            poses, queries, surface = (
+                poses.clone(),
+                _Queries(*(t.clone() for t in queries)),
+                _Surface(*(t.clone() for t in surface)),
+            )
+            increment = torch.zeros(len(poses), 6, dtype=poses.dtype, requires_grad=True)
+            optimiser = torch.optim.Adam([increment], lr=self.gradient_lr)
+            for _ in range(self.gradient_steps):
+                moved = perturb(poses, increment)
+                loss = -self._score_projected(moved[:, None], queries, surface).sum()
+                optimiser.zero_grad()
+                loss.backward()
+                optimiser.step()
         with torch.no_grad():
             polished = perturb(poses, increment.detach())
-            before = self._score_projected(poses[:, None], queries, surface)[:, 0]
-            after = self._score_projected(polished[:, None], queries, surface)[:, 0]
-        return torch.where((after > before)[:, None], polished, poses)
+            after = self._score(polished[:, None], queries, surface)[:, 0]
+        better = after > scores
+        return torch.where(better[:, None], polished, poses), torch.where(better, after, scores)
 
     def __call__(
         self,
@@ -374,7 +384,7 @@ class RenderCompareRefiner:
         for rows in torch.arange(len(initial), device=initial.device).split(self.chunk):
             queries = self.prepare_queries(images[rows].float(), intrinsics[rows], scenes[rows])
             best, score, start, surface = self._search(initial[rows], queries, draws[rows])
-            best = self._polish(best, queries, surface)
+            best, score = self._polish(best, score, queries, surface)
             poses.append(best)
             scores.append(score)
             initial_scores.append(start)
