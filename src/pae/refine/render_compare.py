@@ -160,6 +160,11 @@ class RenderCompareRefiner:
             raise ValueError(f"unknown render_compare.engine {engine!r}; choose one of {ENGINES}")
         if engine == "compiled" and score != "zncc":
             raise ValueError("render_compare.engine=compiled scores zncc only; use auto or torch")
+        if score == "features" and gradient_steps:
+            raise ValueError(
+                "render_compare.gradient_steps polish the zncc score only; set "
+                "render_compare.refiner.gradient_steps=0 with score=features"
+            )
         if score == "features" and features is None:
             raise ValueError("render_compare.score=features needs a feature extractor")
         if rounds < 0 or candidates < 1 or resolution < 4 or reference_size < 4:
