@@ -99,9 +99,9 @@ def test_a_bad_sweep_job_does_not_stop_the_others(tiny_root: Path, tmp_path: Pat
     assert "teacher.max_epochs must be" in (sweep_dir / "0" / "error.txt").read_text()
     report = pae_command("reporting", str(sweep_dir), cwd=tmp_path)
     assert report.returncode == 1, "a sweep with a failed job is reported as failed"
-    failed = report.stdout.split("1 failed or missing job:\n")[1]
+    failed = report.stdout.split("1 failed job:\n")[1]
     assert "teacher.max_epochs=-1" in failed and "must be an integer >= 0" in failed
-    assert "| " in report.stdout.split("1 failed or missing job:")[0], "the finished job's row"
+    assert "| " in report.stdout.split("1 failed job:")[0], "the finished job's row"
     shutil.rmtree(sweep_dir / "1")  # as if the sweep had been stopped before its last job
     report = pae_command("reporting", str(sweep_dir), cwd=tmp_path)
     assert report.returncode == 1
@@ -580,7 +580,7 @@ def test_a_diverging_run_stops_at_once_and_writes_no_result(
     assert (run_dir / "error.txt").read_text() == line + "\n"
     report = pae_command("reporting", str(run_dir), cwd=tmp_path)
     assert report.returncode == 1
-    assert "1 failed or missing job:" in report.stdout and "training diverged" in report.stdout
+    assert "1 failed job:" in report.stdout and "training diverged" in report.stdout
 
 
 def test_non_finite_figures_are_never_results(tmp_path: Path) -> None:
@@ -723,7 +723,7 @@ def test_report_lists_every_job_of_a_sweep_that_has_no_result(tmp_path: Path) ->
     assert problems == 2
     assert "| stage=teacher pae.L=3 | 1.000 / 2.00 |" in table
     assert table.splitlines()[-3:] == [
-        "2 failed or missing jobs:",
+        "2 failed jobs:",
         f"- stage=teacher pae.L=6: no metrics.json: unfinished, or stopped without a recorded "
         f"error ({tmp_path / '1'})",
         f"- stage=teacher pae.L=9: never started (job 2, no {tmp_path / '2'})",

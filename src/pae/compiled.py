@@ -3,7 +3,7 @@
 ``jit(**options)`` is ``numba.njit(**options)`` with pae's own on-disk cache instead of
 ``cache=True``. The cache folder is the first writable one of ``NUMBA_CACHE_DIR``, the
 ``__pycache__`` beside the module (numba's default) and the user cache folder
-(``$XDG_CACHE_HOME/pae`` or ``~/.cache/pae``); where none can be written (a read-only
+(``$XDG_CACHE_HOME/pae/numba`` or ``~/.cache/pae/numba``); where none can be written (a read-only
 install and a read-only ``HOME``) the loops compile in each process without a cache, and a
 warning says so once. A cached loop is stamped with a digest of every source file of its
 top-level package, not only its own file: a compiled function inlines the compiled helpers it

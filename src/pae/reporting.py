@@ -350,7 +350,7 @@ def sweep_report(root: str | Path, split: str = "test") -> tuple[str, int]:
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     if failed:
         plural = "s" if len(failed) > 1 else ""
-        lines += ["", f"{len(failed)} failed or missing job{plural}:", *(f for _, f in failed)]
+        lines += ["", f"{len(failed)} failed job{plural}:", *(f for _, f in failed)]
     return "\n".join(lines), len(failed)
 
 
