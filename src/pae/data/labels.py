@@ -238,7 +238,7 @@ def read_labels_lenient(path: str | os.PathLike[str]) -> tuple[LabelTable, list[
     if not texts and not errors:
         raise LabelError(path_text, 1, "no data rows after the header")
 
-    numbers = np.asarray(values, dtype=np.float64).reshape(len(values), -1)
+    numbers = np.asarray(values, dtype=np.float64).reshape(len(values), len(pose_at))
     poses, focal = numbers[:, :7].copy().reshape(-1, 7), None
     if FOCAL_COLUMN in names:
         focal = numbers[:, 7] if len(values) else np.zeros(0)
