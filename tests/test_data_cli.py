@@ -125,7 +125,7 @@ def test_check_warns_once_about_non_unit_quaternions(
         dataset,
         HEADER,
         label_row("s/seq1/0.png", q="2,0,0,0"),
-        label_row("s/seq1/0.png", q="0,3,0,4"),
+        label_row("t/seq1/0.png", q="0,3,0,4", scene="t"),
     )
     code = main(["check", str(labels), str(dataset)])
     captured = capsys.readouterr()

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -14,6 +17,7 @@ import lightning as L
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 import pae.pipeline
 from pae.checkpoints import read_checkpoint
@@ -21,26 +25,31 @@ from pae.data.cli import main as pae_data
 from pae.data.dataset import PoseDataset
 from pae.data.labels import LabelTable, read_labels, write_labels
 from pae.data.synthetic import write_synthetic_dataset
-from pae.errors import CheckpointError, ConfigError, ImageError, LabelError
-from pae.reporting import sweep_table
+from pae.errors import CheckpointError, ConfigError, ImageError, LabelError, LabelWarning
+from pae.reporting import main as reporting_main
+from pae.reporting import sweep_report, sweep_table
 from pae.train import run
 from tests.conftest import TINY, tiny_overrides
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 
 
-def pae_command(module: str, *args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    """Run `python -m pae.<module> ARGS` as a user would, with this checkout's sources."""
-    env = {
+def pae_env() -> dict[str, str]:
+    """The environment of a subprocess that runs this checkout's sources."""
+    return {
         **os.environ,
         "PYTHONPATH": os.pathsep.join([str(SRC), os.environ.get("PYTHONPATH", "")]),
         "OMP_NUM_THREADS": "1",
     }
+
+
+def pae_command(module: str, *args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    """Run `python -m pae.<module> ARGS` as a user would, with this checkout's sources."""
     return subprocess.run(
         [sys.executable, "-m", f"pae.{module}", *args],
         capture_output=True,
         text=True,
-        env=env,
+        env=pae_env(),
         cwd=cwd,
         timeout=300,
         check=False,
@@ -89,10 +98,16 @@ def test_a_bad_sweep_job_does_not_stop_the_others(tiny_root: Path, tmp_path: Pat
     assert (sweep_dir / "1" / "metrics.json").is_file(), "the job after the bad one ran"
     assert "teacher.max_epochs must be" in (sweep_dir / "0" / "error.txt").read_text()
     report = pae_command("reporting", str(sweep_dir), cwd=tmp_path)
-    assert report.returncode == 0
+    assert report.returncode == 1, "a sweep with a failed job is reported as failed"
     failed = report.stdout.split("1 failed job:\n")[1]
     assert "teacher.max_epochs=-1" in failed and "must be an integer >= 0" in failed
-    assert "| " in report.stdout.split("1 failed job:")[0], "the finished job has its row"
+    assert "| " in report.stdout.split("1 failed job:")[0], "the finished job's row"
+    shutil.rmtree(sweep_dir / "1")  # as if the sweep had been stopped before its last job
+    report = pae_command("reporting", str(sweep_dir), cwd=tmp_path)
+    assert report.returncode == 1
+    [missing] = [line for line in report.stdout.splitlines() if "never started" in line]
+    assert "teacher.max_epochs=0 " in missing
+    assert missing.endswith(f": never started (job 1, no {sweep_dir / '1'})")
 
 
 def test_report_names_failed_jobs_and_corrupt_metrics(tmp_path: Path) -> None:
@@ -159,7 +174,7 @@ def test_checkpoints_are_written_whole(
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(torch, "save", disk_full)
-    with pytest.raises(OSError, match="No space left"):
+    with pytest.raises(OSError, match=f"no space left on .* while writing {path}$"):
         AtomicCheckpointIO().save_checkpoint({"global_step": 2}, path)
     assert read_checkpoint(path)["global_step"] == 1
     assert [p.name for p in tmp_path.iterdir() if p.suffix == ".tmp"] == []
@@ -288,13 +303,45 @@ def test_check_and_loaders_agree_on_image_size(
     table = read_labels(root / "labels" / "all_train.csv")
     labels = _with_image(root, table, 5, np.zeros((48, 32, 3), np.uint8), "wide.png")
     assert pae_data(["check", str(labels), str(root)]) == 1
-    assert "wide.csv:7: image is 32x48 px, unlike the 32x32 px" in capsys.readouterr().out
-    message = r"wide\.png: image is 32x48 px, unlike the 32x32 px of the first image"
+    out = capsys.readouterr().out
+    assert "wide.csv:7: image is 32x48 px, unlike the 32x32 px of most images (47 of 48" in out
+    message = r"wide\.png \(.*wide\.csv:7\): image is 32x48 px, unlike the 32x32 px of most"
     with pytest.raises(ImageError, match=message):
         PoseDataset(read_labels(labels), root, table.scene_names, 32, cache=True).load()
     dataset = PoseDataset(read_labels(labels), root, table.scene_names, 32, cache=False)
+    message = r"wide\.png: image is 32x48 px, unlike the 32x32 px of the label file's first"
     with pytest.raises(ImageError, match=message):
         dataset.__getitems__(list(range(8)))
+
+
+def test_an_odd_first_image_is_the_one_blamed(
+    tiny_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    root = tmp_path / "data"
+    shutil.copytree(tiny_root, root)
+    table = read_labels(root / "labels" / "all_train.csv")
+    labels = _with_image(root, table, 0, np.zeros((48, 32, 3), np.uint8), "wide.png")
+    assert pae_data(["check", str(labels), str(root)]) == 1
+    out = capsys.readouterr().out
+    assert "wide.csv:2: image is 32x48 px, unlike the 32x32 px of most images (47 of 48" in out
+    assert "FAILED: 1 of 48 rows" in out, "the other 47 rows are not blamed"
+    with pytest.raises(ImageError, match=r"wide\.png \(.*wide\.csv:2\): image is 32x48 px"):
+        PoseDataset(read_labels(labels), root, table.scene_names, 32, cache=True).load()
+
+
+def test_repeated_rows_are_reported_by_check_and_loaders(
+    tiny_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    labels = tmp_path / "twice.csv"
+    lines = (tiny_root / "labels" / "all_train.csv").read_text().splitlines(keepends=True)
+    labels.write_text("".join([*lines, lines[1], lines[3]]))  # rows 1 and 3 again
+    n = len(lines) - 1
+    assert pae_data(["check", str(labels), str(tiny_root)]) == 0
+    err = capsys.readouterr().err
+    expected = f"2 rows repeat an earlier row's image (line {n + 2} repeats line 2, line {n + 3}"
+    assert f"pae-data: warning: {labels}: {expected} repeats line 4)" in err
+    with pytest.warns(LabelWarning, match=re.escape(expected)):
+        read_labels(labels)
 
 
 def test_check_and_loaders_agree_on_paths_outside_the_root(
@@ -357,3 +404,441 @@ def test_old_checkpoint_key_still_works_with_a_deprecation_line(tmp_path: Path) 
     assert error_lines(result.stderr) == [
         f"pae-eval: error: student_ckpt={tmp_path / 'nope.ckpt'}: no such file"
     ]
+
+
+# Runs that cannot lie: installs that import anywhere, no result from a diverged model, one
+# run per directory, checkpoints of the kind asked for, reports that say what is missing.
+
+
+def _bound_by_permissions() -> list[str] | None:
+    """A command prefix under which read-only files cannot be written: none for a user other
+    than root (permissions hold for it); for root, `setpriv` without the capabilities that
+    override permissions; None where root has no such tool."""
+    if os.geteuid() != 0:
+        return []
+    setpriv = shutil.which("setpriv")
+    if setpriv is None:
+        return None
+    return [setpriv, "--bounding-set=-dac_override,-dac_read_search", "--"]
+
+
+@pytest.fixture
+def shared_dir(tmp_path: Path) -> Iterator[Path]:
+    """A temporary folder whose files can be made read-only and given back afterwards."""
+    folder = tmp_path / "shared"
+    folder.mkdir()
+    yield folder
+    for path in [folder, *folder.rglob("*")]:
+        if path.is_dir() and not path.is_symlink():
+            path.chmod(0o755)
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+def _set_mode(root: Path, folders: int, files: int) -> None:
+    for path in [root, *root.rglob("*")]:
+        path.chmod(folders if path.is_dir() else files)
+
+
+def test_a_read_only_install_and_home_train_a_teacher(tiny_root: Path, shared_dir: Path) -> None:
+    prefix = _bound_by_permissions()
+    if prefix is None:
+        pytest.skip("running as root without setpriv to give up overriding permissions")
+    install, home, work = shared_dir / "install", shared_dir / "home", shared_dir / "work"
+    shutil.copytree(SRC / "pae", install / "src" / "pae", ignore=shutil.ignore_patterns("__py*"))
+    shutil.copytree(SRC.parent / "conf", install / "conf")
+    shutil.copytree(tiny_root, work / "data")
+    home.mkdir()
+    _set_mode(install, 0o555, 0o444)
+    _set_mode(work, 0o777, 0o644)
+    home.chmod(0o555)
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("NUMBA_", "XDG_"))}
+    env |= {"HOME": str(home), "PYTHONPATH": str(install / "src"), "OMP_NUM_THREADS": "1"}
+    overrides = [*tiny_overrides(work / "data"), "teacher.max_epochs=1"]
+    result = subprocess.run(
+        [*prefix, sys.executable, "-m", "pae.train", *overrides, f"hydra.run.dir={work / 'run'}"],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=work,
+        timeout=300,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert result.stderr.count("numba's compiled loops are not cached") == 1, result.stderr
+    assert "test/teacher/pos_median_m" in json.loads((work / "run" / "metrics.json").read_text())
+    assert not [p for p in install.rglob("*") if p.suffix in (".nbi", ".nbc", ".pyc")]
+
+
+def test_compiled_loops_run_uncached_where_no_folder_can_be_written(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import pae.compiled
+
+    blocked = tmp_path / "a file"
+    blocked.write_text("no folder can be made below a file")
+    monkeypatch.setattr(pae.compiled, "candidate_folders", lambda source: [blocked / "cache"])
+    monkeypatch.setattr(pae.compiled, "_SAID", set())
+    pae.compiled.cache_folder.cache_clear()
+    try:
+        with pytest.warns(pae.compiled.CompileCacheWarning, match="not cached") as said:
+            doubled = pae.compiled.jit(nogil=True)(lambda x: 2 * x)
+            tripled = pae.compiled.jit()(lambda x: 3 * x)
+        assert doubled(2) == 4 and tripled(2) == 6
+        assert len(said) == 1
+    finally:
+        pae.compiled.cache_folder.cache_clear()
+
+
+def test_a_changed_helper_module_is_not_run_from_a_stale_cache(tmp_path: Path) -> None:
+    """A compiled function whose compiled helper lives in another module of its package:
+    changing only the helper's file changes what the cached caller computes (numba keys a
+    function's cache on its own file)."""
+    package = tmp_path / "toy"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    helper = package / "helpers.py"
+    helper.write_text("from pae.compiled import jit\n\n@jit()\ndef step(x):\n    return x + 1\n")
+    (package / "main.py").write_text(
+        "from pae.compiled import jit\nfrom toy.helpers import step\n\n"
+        "@jit()\ndef twice(x):\n    return 2 * step(x)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
+    env["PYTHONPATH"] = os.pathsep.join([str(SRC), str(tmp_path)])
+
+    def twice_one() -> str:
+        command = [sys.executable, "-c", "from toy.main import twice; print(twice(1))"]
+        result = subprocess.run(command, capture_output=True, text=True, env=env, check=False)
+        assert result.returncode == 0, result.stderr[-3000:]
+        return result.stdout.strip()
+
+    assert twice_one() == "4"
+    assert list((package / "__pycache__").glob("main.twice-*.nbi")), "the caller was cached"
+    assert twice_one() == "4"
+    helper.write_text(helper.read_text().replace("x + 1", "x + 2"))
+    assert twice_one() == "6"
+
+
+@pytest.mark.slow
+def test_a_changed_helper_is_not_run_from_a_stale_cache(tmp_path: Path) -> None:
+    """index._nearest calls fused.insert_sorted: a change to the helper's file alone must
+    reach the caller (numba keys a function's own cache on its own file only)."""
+    shutil.copytree(SRC / "pae", tmp_path / "pae", ignore=shutil.ignore_patterns("__py*"))
+    script = (
+        "import torch\n"
+        "from pae.refine.index import PoseIndex\n"
+        "poses = torch.zeros(40, 7)\n"
+        "poses[:, 0] = torch.arange(40.0)\n"
+        "poses[:, 3] = 1\n"
+        "fused = PoseIndex(poses, engine='fused').query(poses[[3, 17]] + 0.1, k=3)[0]\n"
+        "batched = PoseIndex(poses, engine='batched').query(poses[[3, 17]] + 0.1, k=3)[0]\n"
+        "print(fused.tolist(), batched.tolist())\n"
+    )
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
+    env |= {"PYTHONPATH": str(tmp_path), "OMP_NUM_THREADS": "1"}
+
+    def search() -> str:
+        result = subprocess.run(
+            [sys.executable, "-c", script],
+            capture_output=True,
+            text=True,
+            env=env,
+            cwd=tmp_path,
+            timeout=300,
+            check=False,
+        )
+        assert result.returncode == 0, result.stderr[-3000:]
+        return result.stdout.strip()
+
+    fused, batched = search().split("] [")
+    assert fused + "]" == "[" + batched, "the compiled search finds the tensor search's neighbours"
+    assert list((tmp_path / "pae" / "refine" / "__pycache__").glob("index._nearest-*.nbi"))
+    helper = tmp_path / "pae" / "refine" / "fused.py"
+    sorting = "while slot > 0 and values[slot - 1] > value:"
+    assert sorting in helper.read_text()
+    helper.write_text(helper.read_text().replace(sorting, "while slot > 0 and False:"))
+    changed, _ = search().split("] [")
+    assert changed != fused, "the caller runs the changed helper, not its cached old copy"
+
+
+def test_a_diverging_run_stops_at_once_and_writes_no_result(
+    tiny_root: Path, tmp_path: Path
+) -> None:
+    run_dir = tmp_path / "run"
+    result = pae_command(
+        "train",
+        *tiny_overrides(tiny_root),
+        "teacher.optimizer.lr=1e6",
+        f"hydra.run.dir={run_dir}",
+        cwd=tmp_path,
+    )
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    [line] = error_lines(result.stderr)
+    assert re.fullmatch(
+        r"pae-train: error: teacher: training diverged: the loss is (nan|inf) at step \d+ "
+        r"\(epoch 0, batch \d+, learning rate \S+ at that step\); a learning rate too high is "
+        r"the common cause: lower teacher\.optimizer\.lr=1000000\.0",
+        line,
+    ), line
+    assert not (run_dir / "metrics.json").exists(), "no figure of a diverged model is written"
+    assert not (run_dir / "checkpoints" / "last.ckpt").exists(), "it stopped in its first epoch"
+    assert (run_dir / "error.txt").read_text() == line + "\n"
+    report = pae_command("reporting", str(run_dir), cwd=tmp_path)
+    assert report.returncode == 1
+    assert "1 failed job:" in report.stdout and "training diverged" in report.stdout
+
+
+def test_non_finite_figures_are_never_results(tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    from pae.atomic import write_json_atomic
+    from pae.errors import DivergenceError
+    from pae.pipeline import collect_metrics
+
+    trainer = SimpleNamespace(
+        callback_metrics={"test/teacher/pos_median_m": torch.tensor(float("nan"))}
+    )
+    with pytest.raises(DivergenceError, match=r"teacher: test/teacher/pos_median_m is nan: "):
+        collect_metrics(trainer, step="teacher", hint="lower teacher.optimizer.lr")
+    with pytest.raises(ValueError, match="not JSON compliant"):
+        write_json_atomic(tmp_path / "metrics.json", {"test/teacher/pos_median_m": float("inf")})
+    assert list(tmp_path.iterdir()) == []
+    old = tmp_path / "old"  # a run written before NaN was refused
+    old.mkdir()
+    (old / "metrics.json").write_text('{"test/teacher/pos_median_m": NaN}')
+    table, problems = sweep_report(old)
+    assert problems == 1
+    assert "metrics.json holds non-finite figures (NaN): a run that diverged" in table
+    assert reporting_main([str(old)]) == 1
+
+
+def test_a_run_directory_holds_one_run_at_a_time(tiny_root: Path, tmp_path: Path) -> None:
+    from pae.run_lock import LOCK_FILE, lock_run_dir, release_run_dir
+
+    run_dir = tmp_path / "run"
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys; from pathlib import Path; from pae.run_lock import lock_run_dir; "
+            "lock_run_dir(Path(sys.argv[1]), 'hydra.run.dir'); print('locked', flush=True); "
+            "sys.stdin.read()",
+            str(run_dir),
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        env=pae_env(),
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "locked"
+        result = pae_command(
+            "train", *tiny_overrides(tiny_root), f"hydra.run.dir={run_dir}", cwd=tmp_path
+        )
+    finally:
+        holder.kill()  # a crash: the operating system releases its lock
+        holder.wait()
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    [line] = error_lines(result.stderr)
+    assert line.startswith(
+        f"pae-train: error: hydra.run.dir={run_dir} is in use by another run (pid {holder.pid} on"
+    )
+    assert line.endswith("): wait for it to end, or choose another directory")
+    assert [p.name for p in run_dir.iterdir()] == [LOCK_FILE], "the other run's files are intact"
+    lock_run_dir(run_dir, "hydra.run.dir")
+    release_run_dir(run_dir)
+
+
+def _ms_transformer_teacher(compose_train, path: Path) -> Path:
+    """A checkpoint of an (untrained) MS-Transformer teacher with PoseNet's latent size, in
+    the layout stage=teacher writes."""
+    from hydra.utils import instantiate
+
+    from pae.pipeline import stored_model_config
+
+    cfg = compose_train("teacher=ms_transformer_small", "teacher.model.latent_dim=256")
+    config = stored_model_config(cfg.teacher.model) | {"n_scenes": TINY["scenes"]}
+    model = instantiate(config)
+    hparams = {"teacher_config": config, "scene_names": ["scene00", "scene01"]}
+    state = {f"teacher.{key}": value for key, value in model.state_dict().items()}
+    torch.save({"hyper_parameters": hparams, "state_dict": state}, path)
+    return path
+
+
+def test_pae_eval_takes_a_teacher_of_the_students_architecture_only(
+    teacher_run: Path, compose_train, tiny_root: Path, tmp_path: Path
+) -> None:
+    from hydra import compose, initialize_config_dir
+
+    from pae import CONFIG_DIR
+    from pae.pipeline import evaluate_checkpoints
+    from tests.conftest import tiny_data_overrides
+
+    teacher_ckpt = teacher_run / "checkpoints" / "last.ckpt"
+    student = ("stage=student", f"teacher_ckpt={teacher_ckpt}", "student.max_epochs=1")
+    run(compose_train(*student, "refine=none", run_dir=tmp_path / "s"), tmp_path / "s")
+    student_ckpt = tmp_path / "s" / "checkpoints" / "last.ckpt"
+    other = _ms_transformer_teacher(compose_train, tmp_path / "ms_transformer.ckpt")
+
+    def evaluate(*overrides: str) -> dict[str, float]:
+        with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+            cfg = compose(
+                "eval",
+                overrides=[*tiny_data_overrides(tiny_root), "refine=none", *overrides],
+            )
+        return evaluate_checkpoints(cfg, tmp_path / "eval")
+
+    with pytest.raises(
+        CheckpointError,
+        match=rf"teacher_ckpt={other}: another architecture than the teacher the PAE of "
+        rf"{student_ckpt} was trained on \(_target_: pae\.models\.posenet\.PoseNet -> "
+        r"pae\.models\.ms_transformer\.MSTransformer; ",
+    ):
+        evaluate(f"student_ckpt={student_ckpt}", f"teacher_ckpt={other}")
+    with pytest.raises(
+        CheckpointError,
+        match=rf"teacher_ckpt={student_ckpt}: a stage=student checkpoint, but teacher_ckpt takes "
+        "a stage=teacher checkpoint; a student checkpoint holds its teacher: pass it as",
+    ):
+        evaluate(f"student_ckpt={student_ckpt}", f"teacher_ckpt={student_ckpt}")
+    with pytest.raises(
+        CheckpointError,
+        match=rf"student_ckpt={teacher_ckpt}: a stage=teacher checkpoint, but student_ckpt takes",
+    ):
+        evaluate(f"student_ckpt={teacher_ckpt}")
+    same = evaluate(f"student_ckpt={student_ckpt}", f"teacher_ckpt={teacher_ckpt}")
+    assert same["test/student/pos_median_m"] >= 0, "a teacher of the same architecture is taken"
+
+
+def test_report_lists_every_job_of_a_sweep_that_has_no_result(tmp_path: Path) -> None:
+    task = ["stage=teacher", "pae.L=3,6,9"]
+    sweeper = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
+    multirun = {"sweep": {"dir": str(tmp_path), "subdir": "${hydra.job.num}"}}
+    multirun |= {"sweeper": {"_target_": sweeper, "params": None}, "overrides": {"task": task}}
+    OmegaConf.save({"hydra": multirun}, tmp_path / "multirun.yaml")
+    for job, length in ((0, 3), (1, 6)):  # job 1 was stopped, job 2 never started
+        (tmp_path / str(job) / ".hydra").mkdir(parents=True)
+        OmegaConf.save(
+            ["stage=teacher", f"pae.L={length}"], tmp_path / str(job) / ".hydra" / "overrides.yaml"
+        )
+    (tmp_path / "0" / "metrics.json").write_text(
+        json.dumps({"test/teacher/pos_median_m": 1.0, "test/teacher/rot_median_deg": 2.0})
+    )
+    table, problems = sweep_report(tmp_path)
+    assert problems == 2
+    assert "| stage=teacher pae.L=3 | 1.000 / 2.00 |" in table
+    assert table.splitlines()[-3:] == [
+        "2 failed jobs:",
+        f"- stage=teacher pae.L=6: no metrics.json: unfinished, or stopped without a recorded "
+        f"error ({tmp_path / '1'})",
+        f"- stage=teacher pae.L=9: never started (job 2, no {tmp_path / '2'})",
+    ]
+    assert reporting_main([str(tmp_path)]) == 1
+
+
+def test_a_full_disk_is_one_line_naming_the_device_and_the_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from pae.atomic import device_of
+    from pae.checkpoints import AtomicCheckpointIO
+    from pae.reporting import reporting_errors
+
+    class FullDisk:
+        """A file that takes 100 bytes, then finds no space left (as torch.save sees it)."""
+
+        def __init__(self, handle: object) -> None:
+            self.handle, self.room = handle, 100
+
+        def write(self, data: bytes) -> int:
+            if len(data) > self.room:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            self.room -= len(data)
+            return self.handle.write(data)
+
+        def flush(self) -> None:
+            self.handle.flush()
+
+    save = torch.save
+    monkeypatch.setattr(torch, "save", lambda obj, handle: save(obj, FullDisk(handle)))
+    path = tmp_path / "checkpoints" / "last.ckpt"
+    with pytest.raises(SystemExit), reporting_errors("pae-train"):
+        AtomicCheckpointIO().save_checkpoint({"weights": torch.zeros(1000)}, path)
+    device = device_of(tmp_path)
+    line = f"pae-train: error: no space left on {device} while writing {path}"
+    assert capsys.readouterr().err.splitlines() == [line]
+    assert list(path.parent.iterdir()) == [], "no partial file is left"
+    elsewhere = tmp_path / "events.out.tfevents"  # a write outside pae's own writer
+    with pytest.raises(SystemExit), reporting_errors("pae-train"):
+        raise OSError(errno.ENOSPC, "No space left on device", str(elsewhere))
+    assert capsys.readouterr().err.splitlines() == [
+        f"pae-train: error: no space left on {device} while writing {elsewhere}"
+    ]
+
+
+def test_a_missing_scene_is_named_with_the_scenes_present(tiny_root: Path) -> None:
+    from hydra import compose, initialize_config_dir
+
+    from pae import CONFIG_DIR
+    from pae.validation import validate_train_config
+
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("train", overrides=["data=cambridge", f"data.root={tiny_root}"])
+    message = (
+        f"data.scenes=['KingsCollege']: no rows of KingsCollege in data.train_labels="
+        f"{tiny_root}/labels/all_train.csv, which has the scenes ['scene00', 'scene01']"
+    )
+    for batch_size in (32, 1):
+        cfg.data.batch_size = batch_size
+        with pytest.raises(ConfigError, match=re.escape(message)):
+            validate_train_config(cfg)
+
+
+def test_a_killed_cache_write_leaves_no_temporary_behind(tmp_path: Path) -> None:
+    from pae.data.latents import LATENT_KEYS, LatentCache, TeacherLatents
+
+    cache = LatentCache(tmp_path)
+    key = {"format": 1, "teacher": "a"}
+    mine = tmp_path / f".{cache.path(key).name}.k1ll3d.tmp"  # its writer was killed
+    dead = tmp_path / f".{'0' * 32}.pt.k1ll3d.tmp"  # another file's writer, killed too
+    live = tmp_path / f".{'f' * 32}.pt.wr1t1ng.tmp"  # another file's writer, still writing
+    for temporary in (mine, dead, live):
+        temporary.write_bytes(b"half a file")
+    writer = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import fcntl, sys; lock = open(sys.argv[1], 'a'); fcntl.flock(lock, fcntl.LOCK_EX); "
+            "print('locked', flush=True); sys.stdin.read()",
+            str(tmp_path / f"{'f' * 32}.lock"),
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert writer.stdout is not None and writer.stdout.readline().strip() == "locked"
+        tensors = {name: torch.zeros(2, 7) for name in LATENT_KEYS}
+        latents, hit = cache.load_or_compute(key, 2, lambda: TeacherLatents(tensors))
+    finally:
+        writer.kill()
+        writer.wait()
+    assert not hit and len(latents) == 2
+    assert not mine.exists() and not dead.exists()
+    assert live.exists(), "a live writer's temporary file is left to it"
+
+
+def test_a_failing_start_check_stops_the_run(
+    compose_train, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Hydra turns an exception in a callback into a warning and runs on: a start check that
+    fails for any reason ends the process, with its traceback when it is not a user error."""
+    import pae.preflight
+
+    def broken(cfg: object) -> None:
+        raise RuntimeError("a bug in a check")
+
+    monkeypatch.setattr(pae.preflight, "validate_train_config", broken)
+    cfg = compose_train()
+    with pytest.raises(SystemExit) as stopped:
+        pae.preflight.Preflight("pae-train").on_run_start(cfg)
+    assert stopped.value.code == 1
+    assert "RuntimeError: a bug in a check" in capsys.readouterr().err

@@ -206,7 +206,7 @@ def test_lenient_reading_reports_every_bad_row(tmp_path: Path) -> None:
         HEADER,
         GOOD_ROW,
         GOOD_ROW.replace("1.5", "x"),
-        GOOD_ROW,
+        GOOD_ROW.replace("a.png", "b.png"),
         GOOD_ROW.replace("1.5", "inf"),
     )
     table, errors = read_labels_lenient(path)
@@ -218,10 +218,12 @@ def test_non_unit_quaternions_are_normalised_with_one_warning(tmp_path: Path) ->
     path = write_text(
         tmp_path / "l.csv",
         HEADER,
-        GOOD_ROW.replace("1.0,0.0,0.0,0.0", "2.0,0.0,0.0,0.0"),
-        GOOD_ROW.replace("1.0,0.0,0.0,0.0", "-0.6,0.0,0.8,0.0"),
-        GOOD_ROW.replace("1.0,0.0,0.0,0.0", "0.0,0.0,-3.0,4.0"),
-        GOOD_ROW.replace("1.0,0.0,0.0,0.0", "1.0000001,0.0,0.0,0.0"),
+        *(
+            GOOD_ROW.replace("1.0,0.0,0.0,0.0", q).replace("a.png", f"{i}.png")
+            for i, q in enumerate(
+                ("2.0,0.0,0.0,0.0", "-0.6,0.0,0.8,0.0", "0.0,0.0,-3.0,4.0", "1.0000001,0.0,0.0,0.0")
+            )
+        ),
     )
     with pytest.warns(LabelWarning) as record:
         table = read_labels(path)

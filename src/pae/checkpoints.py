@@ -94,42 +94,120 @@ def _load_submodule(model: nn.Module, checkpoint: dict[str, Any], prefix: str, p
 
 class LoadedModel(NamedTuple):
     """A model rebuilt from a checkpoint: the model (eval mode), its scenes and architecture,
-    and the fingerprint of the data it was trained on (None in checkpoints without one)."""
+    the fingerprint of the data it was trained on (None in checkpoints without one) and the
+    checkpoint's hyper-parameters (the stored configs of every model in it)."""
 
     model: nn.Module
     scene_names: list[str]
     config: dict[str, Any]
     data_fingerprint: dict[str, Any] | None = None
+    hparams: dict[str, Any] | None = None
 
 
-def _load_model(path: str | Path, name: str, kind: str) -> LoadedModel:
-    """Rebuild submodule `name` of a checkpoint from its `{name}_config` hyper-parameter."""
+KINDS_BY_CONFIG = (
+    (("rpr_config", "decoder_config"), "rpr"),
+    (("rpr_config",), "rpr_image"),
+    (("iapr_config",), "iapr"),
+    (("decoder_config",), "decoder"),
+    (("scene_model_config",), "render_compare"),
+    (("pae_config",), "student"),
+    (("teacher_config",), "teacher"),
+)
+"""A checkpoint's kind (the stage that trained it) from the model configs it stores: the
+first entry whose configs it has all."""
+KEY_KINDS = {
+    "teacher_ckpt": "teacher",
+    "student_ckpt": "student",
+    "decoder_ckpt": "decoder",
+    "scene_model_ckpt": "render_compare",
+}
+"""The checkpoint kind each setting takes."""
+
+
+def checkpoint_kind(checkpoint: dict[str, Any]) -> str | None:
+    """The stage that wrote `checkpoint` (teacher, student, decoder, rpr, rpr_image, iapr,
+    render_compare), or None for a checkpoint that pae did not write."""
+    hparams = checkpoint.get("hyper_parameters") or {}
+    for configs, kind in KINDS_BY_CONFIG:
+        if all(name in hparams for name in configs):
+            return kind
+    return None
+
+
+def _check_kind(checkpoint: dict[str, Any], path: Path, key: str) -> None:
+    """`checkpoint` (read from `path`) is of the kind setting `key` takes (KEY_KINDS)."""
+    expected, kind = KEY_KINDS[key], checkpoint_kind(checkpoint)
+    if kind == expected:
+        return
+    found = f"a stage={kind} checkpoint" if kind else "not a checkpoint of a pae stage"
+    hint = ""
+    if key == "teacher_ckpt" and kind == "student":
+        hint = "; a student checkpoint holds its teacher: pass it as student_ckpt"
+    raise CheckpointError(
+        f"{key}={path}: {found}, but {key} takes a stage={expected} checkpoint{hint}"
+    )
+
+
+def _load_model(path: str | Path, name: str, kind: str, key: str | None) -> LoadedModel:
+    """Rebuild submodule `name` of a checkpoint from its `{name}_config` hyper-parameter;
+    with `key`, the checkpoint must be of the kind that setting takes."""
     path = Path(path)
     checkpoint = read_checkpoint(path)
+    if key is not None:
+        _check_kind(checkpoint, path, key)
     config = dict(_hparam(checkpoint, f"{name}_config", path, kind))
     model = instantiate(config)
     _load_submodule(model, checkpoint, f"{name}.", path)
     scenes = list(_hparam(checkpoint, "scene_names", path, kind))
-    return LoadedModel(model.eval(), scenes, config, checkpoint.get(DATA_FINGERPRINT_KEY))
+    hparams = dict(checkpoint.get("hyper_parameters") or {})
+    fingerprint = checkpoint.get(DATA_FINGERPRINT_KEY)
+    return LoadedModel(model.eval(), scenes, config, fingerprint, hparams)
 
 
-def load_teacher(path: str | Path) -> LoadedModel:
-    """A teacher or student checkpoint (students hold a copy of their teacher) -> the teacher
-    (a PoseRegressor)."""
-    return _load_model(path, "teacher", "teacher")
+def load_teacher(path: str | Path, key: str | None = None) -> LoadedModel:
+    """A checkpoint that holds a teacher (a teacher's, or a later stage's: students hold a
+    copy of their teacher) -> the teacher (a PoseRegressor). `key`: the setting that named
+    the file (teacher_ckpt, student_ckpt), whose kind of checkpoint it must be."""
+    return _load_model(path, "teacher", "teacher", key)
 
 
-def load_pae(path: str | Path) -> LoadedModel:
-    """A student checkpoint -> its PoseAutoEncoder."""
-    return _load_model(path, "pae", "student")
+def load_pae(path: str | Path, key: str | None = None) -> LoadedModel:
+    """A student checkpoint (or a later stage's) -> its PoseAutoEncoder (`key` as above)."""
+    return _load_model(path, "pae", "student", key)
 
 
-def load_scene_model(path: str | Path) -> LoadedModel:
+def load_scene_model(path: str | Path, key: str | None = None) -> LoadedModel:
     """A scene-model checkpoint (the scene_model step with scene_model=voxel_grid) -> its
-    scene model (it also holds a copy of its teacher: load_teacher reads it)."""
-    return _load_model(path, "scene_model", "scene model")
+    scene model (it also holds a copy of its teacher: load_teacher reads it; `key` as
+    above)."""
+    return _load_model(path, "scene_model", "scene model", key)
 
 
-def load_decoder(path: str | Path) -> LoadedModel:
-    """A decoder checkpoint (stage=decoder) -> its ImageDecoder."""
-    return _load_model(path, "decoder", "decoder")
+def load_decoder(path: str | Path, key: str | None = None) -> LoadedModel:
+    """A decoder checkpoint (stage=decoder) -> its ImageDecoder (`key` as above)."""
+    return _load_model(path, "decoder", "decoder", key)
+
+
+ARCHITECTURE_NEUTRAL = ("dropout",)
+"""Model settings that do not change what a trained model computes at test time."""
+
+
+def architecture_differences(stored: dict[str, Any], other: dict[str, Any]) -> list[str]:
+    """`key: stored -> other` for each setting two stored model configs disagree on
+    (nested keys dotted), ARCHITECTURE_NEUTRAL ones aside."""
+
+    def flat(config: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+        items: dict[str, Any] = {}
+        for key, value in config.items():
+            if isinstance(value, dict):
+                items |= flat(value, f"{prefix}{key}.")
+            elif key not in ARCHITECTURE_NEUTRAL:
+                items[f"{prefix}{key}"] = value
+        return items
+
+    before, after = flat(stored), flat(other)
+    return [
+        f"{key}: {before.get(key, '(unset)')} -> {after.get(key, '(unset)')}"
+        for key in sorted(before.keys() | after.keys())
+        if before.get(key) != after.get(key)
+    ]

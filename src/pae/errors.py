@@ -36,3 +36,15 @@ class CheckpointError(RuntimeError):
 
 class BackboneError(RuntimeError):
     """A backbone that cannot be built as configured (unknown name, weights unavailable)."""
+
+
+class DivergenceError(RuntimeError):
+    """A non-finite training loss, or non-finite figures: nothing of it is a result."""
+
+
+class DiskFullError(OSError):
+    """No space left on a device while writing a file; the message names both."""
+
+
+class RunDirInUseError(RuntimeError):
+    """Another live process holds the run directory's lock; the message names its pid."""

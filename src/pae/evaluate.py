@@ -19,12 +19,12 @@ from pae.validation import apply_renamed_keys, validate_eval_config
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="eval")
 def main(cfg: DictConfig) -> float | None:
-    import lightning as L
-    from lightning.pytorch.utilities import rank_zero_only
-
-    from pae.pipeline import evaluate_checkpoints
-
     with reporting_errors("pae-eval"):
+        import lightning as L
+        from lightning.pytorch.utilities import rank_zero_only
+
+        from pae.pipeline import evaluate_checkpoints
+
         apply_renamed_keys(cfg, "pae-eval")
         validate_eval_config(cfg)
         L.seed_everything(cfg.seed, verbose=False)

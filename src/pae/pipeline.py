@@ -6,6 +6,7 @@ figures it measured; the entry points merge them into the run's metrics.json.
 
 from __future__ import annotations
 
+import math
 import re
 import time
 import warnings
@@ -20,11 +21,13 @@ from lightning.pytorch.loggers import Logger, TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_info
 from omegaconf import DictConfig, OmegaConf
 
+from pae.callbacks.finite_loss import StopOnNonFiniteLoss
 from pae.checkpoints import (
     DATA_FINGERPRINT_KEY,
     AtomicCheckpointIO,
     CheckpointError,
     LoadedModel,
+    architecture_differences,
     load_decoder,
     load_pae,
     load_teacher,
@@ -33,7 +36,7 @@ from pae.checkpoints import (
 )
 from pae.data.datamodule import PoseDataModule
 from pae.data.latents import LatentCache, TeacherLatentDataModule
-from pae.errors import ConfigError
+from pae.errors import ConfigError, DivergenceError
 from pae.lit.decoder import DecoderModule
 from pae.lit.rpr import RPRModule
 from pae.lit.student import StudentEvaluator, StudentModule
@@ -42,6 +45,8 @@ from pae.models.base import PoseRegressor
 from pae.reporting import first_line
 
 Metrics = dict[str, float]
+TRAINED_GROUP = {"rpr_image": "rpr"}
+"""The config group of a step's training settings where it is not the step's own name."""
 
 # frozen teachers, PAEs and decoders stay in eval mode inside the modules that train on them
 warnings.filterwarnings("ignore", message=r".*module\(s\) in eval mode", category=UserWarning)
@@ -96,13 +101,27 @@ def _resume_path(cfg: DictConfig, step_dir: Path, data: L.LightningDataModule) -
     return str(path)
 
 
-def collect_metrics(trainer: L.Trainer, prefixes: tuple[str, ...] = ("test/",)) -> Metrics:
-    """The trainer's logged figures whose keys start with one of `prefixes`."""
-    return {
+def collect_metrics(
+    trainer: L.Trainer,
+    prefixes: tuple[str, ...] = ("test/",),
+    step: str = "evaluation",
+    hint: str = "the checkpoints hold a diverged model (retrain it with a lower learning rate)",
+) -> Metrics:
+    """The figures the trainer logged under `prefixes`; a non-finite one is a DivergenceError
+    (naming the run's `step` and, as `hint`, what to change): NaN is never a result."""
+    metrics = {
         key: float(value)
         for key, value in trainer.callback_metrics.items()
         if key.startswith(prefixes)
     }
+    bad = [key for key, value in metrics.items() if not math.isfinite(value)]
+    if bad:
+        more = f" and {len(bad) - 1} more" if len(bad) > 1 else ""
+        raise DivergenceError(
+            f"{step}: {bad[0]} is {metrics[bad[0]]}{more}: the model's outputs are not finite, "
+            f"so nothing of it is reported as a result; {hint}"
+        )
+    return metrics
 
 
 def flat_config(cfg: DictConfig, sep: str = "/") -> dict[str, Any]:
@@ -144,14 +163,18 @@ def _teacher_config(cfg: DictConfig, n_scenes: int) -> dict[str, Any]:
 
 
 def validate_and_test(
-    trainer: L.Trainer, module: L.LightningModule, data: L.LightningDataModule
+    trainer: L.Trainer,
+    module: L.LightningModule,
+    data: L.LightningDataModule,
+    **checks: str,
 ) -> Metrics:
     """The `val/` figures (the validation split: model selection reads these), then the
-    `test/` figures (the final report) of the module as it is now."""
+    `test/` figures (the final report) of the module as it is now; ``checks`` (step, hint)
+    name a non-finite figure's step and remedy (see collect_metrics)."""
     trainer.validate(module, datamodule=data, verbose=False)
-    metrics = collect_metrics(trainer, ("val/",))
+    metrics = collect_metrics(trainer, ("val/",), **checks)
     trainer.test(module, datamodule=data, verbose=False)
-    return metrics | collect_metrics(trainer)
+    return metrics | collect_metrics(trainer, **checks)
 
 
 def fit_and_test(
@@ -163,14 +186,19 @@ def fit_and_test(
     epochs: int,
     callbacks: list[L.Callback] | None = None,
 ) -> tuple[Metrics, Path]:
-    """Fit, validate, test, record `bench/{name}/fit_s` -> (metrics, path of the last
-    checkpoint)."""
-    trainer = build_trainer(cfg, step_dir, epochs, callbacks or [])
+    """Fit (stopping at a non-finite loss), validate, test, record `bench/{name}/fit_s` ->
+    (metrics, path of the last checkpoint)."""
+    group = TRAINED_GROUP.get(name, name)
+    lr_setting = f"{group}.optimizer.lr={OmegaConf.select(cfg, f'{group}.optimizer.lr')}"
+    finite = StopOnNonFiniteLoss(name, lr_setting)
+    trainer = build_trainer(cfg, step_dir, epochs, [*(callbacks or []), finite])
     start = time.perf_counter()
     resume_from = _resume_path(cfg, step_dir, data)
     trainer.fit(module, datamodule=data, ckpt_path=resume_from, weights_only=True)
     fit_s = time.perf_counter() - start
-    metrics = validate_and_test(trainer, module, data)
+    metrics = validate_and_test(
+        trainer, module, data, step=name, hint=f"retrain with a lower {lr_setting}"
+    )
     metrics[f"bench/{name}/fit_s"] = fit_s
     log_hparams(trainer, cfg, metrics)
     return metrics, step_dir / "checkpoints" / "last.ckpt"
@@ -190,12 +218,12 @@ def _frozen(
     path: str | Path | None,
     key: str,
     stage: str,
-    load: Callable[[str | Path], LoadedModel],
+    load: Callable[[str | Path, str], LoadedModel],
 ) -> tuple[str | Path, LoadedModel, PoseDataModule]:
     """The checkpoint a step needs (`key`), its model and the step's data (no augmentation),
     checked to belong together."""
     path = required(path, key, stage)
-    loaded = load(path)
+    loaded = load(path, key)
     data = build_data(cfg, augment=False)
     check_data(cfg, path, loaded, data)
     return path, loaded, data
@@ -390,8 +418,8 @@ def fit_rpr(
     decoder_ckpt = required(decoder_ckpt, "decoder_ckpt", "rpr")
     teacher, pae, decoder = (
         load_teacher(student_ckpt),
-        load_pae(student_ckpt),
-        load_decoder(decoder_ckpt),
+        load_pae(student_ckpt, "student_ckpt"),
+        load_decoder(decoder_ckpt, "decoder_ckpt"),
     )
     data = build_data(cfg)
     for path, loaded in ((student_ckpt, pae), (decoder_ckpt, decoder)):
@@ -416,15 +444,24 @@ def fit_rpr(
 
 
 def evaluate_checkpoints(cfg: DictConfig, run_dir: Path) -> Metrics:
-    """Test a student checkpoint (and optionally another teacher) with the configured
-    refinement, and/or a scene-model checkpoint with render-and-compare refinement."""
+    """Test a student checkpoint (and optionally another teacher of its teacher's
+    architecture) with the configured refinement, and/or a scene-model checkpoint with
+    render-and-compare refinement."""
     metrics: Metrics = {}
     teacher_path = cfg.teacher_ckpt or cfg.student_ckpt or cfg.get("scene_model_ckpt")
-    teacher = load_teacher(teacher_path)
+    teacher = load_teacher(teacher_path, "teacher_ckpt" if cfg.teacher_ckpt else None)
     data = build_data(cfg, augment=False)
     check_data(cfg, teacher_path, teacher, data)
     if cfg.student_ckpt:
-        pae = load_pae(cfg.student_ckpt)
+        pae = load_pae(cfg.student_ckpt, "student_ckpt")
+        if cfg.teacher_ckpt:
+            changed = architecture_differences(pae.hparams["teacher_config"], teacher.config)
+            if changed:
+                raise CheckpointError(
+                    f"teacher_ckpt={teacher_path}: another architecture than the teacher the "
+                    f"PAE of {cfg.student_ckpt} was trained on ({'; '.join(changed[:3])}): "
+                    "its latents mean nothing to that PAE"
+                )
         check_data(cfg, cfg.student_ckpt, pae, data)
         if pae.model.latent_dim != teacher.model.latent_dim:
             raise CheckpointError(

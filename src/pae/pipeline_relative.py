@@ -30,7 +30,7 @@ def fit_rpr_image(
     """Train the Siamese RPR (the `rpr` group's model and training settings) on real
     train-image pairs, then test `rpr_image` and its audits (`test/rpr_image/...`)."""
     teacher_ckpt = required(teacher_ckpt, "teacher_ckpt", "rpr_image")
-    teacher = load_teacher(teacher_ckpt)
+    teacher = load_teacher(teacher_ckpt, "teacher_ckpt")
     data = build_data(cfg)
     check_data(cfg, teacher_ckpt, teacher, data)
     module = ImageRPRModule(
@@ -54,7 +54,7 @@ def fit_iapr(
     """Train the iterative APR on a frozen PAE (and its teacher, from a student checkpoint),
     then test `iapr_1` .. `iapr_{iterations}` from the teacher's estimates."""
     student_ckpt = required(student_ckpt, "student_ckpt", "iapr")
-    teacher, pae = load_teacher(student_ckpt), load_pae(student_ckpt)
+    teacher, pae = load_teacher(student_ckpt), load_pae(student_ckpt, "student_ckpt")
     data = build_data(cfg)
     check_data(cfg, student_ckpt, pae, data)
     settings = cfg.iapr

@@ -63,7 +63,7 @@ def build_scene_model(
     if name == "pae_decoder":
         student = required(ckpt["student"], "student_ckpt", "scene_model=pae_decoder")
         decoder_path = required(ckpt["decoder"], "decoder_ckpt", "scene_model=pae_decoder")
-        pae, decoder = load_pae(student), load_decoder(decoder_path)
+        pae, decoder = load_pae(student, "student_ckpt"), load_decoder(decoder_path, "decoder_ckpt")
         for path, loaded in ((student, pae), (decoder_path, decoder)):
             check_data(cfg, path, loaded, data)
         return PaeDecoderSceneModel(pae.model, decoder.model), {}
@@ -88,7 +88,7 @@ def fit_scene_model(
     fit), then test render-and-compare from the teacher's estimates -> (metrics, the last
     checkpoint or None)."""
     teacher_path = required(ckpt["teacher"], "teacher_ckpt", "render_compare")
-    teacher = load_teacher(teacher_path)
+    teacher = load_teacher(teacher_path, "teacher_ckpt")
     images = build_data(cfg, augment=False)
     check_data(cfg, teacher_path, teacher, images)
     scene_model, configs = build_scene_model(cfg, images, ckpt)
@@ -122,7 +122,7 @@ def evaluate_scene_model(
 ) -> Metrics:
     """Test render-and-compare (the `render_compare` group's settings) with the scene model
     of checkpoint ``path`` from ``teacher``'s estimates on ``data`` (pae-eval)."""
-    loaded = load_scene_model(path)
+    loaded = load_scene_model(path, "scene_model_ckpt")
     check_data(cfg, path, loaded, data)
     module = SceneModelModule(
         loaded.model,

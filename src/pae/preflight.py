@@ -1,10 +1,12 @@
 """Checks that run before Hydra creates or writes anything in a run directory: the settings,
-the run directory itself, and whether a resumed run can continue with the given settings.
-Only the resume checks load torch: a sweep's launching process runs the others without it."""
+the run directory itself (free of other runs: pae.run_lock), and whether a resumed run can
+continue with the given settings. Only the resume checks load torch: a sweep's launching
+process runs the others without it."""
 
 from __future__ import annotations
 
 import os
+import traceback
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pae.errors import ConfigError
 from pae.reporting import reporting_errors
+from pae.run_lock import lock_if_used, lock_run_dir, release_run_dir
 from pae.validation import apply_renamed_keys, validate_eval_config, validate_train_config
 
 RESUMABLE_CHANGES = (
@@ -126,17 +129,31 @@ class Preflight(Callback):
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._check(config, Path(config.hydra.sweep.dir), "hydra.sweep.dir", sweep=True)
 
+    def on_run_end(self, config: DictConfig, **kwargs: Any) -> None:
+        release_run_dir(Path(config.hydra.run.dir))
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        release_run_dir(Path(config.hydra.sweep.dir))
+
     def _check(self, config: DictConfig, folder: Path, key: str, sweep: bool) -> None:
-        """The run (or sweep) directory `folder` can be written and holds no other run's
-        checkpoints, or, with resume=true, an earlier run of these settings (single runs);
-        every setting; the latent cache folder."""
-        with reporting_errors(self.program):
-            apply_renamed_keys(config, self.program)
-            check_writable_dir(folder, key)
-            if not config.get("resume"):
-                check_fresh(folder, key)
-            elif not sweep:
-                check_resume(config, folder)
-            if not sweep:  # sweep jobs check their own settings when they start
-                self._validate(config)
-            _check_latent_cache(config)
+        """The run (or sweep) directory `folder` can be written, is not in use by another run
+        and holds no other run's checkpoints, or, with resume=true, an earlier run of these
+        settings (single runs); every setting; the latent cache folder. Then `folder` is
+        locked for the run. A failing check ends the process: one line for a user error, the
+        traceback for anything else (Hydra would only warn and run)."""
+        try:
+            with reporting_errors(self.program):
+                apply_renamed_keys(config, self.program)
+                check_writable_dir(folder, key)
+                lock_if_used(folder, key)
+                if not config.get("resume"):
+                    check_fresh(folder, key)
+                elif not sweep:
+                    check_resume(config, folder)
+                if not sweep:  # sweep jobs check their own settings when they start
+                    self._validate(config)
+                _check_latent_cache(config)
+                lock_run_dir(folder, key)
+        except Exception:
+            traceback.print_exc()
+            raise SystemExit(1) from None

@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
@@ -17,8 +17,18 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from pae.atomic import write_text_atomic
-from pae.errors import BackboneError, CheckpointError, ConfigError, ImageError, LabelError
+from pae.atomic import disk_full, no_space_error, write_text_atomic
+from pae.errors import (
+    BackboneError,
+    CheckpointError,
+    ConfigError,
+    DiskFullError,
+    DivergenceError,
+    ImageError,
+    LabelError,
+    RunDirInUseError,
+)
+from pae.sweep_jobs import MULTIRUN_FILE, sweep_jobs
 
 METHOD_ORDER = (
     "teacher",
@@ -92,6 +102,9 @@ USER_ERRORS = (
     ImageError,
     CheckpointError,
     BackboneError,
+    DivergenceError,
+    DiskFullError,
+    RunDirInUseError,
     OmegaConfBaseException,
     HydraException,
 )
@@ -191,7 +204,15 @@ def reporting_errors(program: str) -> Iterator[None]:
     """
     job = _hydra_job()
     try:
-        yield
+        try:
+            yield
+        except Exception as err:
+            full = no_space_error(err)
+            if full is None or isinstance(err, DiskFullError):
+                raise
+            if full.filename is None:
+                raise DiskFullError(f"no space left on a device ({full})") from None
+            raise disk_full(full.filename) from None
     except USER_ERRORS as err:
         line = f"{program}: error: {first_line(err)}"
         print(line, file=sys.stderr)
@@ -214,49 +235,92 @@ def reporting_errors(program: str) -> Iterator[None]:
 
 
 def record_failure(run_dir: Path, line: str) -> None:
-    """Write a run's one-line error to `<run_dir>/error.txt`, atomically."""
-    write_text_atomic(run_dir / ERROR_FILE, line + "\n")
+    """Write a run's one-line error to `<run_dir>/error.txt`, atomically; where that cannot
+    be written (the disk is full) the line on stderr is the record."""
+    with suppress(OSError):
+        write_text_atomic(run_dir / ERROR_FILE, line + "\n")
 
 
-def _job_name(run_dir: Path, root: Path) -> str:
+def _overrides(run_dir: Path) -> list[str] | None:
+    """A run directory's command-line overrides (.hydra/overrides.yaml), if it has them."""
     overrides_file = run_dir / ".hydra" / "overrides.yaml"
     if not overrides_file.is_file():
-        return str(run_dir.relative_to(root)) or "."
-    overrides = [str(o) for o in OmegaConf.to_container(OmegaConf.load(overrides_file))]
+        return None
+    try:
+        return [str(o) for o in OmegaConf.load(overrides_file)]
+    except Exception:  # a damaged file: the job is named by its folder
+        return None
+
+
+def _shown(overrides: list[str]) -> str:
+    """A job's name: its overrides without the execution settings and checkpoint paths."""
     shown = [o for o in overrides if not o.startswith(("hydra.", "+trainer.", "trainer."))]
     shown = [o for o in shown if not o.startswith(("teacher_ckpt=", "student_ckpt=", "pae_ckpt="))]
     return " ".join(shown) or "(defaults)"
+
+
+def _job_name(run_dir: Path, root: Path) -> str:
+    overrides = _overrides(run_dir)
+    if overrides is None:
+        return str(run_dir.relative_to(root)) or "."
+    return _shown(overrides)
 
 
 def _job_dirs(root: Path) -> list[Path]:
     """Run directories below `root`: those with a metrics.json, an error.txt or a .hydra/."""
     found = {p.parent for name in ("metrics.json", ERROR_FILE) for p in root.rglob(name)}
     found |= {p.parent.parent for p in root.rglob(".hydra/overrides.yaml")}
-    return sorted(found)
+    return sorted(found, key=_natural)
+
+
+def _natural(path: Path) -> list[tuple[int, str]]:
+    """Sort key that puts job 2 before job 10."""
+    return [(int(part), "") if part.isdigit() else (-1, part) for part in path.parts]
+
+
+def _missing_jobs(root: Path, run_dirs: list[Path]) -> list[tuple[Path, str]]:
+    """(where, report line) for each job of a sweep below `root` (its multirun.yaml) that left
+    no run directory: it never started, or was stopped before Hydra set it up."""
+    started = {tuple(o) for o in map(_overrides, run_dirs) if o is not None}
+    missing = []
+    for multirun in sorted(root.rglob(MULTIRUN_FILE)):
+        for job in sweep_jobs(multirun.parent) or []:
+            if job.run_dir in run_dirs or (job.run_dir is None and tuple(job.overrides) in started):
+                continue
+            where = job.run_dir or multirun.parent / f"job {job.number}"
+            state = f"never started (job {job.number}, no {where})"
+            if where.is_dir():
+                state = f"stopped as it started: no .hydra/, no metrics.json ({where})"
+            missing.append((where, f"- {_shown(job.overrides)}: {state}"))
+    return missing
 
 
 def _read_metrics(path: Path) -> tuple[dict[str, float] | None, str | None]:
     """metrics.json -> (metrics, None), or (None, why it cannot be used)."""
     if not path.is_file():
         return None, None
+    non_finite: list[str] = []
     try:
-        metrics = json.loads(path.read_text())
+        metrics = json.loads(path.read_text(), parse_constant=non_finite.append)
     except (OSError, ValueError) as err:
         return None, f"{path}: unreadable metrics.json ({first_line(err)})"
     if not isinstance(metrics, dict):
         return None, f"{path}: metrics.json does not hold a JSON object"
+    if non_finite:
+        return None, (
+            f"{path}: metrics.json holds non-finite figures ({', '.join(sorted(set(non_finite)))})"
+            ": a run that diverged, not a result"
+        )
     return metrics, None
 
 
-def sweep_table(root: str | Path, split: str = "test") -> str:
-    """Markdown table of every metrics.json under `root` (a run or a multirun directory):
-    one row per job, named by its command-line overrides; cells are median position [m] /
-    orientation [deg] per method. Below it, every failed job with its error (error.txt, an
-    unreadable metrics.json, or no metrics.json at all)."""
+def sweep_report(root: str | Path, split: str = "test") -> tuple[str, int]:
+    """(the table of ``sweep_table``, the number of jobs it lists as failed or missing)."""
     root = Path(root)
     jobs = []
     failed = []
-    for run_dir in _job_dirs(root):
+    run_dirs = _job_dirs(root)
+    for run_dir in run_dirs:
         name = _job_name(run_dir, root)
         metrics, problem = _read_metrics(run_dir / "metrics.json")
         error_file = run_dir / ERROR_FILE
@@ -269,14 +333,14 @@ def sweep_table(root: str | Path, split: str = "test") -> str:
         if metrics is not None:
             jobs.append((name, metrics))
         if problem is not None:
-            failed.append(f"- {name}: {problem}")
+            failed.append((run_dir, f"- {name}: {problem}"))
+    failed = sorted(failed + _missing_jobs(root, run_dirs), key=lambda entry: _natural(entry[0]))
     if not jobs and not failed:
         raise FileNotFoundError(f"{root}: no metrics.json below this directory")
     methods = table_methods({key: 0.0 for _, job in jobs for key in job}, split)
-    lines = [
-        "| job | " + " | ".join(methods) + " |",
-        "|---|" + "---|" * len(methods),
-    ]
+    lines = ["| job | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
+    if not jobs:
+        lines = [f"{root}: no finished job"]
     for name, metrics in jobs:
         cells = []
         for method in methods:
@@ -285,8 +349,18 @@ def sweep_table(root: str | Path, split: str = "test") -> str:
             cells.append("-" if pos is None else f"{pos:.3f} / {rot:.2f}")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     if failed:
-        lines += ["", f"{len(failed)} failed job{'s' if len(failed) > 1 else ''}:", *failed]
-    return "\n".join(lines)
+        plural = "s" if len(failed) > 1 else ""
+        lines += ["", f"{len(failed)} failed job{plural}:", *(f for _, f in failed)]
+    return "\n".join(lines), len(failed)
+
+
+def sweep_table(root: str | Path, split: str = "test") -> str:
+    """Markdown table of every metrics.json under `root` (a run or a multirun directory):
+    one row per job, named by its command-line overrides; cells are median position [m] /
+    orientation [deg] per method. Below it, every failed job with its error (error.txt, an
+    unreadable or non-finite metrics.json, or no metrics.json at all), and every job of a
+    sweep's multirun.yaml that never started."""
+    return sweep_report(root, split)[0]
 
 
 CHANGE_AGAINST = {"guess_refined": "guess_initial", "guess_refined_test_store": "guess_initial"}
@@ -367,7 +441,8 @@ def main(argv: list[str] | None = None) -> int:
     """`pae-report DIR`: the results of a run or a sweep as a markdown table (and, for jobs
     that differ only by seed, mean ± sd per variant); `pae-report DIR --compare`: paired
     differences between the sweep's variants over their seeds; `pae-report --compare RUN
-    [RUN ...] --names A,B,...`: methods × runs (runs that are seed sweeps: paired)."""
+    [RUN ...] --names A,B,...`: methods × runs (runs that are seed sweeps: paired). Exit
+    status 1 when a job failed or is missing."""
     from pae.seed_stats import seed_report
 
     parser = argparse.ArgumentParser(prog="pae-report", description=sweep_table.__doc__)
@@ -392,10 +467,14 @@ def main(argv: list[str] | None = None) -> int:
         )
         if args.compare and seeds is None:
             print(compare_table(args.compare, names, args.split))
-        elif args.directory is not None and args.compare is None:
-            print(sweep_table(args.directory, args.split))
+        problems = 0
+        if args.directory is not None and args.compare is None:
+            table, problems = sweep_report(args.directory, args.split)
+            print(table)
         if seeds is not None:
             print(("\n" if args.compare is None else "") + seeds)
+        if problems:
+            return 1
     except (OSError, ValueError) as err:
         print(f"pae-report: error: {err}", file=sys.stderr)
         return 1

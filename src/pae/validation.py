@@ -135,6 +135,12 @@ def _train_set_size(cfg: DictConfig) -> int:
     table = read_labels(data.train_labels)
     if scenes is None:
         return len(table)
+    missing = [scene for scene in scenes if scene not in table.scene_names]
+    if missing:
+        raise ConfigError(
+            f"data.scenes={list(scenes)}: no rows of {', '.join(missing)} in "
+            f"data.train_labels={data.train_labels}, which has the scenes {table.scene_names}"
+        )
     return int(np.isin(np.asarray(table.scene), list(scenes)).sum())
 
 

@@ -11,17 +11,18 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset, default_collate
 
-from pae.data.labels import LabelTable, outside_root
-from pae.data.transforms import image_size, load_image
-from pae.errors import LabelError
+from pae.data.labels import LabelTable, odd_sizes, outside_root
+from pae.data.transforms import image_size, load_image, load_sized_image
+from pae.errors import ImageError, LabelError
 
 
 class PoseDataset(Dataset):
     """Rows of a label table: `{"image": uint8 [3, H, W], "pose": [7], "scene": long, "index"}`.
 
     Images are read with OpenCV relative to `root` (a path escaping it is a LabelError) and
-    must all have the size of the first (ImageError naming the file otherwise, as
-    `pae-data check` reports); they are resized so their shorter edge is `shorter_edge` px,
+    must all have one size (ImageError naming the file otherwise: with the cache, the one of
+    another size than most, as `pae-data check` reports; without, one of another size than
+    the first image); they are resized so their shorter edge is `shorter_edge` px,
     a batch at a time on `workers` threads. With cache=True all images are decoded once, on
     first use (or `load`), into one uint8 tensor and a batch is a single indexing operation.
     """
@@ -57,7 +58,20 @@ class PoseDataset(Dataset):
     def load(self) -> None:
         """Decode every image into the cache now (cache=True; done once)."""
         if self.cache and self._cached is None:
-            self._cached = self._decode(self.paths)
+            self._cached = self._decode_all()
+
+    def _decode_all(self) -> Tensor:
+        """Every image -> uint8 [N, 3, H, W]; an image of another size than most is an
+        ImageError naming it and its row."""
+        with ThreadPoolExecutor(self.workers) as pool:
+            loaded = list(pool.map(lambda p: load_sized_image(p, self.shorter_edge), self.paths))
+        odd = odd_sizes({i: size for i, (_, size) in enumerate(loaded)})
+        if odd:
+            i = min(odd)
+            where = f"{self.table.source or 'row'}:{self.table.file_line(i)}"
+            raise ImageError(f"{self.paths[i]} ({where}): {odd[i]}")
+        images = np.stack([image for image, _ in loaded])
+        return torch.from_numpy(images).permute(0, 3, 1, 2).contiguous()
 
     @property
     def images(self) -> Tensor | None:

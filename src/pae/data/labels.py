@@ -18,7 +18,8 @@ from __future__ import annotations
 import csv
 import os
 import warnings
-from collections.abc import Iterable, Sequence
+from collections import Counter
+from collections.abc import Iterable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -34,6 +35,7 @@ __all__ = [
     "LabelTable",
     "LabelWarning",
     "find_image_problems",
+    "odd_sizes",
     "outside_root",
     "read_labels",
     "read_labels_lenient",
@@ -237,7 +239,7 @@ def read_labels_lenient(path: str | os.PathLike[str]) -> tuple[LabelTable, list[
     if not texts and not errors:
         raise LabelError(path_text, 1, "no data rows after the header")
 
-    numbers = np.asarray(values, dtype=np.float64).reshape(len(values), -1)
+    numbers = np.asarray(values, dtype=np.float64).reshape(len(values), len(pose_at))
     poses, focal = numbers[:, :7].copy().reshape(-1, 7), None
     if FOCAL_COLUMN in names:
         focal = numbers[:, 7] if len(values) else np.zeros(0)
@@ -248,6 +250,7 @@ def read_labels_lenient(path: str | os.PathLike[str]) -> tuple[LabelTable, list[
             LabelWarning,
             stacklevel=3,
         )
+    _warn_repeated_images([text[3] for text in texts], lines, path_text)
     columns = list(zip(*texts, strict=True)) if texts else [(), (), (), ()]
     table = LabelTable(
         scene=list(columns[0]),
@@ -260,6 +263,26 @@ def read_labels_lenient(path: str | os.PathLike[str]) -> tuple[LabelTable, list[
         focal=focal,
     )
     return table, errors
+
+
+def _warn_repeated_images(img_paths: Sequence[str], lines: Sequence[int], source: str) -> None:
+    """One LabelWarning naming the rows whose img_path an earlier row already has (an epoch
+    would see those images more than once), with the line numbers of both."""
+    first_line: dict[str, int] = {}
+    repeats = []
+    for img_path, line in zip(img_paths, lines, strict=True):
+        if img_path in first_line:
+            repeats.append(f"line {line} repeats line {first_line[img_path]}")
+        else:
+            first_line[img_path] = line
+    if repeats:
+        more = f" and {len(repeats) - 5} more" if len(repeats) > 5 else ""
+        warnings.warn(
+            f"{source}: {len(repeats)} rows repeat an earlier row's image "
+            f"({', '.join(repeats[:5])}{more}): an epoch sees those images more than once",
+            LabelWarning,
+            stacklevel=4,
+        )
 
 
 def _parse_row(
@@ -344,7 +367,7 @@ def find_image_problems(
     table: LabelTable, root: str | os.PathLike[str], workers: int | None = None
 ) -> list[str]:
     """One message per row whose image is outside ``root``, missing, not decodable, or of
-    another size than the first decodable image (loaders need one size per label file).
+    another size than most images (loaders need one size per label file).
 
     Images are fully decoded with OpenCV, on ``workers`` threads.
     """
@@ -358,23 +381,35 @@ def find_image_problems(
     resolved = [
         (i, os.path.join(root_abs, p)) for i, p in enumerate(table.img_path) if i not in problems
     ]
-    first: tuple[int, tuple[int, ...]] | None = None
+    sizes: dict[int, tuple[int, int]] = {}
     with ThreadPoolExecutor(max_workers=workers or min(8, os.cpu_count() or 1)) as pool:
         outcomes = pool.map(_image_problem, (full for _, full in resolved))
         for (i, _), (outcome, shape) in zip(resolved, outcomes, strict=True):
             if outcome:
                 problems[i] = f"{outcome}: {table.img_path[i]!r}"
-            elif first is None:
-                first = (i, shape)
-            elif shape != first[1]:
-                (h, w), (h0, w0) = shape, first[1]
-                problems[i] = (
-                    f"image is {w}x{h} px, unlike the {w0}x{h0} px of the first image "
-                    f"(line {table.file_line(first[0])}; one size per label file): "
-                    f"{table.img_path[i]!r}"
-                )
+            else:
+                sizes[i] = shape
+    for i, problem in odd_sizes(sizes).items():
+        problems[i] = f"{problem}: {table.img_path[i]!r}"
     location = table.source or "row"
     return [f"{location}:{table.file_line(i)}: {problems[i]}" for i in sorted(problems)]
+
+
+def odd_sizes(sizes: Mapping[int, tuple[int, int]]) -> dict[int, str]:
+    """Rows whose image size (h, w) in px is not the one most images have (the earliest of
+    equally common ones), each with why: one size per label file."""
+    counts = Counter(sizes.values())
+    if len(counts) < 2:
+        return {}
+    (common_h, common_w), count = counts.most_common(1)[0]
+    return {
+        i: (
+            f"image is {w}x{h} px, unlike the {common_w}x{common_h} px of most images ({count} "
+            f"of {len(sizes)}; one size per label file)"
+        )
+        for i, (h, w) in sizes.items()
+        if (h, w) != (common_h, common_w)
+    }
 
 
 def _image_problem(path: str) -> tuple[str, tuple[int, ...]]:

@@ -117,6 +117,19 @@ def _locked(path: Path) -> Iterator[None]:
             fcntl.flock(handle.fileno(), fcntl.LOCK_UN)
 
 
+def _held_by_another(path: Path) -> bool:
+    """Whether another process (or another open of this one) holds the lock on `path`."""
+    if not path.is_file():
+        return False
+    with path.open("a") as handle:
+        try:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            return True
+        fcntl.flock(handle.fileno(), fcntl.LOCK_UN)
+    return False
+
+
 class LatentCache:
     """Teacher latents on disk in `folder`, one file per key: `<sha256 of the key>.pt`."""
 
@@ -126,6 +139,15 @@ class LatentCache:
     def path(self, key: dict[str, Any]) -> Path:
         name = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:32]
         return self.folder / f"{name}.pt"
+
+    def _remove_dead_writes(self, own: Path) -> None:
+        """Delete the temporary files that writers killed mid-write left (atomic_write's
+        `.<name>.pt.*.tmp`). A writer holds its file's lock while it writes, so a temporary
+        whose lock nobody holds is dead; `own` is the file whose lock this process holds."""
+        for temporary in self.folder.glob(".*.pt.*.tmp"):
+            name = temporary.name[1:].split(".pt.", 1)[0]
+            if name == own.stem or not _held_by_another(self.folder / f"{name}.lock"):
+                temporary.unlink(missing_ok=True)
 
     def _read(self, path: Path, key: dict[str, Any], rows: int) -> TeacherLatents | None:
         """The cached latents, or None (with the reason said once) when the file is missing,
@@ -156,6 +178,7 @@ class LatentCache:
         others wait on the lock, then read its file."""
         path = self.path(key)
         with _locked(path.with_suffix(".lock")):
+            self._remove_dead_writes(path)
             cached = self._read(path, key, rows)
             if cached is not None:
                 return cached, True

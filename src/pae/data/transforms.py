@@ -27,26 +27,35 @@ def image_size(path: str) -> tuple[int, int]:
     return image.shape[0], image.shape[1]
 
 
-def load_image(path: str, shorter_edge: int, size: tuple[int, int] | None = None) -> np.ndarray:
-    """Read an image with OpenCV (BGR -> RGB) and resize its shorter edge -> uint8 [H, W, 3].
-
-    `size` (h, w) in px: the size every image of the dataset must have (ImageError otherwise).
-    """
+def load_sized_image(path: str, shorter_edge: int) -> tuple[np.ndarray, tuple[int, int]]:
+    """Read an image with OpenCV (BGR -> RGB) and resize its shorter edge -> (uint8 [H, W, 3],
+    the (h, w) in px it had in the file)."""
     image = cv2.imread(path, cv2.IMREAD_COLOR)
     if image is None:
         raise ImageError(f"{path}: missing or unreadable image")
     h, w = image.shape[:2]
-    if size is not None and (h, w) != tuple(size):
-        raise ImageError(
-            f"{path}: image is {w}x{h} px, unlike the {size[1]}x{size[0]} px of the first image "
-            "(all images of a label file must have one size)"
-        )
     scale = shorter_edge / min(h, w)
     if scale != 1.0:
         size = (max(shorter_edge, round(w * scale)), max(shorter_edge, round(h * scale)))
         interpolation = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
         image = cv2.resize(image, size, interpolation=interpolation)
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB), (h, w)
+
+
+def load_image(path: str, shorter_edge: int, size: tuple[int, int] | None = None) -> np.ndarray:
+    """Read an image with OpenCV (BGR -> RGB) and resize its shorter edge -> uint8 [H, W, 3].
+
+    `size` (h, w) in px: the size of the label file's first image, which every image must
+    have (ImageError otherwise).
+    """
+    image, (h, w) = load_sized_image(path, shorter_edge)
+    if size is not None and (h, w) != tuple(size):
+        raise ImageError(
+            f"{path}: image is {w}x{h} px, unlike the {size[1]}x{size[0]} px of the label "
+            "file's first image (all images of a label file must have one size; `pae-data "
+            "check LABELS ROOT` names the odd ones)"
+        )
+    return image
 
 
 def _gray(images: Tensor) -> Tensor:

@@ -21,13 +21,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from pae.compiled import jit
+
 STOP_TRANSMITTANCE = 1e-4
 """A ray's march stops once less than this share of its light remains."""
 SKIP_WEIGHT = 1e-6
 """Samples that take less of the light than this are not coloured (their colour is not read)."""
 
 
-@numba.njit(cache=True, nogil=True, inline="always", fastmath=True)
+@jit(nogil=True, inline="always", fastmath=True)
 def _corners(grid_shape: tuple[int, int, int], x: float, y: float, z: float) -> tuple:
     """The lower corner (clamped inside the grid) and fractions of a point's voxel cell."""
     nz, ny, nx = grid_shape
@@ -40,7 +42,7 @@ def _corners(grid_shape: tuple[int, int, int], x: float, y: float, z: float) -> 
     return i0, j0, k0, z - i0, y - j0, x - k0
 
 
-@numba.njit(cache=True, nogil=True, inline="always", fastmath=True)
+@jit(nogil=True, inline="always", fastmath=True)
 def _sample(grid: np.ndarray, i0: int, j0: int, k0: int, fz: float, fy: float, fx: float, c: int):
     """Trilinear value of channel ``c`` in the cell at (i0, j0, k0)."""
     c00 = grid[i0, j0, k0, c] * (1 - fx) + grid[i0, j0, k0 + 1, c] * fx
@@ -50,7 +52,7 @@ def _sample(grid: np.ndarray, i0: int, j0: int, k0: int, fz: float, fy: float, f
     return (c00 * (1 - fy) + c01 * fy) * (1 - fz) + (c10 * (1 - fy) + c11 * fy) * fz
 
 
-@numba.njit(cache=True, nogil=True, inline="always", fastmath=True)
+@jit(nogil=True, inline="always", fastmath=True)
 def _scatter(
     grad: np.ndarray, i0: int, j0: int, k0: int, fz: float, fy: float, fx: float, c: int, g: float
 ) -> None:
@@ -64,17 +66,17 @@ def _scatter(
                 grad[i0 + di, j0 + dj, k0 + dk, c] += g * wz * wy * wx
 
 
-@numba.njit(cache=True, nogil=True, inline="always", fastmath=True)
+@jit(nogil=True, inline="always", fastmath=True)
 def _softplus(x: float) -> float:
     return x + math.log1p(math.exp(-x)) if x > 0 else math.log1p(math.exp(x))
 
 
-@numba.njit(cache=True, nogil=True, inline="always", fastmath=True)
+@jit(nogil=True, inline="always", fastmath=True)
 def _sigmoid(x: float) -> float:
     return 1.0 / (1.0 + math.exp(-x))
 
 
-@numba.njit(cache=True, nogil=True, inline="always", fastmath=True)
+@jit(nogil=True, inline="always", fastmath=True)
 def _depth(u: float, near: float, leave: float, far: float, contract: bool) -> float:
     """Depth at the fraction ``u`` in (0, 1) of a ray's samples (see VoxelGrid.sample_depths)."""
     if not contract:
@@ -85,7 +87,7 @@ def _depth(u: float, near: float, leave: float, far: float, contract: bool) -> f
     return 1.0 / ((1.0 - s) / leave + s / far)
 
 
-@numba.njit(cache=True, nogil=True, inline="always", fastmath=True)
+@jit(nogil=True, inline="always", fastmath=True)
 def _point(
     rays: np.ndarray, r: int, s: int, n: int, offsets: np.ndarray, geometry: np.ndarray
 ) -> tuple:
@@ -126,7 +128,7 @@ def _point(
     )
 
 
-@numba.njit(cache=True, parallel=True, nogil=True, fastmath=True)
+@jit(parallel=True, nogil=True, fastmath=True)
 def render_forward(
     grid: np.ndarray,
     rays: np.ndarray,
@@ -168,7 +170,7 @@ def render_forward(
         used[r] = s
 
 
-@numba.njit(cache=True, parallel=True, nogil=True, fastmath=True)
+@jit(parallel=True, nogil=True, fastmath=True)
 def render_backward(
     grid: np.ndarray,
     rays: np.ndarray,

@@ -17,11 +17,11 @@ import math
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 
-import numba
 import numpy as np
 import torch
 from torch import Tensor
 
+from pae.compiled import jit
 from pae.refine.regressor import _SMALLEST, ADAM_BETAS, ADAM_EPS, SERIES_RATIO, LayerParams
 
 _FASTMATH = {"reassoc", "contract"}
@@ -30,7 +30,7 @@ NaN and infinity keep their meaning. ``error_model="numpy"``: a division by zero
 NaN as in numpy and torch instead of raising, which also lets divisions vectorise."""
 
 
-@numba.njit(cache=True, nogil=True)
+@jit(nogil=True)
 def insert_sorted(values: np.ndarray, labels: np.ndarray, value: float, label: int) -> None:
     """Insert ``value`` (with ``label``) into the ascending ``values`` [m] (and ``labels``
     [m]), dropping the last entry; the caller has checked that value < values[-1]."""
@@ -43,7 +43,7 @@ def insert_sorted(values: np.ndarray, labels: np.ndarray, value: float, label: i
     labels[slot] = label
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@jit(nogil=True, inline="always")
 def _copy(source: np.ndarray, target: np.ndarray) -> None:
     """target[i] = source[i] for the length of ``source`` (1-D); a plain loop, which numba
     compiles to a vectorised copy (slice assignment takes a slower general path)."""
@@ -51,7 +51,7 @@ def _copy(source: np.ndarray, target: np.ndarray) -> None:
         target[i] = source[i]
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
+@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
 def _sum_powers(a: np.ndarray, sums: np.ndarray) -> None:
     """sums [5] = Σ over the positive values of a [n] of (aᵢ, 1, aᵢ⁻¹, aᵢ⁻², aᵢ⁻³)."""
     total, count, first, second, third = 0.0, 0.0, 0.0, 0.0, 0.0
@@ -67,7 +67,7 @@ def _sum_powers(a: np.ndarray, sums: np.ndarray) -> None:
     sums[0], sums[1], sums[2], sums[3], sums[4] = total, count, first, second, third
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy")
 def _prepare_gain(a: np.ndarray, smallest: np.ndarray, sums: np.ndarray, where: np.ndarray) -> None:
     """Fill ``smallest`` [m] with the m smallest positive values of a [n] (ascending, inf
     where fewer; among equal values the first ones) and ``sums`` [m + 1, 5] with the power
@@ -112,7 +112,7 @@ def _prepare_gain(a: np.ndarray, smallest: np.ndarray, sums: np.ndarray, where: 
             sums[c, 4] += inverse * inverse * inverse
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
+@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
 def _power_sums(source: np.ndarray, a: np.ndarray, sums: np.ndarray) -> float:
     """a [n] = |source| in float64, ``sums`` [5] = its power sums (``_sum_powers``), as
     ``_prepare_gain``'s last row; returns the least positive value (inf if none)."""
@@ -125,7 +125,7 @@ def _power_sums(source: np.ndarray, a: np.ndarray, sums: np.ndarray) -> float:
     return least
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
+@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
 def _series(sums: np.ndarray, s: float, eps: float) -> float:
     """Σᵢ aᵢ² / (aᵢ·s + eps) by ``_FirstLayerGain``'s series, (1/s)·Σₚ₌₀⁴ (−eps/s)ᵖ·Σᵢ
     aᵢ^(1−p), from the power sums ``sums`` [5] of ``_sum_powers`` (Horner in −eps/s)."""
@@ -136,7 +136,7 @@ def _series(sums: np.ndarray, s: float, eps: float) -> float:
     return total / s
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy")
 def _band_gains(
     a: np.ndarray,
     smallest: np.ndarray,
@@ -189,7 +189,7 @@ def _band_gains(
         gains[int(units[p])] = total
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
+@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
 def _adamw(
     params: np.ndarray,
     avg: np.ndarray,
@@ -226,7 +226,7 @@ def _adamw(
         params[at] = keep * params[at] - step_size * first / (np.sqrt(second) * root + eps)
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
+@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
 def _decay(params: np.ndarray, base: int, count: int, keep: float) -> None:
     """AdamW's step of ``count`` parameters from ``base`` whose gradient and moments are all
     zero: the weight decay alone (the Adam term is 0 / (0 + eps) = 0)."""
@@ -235,7 +235,7 @@ def _decay(params: np.ndarray, base: int, count: int, keep: float) -> None:
         params[at] = keep * params[at]
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
+@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
 def _first_layer_step(
     grads: np.ndarray,
     first_avg: np.ndarray,
@@ -261,7 +261,7 @@ def _first_layer_step(
         bias[j] = keep * bias[j] - step_size * first / (spread + eps)
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
+@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
 def _series_gains(
     spreads: np.ndarray, gains: np.ndarray, full: np.ndarray, least: float, eps: float, ratio: float
 ) -> bool:
@@ -282,7 +282,7 @@ def _series_gains(
     return pending
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy")
 def _fit_rows(
     query: np.ndarray,
     inputs: np.ndarray,

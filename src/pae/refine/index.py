@@ -5,11 +5,11 @@ from __future__ import annotations
 import math
 from typing import Literal
 
-import numba
 import numpy as np
 import torch
 from torch import Tensor
 
+from pae.compiled import jit
 from pae.geometry import canonicalize_quaternion
 from pae.refine.fused import insert_sorted, run_in_parts
 
@@ -20,7 +20,7 @@ _DEGREES_PER_HALF_TURN = 360.0 / math.pi
 """Rotation angle in degrees per radian of acos(|q·q'|) (the angle is twice that)."""
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@jit(nogil=True, error_model="numpy")
 def _unit_rows64(store: np.ndarray, positions: np.ndarray, quaternions: np.ndarray) -> None:
     """Stored rows [N, 7] (float32) into float64 positions [N, 3] and quaternions [N, 4]
     renormalised in float64, as ``PoseIndex._block64`` gives them, on the calling thread
@@ -39,7 +39,7 @@ def _unit_rows64(store: np.ndarray, positions: np.ndarray, quaternions: np.ndarr
             quaternions[row, axis] /= norm
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@jit(nogil=True, error_model="numpy")
 def _nearest(
     query_positions: np.ndarray,
     query_quaternions: np.ndarray,

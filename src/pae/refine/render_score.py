@@ -16,13 +16,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from pae.compiled import jit
+
 MIN_DEPTH_M = 0.05
 """Points nearer than this to a candidate camera (or behind it) are not seen."""
 NOT_SEEN_SCORE = -2.0
 """The score of a candidate that sees too few of the reference points."""
 
 
-@numba.njit(cache=True, parallel=True, nogil=True, fastmath=True)
+@jit(parallel=True, nogil=True, fastmath=True)
 def _zncc_scores(
     points: np.ndarray,
     values: np.ndarray,

@@ -1,0 +1,46 @@
+"""Training stops at the first non-finite loss: a diverged model is no result, and the
+checkpoint of the last whole epoch stays as it was."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import lightning as L
+import torch
+
+from pae.errors import DivergenceError
+
+
+class StopOnNonFiniteLoss(L.Callback):
+    """After every training step, a NaN or infinite loss raises DivergenceError: one line
+    naming the step, the loss, the epoch and the learning rate. `step` names the training
+    step of the run (``teacher``, ``student``, ...), `lr_setting` the learning-rate setting
+    to lower (``teacher.optimizer.lr=0.002``). Under DDP every process stops together."""
+
+    def __init__(self, step: str, lr_setting: str) -> None:
+        self.step = step
+        self.lr_setting = lr_setting
+
+    def on_train_batch_end(
+        self,
+        trainer: L.Trainer,
+        pl_module: L.LightningModule,
+        outputs: Any,
+        batch: Any,
+        batch_idx: int,
+    ) -> None:
+        loss = outputs.get("loss") if isinstance(outputs, Mapping) else outputs
+        if not isinstance(loss, torch.Tensor):
+            return
+        diverged = not bool(torch.isfinite(loss.detach()).all())
+        if not trainer.strategy.reduce_boolean_decision(diverged, all=False):
+            return
+        rates = [group["lr"] for opt in trainer.optimizers for group in opt.param_groups]
+        rate = f", learning rate {rates[0]:.3g} at that step" if rates else ""
+        value = loss.detach().float().item() if diverged else "not finite in another process"
+        raise DivergenceError(
+            f"{self.step}: training diverged: the loss is {value} at step "
+            f"{trainer.global_step} (epoch {trainer.current_epoch}, batch {batch_idx}{rate}); "
+            f"a learning rate too high is the common cause: lower {self.lr_setting}"
+        )

@@ -1,0 +1,158 @@
+"""numba's compiled loops, cached where a cache can be written and keyed on pae's sources.
+
+``jit(**options)`` is ``numba.njit(**options)`` with pae's own on-disk cache instead of
+``cache=True``. The cache folder is the first writable one of ``NUMBA_CACHE_DIR``, the
+``__pycache__`` beside the module (numba's default) and the user cache folder
+(``$XDG_CACHE_HOME/pae/numba`` or ``~/.cache/pae/numba``); where none can be written (a read-only
+install and a read-only ``HOME``) the loops compile in each process without a cache, and a
+warning says so once. A cached loop is stamped with a digest of every source file of its
+top-level package, not only its own file: a compiled function inlines the compiled helpers it
+calls and the constants it reads from other modules, so a change to any of them compiles
+it anew instead of running the old code.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import tempfile
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numba
+from numba.core.caching import CompileResultCacheImpl, FunctionCache, _CacheLocator
+
+
+class CompileCacheWarning(UserWarning):
+    """numba's compiled loops cannot be cached (said once per process)."""
+
+
+_SAID: set[str] = set()
+
+
+def _say_once(message: str) -> None:
+    if message not in _SAID:
+        _SAID.add(message)
+        warnings.warn(message, CompileCacheWarning, stacklevel=3)
+
+
+@functools.cache
+def package_digest(package_dir: str) -> str:
+    """SHA-256 over the path and bytes of every ``*.py`` below ``package_dir`` (sorted)."""
+    digest = hashlib.sha256()
+    root = Path(package_dir)
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode() + b"\0")
+        digest.update(path.read_bytes() + b"\0")
+    return digest.hexdigest()
+
+
+def _user_cache_dir() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "pae"
+
+
+def _writable(folder: Path) -> bool:
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        tempfile.TemporaryFile(dir=folder).close()
+    except OSError:
+        return False
+    return True
+
+
+def candidate_folders(source_file: str) -> list[Path]:
+    """Where the compiled code of functions in ``source_file`` may be cached, in order."""
+    source_dir = os.path.dirname(os.path.abspath(source_file))
+    # one sub-folder per source folder, as numba names them: installs in several places
+    # (virtual environments, checkouts) do not overwrite each other's entries
+    subpath = _CacheLocator.get_suitable_cache_subpath(source_file)
+    folders = []
+    if numba.config.CACHE_DIR:
+        folders.append(Path(numba.config.CACHE_DIR) / subpath)
+    folders.append(Path(source_dir) / "__pycache__")
+    folders.append(_user_cache_dir() / "numba" / subpath)
+    return folders
+
+
+@functools.cache
+def cache_folder(source_file: str) -> Path | None:
+    """The first writable folder of ``candidate_folders`` (None, said once, if there is none)."""
+    folders = candidate_folders(source_file)
+    for folder in folders:
+        if _writable(folder):
+            return folder
+    _say_once(
+        "pae: numba's compiled loops are not cached: none of "
+        f"{', '.join(str(f) for f in folders)} can be written (NUMBA_CACHE_DIR, the package "
+        "folder, the user cache folder); they compile again in every process (seconds). "
+        "Set NUMBA_CACHE_DIR to a writable folder to keep them"
+    )
+    return None
+
+
+def _top_package_dir(func: Callable[..., Any]) -> str:
+    """The folder of the top-level package that defines ``func`` (its own folder for a
+    module outside any package)."""
+    module_file = Path(func.__code__.co_filename).resolve()
+    top = func.__module__.split(".")[0]
+    for parent in module_file.parents:
+        if parent.name == top and (parent / "__init__.py").is_file():
+            return str(parent)
+    return str(module_file.parent)
+
+
+class _PackageLocator(_CacheLocator):
+    """Cache files of one function in ``cache_folder``, fresh while its package is unchanged."""
+
+    def __init__(self, py_func: Callable[..., Any], py_file: str) -> None:
+        self._lineno = py_func.__code__.co_firstlineno
+        self._folder = cache_folder(py_file)
+        self._package_dir = _top_package_dir(py_func)
+
+    def get_cache_path(self) -> str:
+        return str(self._folder)
+
+    def get_source_stamp(self) -> str:
+        return package_digest(self._package_dir)
+
+    def get_disambiguator(self) -> str:
+        return str(self._lineno)
+
+    @classmethod
+    def from_function(cls, py_func: Callable[..., Any], py_file: str) -> _PackageLocator | None:
+        return cls(py_func, py_file) if cache_folder(py_file) is not None else None
+
+
+class _PackageCacheImpl(CompileResultCacheImpl):
+    _locator_classes: ClassVar[list[type]] = [_PackageLocator]
+
+
+class _PackageCache(FunctionCache):
+    """numba's function cache with ``_PackageLocator``; a failed write (the disk filled up,
+    the folder became read-only) is said once and the compiled code is used uncached."""
+
+    _impl_class = _PackageCacheImpl
+
+    def save_overload(self, sig: Any, data: Any) -> None:
+        try:
+            super().save_overload(sig, data)
+        except OSError as err:
+            _say_once(
+                f"pae: numba's compiled loops could not be cached in {self._cache_path}: {err}"
+            )
+
+
+def jit(**options: Any) -> Callable[[Callable[..., Any]], Any]:
+    """``numba.njit(**options)`` cached as the module docstring says (no ``cache`` option)."""
+
+    def compile_lazily(func: Callable[..., Any]) -> Any:
+        dispatcher = numba.njit(**options)(func)
+        if cache_folder(func.__code__.co_filename) is not None:
+            dispatcher._cache = _PackageCache(func)  # what numba's cache=True sets, relocated
+        return dispatcher
+
+    return compile_lazily
