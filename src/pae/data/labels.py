@@ -8,8 +8,9 @@ The format is the one of the public MS-Transformer / PAE code::
 ``img_path`` is relative to a dataset root, ``t1..t3`` is the camera position in metres (world
 frame) and ``q1..q4`` the camera-to-world orientation as a quaternion with the scalar part
 first (``q1``). An optional ``focal`` column gives each image's focal length in px at the
-resolution of the data's camera (``data.camera``; e.g. Cambridge's per-image focal lengths). Columns are found by name, so
-their order does not matter and other extra columns are ignored.
+resolution of the data's camera (``data.camera``; e.g. Cambridge's per-image focal
+lengths). Columns are found by name, so their order does not matter and other extra columns
+are ignored.
 """
 
 from __future__ import annotations
