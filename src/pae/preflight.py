@@ -135,8 +135,8 @@ class Preflight(Callback):
             check_writable_dir(folder, key)
             if not config.get("resume"):
                 check_fresh(folder, key)
-            elif not sweep:
-                check_resume(config, folder)
             if not sweep:  # sweep jobs check their own settings when they start
-                self._validate(config)
+                self._validate(config)  # first: it may correct data settings (see validation)
+            if config.get("resume") and not sweep:
+                check_resume(config, folder)
             _check_latent_cache(config)
