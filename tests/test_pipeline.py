@@ -177,12 +177,21 @@ def test_every_run_records_its_dataset(pipeline_run: Path, tiny_root: Path) -> N
 def test_max_epochs_zero_tests_and_saves_the_untrained_model_in_every_stage(
     compose_train, tmp_path: Path
 ) -> None:
-    epochs = [f"{group}.max_epochs=0" for group in ("teacher", "student", "decoder", "rpr", "iapr")]
-    metrics = run(compose_train("stage=full", *epochs, run_dir=tmp_path), tmp_path)
-    for step in ("teacher", "student", "decoder", "rpr", "rpr_image", "iapr"):
+    groups = ("teacher", "student", "decoder", "rpr", "iapr", "scene_model")
+    small_scene_model = (
+        "scene_model.model.num_voxels=8000",
+        "render_compare.refiner.rounds=2",
+        "render_compare.refiner.candidates=4",
+    )
+    overrides = [f"{group}.max_epochs=0" for group in groups]
+    metrics = run(
+        compose_train("stage=full", *overrides, *small_scene_model, run_dir=tmp_path), tmp_path
+    )
+    for step in ("teacher", "student", "decoder", "rpr", "rpr_image", "iapr", "scene_model"):
         assert (tmp_path / step / "checkpoints" / "last.ckpt").is_file(), step
     load_teacher(tmp_path / "teacher" / "checkpoints" / "last.ckpt")
-    for method in ("teacher", "student", "refined", "vrpr", "rpr_image", "iapr_3"):
+    methods = ("teacher", "student", "refined", "vrpr", "rpr_image", "iapr_3", "render_compare")
+    for method in methods:
         assert metrics[f"test/{method}/pos_median_m"] >= 0, method
     assert "bench/teacher/fit_s" in metrics
 

@@ -84,8 +84,9 @@ def fit_scene_model(
     cfg: DictConfig, step_dir: Path, ckpt: dict[str, str | Path | None]
 ) -> tuple[Metrics, Path | None]:
     """Fit the configured scene model (voxel_grid, whose checkpoint is written with
-    max_epochs=0 too; pae_decoder and oracle have nothing to fit), then test render-and-compare from the teacher's estimates -> (metrics, the last
-    checkpoint or None)."""
+    max_epochs=0 too; pae_decoder and oracle have nothing to fit), then test
+    render-and-compare from the teacher's estimates -> (metrics, the last checkpoint or
+    None)."""
     teacher_path = required(ckpt["teacher"], "teacher_ckpt", "render_compare")
     teacher = load_teacher(teacher_path)
     images = build_data(cfg, augment=False)
