@@ -1,19 +1,42 @@
 import numpy as np
+import pytest
 import torch
 
-from pae.callbacks.refinement import trajectory_image
+from pae.callbacks.trajectory import GROUND_TRUTH_RGB, METHOD_RGB, trajectory_figure
 
 
-def test_trajectory_image_draws_each_track_in_its_colour() -> None:
-    gt = torch.tensor([[0.0, 0.0, 1.5, 1, 0, 0, 0], [2.0, 1.0, 1.5, 1, 0, 0, 0]])
+def _columns_with(image: np.ndarray, colour: tuple[int, int, int]) -> np.ndarray:
+    return np.flatnonzero((image == colour).all(-1).any(0))
+
+
+def test_trajectory_figure_draws_each_method_in_its_colour_on_one_metre_scale() -> None:
+    gt = torch.zeros(3, 7)
+    gt[:, 3] = 1
+    gt[:, 0] = torch.tensor([0.0, 1.0, 2.0])  # along x: x is the horizontal axis
+    gt[:, 1] = torch.tensor([0.0, 0.1, 0.0])
     teacher = gt + torch.tensor([0.0, 0.5, 0, 0, 0, 0, 0])
-    refined = gt + torch.tensor([1.0, 0.0, 0, 0, 0, 0, 0])
-    image = trajectory_image(gt, teacher, refined, size=100)
-    assert image.shape == (100, 100, 3) and image.dtype == np.uint8
+    refined = gt.clone()
+    refined[:, 0] += 0.2
+    image = trajectory_figure("scene00: test", gt, {"teacher": teacher, "refined": refined})
+    assert image.shape == (540, 720, 3) and image.dtype == np.uint8
     colours = {tuple(c) for c in image.reshape(-1, 3)}
-    assert {(255, 255, 255), (0, 160, 0), (220, 0, 0), (0, 0, 220)} <= colours
-    # the first ground-truth point is the plot's lower-left corner (x min, y min)
-    assert tuple(image[100 - 1 - 20, 20]) == (0, 160, 0)
+    assert {GROUND_TRUTH_RGB, METHOD_RGB[0], METHOD_RGB[1], (0, 0, 0)} <= colours
+    # ground truth spans 2 m, refined the same 2 m shifted right by 0.2 m, on one scale
+    plot = image[:, :-230]  # without the legend
+    gt_cols, refined_cols = (
+        _columns_with(plot, GROUND_TRUTH_RGB),
+        _columns_with(plot, METHOD_RGB[1]),
+    )
+    metre_px = (gt_cols.max() - gt_cols.min()) / 2.0
+    shift_px = refined_cols.min() - gt_cols.min()
+    assert shift_px == pytest.approx(0.2 * metre_px, abs=2)
+    # the legend holds a swatch of each colour, in order: ground truth, teacher, refined
+    legend = image[:, -230:]
+    rows = [
+        np.flatnonzero((legend == c).all(-1).any(1)).min()
+        for c in (GROUND_TRUTH_RGB, *METHOD_RGB[:2])
+    ]
+    assert rows == sorted(rows)
 
 
 class _Recorder:

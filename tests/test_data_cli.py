@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 import types
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -318,8 +319,11 @@ def test_synth_passes_arguments_and_prints_summary(
         def summary(self) -> str:
             return "synthetic summary"
 
-    def write_synthetic_dataset(out: Path, **kwargs: int) -> Written:
+    def write_synthetic_dataset(
+        out: Path, progress: Callable[[int, int], None], **kwargs: int
+    ) -> Written:
         calls.append((out, kwargs))
+        progress(1, 2)
         return Written()
 
     fake = types.ModuleType("pae.data.synthetic")
@@ -332,7 +336,9 @@ def test_synth_passes_arguments_and_prints_summary(
 
     assert main(["synth", str(tmp_path / "a"), "--scenes", "2", "--size", "32", "--seed", "7"]) == 0
     assert main(["synth", str(tmp_path / "b"), "--test-offset", "0", "--train-lane", "0.5"]) == 0
-    assert capsys.readouterr().out == "synthetic summary\n" * 2
+    written = capsys.readouterr()
+    assert written.out == "synthetic summary\n" * 2
+    assert f"rendering {tmp_path / 'a'}: 1/2 frames (50 %)" in written.err
     assert calls == [
         (
             tmp_path / "a",

@@ -71,7 +71,29 @@ def teacher_run(tmp_path_factory: pytest.TempPathFactory, tiny_root: Path) -> Pa
         cwd=run_dir.parent,
     )
     assert result.returncode == 0, result.stderr
+    (run_dir.parent / "output.txt").write_text(result.stdout + result.stderr)
     return run_dir
+
+
+def test_a_batch_run_prints_progress_and_each_line_once(teacher_run: Path) -> None:
+    """callbacks=minimal, no progress bar (a batch run): the dataset, a line per epoch, a
+    summary; Lightning's lines once, without its advertisement or deprecation warnings."""
+    output = (teacher_run.parent / "output.txt").read_text()
+    lines = output.splitlines()
+    assert (
+        lines[0].startswith("data: ") and "2 scenes (scene00, scene01); train 48 frames" in lines[0]
+    )
+    epochs = [line for line in lines if line.startswith("teacher: epoch ")]
+    assert len(epochs) == 2
+    assert epochs[0].startswith("teacher: epoch 1/2, loss ") and ", val teacher " in epochs[0]
+    assert "elapsed, ETA " in epochs[0] and "ETA" not in epochs[1]
+    done = [line for line in lines if line.startswith("teacher: done in ")]
+    assert len(done) == 1 and done[0].endswith(str(teacher_run / "checkpoints" / "last.ckpt"))
+    assert "; test teacher " in done[0]
+    assert output.count("GPU available") == 1
+    for noise in ("INFO:", "[INFO]", "💡", "litlogger", "LeafSpec", "Warning"):
+        assert noise not in output, noise
+    assert "teacher: epoch 1/2" in (teacher_run / "train.log").read_text()
 
 
 def copy_run(run_dir: Path, tmp_path: Path) -> Path:
@@ -139,8 +161,8 @@ def interrupted_at(monkeypatch: pytest.MonkeyPatch, epoch: int) -> None:
     monkeypatch.setattr(
         pae.pipeline,
         "build_trainer",
-        lambda cfg, step_dir, epochs, callbacks: build_trainer(
-            cfg, step_dir, epochs, [*callbacks, Interrupt(epoch)]
+        lambda cfg, step_dir, epochs, callbacks, **kw: build_trainer(
+            cfg, step_dir, epochs, [*callbacks, Interrupt(epoch)], **kw
         ),
     )
 

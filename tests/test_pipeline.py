@@ -111,25 +111,109 @@ def test_full_stage_reports_the_relative_regressors(pipeline_run: Path) -> None:
         assert (pipeline_run / step / "checkpoints" / "last.ckpt").is_file()
 
 
-def test_tensorboard_gets_trajectory_plot_and_hparams(pipeline_run: Path) -> None:
+def _events(folder: Path):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    events = EventAccumulator(str(pipeline_run / "student"))
+    events = EventAccumulator(str(folder), size_guidance={"images": 0, "tensors": 0})
     events.Reload()
-    assert "test/trajectory" in events.Tags()["images"]
-    assert "refinement/protocols/text_summary" in events.Tags()["tensors"]
-    assert "test/refined_test_store/pos_median_m" in events.Tags()["scalars"]
-    assert "val/refined/pos_median_m" in events.Tags()["scalars"]
-    assert "hparams/test/refined/pos_median_m" in events.Tags()["scalars"]
-    assert "hparams/val/refined/pos_median_m" in events.Tags()["scalars"]
+    return events
+
+
+def _hparams_experiment(events):
     from tensorboard.plugins.hparams import plugin_data_pb2
 
-    content = events.PluginTagToContent("hparams")["_hparams_/session_start_info"]
-    hparams = plugin_data_pb2.HParamsPluginData.FromString(content).session_start_info.hparams
-    assert hparams["seed"].number_value == 0 and hparams["refine/seed"].number_value == 0
-    decoder_events = EventAccumulator(str(pipeline_run / "decoder"))
-    decoder_events.Reload()
-    assert "test/reconstructions" in decoder_events.Tags()["images"]
+    for blob in events.PluginTagToContent("hparams").values():
+        data = plugin_data_pb2.HParamsPluginData.FromString(blob)
+        if data.HasField("experiment"):
+            return data.experiment
+    raise AssertionError("no HParams experiment in the event files")
+
+
+def test_tensorboard_tells_the_story(pipeline_run: Path) -> None:
+    """Rendered from the event files: a trajectory figure per scene, the results as TEXT,
+    HParams with the headline figures first and no per-scene keys, no one-point scalar
+    charts of final figures, reconstructions from the step that trains a decoder."""
+    import cv2
+
+    from pae.callbacks.trajectory import GROUND_TRUTH_RGB, METHOD_RGB
+
+    events = _events(pipeline_run / "student")
+    tags = events.Tags()
+    for split in ("val", "test"):
+        assert {f"{split}/trajectory/scene00", f"{split}/trajectory/scene01"} <= set(tags["images"])
+    encoded = events.Images("test/trajectory/scene01")[-1].encoded_image_string
+    image = cv2.imdecode(np.frombuffer(encoded, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
+    colours = {tuple(c) for c in image.reshape(-1, 3)}
+    assert {GROUND_TRUTH_RGB, METHOD_RGB[0], METHOD_RGB[1]} <= colours  # truth, teacher, refined
+    assert {"refinement/protocols/text_summary", "results/text_summary"} <= set(tags["tensors"])
+    results = events.Tensors("results/text_summary")[-1].tensor_proto.string_val[0].decode()
+    assert "refined_test_store *" in results and "scene01" in results
+
+    scalars = tags["scalars"]
+    assert "val/refined/pos_median_m" in scalars and "train/loss" in scalars
+    assert not [t for t in scalars if t.startswith(("test/", "bench/"))], "one-point charts"
+    hparams = [t for t in scalars if t.startswith("hparams/")]
+    assert not [t for t in hparams if "/scene0" in t], "per-scene keys in HParams"
+    experiment = _hparams_experiment(events)
+    metrics = [m.name.tag for m in experiment.metric_infos]
+    assert set(metrics) == set(hparams)
+    assert metrics[:8] == [
+        f"hparams/test/{method}/{figure}"
+        for method in ("teacher", "student", "best_refinement", "refined_test_store")
+        for figure in ("pos_median_m", "rot_median_deg")
+    ]
+    run_metrics = json.loads((pipeline_run / "metrics.json").read_text())
+    best = events.Scalars("hparams/test/best_refinement/pos_median_m")[-1].value
+    honest = [
+        run_metrics[f"test/{m}/pos_median_m"]
+        for m in ("refined", "knn_mean", "closed_form_k10", "latent_knn", "pose_descent")
+    ]
+    assert best == pytest.approx(min(honest), rel=1e-6)
+    columns = [h.name for h in experiment.hparam_infos]
+    assert columns[:3] == ["stage", "experiment", "data"] and "best_refinement" in columns
+    assert "teacher.max_epochs" in columns and "seed" in columns and len(columns) < 30
+
+    decoder_tags = _events(pipeline_run / "decoder").Tags()
+    assert "test/reconstructions" in decoder_tags["images"]
+    assert "val/decoder/psnr_db" in decoder_tags["scalars"]
+
+
+def test_every_run_records_its_dataset(pipeline_run: Path, tiny_root: Path) -> None:
+    import hashlib
+
+    from omegaconf import OmegaConf
+
+    metrics = json.loads((pipeline_run / "metrics.json").read_text())
+    labels = tiny_root.resolve() / "labels" / "all_train.csv"
+    assert metrics["data/root"] == str(tiny_root.resolve())
+    assert metrics["data/scenes"] == "scene00,scene01"
+    assert metrics["data/train/labels"] == str(labels)
+    assert metrics["data/train/frames"] == 48 and metrics["data/test/frames"] == 24
+    assert metrics["data/train/labels_sha256"] == hashlib.sha256(labels.read_bytes()).hexdigest()
+    record = OmegaConf.load(pipeline_run / ".hydra" / "data.yaml")
+    assert record.splits.test.sha256 == metrics["data/test/labels_sha256"]
+
+
+def test_max_epochs_zero_tests_and_saves_the_untrained_model_in_every_stage(
+    compose_train, tmp_path: Path
+) -> None:
+    groups = ("teacher", "student", "decoder", "rpr", "iapr", "scene_model")
+    small_scene_model = (
+        "scene_model.model.num_voxels=8000",
+        "render_compare.refiner.rounds=2",
+        "render_compare.refiner.candidates=4",
+    )
+    overrides = [f"{group}.max_epochs=0" for group in groups]
+    metrics = run(
+        compose_train("stage=full", *overrides, *small_scene_model, run_dir=tmp_path), tmp_path
+    )
+    for step in ("teacher", "student", "decoder", "rpr", "rpr_image", "iapr", "scene_model"):
+        assert (tmp_path / step / "checkpoints" / "last.ckpt").is_file(), step
+    load_teacher(tmp_path / "teacher" / "checkpoints" / "last.ckpt")
+    methods = ("teacher", "student", "refined", "vrpr", "rpr_image", "iapr_3", "render_compare")
+    for method in methods:
+        assert metrics[f"test/{method}/pos_median_m"] >= 0, method
+    assert "bench/teacher/fit_s" in metrics
 
 
 def test_checkpoints_reload_with_weights_only(pipeline_run: Path) -> None:
@@ -420,8 +504,8 @@ def test_resume_continues_an_interrupted_run(
         patch.setattr(
             pae.pipeline,
             "build_trainer",
-            lambda cfg, step_dir, epochs, callbacks: build_trainer(
-                cfg, step_dir, epochs, [*callbacks, Interrupt()]
+            lambda cfg, step_dir, epochs, callbacks, **kw: build_trainer(
+                cfg, step_dir, epochs, [*callbacks, Interrupt()], **kw
             ),
         )
         with pytest.raises(RuntimeError, match="interrupted"):

@@ -13,23 +13,29 @@ from omegaconf import DictConfig
 
 from pae import CONFIG_DIR
 from pae.atomic import write_json_atomic
+from pae.provenance import save_corrected_config
 from pae.reporting import format_results_table, reporting_errors
 from pae.validation import apply_renamed_keys, validate_eval_config
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="eval")
 def main(cfg: DictConfig) -> float | None:
+    from pae.console import quiet_third_party
+
+    quiet_third_party()
     with reporting_errors("pae-eval"):
         import lightning as L
         from lightning.pytorch.utilities import rank_zero_only
 
-        from pae.pipeline import evaluate_checkpoints
+        from pae.pipeline import evaluate_checkpoints, record_dataset
 
         apply_renamed_keys(cfg, "pae-eval")
         validate_eval_config(cfg)
         L.seed_everything(cfg.seed, verbose=False)
         run_dir = Path(HydraConfig.get().runtime.output_dir)
-        metrics = evaluate_checkpoints(cfg, run_dir)
+        if rank_zero_only.rank == 0:
+            save_corrected_config(cfg, run_dir)
+        metrics = record_dataset(cfg, run_dir) | evaluate_checkpoints(cfg, run_dir)
         if rank_zero_only.rank == 0:  # under DDP every process holds the same figures
             write_json_atomic(run_dir / "metrics.json", metrics)
             print(format_results_table(metrics, "val"))

@@ -9,16 +9,16 @@ from __future__ import annotations
 import math
 import re
 import time
-import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 import torch
+from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from lightning.pytorch.loggers import Logger, TensorBoardLogger
-from lightning.pytorch.utilities import rank_zero_info
+from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
 from pae.callbacks.finite_loss import StopOnNonFiniteLoss
@@ -34,6 +34,7 @@ from pae.checkpoints import (
     newest_readable_checkpoint,
     read_checkpoint,
 )
+from pae.console import say
 from pae.data.datamodule import PoseDataModule
 from pae.data.latents import LatentCache, TeacherLatentDataModule
 from pae.errors import ConfigError, DivergenceError
@@ -42,14 +43,17 @@ from pae.lit.rpr import RPRModule
 from pae.lit.student import StudentEvaluator, StudentModule
 from pae.lit.teacher import TeacherModule
 from pae.models.base import PoseRegressor
-from pae.reporting import first_line
+from pae.provenance import dataset_line, flat_record, save_record
+from pae.reporting import (
+    best_refinement,
+    first_line,
+    format_results_table,
+    headline_metrics,
+)
 
 Metrics = dict[str, float]
 TRAINED_GROUP = {"rpr_image": "rpr"}
 """The config group of a step's training settings where it is not the step's own name."""
-
-# frozen teachers, PAEs and decoders stay in eval mode inside the modules that train on them
-warnings.filterwarnings("ignore", message=r".*module\(s\) in eval mode", category=UserWarning)
 
 
 def build_data(cfg: DictConfig, **overrides: Any) -> PoseDataModule:
@@ -59,17 +63,39 @@ def build_data(cfg: DictConfig, **overrides: Any) -> PoseDataModule:
     return data
 
 
+def record_dataset(cfg: DictConfig, run_dir: Path) -> dict[str, str | int]:
+    """Prepare the configured data (the default synthetic benchmark renders on first use),
+    print which dataset the run reads and record it in `run_dir/.hydra/data.yaml` -> its
+    `data/...` keys for metrics.json (pae.provenance)."""
+    data = instantiate(cfg.data)
+    data.prepare_data()
+    record = data.describe()
+    if rank_zero_only.rank == 0:
+        say(dataset_line(record))
+        save_record(record, run_dir)
+    return flat_record(record)
+
+
 def _loggers(cfg: DictConfig, step_dir: Path) -> list[Logger]:
     return [instantiate(c, save_dir=str(step_dir)) for c in (cfg.get("logger") or {}).values()]
 
 
 def build_trainer(
-    cfg: DictConfig, step_dir: Path, max_epochs: int, callbacks: list[L.Callback]
+    cfg: DictConfig,
+    step_dir: Path,
+    max_epochs: int,
+    callbacks: list[L.Callback],
+    step: str = "eval",
 ) -> L.Trainer:
-    """Trainer from cfg.trainer with the run's loggers, checkpointing into step_dir/checkpoints."""
+    """Trainer from cfg.trainer with the run's loggers, checkpointing into step_dir/checkpoints;
+    the epoch progress lines name `step`."""
     configured = []
     for name, c in (cfg.get("callbacks") or {}).items():
-        extra = {"dirpath": str(step_dir / "checkpoints")} if name == "model_checkpoint" else {}
+        extra: dict[str, Any] = {}
+        if name == "model_checkpoint":
+            extra = {"dirpath": str(step_dir / "checkpoints")}
+        elif name == "epoch_progress":
+            extra = {"step": step}
         configured.append(instantiate(c, **extra))
     loggers = _loggers(cfg, step_dir)
     return instantiate(
@@ -143,14 +169,49 @@ def flat_config(cfg: DictConfig, sep: str = "/") -> dict[str, Any]:
     return flat
 
 
+HPARAMS_GROUPS = ("stage", "experiment", "data", "teacher", "backbone", "pae", "refine")
+"""The config groups whose choice changes what a run trains or measures and that have several
+options: the first columns of the HParams table (the others show up when overridden)."""
+
+
+def hparams_columns(cfg: DictConfig) -> dict[str, Any]:
+    """The settings the HParams table compares runs by: the choices of HPARAMS_GROUPS and
+    every key set on the command line or by a sweep (resolved), e.g. ``{"stage": "pipeline",
+    ..., "pae.L": 3}``; the whole flattened config when the run has no Hydra record of them.
+    The full config stays in `.hydra/config.yaml`."""
+    hydra_cfg = cfg.get("hydra")
+    if hydra_cfg is None and HydraConfig.initialized():
+        hydra_cfg = HydraConfig.get()
+    choices = OmegaConf.select(hydra_cfg, "runtime.choices", default=None) if hydra_cfg else None
+    if choices is None:
+        return flat_config(cfg)
+    flat = flat_config(cfg, sep=".")
+    columns: dict[str, Any] = {g: str(choices[g]) for g in HPARAMS_GROUPS if g in choices}
+    for override in OmegaConf.select(hydra_cfg, "overrides.task", default=None) or []:
+        key, _, value = str(override).lstrip("+~").partition("=")
+        if not key.startswith("hydra.") and key not in columns:
+            columns[key] = flat.get(key, value)
+    return columns
+
+
 def log_hparams(trainer: L.Trainer, cfg: DictConfig, metrics: Metrics) -> None:
-    """Hyper-parameters with the final figures (TensorBoard HParams tab, comparable in sweeps)."""
-    flat = flat_config(cfg)
+    """The settings with the final figures: TensorBoard's HParams tab (hparams_columns; the
+    figures of headline_metrics, headline first, no per-scene keys, and the name of the best
+    honest refinement) and a TEXT table ``results`` with every figure; other loggers get the
+    flattened config."""
     for logger in trainer.loggers:
-        if isinstance(logger, TensorBoardLogger):
-            logger.log_hyperparams(flat, metrics={f"hparams/{k}": v for k, v in metrics.items()})
-        else:
-            logger.log_hyperparams(flat)
+        if not isinstance(logger, TensorBoardLogger):
+            logger.log_hyperparams(flat_config(cfg))
+            continue
+        columns = hparams_columns(cfg)
+        best = best_refinement(metrics)
+        if best is not None:
+            columns["best_refinement"] = best
+        figures = headline_metrics(metrics)
+        logger.log_hyperparams(columns, metrics={f"hparams/{k}": v for k, v in figures.items()})
+        table = format_results_table(metrics)
+        code = "\n".join(f"    {line}" for line in table.splitlines())
+        logger.experiment.add_text("results", code, trainer.global_step)
 
 
 def _teacher_config(cfg: DictConfig, n_scenes: int) -> dict[str, Any]:
@@ -187,21 +248,27 @@ def fit_and_test(
     callbacks: list[L.Callback] | None = None,
 ) -> tuple[Metrics, Path]:
     """Fit (stopping at a non-finite loss), validate, test, record `bench/{name}/fit_s` ->
-    (metrics, path of the last checkpoint)."""
+    (metrics, path of the last checkpoint). With `epochs` 0 the untrained model is
+    evaluated, and its checkpoint written all the same."""
     group = TRAINED_GROUP.get(name, name)
     lr_setting = f"{group}.optimizer.lr={OmegaConf.select(cfg, f'{group}.optimizer.lr')}"
     finite = StopOnNonFiniteLoss(name, lr_setting)
-    trainer = build_trainer(cfg, step_dir, epochs, [*(callbacks or []), finite])
+    trainer = build_trainer(cfg, step_dir, epochs, [*(callbacks or []), finite], step=name)
     start = time.perf_counter()
     resume_from = _resume_path(cfg, step_dir, data)
     trainer.fit(module, datamodule=data, ckpt_path=resume_from, weights_only=True)
     fit_s = time.perf_counter() - start
+    last = step_dir / "checkpoints" / "last.ckpt"
+    if not last.is_file():  # no training epoch ran (max_epochs=0), or no checkpoint callback
+        if epochs == 0:
+            say(f"{name}: max_epochs=0: testing the untrained model, saved as {last}")
+        trainer.save_checkpoint(last, weights_only=False)
     metrics = validate_and_test(
         trainer, module, data, step=name, hint=f"retrain with a lower {lr_setting}"
     )
     metrics[f"bench/{name}/fit_s"] = fit_s
     log_hparams(trainer, cfg, metrics)
-    return metrics, step_dir / "checkpoints" / "last.ckpt"
+    return metrics, last
 
 
 def optimisation(group: DictConfig) -> dict[str, Any]:

@@ -84,9 +84,10 @@ def build_scene_model(
 def fit_scene_model(
     cfg: DictConfig, step_dir: Path, ckpt: dict[str, str | Path | None]
 ) -> tuple[Metrics, Path | None]:
-    """Fit the configured scene model (voxel_grid; pae_decoder and oracle have nothing to
-    fit), then test render-and-compare from the teacher's estimates -> (metrics, the last
-    checkpoint or None)."""
+    """Fit the configured scene model (voxel_grid, whose checkpoint is written with
+    max_epochs=0 too; pae_decoder and oracle have nothing to fit), then test
+    render-and-compare from the teacher's estimates -> (metrics, the last checkpoint or
+    None)."""
     teacher_path = required(ckpt["teacher"], "teacher_ckpt", "render_compare")
     teacher = load_teacher(teacher_path, "teacher_ckpt")
     images = build_data(cfg, augment=False)
@@ -105,12 +106,12 @@ def fit_scene_model(
         quality_images=settings.quality_images,
     )
     callbacks = [render_compare_callback(cfg)]
-    if any(p.requires_grad for p in scene_model.parameters()) and settings.max_epochs > 0:
+    if any(p.requires_grad for p in scene_model.parameters()):  # max_epochs=0: saved untrained
         metrics, last = fit_and_test(
             cfg, step_dir, "scene_model", module, data, settings.max_epochs, callbacks
         )
         return metrics | collect_metrics(module.trainer, ("bench/render_compare",)), last
-    trainer = build_trainer(cfg, step_dir, 0, callbacks)
+    trainer = build_trainer(cfg, step_dir, 0, callbacks, step="scene_model")
     metrics = validate_and_test(trainer, module, data)
     metrics |= collect_metrics(trainer, ("bench/",))
     log_hparams(trainer, cfg, metrics)

@@ -148,10 +148,10 @@ class Preflight(Callback):
                 lock_if_used(folder, key)
                 if not config.get("resume"):
                     check_fresh(folder, key)
-                elif not sweep:
-                    check_resume(config, folder)
                 if not sweep:  # sweep jobs check their own settings when they start
-                    self._validate(config)
+                    self._validate(config)  # first: it may correct data settings (validation)
+                if config.get("resume") and not sweep:
+                    check_resume(config, folder)
                 _check_latent_cache(config)
                 lock_run_dir(folder, key)
         except Exception:

@@ -87,6 +87,94 @@ def table_methods(metrics: Mapping[str, float], split: str = "test") -> list[str
     return known[:cut] + extra + known[cut:]
 
 
+REFERENCE_METHODS = (
+    "teacher",
+    "student",
+    "student_gt",
+    "mean_pose",
+    "guess_initial",
+    "guess_refined",
+    "rpr_reference",
+)
+"""Table methods that do not refine the teacher's estimate: the teacher and its student, the
+baselines, the random-guess check and the RPR's retrieved reference."""
+STEP_METHODS = {
+    "teacher": ("teacher",),
+    "student": ("student", "refined"),
+    "rpr": ("vrpr",),
+    "rpr_image": ("rpr_image",),
+    "scene_model": ("render_compare",),
+}
+"""The methods a step of pae-train is judged by (iapr: its last iteration; decoder: PSNR)."""
+
+
+def honest_refinements(metrics: Mapping[str, float], split: str = "test") -> list[str]:
+    """Methods that refine the teacher's estimate without the split's labels or the true
+    scene (no ``*_test_store`` audit, no ``*_oracle`` bound), in table order."""
+    return [
+        m
+        for m in table_methods(metrics, split)
+        if m not in REFERENCE_METHODS and not m.endswith((TEST_STORE_SUFFIX, ORACLE_SUFFIX))
+    ]
+
+
+def best_refinement(metrics: Mapping[str, float], split: str = "test") -> str | None:
+    """The honest refinement with the lowest median position error, if any."""
+    methods = honest_refinements(metrics, split)
+    return min(methods, key=lambda m: metrics[f"{split}/{m}/pos_median_m"], default=None)
+
+
+def _pos_rot(metrics: Mapping[str, float], split: str, method: str) -> str:
+    pos, rot = (
+        metrics[f"{split}/{method}/pos_median_m"],
+        metrics[f"{split}/{method}/rot_median_deg"],
+    )
+    return f"{method} {pos:.3f} m / {rot:.2f}°"
+
+
+def step_figures(step: str, metrics: Mapping[str, float], split: str = "test") -> str:
+    """The figures a step is judged by, e.g. ``teacher 0.386 m / 7.04°`` (median position /
+    orientation error over the split); empty when it has none yet."""
+    methods = [m for m in STEP_METHODS.get(step, ()) if f"{split}/{m}/rot_median_deg" in metrics]
+    if step == "iapr":
+        iterations = [m for m in table_methods(metrics, split) if m.startswith("iapr_")]
+        methods = sorted(iterations, key=lambda m: int(m.split("_")[1]))[-1:]
+    parts = [_pos_rot(metrics, split, m) for m in methods]
+    psnr = metrics.get(f"{split}/decoder/psnr_db")
+    if step == "decoder" and psnr is not None:
+        baseline = metrics.get(f"{split}/decoder/psnr_mean_image_db", float("nan"))
+        parts.append(f"decoder PSNR {psnr:.1f} dB (mean train image {baseline:.1f} dB)")
+    return ", ".join(parts)
+
+
+def headline_metrics(metrics: Mapping[str, float], split: str = "test") -> dict[str, float]:
+    """A run's final figures without the per-scene ones, headline first: the teacher, the
+    student, the best honest refinement (as ``{split}/best_refinement/...``), the test-store
+    audit (``refined_test_store``), each as overall median position and orientation error;
+    then the other methods' medians in table order, then every other figure (decoder,
+    diagnostics, timings). Means stay in metrics.json."""
+    ordered: dict[str, float] = {}
+
+    def add(method: str | None, name: str | None = None) -> None:
+        for figure in ("pos_median_m", "rot_median_deg"):
+            key = f"{split}/{method}/{figure}"
+            if method is not None and key in metrics:
+                ordered.setdefault(f"{split}/{name or method}/{figure}", metrics[key])
+
+    add("teacher")
+    add("student")
+    add(best_refinement(metrics, split), "best_refinement")
+    add("refined_test_store")
+    for method in table_methods(metrics, split):
+        add(method)
+    per_scene = {key for key in metrics if key.startswith(f"{split}/") and key.count("/") == 3}
+    means = ("/pos_mean_m", "/rot_mean_deg")
+    for key, value in metrics.items():
+        if key not in per_scene and not key.endswith(means) and isinstance(value, int | float):
+            ordered.setdefault(key, float(value))
+    return ordered
+
+
 ERROR_FILE = "error.txt"
 """A failed run's one-line error, written into its run directory (pae-report lists it)."""
 

@@ -107,32 +107,112 @@ def _file(cfg: DictConfig, key: str) -> None:
         raise ConfigError(f"{key}={value}: no such file")
 
 
-def _train_set_size(cfg: DictConfig) -> int:
-    """Rows of the train split: from the synthetic data's settings (it may not be rendered
-    yet), otherwise from the train label file (its chosen scenes)."""
+def _is_synthetic(cfg: DictConfig) -> bool:
+    return "train_frames" in cfg.data
+
+
+def _renders(cfg: DictConfig) -> bool:
+    """The synthetic benchmark without a data.root: rendered under data/synthetic/ on first
+    use. A given data.root is only read."""
+    return _is_synthetic(cfg) and cfg.data.get("root") is None
+
+
+def _label_files(cfg: DictConfig) -> dict[str, Any]:
+    """split -> the label file a run reads (synthetic data: ROOT/labels/all_{split}.csv)."""
     data = cfg.data
-    if "train_frames" in data:
-        _integer(cfg, "data.scenes", 1)
-        _integer(cfg, "data.train_frames", 1)
-        _integer(cfg, "data.test_frames", 1)
-        _integer(cfg, "data.size", 8)
-        _integer(cfg, "data.render_seed", 0)
+    if _is_synthetic(cfg):
+        labels = Path(str(data.root)) / "labels"
+        return {split: labels / f"all_{split}.csv" for split in ("train", "test")}
+    return {split: data.get(f"{split}_labels") for split in ("train", "test", "val")}
+
+
+def _check_root(cfg: DictConfig) -> None:
+    """data.root is a folder that holds the label files; else one line naming it (synthetic
+    data: and how to render a dataset there)."""
+    root = Path(str(cfg.data.root))
+    hint = ""
+    if _is_synthetic(cfg):
+        hint = (
+            f"; `pae-data synth {root}` renders a dataset there (without data.root the "
+            "default benchmark renders under data/synthetic/)"
+        )
+    if not root.is_dir():
+        raise ConfigError(f"data.root={root}: no such directory{hint}")
+    if not any(root.iterdir()):
+        raise ConfigError(f"data.root={root}: empty folder{hint}")
+    if _is_synthetic(cfg):
+        for path in _label_files(cfg).values():
+            if not path.is_file():
+                raise ConfigError(f"data.root={root}: no label file {path}{hint}")
+    else:
+        for key in ("train_labels", "test_labels", "val_labels"):
+            _file(cfg, f"data.{key}")
+
+
+def _per_scene(table: Any) -> int | None:
+    """Rows per scene of a label table, None when the scenes' counts differ."""
+    counts = set(np.unique(np.asarray(table.scene), return_counts=True)[1].tolist())
+    return counts.pop() if len(counts) == 1 else None
+
+
+def match_synthetic_settings(cfg: DictConfig) -> list[str]:
+    """Synthetic data read from a given data.root: set data.scenes, data.train_frames,
+    data.test_frames (per scene; null where the scenes' counts differ) and data.size (the
+    images' shorter side) to what the folder holds, so that the run's config and its saved
+    copy describe the data it reads; -> the corrections, as `key: old -> new`."""
+    from pae.data.transforms import image_size
+
+    files = _label_files(cfg)
+    train, test = read_labels(files["train"]), read_labels(files["test"])
+    first_image = Path(str(cfg.data.root)) / train.img_path[0]
+    on_disk = {
+        "scenes": len(train.scene_names),
+        "train_frames": _per_scene(train),
+        "test_frames": _per_scene(test),
+        "size": min(image_size(str(first_image))),
+    }
+    corrections = []
+    with open_dict(cfg):
+        for key, value in on_disk.items():
+            if cfg.data.get(key) != value:
+                corrections.append(f"data.{key}: {cfg.data.get(key)} -> {value}")
+                cfg.data[key] = value
+    if corrections:
+        print(
+            f"data: data.root={cfg.data.root} holds other data than the settings say; the "
+            f"run's config now describes it ({', '.join(corrections)})"
+        )
+    return corrections
+
+
+def _train_set_size(cfg: DictConfig) -> int:
+    """Rows of the train split: from the synthetic data's settings when it renders on first
+    use (it may not be rendered yet), otherwise from the train label file (its chosen
+    scenes)."""
+    data = cfg.data
+    if _is_synthetic(cfg):
         for key, high in SYNTHETIC_LAYOUT_BOUNDS.items():
             if key in data:
                 _number(cfg, f"data.{key}", 0, strict=False)
                 if data[key] > high:
                     raise ConfigError(f"data.{key} must be <= {high:g}, got {data[key]!r}")
+    if _renders(cfg):
+        _integer(cfg, "data.scenes", 1)
+        _integer(cfg, "data.train_frames", 1)
+        _integer(cfg, "data.test_frames", 1)
+        _integer(cfg, "data.size", 8)
+        _integer(cfg, "data.render_seed", 0)
         return data.scenes * data.train_frames
-    if not Path(str(data.root)).is_dir():
-        raise ConfigError(f"data.root={data.root}: no such directory")
-    for key in ("train_labels", "test_labels", "val_labels"):
-        _file(cfg, f"data.{key}")
+    _check_root(cfg)
+    table = read_labels(_label_files(cfg)["train"])
+    if _is_synthetic(cfg):
+        match_synthetic_settings(cfg)
+        return len(table)
     scenes = data.get("scenes")
     if scenes is not None and not (
         isinstance(scenes, ListConfig) and scenes and all(isinstance(s, str) for s in scenes)
     ):
         raise ConfigError(f"data.scenes must be null or a list of scene names, got {scenes!r}")
-    table = read_labels(data.train_labels)
     if scenes is None:
         return len(table)
     missing = [scene for scene in scenes if scene not in table.scene_names]
@@ -163,7 +243,10 @@ def _validate_holdout(cfg: DictConfig) -> None:
 
 
 def validate_data(cfg: DictConfig, train: bool = True) -> None:
-    """data.*: sizes, batch sizes (train: at most the train set), workers, paths."""
+    """data.*: paths (a given data.root holds label files; synthetic data read from one
+    gets the settings of what it holds), sizes, batch sizes (train: at most the train set),
+    workers."""
+    n_train = _train_set_size(cfg)
     crop = _integer(cfg, "data.crop", 1)
     shorter_edge = _integer(cfg, "data.shorter_edge", 1)
     if crop > shorter_edge:
@@ -177,7 +260,6 @@ def validate_data(cfg: DictConfig, train: bool = True) -> None:
         _boolean(cfg, f"data.{key}")
     _validate_holdout(cfg)
     batch_size = _integer(cfg, "data.batch_size", 1)
-    n_train = _train_set_size(cfg)
     if train and batch_size > n_train:
         raise ConfigError(
             f"data.batch_size={batch_size} is larger than the train set ({n_train} rows): "

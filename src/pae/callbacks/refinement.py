@@ -6,11 +6,11 @@ import time
 from collections.abc import Callable
 
 import lightning as L
-import numpy as np
 import torch
 from lightning.pytorch.loggers import TensorBoardLogger
 from torch import Tensor
 
+from pae.callbacks.trajectory import trajectory_figure
 from pae.geometry import pose_errors
 from pae.metrics import first_occurrences, summarise_errors
 from pae.models.base import Latents
@@ -93,6 +93,7 @@ class TestTimeRefinement(L.Callback):
         guess_sigma_m: float | None = 0.5,
         seed: int = 0,
         trajectory_plot: bool = True,
+        trajectory_methods: tuple[str, ...] = ("refined",),
         audit: bool = True,
         alternatives: dict[str, RefinerFactory] | None = None,
     ) -> None:
@@ -110,6 +111,7 @@ class TestTimeRefinement(L.Callback):
         self.guess_sigma_m = guess_sigma_m
         self.seed = seed
         self.trajectory_plot = trajectory_plot
+        self.trajectory_methods = tuple(trajectory_methods)
         self.audit = audit
         self.alternatives = dict(alternatives or {})
         self.index: PoseIndex | None = None
@@ -128,6 +130,10 @@ class TestTimeRefinement(L.Callback):
         clashes = sorted(set(self.alternatives) & set(RESERVED_METHODS))
         if clashes:
             raise ValueError(f"refine.alternatives may not reuse the method names {clashes}")
+        drawable = ["refined", "knn_mean", *self.alternatives]
+        unknown = [m for m in self.trajectory_methods if m not in drawable]
+        if unknown:
+            raise ValueError(f"unknown refine.trajectory_methods {unknown}; choose from {drawable}")
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         poses, scenes = trainer.datamodule.train_poses()
@@ -215,7 +221,8 @@ class TestTimeRefinement(L.Callback):
         if self.audit:
             self._describe_protocols(trainer)
         if self.trajectory_plot:
-            self._plot(trainer, split, gt, estimate, predictions["refined"], scene)
+            shown = {"teacher": estimate} | {m: predictions[m] for m in self.trajectory_methods}
+            self._plot(trainer, split, gt, shown, scene, names)
 
     def _store_distances(
         self,
@@ -255,40 +262,30 @@ class TestTimeRefinement(L.Callback):
             if isinstance(logger, TensorBoardLogger):
                 logger.experiment.add_text("refinement/protocols", PROTOCOLS_TEXT, 0)
 
+    @staticmethod
     def _plot(
-        self,
         trainer: L.Trainer,
         split: str,
         gt: Tensor,
-        teacher: Tensor,
-        refined: Tensor,
+        estimates: dict[str, Tensor],
         scene: Tensor,
+        names: list[str],
     ) -> None:
+        """A trajectory figure per scene (image tag ``{split}/trajectory/{scene}``): ground
+        truth and each method of ``estimates`` (method -> poses [B, 7])."""
         loggers = [lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)]
         if not loggers:
             return
-        mask = scene == scene[0]
-        image = trajectory_image(gt[mask], teacher[mask], refined[mask])
-        for logger in loggers:
-            logger.experiment.add_image(
-                f"{split}/trajectory", image, trainer.global_step, dataformats="HWC"
+        for index in scene.unique().tolist():
+            mask = scene == index
+            title = f"{names[index]}: {split} positions from above ({int(mask.sum())} frames)"
+            image = trajectory_figure(
+                title, gt[mask], {m: poses[mask] for m, poses in estimates.items()}
             )
-
-
-def trajectory_image(gt: Tensor, teacher: Tensor, refined: Tensor, size: int = 480) -> np.ndarray:
-    """Top-down plot (the two position axes of largest spread) of ground truth (green),
-    teacher (red) and refined (blue) positions of one scene -> uint8 [size, size, 3] RGB."""
-    points = torch.stack([gt[:, :3], teacher[:, :3], refined[:, :3]]).detach().cpu().double()
-    axes = gt[:, :3].detach().cpu().double().var(0).argsort(descending=True)[:2]
-    xy = points[..., axes].numpy()
-    low, high = xy.reshape(-1, 2).min(0), xy.reshape(-1, 2).max(0)
-    scale = (size - 40) / max(float((high - low).max()), 1e-9)
-    pixels = ((xy - low) * scale + 20).astype(np.int64)  # [3, N, 2] (u, v)
-    pixels[..., 1] = size - 1 - pixels[..., 1]
-    image = np.full((size, size, 3), 255, np.uint8)
-    offsets = np.stack(np.meshgrid(np.arange(-2, 3), np.arange(-2, 3)), -1).reshape(-1, 2)
-    dots = (pixels[:, :, None, :] + offsets).clip(0, size - 1)  # [3, N, 25, 2]
-    colours = np.array([(0, 160, 0), (220, 0, 0), (0, 0, 220)], np.uint8)
-    for track, colour in zip(dots, colours, strict=True):  # three tracks, drawn in order
-        image[track[..., 1], track[..., 0]] = colour
-    return image
+            for logger in loggers:
+                logger.experiment.add_image(
+                    f"{split}/trajectory/{names[index]}",
+                    image,
+                    trainer.global_step,
+                    dataformats="HWC",
+                )

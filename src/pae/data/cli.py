@@ -21,10 +21,16 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
+from pae.console import Progress
 from pae.data.labels import LabelTable, find_image_problems, read_labels, read_labels_lenient
 from pae.errors import LabelError, LabelWarning
 
 PROG = "pae-data"
+
+
+def _render_progress(out: Path) -> Progress:
+    """Rendering progress lines on stderr (stdout keeps the summary)."""
+    return Progress(f"rendering {out}", "frames", lambda line: print(line, file=sys.stderr))
 
 
 def _synth(args: argparse.Namespace) -> int:
@@ -57,6 +63,7 @@ def _synth(args: argparse.Namespace) -> int:
             size=chosen(args.size, synthetic.DEFAULT_SIZE),
             seed=args.seed,
             overwrite=args.overwrite,
+            progress=_render_progress(args.out),
         )
     else:
         dataset = synthetic.write_synthetic_dataset(
@@ -71,6 +78,7 @@ def _synth(args: argparse.Namespace) -> int:
             yaw_stray_rad=chosen(args.yaw_stray, synthetic.DEFAULT_YAW_STRAY_RAD),
             stray_m=chosen(args.stray, synthetic.DEFAULT_STRAY_M),
             overwrite=args.overwrite,
+            progress=_render_progress(args.out),
         )
     print(dataset.summary())
     return 0

@@ -197,6 +197,27 @@ class PoseDataModule(L.LightningDataModule):
             "train_poses_sha256": hashlib.sha256(poses.tobytes()).hexdigest(),
         }
 
+    def describe(self) -> dict[str, Any]:
+        """What this module reads: ``root``, ``scenes`` and, per split, its label file, the
+        number of frames and the file's SHA-256 (``val`` only when it has its own file)."""
+        tables = self.tables or {
+            split: self._keep_scenes(read_labels(path)) for split, path in self.label_paths.items()
+        }
+        splits = {}
+        for split, path in self.label_paths.items():
+            if split == "val" and path == self.label_paths["test"]:
+                continue
+            splits[split] = {
+                "labels": str(Path(path).resolve()),
+                "frames": len(tables[split]),
+                "sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(),
+            }
+        return {
+            "root": str(self.root.resolve()),
+            "scenes": list(tables["train"].scene_names),
+            "splits": splits,
+        }
+
     def _loader(self, dataset: PoseDataset, batch_size: int, **kwargs: Any) -> DataLoader:
         dataset.load()  # here, once: loader workers get the decoded images
         return DataLoader(

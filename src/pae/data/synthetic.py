@@ -58,6 +58,7 @@ __all__ = [
     "CameraSequence",
     "FaceTexture",
     "PinholeCamera",
+    "RenderProgress",
     "SyntheticScene",
     "SyntheticSummary",
     "furnish",
@@ -994,6 +995,10 @@ def _replace_folder(new: Path, out: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
+RenderProgress = Callable[[int, int], None]
+"""``progress(done, total)``: frames rendered so far, of all the dataset's frames."""
+
+
 def render_frames(
     out: Path,
     paths: list[str],
@@ -1062,13 +1067,15 @@ def write_synthetic_dataset(
     train_lane_m: float = DEFAULT_TRAIN_LANE_M,
     yaw_stray_rad: float = DEFAULT_YAW_STRAY_RAD,
     stray_m: float = DEFAULT_STRAY_M,
+    progress: RenderProgress | None = None,
 ) -> SyntheticSummary:
     """Render the benchmark into ``out`` (see :func:`write_whole`): images first, label files
     last.
 
     ``train_frames`` and ``test_frames`` are per scene; ``test_offset_m`` is the test
     sequences' lateral offset from the train route (see :func:`make_sequences`). The same
-    arguments give byte-identical files.
+    arguments give byte-identical files. ``progress(done, total)`` is called after each
+    sequence with the frames rendered so far.
     """
     for name, value, low in (
         ("scenes", scenes, 1),
@@ -1099,6 +1106,7 @@ def write_synthetic_dataset(
             size,
             seed,
             (test_offset_m, train_lane_m, yaw_stray_rad, stray_m),
+            progress,
         )
         seconds = time.perf_counter() - started
         return SyntheticSummary(
@@ -1122,10 +1130,12 @@ def _render(
     size: int,
     seed: int,
     layout: tuple[float, float, float, float],
+    progress: RenderProgress | None = None,
 ) -> None:
     """Render every scene into `out`: images first, label files last. ``layout``: the test
     offset, train lane (m), yaw stray (rad) and stray (m) of :func:`make_sequences`."""
     test_offset_m, train_lane_m, yaw_stray_rad, stray_m = layout
+    total, done = scenes * (train_frames + test_frames), 0
     camera = PinholeCamera(size)
     label_tables: dict[tuple[str, str], LabelTable] = {}
     for index in range(scenes):
@@ -1149,6 +1159,9 @@ def _render(
             ]
             noise = np.random.default_rng(list(sequence.noise_seed))
             render_frames(out, paths, scene, sequence.poses, camera, sequence.appearance, noise)
+            done += len(paths)
+            if progress is not None:
+                progress(done, total)
             rows[sequence.split] += [
                 (sequence.name, path, pose)
                 for path, pose in zip(paths, sequence.poses, strict=True)

@@ -1,4 +1,5 @@
-"""PoseDataModule over the embedded synthetic benchmark, rendered on first use."""
+"""PoseDataModule over the embedded synthetic benchmark, rendered on first use under
+data/synthetic/ (a given ``root`` is read, never rendered into)."""
 
 from __future__ import annotations
 
@@ -6,8 +7,7 @@ import hashlib
 from pathlib import Path
 from typing import Any
 
-from lightning.pytorch.utilities import rank_zero_info
-
+from pae.console import Progress, say
 from pae.data import synthetic
 from pae.data.datamodule import PoseDataModule
 from pae.errors import LabelError
@@ -46,7 +46,8 @@ def default_root(
 
 
 class SyntheticDataModule(PoseDataModule):
-    """Renders `pae-data synth` output into `root` when its label files are missing.
+    """The synthetic benchmark, rendered under ``data/synthetic`` on first use, or the
+    `pae-data synth` output at a given ``root``.
 
     Without ``poses``: the benchmark's rooms and routes (``scenes``, frames per scene, the
     lateral offsets of the test and train sequences from the route, ``test_offset_m`` and
@@ -54,9 +55,12 @@ class SyntheticDataModule(PoseDataModule):
     the route's heading, ``yaw_stray_rad``). With ``poses``
     (label files, e.g. a real dataset's train and test labels): one image per row at that
     row's pose, in a world built around them (``pae-data synth --poses``). ``root`` None
-    picks a folder under ``data/synthetic`` named by these settings. A non-empty ``root``
-    without label files is an error, never overwritten. The defaults are ``pae-data synth``'s
-    (``pae.data.synthetic.DEFAULT_*``), the values of ``conf/data/synthetic.yaml``.
+    picks a folder under ``data/synthetic`` named by these settings and renders into it when
+    its label files are missing (a non-empty folder without them is an error, never
+    overwritten). A given ``root`` is only read: without label files it is an error naming
+    it, so a mistyped path never trains on freshly rendered data. The defaults are
+    ``pae-data synth``'s (``pae.data.synthetic.DEFAULT_*``), the values of
+    ``conf/data/synthetic.yaml``.
     """
 
     def __init__(
@@ -75,6 +79,7 @@ class SyntheticDataModule(PoseDataModule):
         **kwargs: Any,
     ) -> None:
         poses = [str(p) for p in poses] if poses else None
+        self.renders_on_first_use = root is None
         if root is None:
             root = default_root(
                 scenes,
@@ -115,6 +120,15 @@ class SyntheticDataModule(PoseDataModule):
     def prepare_data(self) -> None:
         if all(Path(p).is_file() for p in self.label_paths.values()):
             return
+        if not self.renders_on_first_use:
+            raise LabelError(
+                self.label_paths["train"],
+                None,
+                f"no such file: data.root={self.root} is read, never rendered into "
+                f"(`pae-data synth {self.root}` renders a dataset there; without data.root "
+                f"the default benchmark renders under {RENDER_FOLDER}/)",
+            )
+        progress = Progress(f"rendering {self.root} (first use)", "frames", say)
         try:
             if self.poses:
                 from pae.data.synthetic_poses import write_dataset_at_poses
@@ -125,14 +139,18 @@ class SyntheticDataModule(PoseDataModule):
                     self.render_args["size"],
                     self.render_args["seed"],
                     required_splits=("train", "test"),
+                    progress=progress,
                 )
             else:
-                written = synthetic.write_synthetic_dataset(self.root, **self.render_args)
+                written = synthetic.write_synthetic_dataset(
+                    self.root, **self.render_args, progress=progress
+                )
         except FileExistsError as err:
             raise LabelError(
                 self.label_paths["train"], None, f"file not found, and not rendered: {err}"
             ) from None
-        rank_zero_info(written.summary())
+        for line in written.summary().splitlines():
+            say(line)
 
     def setup(self, stage: str | None = None) -> None:
         self.prepare_data()

@@ -28,6 +28,7 @@ from pae.data.synthetic import (
     Box,
     FaceTexture,
     PinholeCamera,
+    RenderProgress,
     SyntheticScene,
     SyntheticSummary,
     furnish,
@@ -97,6 +98,7 @@ def write_dataset_at_poses(
     seed: int = 0,
     overwrite: bool = False,
     required_splits: Sequence[str] = (),
+    progress: RenderProgress | None = None,
 ) -> SyntheticSummary:
     """Render one image per row of ``label_paths`` at that row's pose into ``out``.
 
@@ -106,6 +108,7 @@ def write_dataset_at_poses(
     :class:`Appearance` and sensor noise. A bad row raises the
     :class:`~pae.data.labels.LabelError` of ``pae-data check`` (``FILE:LINE: problem``), and
     so does a split of ``required_splits`` without rows, before anything is rendered.
+    ``progress(done, total)`` is called after each sequence with the frames rendered so far.
     """
     if int(size) != size or size < 8:
         raise ValueError(f"size must be an integer >= 8, got {size!r}")
@@ -116,7 +119,9 @@ def write_dataset_at_poses(
     if missing:
         files = ", ".join(str(path) for path in label_paths)
         raise LabelError(files, None, f"no rows of the split(s) {missing}; rows of each are needed")
-    return write_whole(out, overwrite, lambda folder: _render_rows(folder, table, size, seed))
+    return write_whole(
+        out, overwrite, lambda folder: _render_rows(folder, table, size, seed, progress)
+    )
 
 
 def scenes_at_poses(table: LabelTable, seed: int = 0) -> list[SyntheticScene]:
@@ -129,7 +134,9 @@ def scenes_at_poses(table: LabelTable, seed: int = 0) -> list[SyntheticScene]:
     ]
 
 
-def _render_rows(out: Path, table: LabelTable, size: int, seed: int) -> SyntheticSummary:
+def _render_rows(
+    out: Path, table: LabelTable, size: int, seed: int, progress: RenderProgress | None = None
+) -> SyntheticSummary:
     """Render every row of ``table`` into ``out`` (see :func:`write_dataset_at_poses`)."""
     started = time.perf_counter()
     camera = PinholeCamera(size)
@@ -137,6 +144,7 @@ def _render_rows(out: Path, table: LabelTable, size: int, seed: int) -> Syntheti
     tables: dict[tuple[str, str], LabelTable] = {}
     img_path = list(table.img_path)
     worlds = scenes_at_poses(table, seed)
+    done = 0
     for index, name in enumerate(table.scene_names):
         rows = np.flatnonzero(scene_column == name)
         scene = worlds[index]
@@ -149,6 +157,9 @@ def _render_rows(out: Path, table: LabelTable, size: int, seed: int) -> Syntheti
             appearance = Appearance.random(np.random.default_rng([seed, index, 7, number]))
             noise = np.random.default_rng([seed, index, 8, number])
             render_frames(out, paths, scene, table.poses[members], camera, appearance, noise)
+            done += len(members)
+            if progress is not None:
+                progress(done, len(table))
             for row, path in zip(members, paths, strict=True):
                 img_path[row] = path
     rendered = LabelTable(

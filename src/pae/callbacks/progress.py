@@ -1,0 +1,82 @@
+"""One progress line per training epoch, for runs whose output goes to a log (no progress bar)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from typing import Any
+
+import lightning as L
+import torch
+
+from pae.console import duration, say
+from pae.reporting import step_figures
+
+
+class EpochProgress(L.Callback):
+    """``teacher: epoch 3/40, loss 0.412, val teacher 0.52 m / 9.1°, 0:21 elapsed, ETA 4:33``
+    after every training epoch, and a line when training starts; silent while a progress bar
+    is shown. ``step`` names the step (the pipeline sets it); the loss is the epoch's mean
+    of the training steps' losses; the validation figures appear after epochs that validate;
+    the ETA extrapolates the epochs of this run (a resumed run counts from where it
+    continued)."""
+
+    def __init__(self, step: str = "train") -> None:
+        super().__init__()
+        self.step = step
+        self._started = 0.0
+        self._first_epoch = 0
+        self._loss_sum: torch.Tensor | None = None
+        self._batches = 0
+        self._validated = False
+
+    @staticmethod
+    def _shown(trainer: L.Trainer) -> bool:
+        return trainer.progress_bar_callback is None and not trainer.sanity_checking
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._started = time.perf_counter()
+        self._first_epoch = trainer.current_epoch
+        if self._shown(trainer):
+            start = f" from epoch {trainer.current_epoch}" if trainer.current_epoch else ""
+            epochs = "1 epoch" if trainer.max_epochs == 1 else f"{trainer.max_epochs} epochs"
+            say(f"{self.step}: training {epochs} of {trainer.num_training_batches} batches{start}")
+
+    def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._loss_sum, self._batches, self._validated = None, 0, False
+
+    def on_train_batch_end(
+        self,
+        trainer: L.Trainer,
+        pl_module: L.LightningModule,
+        outputs: Any,
+        batch: Any,
+        batch_idx: int,
+    ) -> None:
+        loss = outputs.get("loss") if isinstance(outputs, Mapping) else outputs
+        if isinstance(loss, torch.Tensor):
+            loss = loss.detach().float()
+            self._loss_sum = loss if self._loss_sum is None else self._loss_sum + loss
+            self._batches += 1
+
+    def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._validated = not trainer.sanity_checking
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if not self._shown(trainer):
+            return
+        epoch = trainer.current_epoch + 1
+        parts = [f"{self.step}: epoch {epoch}/{trainer.max_epochs}"]
+        if self._loss_sum is not None:
+            parts.append(f"loss {float(self._loss_sum) / self._batches:.4g}")
+        if self._validated:
+            figures = {k: float(v) for k, v in trainer.callback_metrics.items()}
+            shown = step_figures(self.step, figures, "val")
+            if shown:
+                parts.append(f"val {shown}")
+        elapsed = time.perf_counter() - self._started
+        parts.append(f"{duration(elapsed)} elapsed")
+        done = epoch - self._first_epoch
+        if done > 0 and epoch < trainer.max_epochs:
+            parts.append(f"ETA {duration(elapsed / done * (trainer.max_epochs - epoch))}")
+        say(", ".join(parts))
