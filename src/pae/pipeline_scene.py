@@ -106,7 +106,7 @@ def fit_scene_model(
         quality_images=settings.quality_images,
     )
     callbacks = [render_compare_callback(cfg)]
-    if any(p.requires_grad for p in scene_model.parameters()):  # max_epochs=0: saved untrained
+    if settings.name == "voxel_grid":  # the one that trains; max_epochs=0: saved untrained
         metrics, last = fit_and_test(
             cfg, step_dir, "scene_model", module, data, settings.max_epochs, callbacks
         )
