@@ -33,9 +33,10 @@ class CompileCacheWarning(UserWarning):
 _SAID: set[str] = set()
 
 
-def _say_once(message: str) -> None:
-    if message not in _SAID:
-        _SAID.add(message)
+def _say_once(message: str, key: str | None = None) -> None:
+    """Warn with ``message`` once per process (per ``key`` when given, else per message)."""
+    if (key or message) not in _SAID:
+        _SAID.add(key or message)
         warnings.warn(message, CompileCacheWarning, stacklevel=3)
 
 
@@ -89,7 +90,8 @@ def cache_folder(source_file: str) -> Path | None:
         "pae: numba's compiled loops are not cached: none of "
         f"{', '.join(str(f) for f in folders)} can be written (NUMBA_CACHE_DIR, the package "
         "folder, the user cache folder); they compile again in every process (seconds). "
-        "Set NUMBA_CACHE_DIR to a writable folder to keep them"
+        "Set NUMBA_CACHE_DIR to a writable folder to keep them",
+        key="not cached",
     )
     return None
 
