@@ -408,3 +408,23 @@ def test_gradient_steps_run_inside_an_evaluation_loop() -> None:
     assert torch.isfinite(polished.poses).all()
     assert not torch.equal(plain.poses, polished.poses)
     assert (polished.score >= plain.score).all()
+
+
+def test_the_paper_decoder_is_a_scene_model_without_depth() -> None:
+    """The PAE decoder renders at a pose (no depth), resized to the size asked for; the
+    refiner then renders every candidate instead of projecting a surface."""
+    from pae.models.decoder import ImageDecoder
+    from pae.models.pae import PoseAutoEncoder
+    from pae.models.scene_model import PaeDecoderSceneModel
+
+    model = PaeDecoderSceneModel(PoseAutoEncoder(latent_dim=16), ImageDecoder(latent_dim=16))
+    poses = _camera_pose([0.0, 0.0, 1.4])[None].repeat(3, 1)
+    intrinsics = torch.tensor([20.0, 20.0, 11.5, 11.5]).expand(3, 4)
+    rendering = model.render(poses, torch.zeros(3, dtype=torch.long), intrinsics, 24, 24)
+    assert rendering.rgb.shape == (3, 3, 24, 24) and rendering.depth is None
+    with torch.no_grad():
+        images = rendering.rgb.detach()
+        result = RenderCompareRefiner(
+            model, rounds=2, candidates=4, resolution=24, gradient_steps=0
+        )(images, intrinsics, poses, torch.zeros(3, dtype=torch.long))
+    assert torch.isfinite(result.poses).all() and (result.score >= result.initial_score).all()

@@ -146,7 +146,7 @@ class RenderCompareRefiner:
         reference_fov_scale: float = 1.3,
         refresh_every: int = 0,
         min_overlap: float = 0.4,
-        gradient_steps: int = 50,
+        gradient_steps: int = 100,
         gradient_lr: float = 0.02,
         score: str = "zncc",
         features: FeatureExtractor | None = None,
