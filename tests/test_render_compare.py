@@ -401,7 +401,9 @@ def test_gradient_steps_run_inside_an_evaluation_loop() -> None:
     scenes = torch.zeros(len(start), dtype=torch.long)
     settings = {"rounds": 2, "candidates": 4, "resolution": 16, "reference_size": 12}
     with torch.inference_mode():
-        plain = RenderCompareRefiner(model, **settings)(images, intrinsics, start, scenes)
+        plain = RenderCompareRefiner(model, gradient_steps=0, **settings)(
+            images, intrinsics, start, scenes
+        )
         polished = RenderCompareRefiner(model, gradient_steps=5, **settings)(
             images, intrinsics, start, scenes
         )

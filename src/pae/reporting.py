@@ -167,7 +167,9 @@ def headline_metrics(metrics: Mapping[str, float], split: str = "test") -> dict[
     add("refined_test_store")
     for method in table_methods(metrics, split):
         add(method)
-    per_scene = {key for key in metrics if key.startswith(f"{split}/") and key.count("/") == 3}
+    per_scene = {
+        key for key in metrics if key.split("/")[0] in ("val", "test") and key.count("/") == 3
+    }
     means = ("/pos_mean_m", "/rot_mean_deg")
     for key, value in metrics.items():
         if key not in per_scene and not key.endswith(means) and isinstance(value, int | float):
@@ -335,7 +337,7 @@ def _overrides(run_dir: Path) -> list[str] | None:
     if not overrides_file.is_file():
         return None
     try:
-        return [str(o) for o in OmegaConf.load(overrides_file)]
+        return [str(o) for o in OmegaConf.to_container(OmegaConf.load(overrides_file))]
     except Exception:  # a damaged file: the job is named by its folder
         return None
 
