@@ -175,10 +175,10 @@ options: the first columns of the HParams table (the others show up when overrid
 
 
 def hparams_columns(cfg: DictConfig) -> dict[str, Any]:
-    """The settings the HParams table compares runs by: the choices of HPARAMS_GROUPS and
-    every key set on the command line or by a sweep (resolved), e.g. ``{"stage": "pipeline",
-    ..., "pae.L": 3}``; the whole flattened config when the run has no Hydra record of them.
-    The full config stays in `.hydra/config.yaml`."""
+    """The settings the HParams table compares runs by: the choices of HPARAMS_GROUPS, the
+    seed, and every key set on the command line or by a sweep (resolved), e.g.
+    ``{"stage": "pipeline", ..., "seed": 0, "pae.L": 3}``; the whole flattened config when
+    the run has no Hydra record of them. The full config stays in `.hydra/config.yaml`."""
     hydra_cfg = cfg.get("hydra")
     if hydra_cfg is None and HydraConfig.initialized():
         hydra_cfg = HydraConfig.get()
@@ -187,6 +187,7 @@ def hparams_columns(cfg: DictConfig) -> dict[str, Any]:
         return flat_config(cfg)
     flat = flat_config(cfg, sep=".")
     columns: dict[str, Any] = {g: str(choices[g]) for g in HPARAMS_GROUPS if g in choices}
+    columns["seed"] = flat.get("seed")  # seed sweeps compare runs by it
     for override in OmegaConf.select(hydra_cfg, "overrides.task", default=None) or []:
         key, _, value = str(override).lstrip("+~").partition("=")
         if not key.startswith("hydra.") and key not in columns:
