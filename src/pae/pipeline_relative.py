@@ -1,27 +1,110 @@
-"""The steps of the relative regressors that read the query image at test time: the image
-RPR (real train images as references, `rpr_image`) and the iterative APR (`iapr_{n}`)."""
+"""The steps of the relative regressors, which read the query image at test time: virtual
+RPR (references decoded from PAE encodings, `vrpr`), the image RPR (real train images as
+references, `rpr_image`) and the iterative APR (`iapr_{n}`)."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
+import torch
 from hydra.utils import instantiate
-from omegaconf import DictConfig
+from lightning.pytorch.utilities import rank_zero_info
+from omegaconf import DictConfig, OmegaConf
 
-from pae.checkpoints import load_pae, load_teacher
+from pae.checkpoints import load_decoder, load_pae, load_teacher
+from pae.errors import ConfigError
 from pae.lit.iapr import IAPRModule
+from pae.lit.rpr import RPRModule
 from pae.lit.rpr_image import ImageRPRModule
+from pae.models.base import PoseRegressor
 from pae.pipeline import (
     Metrics,
     build_data,
     check_data,
     fit_and_test,
     optimisation,
-    relative_model,
     required,
-    rpr_pairs,
-    stored_model_config,
 )
+
+
+def init_backbone_from_teacher(model: torch.nn.Module, teacher: PoseRegressor, key: str) -> None:
+    """Copy the teacher's backbone weights into `model.backbone` (same backbone config);
+    a ConfigError naming `key` when they do not fit."""
+    source = getattr(teacher, "backbone", None)
+    try:
+        model.backbone.load_state_dict(source.state_dict())
+    except (AttributeError, RuntimeError):
+        raise ConfigError(
+            f"{key}=teacher: the teacher's backbone does not match this model's backbone "
+            f"(use {key}=null)"
+        ) from None
+    rank_zero_info(f"{key}: backbone initialised from the teacher's")
+
+
+def stored_model_config(model_config: DictConfig) -> dict[str, Any]:
+    """A model config as stored in a checkpoint: the weights come from the state dict, so
+    no pretrained download and no weights file."""
+    config = OmegaConf.to_container(model_config, resolve=True)
+    config["backbone"]["pretrained"] = False
+    config["backbone"]["weights_path"] = None
+    return config
+
+
+def relative_model(cfg: DictConfig, group: str, teacher: PoseRegressor) -> torch.nn.Module:
+    """The model of a relative regressor's group (`rpr`, `iapr`), its backbone copied from
+    the teacher's when `{group}.init_backbone` is `teacher`."""
+    settings = cfg[group]
+    model = instantiate(settings.model)
+    if settings.get("init_backbone") == "teacher":
+        init_backbone_from_teacher(model, teacher, f"{group}.init_backbone")
+    return model
+
+
+def rpr_pairs(cfg: DictConfig) -> dict[str, Any]:
+    """How an RPR draws its training references: `pair_k` and `pair_offset` (None: around
+    the true pose)."""
+    offset = cfg.rpr.get("pair_offset")
+    return {
+        "pair_k": cfg.rpr.pair_k,
+        "pair_offset": OmegaConf.to_container(offset, resolve=True) if offset else None,
+    }
+
+
+def fit_rpr(
+    cfg: DictConfig,
+    step_dir: Path,
+    student_ckpt: str | Path | None,
+    decoder_ckpt: str | Path | None,
+) -> tuple[Metrics, Path]:
+    """Train the Siamese RPR on virtual references, then test virtual RPR (`test/vrpr/...`)."""
+    student_ckpt = required(student_ckpt, "student_ckpt", "rpr")
+    decoder_ckpt = required(decoder_ckpt, "decoder_ckpt", "rpr")
+    teacher, pae, decoder = (
+        load_teacher(student_ckpt),
+        load_pae(student_ckpt, "student_ckpt"),
+        load_decoder(decoder_ckpt, "decoder_ckpt"),
+    )
+    data = build_data(cfg)
+    for path, loaded in ((student_ckpt, pae), (decoder_ckpt, decoder)):
+        check_data(cfg, path, loaded, data)
+    module = RPRModule(
+        relative_model(cfg, "rpr", teacher.model),
+        teacher.model,
+        pae.model,
+        decoder.model,
+        loss=instantiate(cfg.rpr.loss),
+        **optimisation(cfg.rpr),
+        scene_names=data.scene_names,
+        configs={
+            "teacher_config": teacher.config,
+            "pae_config": pae.config,
+            "decoder_config": decoder.config,
+            "rpr_config": stored_model_config(cfg.rpr.model),
+        },
+        **rpr_pairs(cfg),
+    )
+    return fit_and_test(cfg, step_dir, "rpr", module, data, cfg.rpr.max_epochs)
 
 
 def fit_rpr_image(
