@@ -20,7 +20,7 @@ from pae.refine.regressor import (
     ADAM_BETAS,
     ADAM_EPS,
     SERIES_RATIO,
-    _FirstLayerGain,
+    FirstLayerGain,
     regressor_hidden_sizes,
 )
 from pae.refine.weights import refine_affine
@@ -164,7 +164,7 @@ def bench_refinement(
 def bench_first_layer_gain(
     batch: int = 64, k: int = 3, latent_dim: int = 256, repeats: int = 20, seed: int = 0
 ) -> dict[str, float]:
-    """Milliseconds of one ``_FirstLayerGain`` step (the MLP weight model's closed-form first
+    """Milliseconds of one ``FirstLayerGain`` step (the MLP weight model's closed-form first
     layer) on one ``refine_affine`` chunk's sizes (``batch`` queries, n = k·2·latent_dim
     inputs, h = 64k hidden units, float32 working dtype), against the plain chunked sum it
     replaces (``first_layer_gain_direct``); each includes one third of its preparation (a
@@ -178,7 +178,7 @@ def bench_first_layer_gain(
     ratio = SERIES_RATIO[torch.float32]
 
     def series() -> None:
-        gain = _FirstLayerGain(inputs, ADAM_EPS, ratio)
+        gain = FirstLayerGain(inputs, ADAM_EPS, ratio)
         for _ in range(3):
             gain(scale)
 

@@ -12,10 +12,11 @@ from pae.refine.refiner import (
     combine_orientations,
     perturb_positions,
 )
-from pae.refine.regressor import init_weight_regressor, regressor_hidden_sizes
+from pae.refine.regressor import ACTIVATIONS, init_weight_regressor, regressor_hidden_sizes
 from pae.refine.weights import WEIGHT_MODELS, AffineFit, closed_form_weights, refine_affine
 
 __all__ = [
+    "ACTIVATIONS",
     "ORIENTATION_MODES",
     "WEIGHT_MODELS",
     "AffineFit",

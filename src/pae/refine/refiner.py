@@ -96,16 +96,17 @@ def refine_with_neighbours(
 class PositionRefiner:
     """Test-time position refinement of APR estimates with a PAE and a store of train poses.
 
-    For each query: retrieve the k nearest train poses of the initial estimate in its scene,
-    encode them with the PAE (one batched call, no gradients), fit affine weights so that the
-    combined encodings match the query's latent, and return Σ aᵢ xᵢ with the orientation
-    chosen by ``orientation``. Defaults follow the paper and its public code: k=3, 3 AdamW
-    iterations, the MLP weight regressor, the teacher's orientation; the paper's L2 objective
-    and lr 1e-3 (the public script uses the mean squared error and lr 1e-2:
-    ``objective="mse", lr=1e-2``). ``seed`` seeds the generator that draws the regressors.
+        For each query: retrieve the k nearest train poses of the initial estimate in its scene,
+        encode them with the PAE (one batched call, no gradients), fit affine weights so that the
+        combined encodings match the query's latent, and return Σ aᵢ xᵢ with the orientation
+        chosen by ``orientation``. Defaults follow the paper and its public code: k=3, 3 AdamW
+        iterations, the MLP weight regressor, the teacher's orientation; the paper's L2 objective
+        and lr 1e-3 (the public script uses the mean squared error and lr 1e-2:
+        ``objective="mse", lr=1e-2``). ``hidden`` and ``activation`` shape the MLP weight model
+    (``pae.refine.regressor``). ``seed`` seeds the generator that draws the regressors.
 
-    A plain class (not an ``nn.Module``) so the PAE it uses is not registered twice in a
-    LightningModule that owns both.
+        A plain class (not an ``nn.Module``) so the PAE it uses is not registered twice in a
+        LightningModule that owns both.
     """
 
     def __init__(
@@ -121,6 +122,7 @@ class PositionRefiner:
         orientation: OrientationMode = "teacher",
         objective: Objective = "l2",
         hidden: Sequence[int] | None = None,
+        activation: str = "relu",
         chunk_size: int = 64,
         seed: int = 0,
     ) -> None:
@@ -140,6 +142,7 @@ class PositionRefiner:
         self.orientation: OrientationMode = orientation
         self.objective: Objective = objective
         self.hidden = hidden
+        self.activation = activation
         self.chunk_size = chunk_size
         self.generator = torch.Generator().manual_seed(seed)
 
@@ -188,6 +191,7 @@ class PositionRefiner:
                 weight_decay=self.weight_decay,
                 objective=self.objective,
                 hidden=self.hidden,
+                activation=self.activation,
                 generator=self.generator,
                 chunk_size=self.chunk_size,
             )
