@@ -310,6 +310,7 @@ def _fit_rows(
     smallest_count: int,
     ratio: float,
     out: np.ndarray,
+    macs: np.ndarray,
 ) -> None:
     """Fit the weight regressors of rows ``query`` [b, D] / ``inputs`` [b, k·D] and write their
     final softmax weights to ``out`` [b, k].
@@ -325,6 +326,12 @@ def _fit_rows(
     while it has had no other, its moments are zero too and its AdamW step is the weight
     decay alone (``_decay``), which skips the square root and division of about half the
     rows. Its input gradient is zero, so its backward dot product is skipped as well.
+
+    ``macs`` [b] (int64) receives the multiply-adds each row's fit did: the later layers'
+    forward products, input-gradient dot products and weight gradients (one per weight row
+    updated, as ``value · grad``), the loss and its gradient (2·k·D per step), the first
+    layer's power sums (5 per input, once) and series (5 per unit and step). Not counted: the
+    element-wise AdamW arithmetic, the softmax, and the band gains' rare direct sums.
     """
     rows, dim = query.shape
     width = inputs.shape[1]
@@ -361,6 +368,7 @@ def _fit_rows(
     where = np.empty(smallest_count, dtype=np.int64)
     full = np.empty(5, dtype=np.float64)
     for row in range(rows):
+        done = 5 * width
         least = _power_sums(inputs[row], a, full)
         prepared = False  # ``smallest`` and ``sums``, for _band_gains, made when first needed
         copy_into(start[row if start.shape[0] > 1 else 0], params)
@@ -388,6 +396,7 @@ def _fit_rows(
                 for i in range(fan_in):
                     value = units[unit_in + i]
                     if value != 0:
+                        done += fan_out
                         base = np.uint64(offset + i * fan_out)
                         for j in range(np.uint64(fan_out)):
                             units[out_at + j] += value * params[base + j]
@@ -407,6 +416,7 @@ def _fit_rows(
                 out[row, j] /= norm
             if step == iterations:
                 break
+            done += 2 * width + 5 * h
             # loss gradient with respect to the softmax weights, then the logits
             copy_into(query[row], combined)
             for j in range(k):
@@ -465,6 +475,7 @@ def _fit_rows(
                             _decay(params, base, fan_out, keep)
                             continue
                     else:
+                        done += fan_out
                         back = zero
                         for j in range(np.uint64(fan_out)):
                             back += params[np.uint64(base) + j] * grads[np.uint64(unit_out) + j]
@@ -483,6 +494,7 @@ def _fit_rows(
                         root,
                         not moving[unit_in + i],
                     )
+                    done += fan_out
                     moving[unit_in + i] = True
             # the first layer: bias by AdamW, x·W₁ by its closed form (its moments are x ⊗ μ
             # and x² ⊗ ν, with μ, ν those of the bias)
@@ -496,6 +508,7 @@ def _fit_rows(
                 _band_gains(a, smallest, sums, spreads, gains, eps64, ratio, scratch)
             for j in range(h):
                 projected[j] = keep * projected[j] - step_size * first_avg[j] * gains[j]
+        macs[row] = done
 
 
 def _numpy(tensor: Tensor) -> np.ndarray:
@@ -512,11 +525,13 @@ def fit_mlp_weights_fused(
     lr: float,
     weight_decay: float,
     mse: bool,
+    macs: np.ndarray | None = None,
 ) -> Tensor:
     """Final softmax weights [B, k] of the weight regressors, fitted on the CPU by
     ``_fit_rows``. query [B, D]; neighbours [B, k, D]; first_preactivation, first_bias
     [B, h]; ``layers`` the later layers (weight [1 or B, in, out], bias [1 or B, out]; one
-    row is shared by every query). float32 or float64, as ``query``."""
+    row is shared by every query). float32 or float64, as ``query``. ``macs`` [B] (int64),
+    when given, receives the multiply-adds each query's fit did (see ``_fit_rows``)."""
     dtype = query.dtype
     batch, k, dim = neighbours.shape
     shared = all(weight.shape[0] == 1 or weight.stride(0) == 0 for weight, _ in layers)
@@ -545,6 +560,7 @@ def fit_mlp_weights_fused(
     ]
     start_np = _numpy(start)
     out = np.empty((batch, k), dtype=arrays[0].dtype)
+    counts = np.empty(batch, dtype=np.int64) if macs is None else macs
     smallest = min(k * dim, SMALLEST_INPUTS)
     ratio = SERIES_RATIO.get(dtype, 1e3)
 
@@ -559,6 +575,7 @@ def fit_mlp_weights_fused(
             smallest,
             ratio,
             out[part],
+            counts[part],
         )
 
     run_in_parts(run, batch, min_rows=32)
