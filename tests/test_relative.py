@@ -20,7 +20,7 @@ from pae.geometry import (
     relative_pose,
 )
 from pae.lit.decoder import mean_train_image, psnr_db
-from pae.lit.iapr import IAPRModule, iterate, perturb_poses
+from pae.lit.iapr import IAPRModule, iterate
 from pae.lit.rpr_image import ImageRPRModule
 from pae.losses import LearnedPoseLoss
 from pae.models.backbones import Backbone
@@ -28,6 +28,7 @@ from pae.models.iapr import IterativeAPR
 from pae.models.pae import PoseAutoEncoder
 from pae.models.posenet import PoseNet
 from pae.models.rpr import SiameseRPR
+from pae.pose_sampling import perturb_poses
 
 
 def random_poses(n: int, generator: torch.Generator) -> Tensor:

@@ -11,11 +11,11 @@ from torch import Tensor, nn
 from pae.geometry import canonicalize_quaternion, compose_pose, relative_pose
 from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import PoseEvaluation
-from pae.lit.rpr import perturb_poses
 from pae.losses import LearnedPoseLoss
 from pae.models.base import PoseRegressor
 from pae.models.iapr import IterativeAPR
 from pae.models.pae import PoseAutoEncoder
+from pae.pose_sampling import perturb_poses
 
 
 def iterate(

@@ -3,7 +3,6 @@ the query image and an image decoded from a train pose's PAE encoding."""
 
 from __future__ import annotations
 
-import math
 from abc import ABC, abstractmethod
 from typing import Any
 
@@ -11,12 +10,7 @@ import torch
 from torch import Tensor, nn
 
 from pae.data.transforms import ImageTransform
-from pae.geometry import (
-    canonicalize_quaternion,
-    compose_pose,
-    quaternion_multiply,
-    relative_pose,
-)
+from pae.geometry import compose_pose, relative_pose
 from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import PoseEvaluation
 from pae.losses import LearnedPoseLoss
@@ -24,32 +18,8 @@ from pae.models.base import PoseRegressor
 from pae.models.decoder import ImageDecoder
 from pae.models.pae import PoseAutoEncoder
 from pae.models.rpr import SiameseRPR
+from pae.pose_sampling import perturb_poses
 from pae.refine.index import PoseIndex
-
-
-def perturb_poses(
-    poses: Tensor,
-    position_m: float,
-    orientation_deg: float,
-    generator: torch.Generator | None = None,
-) -> Tensor:
-    """Starting poses around poses [B, 7] (unit q): each moved by a distance uniform in
-    [0, 2·position_m] (median position_m) in a uniformly random direction, and rotated by an
-    angle uniform in [0, 2·orientation_deg] about a uniformly random axis -> [B, 7], qw >= 0."""
-    b, device, dtype = poses.shape[0], poses.device, poses.dtype
-
-    def directions() -> Tensor:
-        v = torch.randn(b, 3, generator=generator, dtype=dtype).to(device)
-        return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-
-    def amounts(scale: float) -> Tensor:
-        return (2 * scale * torch.rand(b, 1, generator=generator, dtype=dtype)).to(device)
-
-    position = poses[:, :3] + amounts(position_m) * directions()
-    half = amounts(orientation_deg) * (math.pi / 360.0)
-    turn = torch.cat([half.cos(), half.sin() * directions()], dim=-1)
-    rotation = canonicalize_quaternion(quaternion_multiply(poses[:, 3:], turn))
-    return torch.cat([position, rotation], dim=-1)
 
 
 def nearby_references(

@@ -3,6 +3,7 @@
 and refiners that search latent space (``latent``). ``reference`` holds per-query test
 oracles and benchmark baselines; it is not exported here."""
 
+from pae.pose_sampling import perturb_positions
 from pae.refine.index import PoseIndex
 from pae.refine.latent import LatentRetrievalRefiner, PoseDescentRefiner
 from pae.refine.refiner import (
@@ -10,7 +11,6 @@ from pae.refine.refiner import (
     PositionRefiner,
     RefinementResult,
     combine_orientations,
-    perturb_positions,
 )
 from pae.refine.regressor import ACTIVATIONS, init_weight_regressor, regressor_hidden_sizes
 from pae.refine.weights import WEIGHT_MODELS, AffineFit, closed_form_weights, refine_affine

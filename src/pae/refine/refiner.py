@@ -1,8 +1,8 @@
 """The test-time position refiner: retrieval, PAE encoding, affine weights, orientation.
 
 ``PositionRefiner`` runs the paper's refinement (§3.3) for a batch of APR estimates;
-``combine_orientations`` gives the refined orientation; ``perturb_positions`` makes the
-random-guess check's queries.
+``combine_orientations`` gives the refined orientation (the random-guess check's queries
+come from ``pae.pose_sampling.perturb_positions``).
 """
 
 from __future__ import annotations
@@ -55,22 +55,6 @@ def combine_orientations(
         aligned = torch.where(alignment < 0, -neighbour_q, neighbour_q)
         return canonicalize_quaternion((weights.unsqueeze(-1) * aligned).sum(dim=1))
     return average_quaternions(neighbour_q, weights.clamp(min=0.0))
-
-
-def perturb_positions(
-    poses: Tensor, sigma_m: float, generator: torch.Generator | None = None
-) -> Tensor:
-    """poses [B, 7] with N(0, sigma_m²) noise (m) added to each position coordinate.
-
-    The orientation is kept: the random-guess check of the paper's supplementary (§1.4).
-    """
-    draw_device = generator.device if generator is not None else poses.device
-    noise = torch.randn(
-        poses.shape[0], 3, generator=generator, device=draw_device, dtype=poses.dtype
-    )
-    perturbed = poses.clone()
-    perturbed[:, :3] += sigma_m * noise.to(poses.device)
-    return perturbed
 
 
 def refine_with_neighbours(
