@@ -9,8 +9,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from pae.data.transforms import ImageTransform
-from pae.geometry import compose_pose, relative_pose
+from pae.geometry import relative_pose
 from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import PoseEvaluation
 from pae.losses import LearnedPoseLoss
@@ -20,6 +19,7 @@ from pae.models.pae import PoseAutoEncoder
 from pae.models.rpr import SiameseRPR
 from pae.pose_sampling import perturb_poses
 from pae.refine.index import PoseIndex
+from pae.refine.relative import VirtualRPR
 
 
 def nearby_references(
@@ -164,31 +164,26 @@ class RPRModule(PairedRPRModule):
         )
         self.pae = pae.eval().requires_grad_(False)
         self.decoder = decoder.eval().requires_grad_(False)
+        self.method: VirtualRPR | None = None
 
     def frozen(self) -> list[nn.Module]:
         return [self.teacher, self.pae, self.decoder]
 
-    def virtual_reference(self, poses: Tensor, scenes: Tensor, crop: int) -> Tensor:
-        """Decoded images of poses [B, 7] as network input [B, 3, crop, crop]."""
-        with torch.no_grad():
-            images = self.decoder(self.pae(poses, scenes).joint())
-        images = nn.functional.interpolate(images, size=(crop, crop), mode="bilinear")
-        return ImageTransform.normalize_batch(images)
+    def use_data(self, datamodule: Any) -> None:
+        """Take the train poses (the retrieval store) and build the test-time method on them."""
+        super().use_data(datamodule)
+        assert self.index is not None
+        self.method = VirtualRPR(self.rpr, self.pae, self.decoder, self.index)
 
     def reference_images(self, rows: Tensor, poses: Tensor, scenes: Tensor, like: Tensor) -> Tensor:
-        return self.virtual_reference(poses, scenes, like.shape[-1])
+        assert self.method is not None
+        return self.method.reference_images(poses, scenes, like.shape[-1])
 
     def evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
-        assert self.index is not None
+        assert self.method is not None
         images, gt, scene = batch["image"], batch["pose"], batch["scene"]
         answer = self.teacher.estimate(images, scene)
-        nearest, _ = self.index.query(answer.pose, answer.scene, 1)
-        reference = self.index.poses.to(gt.device)[nearest[:, 0].to(gt.device)]
-        relative = self.rpr(
-            images, self.virtual_reference(reference, answer.scene, images.shape[-1])
-        )
-        position = compose_pose(reference, relative)[:, :3]
-        vrpr = torch.cat([position, answer.pose[:, 3:]], dim=-1)
+        vrpr = self.method(images, answer).poses
         index = batch.get("index")
         self.evaluation.update(split, "teacher", answer.raw_pose, gt, scene, index)
         self.evaluation.update(split, "vrpr", vrpr, gt, scene, index)
