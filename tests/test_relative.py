@@ -282,3 +282,20 @@ def test_bench_reports_storage_and_time_per_method() -> None:
         assert figures[f"bench/deploy/{method}/poses_bytes"] == 0
         assert figures[f"bench/deploy/{method}/images_bytes"] == 0
     assert figures["bench/deploy/vrpr/images_bytes"] == 0
+
+
+def test_siamese_rpr_can_give_each_head_its_own_encoder() -> None:
+    shared = SiameseRPR(small_backbone(), latent_dim=16)
+    separate = SiameseRPR(small_backbone(), latent_dim=16, separate_encoders=True)
+    assert shared.encoder_q is None and separate.encoder_q is not None
+    extra = sum(p.numel() for p in separate.parameters()) - sum(
+        p.numel() for p in shared.parameters()
+    )
+    assert extra == sum(p.numel() for p in separate.encoder_q.parameters())
+    images = torch.randn(2, 3, 28, 28)
+    with torch.no_grad():
+        separate.encoder_q[0].weight.zero_()
+        separate.encoder_q[0].bias.zero_()
+        out = separate.eval()(images, images)
+    # the rotation head sees only its own (zeroed) encoder: its bias alone
+    assert torch.allclose(out[:, 3:], separate.head_q.bias.expand(2, 4))
