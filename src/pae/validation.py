@@ -450,4 +450,12 @@ def validate_eval_config(cfg: DictConfig) -> None:
         )
     for key in ("student_ckpt", "teacher_ckpt", "scene_model_ckpt"):
         _file(cfg, key)
+    methods = _value(cfg, "method_ckpts")
+    if methods is not None and not isinstance(methods, ListConfig):
+        raise ConfigError(f"method_ckpts must be a list of checkpoint paths, got {methods!r}")
+    for position, path in enumerate(methods or []):
+        if not Path(str(path)).is_file():
+            raise ConfigError(f"method_ckpts[{position}]={path}: no such file")
+    if "iapr_iterations" in cfg:
+        _integer(cfg, "iapr_iterations", 1)
     validate_data(cfg, train=False)
