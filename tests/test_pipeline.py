@@ -557,12 +557,13 @@ def test_pae_eval_runs_the_image_methods_of_their_checkpoints(
     paths = [
         pipeline_run / step / "checkpoints" / "last.ckpt" for step in ("rpr", "rpr_image", "iapr")
     ]
+    root = compose_train().data.root
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
         cfg = compose(
             "eval",
             overrides=[
                 f"student_ckpt={pipeline_run / 'student' / 'checkpoints' / 'last.ckpt'}",
-                *tiny_data_overrides(compose_train().data.root),
+                *tiny_data_overrides(root),
                 f"method_ckpts=[{','.join(map(str, paths))}]",
                 "+trainer.enable_progress_bar=false",
             ],
