@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from omegaconf import open_dict
 
 from pae.checkpoints import load_pae, load_teacher
 from pae.errors import CheckpointError, ConfigError
@@ -539,3 +540,45 @@ def test_student_variants_train(
     assert hparams["latent_loss"] == chosen.get("student.latent_loss", "l2")
     cached = chosen.get("student.cache_latents", "true") == "true"
     assert ("bench/student/latent_cache_hit" in metrics) == cached
+
+
+def test_pae_eval_runs_the_image_methods_of_their_checkpoints(
+    pipeline_run: Path, compose_train, tmp_path: Path
+) -> None:
+    """vRPR, image RPR and iAPR from their checkpoints give the figures their training run
+    tested (same teacher, networks, data and store)."""
+    from hydra import compose, initialize_config_dir
+
+    from pae import CONFIG_DIR
+    from pae.pipeline_relative import evaluate_methods
+    from pae.validation import validate_eval_config
+    from tests.conftest import tiny_data_overrides
+
+    paths = [
+        pipeline_run / step / "checkpoints" / "last.ckpt" for step in ("rpr", "rpr_image", "iapr")
+    ]
+    root = compose_train().data.root
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose(
+            "eval",
+            overrides=[
+                f"student_ckpt={pipeline_run / 'student' / 'checkpoints' / 'last.ckpt'}",
+                *tiny_data_overrides(root),
+                f"method_ckpts=[{','.join(map(str, paths))}]",
+                "+trainer.enable_progress_bar=false",
+            ],
+        )
+    validate_eval_config(cfg)
+    metrics = evaluate_methods(cfg, tmp_path)
+    trained = json.loads((pipeline_run / "metrics.json").read_text())
+    for method in ("vrpr", "rpr_image", "iapr_3"):
+        for figure in ("pos_median_m", "rot_median_deg"):
+            key = f"test/{method}/{figure}"
+            assert metrics[key] == pytest.approx(trained[key], rel=1e-5, abs=1e-6), key
+    with pytest.raises(
+        CheckpointError,
+        match="a stage=student checkpoint, but method_ckpts takes checkpoints of stage=rpr",
+    ):
+        with open_dict(cfg):
+            cfg.method_ckpts = [str(pipeline_run / "student" / "checkpoints" / "last.ckpt")]
+        evaluate_methods(cfg, tmp_path / "wrong")

@@ -21,8 +21,9 @@ from pae.refine import (
     perturb_positions,
     refine_affine,
 )
+from pae.refine.fused import FUSED_KERNEL
 from pae.refine.reference import first_layer_gain_direct, refine_affine_per_query
-from pae.refine.regressor import _FirstLayerGain
+from pae.refine.regressor import FirstLayerGain
 
 
 @pytest.fixture(autouse=True)
@@ -327,6 +328,40 @@ def test_fused_loop_follows_units_that_switch_off_and_on() -> None:
     torch.testing.assert_close(fused.weights, reference.weights, atol=1e-10, rtol=0)
 
 
+@pytest.mark.parametrize("activation", ["tanh", "gelu"])
+def test_an_activation_the_kernel_lacks_takes_the_tensor_path(activation: str) -> None:
+    """The autograd model defines the weight regressor: with an activation the compiled loop
+    does not declare, ``auto`` gives the tensor path's (and the per-query oracle's) weights,
+    which differ from ReLU's, and ``fused`` refuses in one line."""
+    generator = torch.Generator().manual_seed(8)
+    batch, k, dim = 6, 3, 16
+    query = torch.randn(batch, dim, generator=generator, dtype=torch.float64)
+    neighbours = query.unsqueeze(1) + 0.3 * torch.randn(
+        batch, k, dim, generator=generator, dtype=torch.float64
+    )
+    poses = torch.randn(batch, k, 7, generator=generator, dtype=torch.float64)
+    init = init_weight_regressor(batch, k, dim, generator=generator, dtype=torch.float64)
+    options = {"init": init, "lr": 0.05, "iterations": 4}
+    auto = refine_affine(query, neighbours, poses, activation=activation, **options)
+    batched = refine_affine(
+        query, neighbours, poses, activation=activation, engine="batched", **options
+    )
+    oracle = refine_affine_per_query(query, neighbours, poses, activation=activation, **options)
+    relu = refine_affine(query, neighbours, poses, **options)
+    torch.testing.assert_close(auto.weights, batched.weights, atol=1e-12, rtol=0)
+    torch.testing.assert_close(auto.weights, oracle.weights, atol=1e-10, rtol=0)
+    assert float((auto.weights - relu.weights).abs().max()) > 1e-4
+    with pytest.raises(ValueError, match=f"implements activation relu, not '{activation}'"):
+        refine_affine(query, neighbours, poses, activation=activation, engine="fused", **options)
+    assert activation not in FUSED_KERNEL.activations and "relu" in FUSED_KERNEL.activations
+
+
+def test_an_unknown_activation_is_refused() -> None:
+    query, neighbours = torch.zeros(2, 4), torch.zeros(2, 3, 4)
+    with pytest.raises(ValueError, match="unknown activation 'swish'; choose one of"):
+        refine_affine(query, neighbours, torch.zeros(2, 3, 7), activation="swish")
+
+
 def test_refine_affine_rejects_an_unknown_engine() -> None:
     query, neighbours = torch.zeros(2, 4), torch.randn(2, 3, 4)
     with pytest.raises(ValueError, match="engine must be one of"):
@@ -352,7 +387,7 @@ def test_first_layer_gain_matches_direct_sum() -> None:
         loop[0][0] = loop[1][0] = 0.0
         torch.testing.assert_close(direct[:2], torch.tensor(loop, dtype=torch.float64))
         for ratio, tolerance in ((1e3, 1e-13), (30.0, 5e-8)):
-            gain = _FirstLayerGain(inputs, 1e-8, ratio)(scale)
+            gain = FirstLayerGain(inputs, 1e-8, ratio)(scale)
             torch.testing.assert_close(gain, direct, rtol=tolerance, atol=0)
 
 

@@ -20,14 +20,17 @@ from pae.geometry import (
     relative_pose,
 )
 from pae.lit.decoder import mean_train_image, psnr_db
-from pae.lit.iapr import IAPRModule, iterate, perturb_poses
+from pae.lit.iapr import IAPRModule
 from pae.lit.rpr_image import ImageRPRModule
 from pae.losses import LearnedPoseLoss
 from pae.models.backbones import Backbone
+from pae.models.base import TeacherEstimate
 from pae.models.iapr import IterativeAPR
 from pae.models.pae import PoseAutoEncoder
 from pae.models.posenet import PoseNet
 from pae.models.rpr import SiameseRPR
+from pae.pose_sampling import perturb_poses
+from pae.refine.relative import ImageRPR, IterativeAPRRefiner
 
 
 def random_poses(n: int, generator: torch.Generator) -> Tensor:
@@ -140,8 +143,8 @@ def test_image_rpr_refines_exactly_with_an_exact_relative_pose(tiny_data: PoseDa
     estimate = torch.cat([truth[:, :3] + 0.3, truth[:, 3:]], dim=-1)
     rows = module.index.query(estimate, scene, 1)[0][:, 0]
     exact = relative_pose(module.index.poses[rows], truth)
-    module.rpr = ExactRPR(exact)
-    refined, reference = module.refine(images, estimate, scene)
+    module.method = ImageRPR(ExactRPR(exact), module.index, module.images)
+    refined, reference = module.method(images, TeacherEstimate(estimate, estimate, None, scene))
     assert torch.equal(reference, module.index.poses[rows])
     assert position_error(refined[:, :3], truth[:, :3]).max() < 1e-5
     assert torch.equal(refined[:, 3:], estimate[:, 3:])  # position only: orientation kept
@@ -211,14 +214,16 @@ def test_untrained_iapr_keeps_the_estimate_and_can_keep_orientation() -> None:
     start = random_poses(4, generator)
     images = torch.randn(4, 3, 28, 28, generator=generator)
     scene = torch.zeros(4, dtype=torch.long)
-    steps = iterate(model, pae, images, start, scene, 3)
+    steps = IterativeAPRRefiner(model, pae, 3).iterates(images, start, scene)
     assert len(steps) == 3
     for pose in steps:  # identity correction at initialisation
         assert torch.allclose(pose, start, atol=1e-6)
     with torch.no_grad():
         model.head_x.bias.fill_(0.1)
         model.head_q.bias.copy_(torch.tensor([1.0, 0.2, 0.0, 0.0]))
-    steps = iterate(model, pae, images, start, scene, 2, refine_orientation=False)
+    steps = IterativeAPRRefiner(model, pae, 2, refine_orientation=False).iterates(
+        images, start, scene
+    )
     assert torch.allclose(steps[1][:, :3], start[:, :3] + 0.2, atol=1e-5)
     assert torch.equal(steps[1][:, 3:], start[:, 3:])
 
@@ -277,3 +282,20 @@ def test_bench_reports_storage_and_time_per_method() -> None:
         assert figures[f"bench/deploy/{method}/poses_bytes"] == 0
         assert figures[f"bench/deploy/{method}/images_bytes"] == 0
     assert figures["bench/deploy/vrpr/images_bytes"] == 0
+
+
+def test_siamese_rpr_can_give_each_head_its_own_encoder() -> None:
+    shared = SiameseRPR(small_backbone(), latent_dim=16)
+    separate = SiameseRPR(small_backbone(), latent_dim=16, separate_encoders=True)
+    assert shared.encoder_q is None and separate.encoder_q is not None
+    extra = sum(p.numel() for p in separate.parameters()) - sum(
+        p.numel() for p in shared.parameters()
+    )
+    assert extra == sum(p.numel() for p in separate.encoder_q.parameters())
+    images = torch.randn(2, 3, 28, 28)
+    with torch.no_grad():
+        separate.encoder_q[0].weight.zero_()
+        separate.encoder_q[0].bias.zero_()
+        out = separate.eval()(images, images)
+    # the rotation head sees only its own (zeroed) encoder: its bias alone
+    assert torch.allclose(out[:, 3:], separate.head_q.bias.expand(2, 4))

@@ -36,10 +36,10 @@ from tests.conftest import TINY, tiny_data_overrides
 
 def _camera_pose(position: list[float], yaw: float = 0.3, pitch: float = -0.1) -> torch.Tensor:
     """A camera-to-world pose [7] looking roughly along +x (world z up)."""
-    from pae.data.synthetic import _look_rotations
+    from pae.data.synthetic.camera import look_rotations
     from pae.geometry import matrix_to_quaternion
 
-    rotation = _look_rotations(np.array([yaw]), np.array([pitch]), np.array([0.05]))
+    rotation = look_rotations(np.array([yaw]), np.array([pitch]), np.array([0.05]))
     q = matrix_to_quaternion(torch.from_numpy(rotation))[0]
     return torch.cat([torch.tensor(position, dtype=torch.float64), q]).float()
 

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from pae.bench.rendering import measure_render_speed
 from pae.data.labels import read_labels
 from pae.data.synthetic import (
     DEFAULT_SIZE,
@@ -22,7 +23,6 @@ from pae.data.synthetic import (
     SyntheticSummary,
     make_scene,
     make_sequences,
-    measure_render_speed,
     pose_rotation_translation,
     render,
     world_to_camera,
@@ -320,7 +320,7 @@ def test_measure_render_speed(monkeypatch: pytest.MonkeyPatch) -> None:
     import time
     import types
 
-    from pae.data import synthetic
+    from pae.bench import rendering
 
     start = time.perf_counter()
     speed = measure_render_speed(frames=4, size=16)
@@ -331,8 +331,8 @@ def test_measure_render_speed(monkeypatch: pytest.MonkeyPatch) -> None:
         rendered.append((len(poses), camera.size))
 
     ticks = iter([10.0, 12.5])
-    monkeypatch.setattr(synthetic, "render_batch", render_batch)
-    monkeypatch.setattr(synthetic, "time", types.SimpleNamespace(perf_counter=lambda: next(ticks)))
+    monkeypatch.setattr(rendering, "render_batch", render_batch)
+    monkeypatch.setattr(rendering, "time", types.SimpleNamespace(perf_counter=lambda: next(ticks)))
     assert measure_render_speed(frames=5, size=16) == 5 / 2.5
     assert rendered == [(1, 16), (5, 16)]  # a warm-up frame, then the timed batch
 
@@ -361,3 +361,13 @@ def test_train_lanes_and_yaw_stray_shape_the_sequences() -> None:
         side = np.sign(heading[:, 0] * shift[1:, 1] - heading[:, 1] * shift[1:, 0])
         assert np.mean(side == (-1) ** train_index) > 0.8
         train_index += 1
+
+
+def test_the_package_exports_every_public_name() -> None:
+    import pae.data.synthetic as package
+
+    for name in package.__all__:
+        assert getattr(package, name) is not None, name
+    for name in ("PinholeCamera", "render_batch", "make_scene", "make_sequences", "Appearance"):
+        assert name in package.__all__
+    assert "DEFAULT_TRAIN_LANE_M" in package.__all__ and "TEXEL_SIZE_M" in package.__all__

@@ -211,3 +211,13 @@ def architecture_differences(stored: dict[str, Any], other: dict[str, Any]) -> l
         for key in sorted(before.keys() | after.keys())
         if before.get(key) != after.get(key)
     ]
+
+
+def load_rpr(path: str | Path, key: str | None = None) -> LoadedModel:
+    """An RPR checkpoint (stage=rpr or rpr_image) -> its SiameseRPR (`key` as above)."""
+    return _load_model(path, "rpr", "rpr", key)
+
+
+def load_iapr(path: str | Path, key: str | None = None) -> LoadedModel:
+    """An iterative-APR checkpoint (stage=iapr) -> its IterativeAPR (`key` as above)."""
+    return _load_model(path, "iapr", "iapr", key)

@@ -9,6 +9,10 @@ warning says so once. A cached loop is stamped with a digest of every source fil
 top-level package, not only its own file: a compiled function inlines the compiled helpers it
 calls and the constants it reads from other modules, so a change to any of them compiles
 it anew instead of running the old code.
+
+The helpers several compiled loops share live here too (``insert_sorted``, ``copy_into``,
+``run_in_parts``, the ``FASTMATH`` flags): the weight regressor's fit (``pae.refine.fused``)
+and the pose index's search (``pae.refine.index``).
 """
 
 from __future__ import annotations
@@ -19,10 +23,13 @@ import os
 import tempfile
 import warnings
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numba
+import numpy as np
+import torch
 from numba.core.caching import CompileResultCacheImpl, FunctionCache, _CacheLocator
 
 
@@ -158,3 +165,45 @@ def jit(**options: Any) -> Callable[[Callable[..., Any]], Any]:
         return dispatcher
 
     return compile_lazily
+
+
+# Helpers the compiled loops share (the weight regressor's fit, the pose index's search).
+
+FASTMATH = {"reassoc", "contract"}
+"""Reassociated sums (vectorised reductions) and fused multiply-adds; no other liberties, so
+NaN and infinity keep their meaning. ``error_model="numpy"``: a division by zero gives inf or
+NaN as in numpy and torch instead of raising, which also lets divisions vectorise."""
+
+
+@jit(nogil=True)
+def insert_sorted(values: np.ndarray, labels: np.ndarray, value: float, label: int) -> None:
+    """Insert ``value`` (with ``label``) into the ascending ``values`` [m] (and ``labels``
+    [m]), dropping the last entry; the caller has checked that value < values[-1]."""
+    slot = values.shape[0] - 1
+    while slot > 0 and values[slot - 1] > value:
+        values[slot] = values[slot - 1]
+        labels[slot] = labels[slot - 1]
+        slot -= 1
+    values[slot] = value
+    labels[slot] = label
+
+
+@jit(nogil=True, inline="always")
+def copy_into(source: np.ndarray, target: np.ndarray) -> None:
+    """target[i] = source[i] for the length of ``source`` (1-D); a plain loop, which numba
+    compiles to a vectorised copy (slice assignment takes a slower general path)."""
+    for i in range(np.uint64(source.shape[0])):
+        target[i] = source[i]
+
+
+def run_in_parts(run: Callable[[slice], None], rows: int, min_rows: int) -> None:
+    """Call ``run`` on consecutive row ranges of ``min_rows`` rows covering ``rows`` rows,
+    on ``torch.get_num_threads()`` threads at once, each taking the next range when it is
+    done (queries differ in cost): for compiled functions that release the GIL."""
+    parts = [slice(lo, min(lo + min_rows, rows)) for lo in range(0, rows, min_rows)]
+    threads = max(1, min(torch.get_num_threads(), len(parts)))
+    if threads == 1:
+        run(slice(0, rows))
+        return
+    with ThreadPoolExecutor(threads) as pool:
+        list(pool.map(run, parts))

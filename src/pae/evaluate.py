@@ -1,4 +1,5 @@
-"""`pae-eval`: evaluate trained checkpoints with test-time refinement (Hydra; conf/eval.yaml).
+"""`pae-eval`: evaluate trained checkpoints with test-time refinement, and the methods of
+rpr, rpr_image and iapr checkpoints (`method_ckpts`) (Hydra; conf/eval.yaml).
 
 Torch, Lightning and the pipeline are imported when a run starts, as in `pae-train`.
 """
@@ -28,6 +29,7 @@ def main(cfg: DictConfig) -> float | None:
         from lightning.pytorch.utilities import rank_zero_only
 
         from pae.pipeline import evaluate_checkpoints, record_dataset
+        from pae.pipeline_relative import evaluate_methods
 
         apply_renamed_keys(cfg, "pae-eval")
         validate_eval_config(cfg)
@@ -36,6 +38,7 @@ def main(cfg: DictConfig) -> float | None:
         if rank_zero_only.rank == 0:
             save_corrected_config(cfg, run_dir)
         metrics = record_dataset(cfg, run_dir) | evaluate_checkpoints(cfg, run_dir)
+        metrics |= evaluate_methods(cfg, run_dir)
         if rank_zero_only.rank == 0:  # under DDP every process holds the same figures
             write_json_atomic(run_dir / "metrics.json", metrics)
             print(format_results_table(metrics, "val"))

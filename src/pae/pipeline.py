@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Any
 
 import lightning as L
-import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from lightning.pytorch.loggers import Logger, TensorBoardLogger
@@ -28,7 +27,6 @@ from pae.checkpoints import (
     CheckpointError,
     LoadedModel,
     architecture_differences,
-    load_decoder,
     load_pae,
     load_teacher,
     newest_readable_checkpoint,
@@ -39,10 +37,8 @@ from pae.data.datamodule import PoseDataModule
 from pae.data.latents import LatentCache, TeacherLatentDataModule
 from pae.errors import ConfigError, DivergenceError
 from pae.lit.decoder import DecoderModule
-from pae.lit.rpr import RPRModule
 from pae.lit.student import StudentEvaluator, StudentModule
 from pae.lit.teacher import TeacherModule
-from pae.models.base import PoseRegressor
 from pae.provenance import dataset_line, flat_record, save_record
 from pae.reporting import (
     best_refinement,
@@ -50,10 +46,9 @@ from pae.reporting import (
     format_results_table,
     headline_metrics,
 )
+from pae.steps import STEPS
 
 Metrics = dict[str, float]
-TRAINED_GROUP = {"rpr_image": "rpr"}
-"""The config group of a step's training settings where it is not the step's own name."""
 
 
 def build_data(cfg: DictConfig, **overrides: Any) -> PoseDataModule:
@@ -251,7 +246,7 @@ def fit_and_test(
     """Fit (stopping at a non-finite loss), validate, test, record `bench/{name}/fit_s` ->
     (metrics, path of the last checkpoint). With `epochs` 0 the untrained model is
     evaluated, and its checkpoint written all the same."""
-    group = TRAINED_GROUP.get(name, name)
+    group = STEPS[name].group if name in STEPS else name
     lr_setting = f"{group}.optimizer.lr={OmegaConf.select(cfg, f'{group}.optimizer.lr')}"
     finite = StopOnNonFiniteLoss(name, lr_setting)
     trainer = build_trainer(cfg, step_dir, epochs, [*(callbacks or []), finite], step=name)
@@ -430,85 +425,6 @@ def fit_decoder(
         decoder_config=decoder_config,
     )
     return fit_and_test(cfg, step_dir, "decoder", module, data, cfg.decoder.max_epochs)
-
-
-def init_backbone_from_teacher(model: torch.nn.Module, teacher: PoseRegressor, key: str) -> None:
-    """Copy the teacher's backbone weights into `model.backbone` (same backbone config);
-    a ConfigError naming `key` when they do not fit."""
-    source = getattr(teacher, "backbone", None)
-    try:
-        model.backbone.load_state_dict(source.state_dict())
-    except (AttributeError, RuntimeError):
-        raise ConfigError(
-            f"{key}=teacher: the teacher's backbone does not match this model's backbone "
-            f"(use {key}=null)"
-        ) from None
-    rank_zero_info(f"{key}: backbone initialised from the teacher's")
-
-
-def stored_model_config(model_config: DictConfig) -> dict[str, Any]:
-    """A model config as stored in a checkpoint: the weights come from the state dict, so
-    no pretrained download and no weights file."""
-    config = OmegaConf.to_container(model_config, resolve=True)
-    config["backbone"]["pretrained"] = False
-    config["backbone"]["weights_path"] = None
-    return config
-
-
-def relative_model(cfg: DictConfig, group: str, teacher: PoseRegressor) -> torch.nn.Module:
-    """The model of a relative regressor's group (`rpr`, `iapr`), its backbone copied from
-    the teacher's when `{group}.init_backbone` is `teacher`."""
-    settings = cfg[group]
-    model = instantiate(settings.model)
-    if settings.get("init_backbone") == "teacher":
-        init_backbone_from_teacher(model, teacher, f"{group}.init_backbone")
-    return model
-
-
-def rpr_pairs(cfg: DictConfig) -> dict[str, Any]:
-    """How an RPR draws its training references: `pair_k` and `pair_offset` (None: around
-    the true pose)."""
-    offset = cfg.rpr.get("pair_offset")
-    return {
-        "pair_k": cfg.rpr.pair_k,
-        "pair_offset": OmegaConf.to_container(offset, resolve=True) if offset else None,
-    }
-
-
-def fit_rpr(
-    cfg: DictConfig,
-    step_dir: Path,
-    student_ckpt: str | Path | None,
-    decoder_ckpt: str | Path | None,
-) -> tuple[Metrics, Path]:
-    """Train the Siamese RPR on virtual references, then test virtual RPR (`test/vrpr/...`)."""
-    student_ckpt = required(student_ckpt, "student_ckpt", "rpr")
-    decoder_ckpt = required(decoder_ckpt, "decoder_ckpt", "rpr")
-    teacher, pae, decoder = (
-        load_teacher(student_ckpt),
-        load_pae(student_ckpt, "student_ckpt"),
-        load_decoder(decoder_ckpt, "decoder_ckpt"),
-    )
-    data = build_data(cfg)
-    for path, loaded in ((student_ckpt, pae), (decoder_ckpt, decoder)):
-        check_data(cfg, path, loaded, data)
-    module = RPRModule(
-        relative_model(cfg, "rpr", teacher.model),
-        teacher.model,
-        pae.model,
-        decoder.model,
-        loss=instantiate(cfg.rpr.loss),
-        **optimisation(cfg.rpr),
-        scene_names=data.scene_names,
-        configs={
-            "teacher_config": teacher.config,
-            "pae_config": pae.config,
-            "decoder_config": decoder.config,
-            "rpr_config": stored_model_config(cfg.rpr.model),
-        },
-        **rpr_pairs(cfg),
-    )
-    return fit_and_test(cfg, step_dir, "rpr", module, data, cfg.rpr.max_epochs)
 
 
 def evaluate_checkpoints(cfg: DictConfig, run_dir: Path) -> Metrics:

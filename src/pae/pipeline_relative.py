@@ -1,27 +1,123 @@
-"""The steps of the relative regressors that read the query image at test time: the image
-RPR (real train images as references, `rpr_image`) and the iterative APR (`iapr_{n}`)."""
+"""The steps of the relative regressors, which read the query image at test time: virtual
+RPR (references decoded from PAE encodings, `vrpr`), the image RPR (real train images as
+references, `rpr_image`) and the iterative APR (`iapr_{n}`)."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
+import torch
 from hydra.utils import instantiate
-from omegaconf import DictConfig
+from lightning.pytorch.utilities import rank_zero_info
+from omegaconf import DictConfig, OmegaConf
 
-from pae.checkpoints import load_pae, load_teacher
+from pae.checkpoints import (
+    checkpoint_kind,
+    load_decoder,
+    load_iapr,
+    load_pae,
+    load_rpr,
+    load_teacher,
+    read_checkpoint,
+)
+from pae.errors import CheckpointError, ConfigError
 from pae.lit.iapr import IAPRModule
+from pae.lit.methods import ImageMethodEvaluator
+from pae.lit.rpr import RPRModule
 from pae.lit.rpr_image import ImageRPRModule
+from pae.models.base import PoseRegressor
 from pae.pipeline import (
     Metrics,
     build_data,
+    build_trainer,
     check_data,
     fit_and_test,
     optimisation,
-    relative_model,
     required,
-    rpr_pairs,
-    stored_model_config,
+    validate_and_test,
 )
+from pae.refine.index import PoseIndex
+from pae.refine.relative import ImageRPR, IterativeAPRRefiner, TrainImages, VirtualRPR
+
+
+def init_backbone_from_teacher(model: torch.nn.Module, teacher: PoseRegressor, key: str) -> None:
+    """Copy the teacher's backbone weights into `model.backbone` (same backbone config);
+    a ConfigError naming `key` when they do not fit."""
+    source = getattr(teacher, "backbone", None)
+    try:
+        model.backbone.load_state_dict(source.state_dict())
+    except (AttributeError, RuntimeError):
+        raise ConfigError(
+            f"{key}=teacher: the teacher's backbone does not match this model's backbone "
+            f"(use {key}=null)"
+        ) from None
+    rank_zero_info(f"{key}: backbone initialised from the teacher's")
+
+
+def stored_model_config(model_config: DictConfig) -> dict[str, Any]:
+    """A model config as stored in a checkpoint: the weights come from the state dict, so
+    no pretrained download and no weights file."""
+    config = OmegaConf.to_container(model_config, resolve=True)
+    config["backbone"]["pretrained"] = False
+    config["backbone"]["weights_path"] = None
+    return config
+
+
+def relative_model(cfg: DictConfig, group: str, teacher: PoseRegressor) -> torch.nn.Module:
+    """The model of a relative regressor's group (`rpr`, `iapr`), its backbone copied from
+    the teacher's when `{group}.init_backbone` is `teacher`."""
+    settings = cfg[group]
+    model = instantiate(settings.model)
+    if settings.get("init_backbone") == "teacher":
+        init_backbone_from_teacher(model, teacher, f"{group}.init_backbone")
+    return model
+
+
+def rpr_pairs(cfg: DictConfig) -> dict[str, Any]:
+    """How an RPR draws its training references: `pair_k` and `pair_offset` (None: around
+    the true pose)."""
+    offset = cfg.rpr.get("pair_offset")
+    return {
+        "pair_k": cfg.rpr.pair_k,
+        "pair_offset": OmegaConf.to_container(offset, resolve=True) if offset else None,
+    }
+
+
+def fit_rpr(
+    cfg: DictConfig,
+    step_dir: Path,
+    student_ckpt: str | Path | None,
+    decoder_ckpt: str | Path | None,
+) -> tuple[Metrics, Path]:
+    """Train the Siamese RPR on virtual references, then test virtual RPR (`test/vrpr/...`)."""
+    student_ckpt = required(student_ckpt, "student_ckpt", "rpr")
+    decoder_ckpt = required(decoder_ckpt, "decoder_ckpt", "rpr")
+    teacher, pae, decoder = (
+        load_teacher(student_ckpt),
+        load_pae(student_ckpt, "student_ckpt"),
+        load_decoder(decoder_ckpt, "decoder_ckpt"),
+    )
+    data = build_data(cfg)
+    for path, loaded in ((student_ckpt, pae), (decoder_ckpt, decoder)):
+        check_data(cfg, path, loaded, data)
+    module = RPRModule(
+        relative_model(cfg, "rpr", teacher.model),
+        teacher.model,
+        pae.model,
+        decoder.model,
+        loss=instantiate(cfg.rpr.loss),
+        **optimisation(cfg.rpr),
+        scene_names=data.scene_names,
+        configs={
+            "teacher_config": teacher.config,
+            "pae_config": pae.config,
+            "decoder_config": decoder.config,
+            "rpr_config": stored_model_config(cfg.rpr.model),
+        },
+        **rpr_pairs(cfg),
+    )
+    return fit_and_test(cfg, step_dir, "rpr", module, data, cfg.rpr.max_epochs)
 
 
 def fit_rpr_image(
@@ -76,3 +172,66 @@ def fit_iapr(
         refine_orientation=settings.refine_orientation,
     )
     return fit_and_test(cfg, step_dir, "iapr", module, data, settings.max_epochs)
+
+
+def method_evaluator(
+    path: str | Path, data: Any, iapr_iterations: int, allow: DictConfig
+) -> ImageMethodEvaluator:
+    """The test-time method of a checkpoint of stage=rpr (``vrpr``), rpr_image or iapr
+    (``iapr_{iapr_iterations}``), with the teacher (and PAE, decoder) it was trained with,
+    checked against the data."""
+    kind = checkpoint_kind(read_checkpoint(path))
+    if kind not in ("rpr", "rpr_image", "iapr"):
+        found = f"a stage={kind} checkpoint" if kind else "not a checkpoint of a pae stage"
+        raise CheckpointError(
+            f"method_ckpts: {path}: {found}, but method_ckpts takes checkpoints of stage=rpr, "
+            "rpr_image or iapr"
+        )
+    teacher = load_teacher(path)
+    check_data(allow, path, teacher, data)
+
+    def store(datamodule: Any) -> PoseIndex:
+        return PoseIndex(*datamodule.train_poses())
+
+    if kind == "iapr":
+        iapr, pae = load_iapr(path).model, load_pae(path).model
+        method = IterativeAPRRefiner(iapr, pae, iapr_iterations)
+        return ImageMethodEvaluator(
+            teacher.model,
+            f"iapr_{iapr_iterations}",
+            lambda _: method,
+            [iapr, pae],
+            data.scene_names,
+        )
+    rpr = load_rpr(path).model
+    if kind == "rpr_image":
+        return ImageMethodEvaluator(
+            teacher.model,
+            kind,
+            lambda datamodule: ImageRPR(rpr, store(datamodule), TrainImages(datamodule)),
+            [rpr],
+            data.scene_names,
+        )
+    pae, decoder = load_pae(path).model, load_decoder(path).model
+    return ImageMethodEvaluator(
+        teacher.model,
+        "vrpr",
+        lambda datamodule: VirtualRPR(rpr, pae, decoder, store(datamodule)),
+        [rpr, pae, decoder],
+        data.scene_names,
+    )
+
+
+def evaluate_methods(cfg: DictConfig, run_dir: Path) -> Metrics:
+    """Test the method of every checkpoint in ``method_ckpts`` (stage=rpr, rpr_image, iapr)
+    on the configured data -> ``test/{vrpr,rpr_image,iapr_n}/...``."""
+    metrics: Metrics = {}
+    paths = list(cfg.get("method_ckpts") or [])
+    if not paths:
+        return metrics
+    data = build_data(cfg, augment=False)
+    for path in paths:
+        module = method_evaluator(path, data, cfg.iapr_iterations, cfg)
+        trainer = build_trainer(cfg, run_dir, 0, [])
+        metrics |= validate_and_test(trainer, module, data)
+    return metrics

@@ -82,12 +82,17 @@ def build_scene_model(
 
 
 def fit_scene_model(
-    cfg: DictConfig, step_dir: Path, ckpt: dict[str, str | Path | None]
+    cfg: DictConfig,
+    step_dir: Path,
+    teacher_ckpt: str | Path | None,
+    student_ckpt: str | Path | None = None,
+    decoder_ckpt: str | Path | None = None,
 ) -> tuple[Metrics, Path | None]:
     """Fit the configured scene model (voxel_grid, whose checkpoint is written with
     max_epochs=0 too; pae_decoder and oracle have nothing to fit), then test
     render-and-compare from the teacher's estimates -> (metrics, the last checkpoint or
     None)."""
+    ckpt = {"teacher": teacher_ckpt, "student": student_ckpt, "decoder": decoder_ckpt}
     teacher_path = required(ckpt["teacher"], "teacher_ckpt", "render_compare")
     teacher = load_teacher(teacher_path, "teacher_ckpt")
     images = build_data(cfg, augment=False)

@@ -16,27 +16,8 @@ from omegaconf import DictConfig, OmegaConf
 from pae.errors import ConfigError
 from pae.reporting import reporting_errors
 from pae.run_lock import lock_if_used, lock_run_dir, release_run_dir
+from pae.steps import RESUMABLE_CHANGES
 from pae.validation import apply_renamed_keys, validate_eval_config, validate_train_config
-
-RESUMABLE_CHANGES = (
-    "resume",
-    "allow_other_data",
-    "teacher.max_epochs",
-    "student.max_epochs",
-    "decoder.max_epochs",
-    "rpr.max_epochs",
-    "iapr.max_epochs",
-    "scene_model.max_epochs",
-    "render_compare.",
-    "trainer.",
-    "callbacks.",
-    "logger.",
-    "refine.",
-    "data.num_workers",
-    "data.eval_batch_size",
-)
-"""Settings a resumed run may change (`trainer.` etc.: every key of the group): the number of
-epochs, how the run is executed and logged, and test-time refinement."""
 
 
 def check_writable_dir(path: Path, key: str) -> None:

@@ -18,20 +18,20 @@ from pae import CONFIG_DIR
 from pae.atomic import write_json_atomic
 from pae.provenance import save_corrected_config
 from pae.reporting import format_results_table, reporting_errors, step_figures
+from pae.steps import CHECKPOINTS, steps_of
 from pae.validation import apply_renamed_keys, validate_train_config
 
 
 def run(cfg: DictConfig, run_dir: Path) -> dict[str, float | int | str]:
-    """Check every setting, then say which dataset the run reads and run the stage's steps,
-    each ending in a summary line; metrics.json (with the dataset's `data/...` keys) is
-    rewritten atomically after each finished step (by the first process only under DDP)."""
+    """Check every setting, then say which dataset the run reads and run the stage's steps
+    (``pae.steps``, each given the checkpoints it needs), each ending in a summary line;
+    metrics.json (with the dataset's `data/...` keys) is rewritten atomically after each
+    finished step (by the first process only under DDP)."""
     import lightning as L
     from lightning.pytorch.utilities import rank_zero_only
 
     from pae.console import duration, quiet_third_party, say
-    from pae.pipeline import fit_decoder, fit_rpr, fit_student, fit_teacher, record_dataset
-    from pae.pipeline_relative import fit_iapr, fit_rpr_image
-    from pae.pipeline_scene import fit_scene_model
+    from pae.pipeline import record_dataset
 
     quiet_third_party()
     apply_renamed_keys(cfg, "pae-train")
@@ -40,33 +40,20 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, float | int | str]:
     if rank_zero_only.rank == 0:
         save_corrected_config(cfg, run_dir)
     metrics: dict[str, float | int | str] = dict(record_dataset(cfg, run_dir))
-    ckpt = {"teacher": cfg.teacher_ckpt, "student": cfg.student_ckpt, "decoder": cfg.decoder_ckpt}
-    several = len(cfg.stage.steps) > 1
-    for step in cfg.stage.steps:
-        step_dir = run_dir / step if several else run_dir
+    checkpoints = {key: cfg[key] for key in CHECKPOINTS}
+    steps = steps_of(cfg.stage.steps)
+    for step in steps:
+        step_dir = run_dir / step.name if len(steps) > 1 else run_dir
         started = time.perf_counter()
-        if step == "teacher":
-            step_metrics, last = fit_teacher(cfg, step_dir)
-        elif step == "student":
-            step_metrics, last = fit_student(cfg, step_dir, ckpt["teacher"])
-        elif step == "decoder":
-            step_metrics, last = fit_decoder(cfg, step_dir, ckpt["student"])
-        elif step == "rpr_image":
-            step_metrics, last = fit_rpr_image(cfg, step_dir, ckpt["teacher"])
-        elif step == "iapr":
-            step_metrics, last = fit_iapr(cfg, step_dir, ckpt["student"])
-        elif step == "scene_model":
-            step_metrics, last = fit_scene_model(cfg, step_dir, ckpt)
-        else:
-            step_metrics, last = fit_rpr(cfg, step_dir, ckpt["student"], ckpt["decoder"])
-        if step in ckpt:
-            ckpt[step] = last
+        step_metrics, last = step.run(cfg, step_dir, checkpoints)
+        if step.produces:
+            checkpoints[step.produces] = last
         metrics |= step_metrics
         if rank_zero_only.rank == 0:
             write_json_atomic(run_dir / "metrics.json", metrics)
-        figures = step_figures(step, step_metrics)
+        figures = step_figures(step.name, step_metrics)
         say(
-            f"{step}: done in {duration(time.perf_counter() - started)}"
+            f"{step.name}: done in {duration(time.perf_counter() - started)}"
             + (f"; test {figures}" if figures else "")
             + (f"; {last}" if last else "")
         )

@@ -3,8 +3,10 @@ training: types, ranges and paths, each failure a ConfigError naming its key."""
 
 from __future__ import annotations
 
+import inspect
 import math
 import sys
+import typing
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +15,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from pae.data.labels import read_labels
 from pae.errors import ConfigError
+from pae.steps import CHECKPOINTS, GROUPS, MODELS, missing_checkpoints, steps_of
 
 SYNTHETIC_LAYOUT_BOUNDS = {
     "test_offset_m": 1.0,
@@ -26,20 +29,6 @@ RENAMED_KEYS = {"pae_ckpt": "student_ckpt"}
 """Old key -> its new name. The old key is still read for one more release, with a one-line
 deprecation warning."""
 _WARNED: set[str] = set()
-
-STEPS = ("teacher", "student", "decoder", "rpr", "rpr_image", "iapr", "scene_model")
-"""The steps of pae-train."""
-GROUPS = ("teacher", "student", "decoder", "rpr", "iapr", "scene_model")
-"""The config groups of the steps (max_epochs, optimizer, ...); rpr_image trains with rpr's."""
-NEEDS = {
-    "student": (("teacher_ckpt", "teacher"),),
-    "decoder": (("student_ckpt", "student"),),
-    "rpr": (("student_ckpt", "student"), ("decoder_ckpt", "decoder")),
-    "rpr_image": (("teacher_ckpt", "teacher"),),
-    "iapr": (("student_ckpt", "student"),),
-    "scene_model": (("teacher_ckpt", "teacher"),),
-}
-"""Per step: the checkpoint keys it needs unless an earlier step of the run produces them."""
 
 
 def apply_renamed_keys(cfg: DictConfig, program: str | None = None) -> None:
@@ -66,6 +55,13 @@ def apply_renamed_keys(cfg: DictConfig, program: str | None = None) -> None:
 
 def _value(cfg: DictConfig, key: str) -> Any:
     return OmegaConf.select(cfg, key, default=None)
+
+
+def _present(cfg: DictConfig, key: str) -> bool:
+    """Whether the config has ``key`` (dotted), whatever its value."""
+    parent, _, name = key.rpartition(".")
+    node = _value(cfg, parent) if parent else cfg
+    return isinstance(node, DictConfig) and name in node
 
 
 def _is_int(value: Any) -> bool:
@@ -105,6 +101,86 @@ def _file(cfg: DictConfig, key: str) -> None:
     value = _value(cfg, key)
     if value is not None and not Path(str(value)).is_file():
         raise ConfigError(f"{key}={value}: no such file")
+
+
+INSTANTIATE_KEYS = ("_target_", "_partial_", "_recursive_", "_convert_", "_args_")
+"""Keys of a model config that Hydra reads itself, not constructor arguments."""
+_ANNOTATED_TYPES = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}
+
+
+def _constructor_types(target: Any) -> dict[str, Any]:
+    """The constructor's annotated argument types (empty where they cannot be resolved)."""
+    try:
+        return typing.get_type_hints(target.__init__ if inspect.isclass(target) else target)
+    except Exception:  # annotations naming what the module does not import: unchecked
+        return {}
+
+
+def _matches(value: Any, annotation: Any) -> bool:
+    if annotation is bool:
+        return isinstance(value, bool)
+    if annotation is int:
+        return _is_int(value)
+    if annotation is float:
+        return _is_int(value) or isinstance(value, float)
+    return isinstance(value, str)
+
+
+def check_constructor(cfg: DictConfig, key: str, supplied: tuple[str, ...] = ()) -> None:
+    """The model config at ``key`` (with ``_target_``) fits its class's constructor: every key
+    is an argument of it, every argument without a default is given (or in ``supplied``, the
+    ones its step fills in), values annotated as a plain int, float, bool or str are one; the
+    same for nested model configs (a backbone). A ConfigError naming the key otherwise."""
+    node = _value(cfg, key)
+    if not isinstance(node, DictConfig) or "_target_" not in node:
+        raise ConfigError(f"{key}: no model configured (a group with a _target_ class)")
+    target_name = node["_target_"]
+    try:
+        from hydra.utils import get_object
+
+        target = get_object(target_name)
+        parameters = inspect.signature(target).parameters
+    except Exception as err:
+        line = (str(err).strip().splitlines() or [type(err).__name__])[0]
+        raise ConfigError(f"{key}._target_={target_name}: cannot be loaded ({line})") from None
+    named = [
+        name
+        for name, p in parameters.items()
+        if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
+    ]
+    any_keyword = any(p.kind == p.VAR_KEYWORD for p in parameters.values())
+    types = _constructor_types(target)
+    for name in node:
+        if name in INSTANTIATE_KEYS:
+            continue
+        if name not in named and not any_keyword:
+            raise ConfigError(
+                f"{key}.{name}: not an argument of {target_name} (it takes {', '.join(named)})"
+            )
+        value = _value(cfg, f"{key}.{name}")
+        annotation = types.get(name)
+        if annotation in _ANNOTATED_TYPES and not _matches(value, annotation):
+            raise ConfigError(f"{key}.{name} must be {_ANNOTATED_TYPES[annotation]}, got {value!r}")
+        if isinstance(value, DictConfig) and "_target_" in value:
+            check_constructor(cfg, f"{key}.{name}")
+    for name in named:
+        p = parameters[name]
+        if p.default is p.empty and name not in node and name not in supplied:
+            raise ConfigError(f"{key}.{name}: required by {target_name}, not set")
+
+
+def validate_models(cfg: DictConfig) -> None:
+    """The ranges a constructor's signature cannot state (for the keys the config has), then
+    every model config a step builds (``pae.steps.MODELS``) against its class's constructor."""
+    for key, low in (("teacher.model.latent_dim", 1), ("pae.latent_dim", 1), ("pae.L", 0)):
+        if _present(cfg, key):
+            _integer(cfg, key, low)
+    if _present(cfg, "pae.hidden"):
+        hidden = _value(cfg, "pae.hidden")
+        if not isinstance(hidden, ListConfig) or not all(_is_int(h) and h >= 1 for h in hidden):
+            raise ConfigError(f"pae.hidden must be a list of layer widths >= 1, got {hidden!r}")
+    for key, supplied in MODELS.items():
+        check_constructor(cfg, key, supplied)
 
 
 def _is_synthetic(cfg: DictConfig) -> bool:
@@ -299,23 +375,19 @@ def validate_train_config(cfg: DictConfig) -> None:
     """All of pae-train's settings (conf/train.yaml); raises ConfigError naming the key."""
     from pae.losses import LATENT_LOSSES
 
-    steps = cfg.stage.steps
-    unknown = [step for step in steps if step not in STEPS]
-    if unknown:
-        raise ConfigError(f"unknown stage.steps {unknown}; choose from {list(STEPS)}")
+    steps = list(cfg.stage.steps)
+    try:
+        steps_of(steps)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    validate_models(cfg)
     _validate_common(cfg)
     _boolean(cfg, "resume")
     for group in GROUPS:
         _integer(cfg, f"{group}.max_epochs", 0)
         _number(cfg, f"{group}.optimizer.lr", 0, strict=True)
         _number(cfg, f"{group}.optimizer.weight_decay", 0, strict=False, optional=True)
-    _integer(cfg, "teacher.model.latent_dim", 1)
     _number(cfg, "teacher.scene_loss_weight", 0, strict=False)
-    _integer(cfg, "pae.L", 0)
-    _integer(cfg, "pae.latent_dim", 1)
-    hidden = _value(cfg, "pae.hidden")
-    if not isinstance(hidden, ListConfig) or not all(_is_int(h) and h >= 1 for h in hidden):
-        raise ConfigError(f"pae.hidden must be a list of layer widths >= 1, got {hidden!r}")
     _choice(cfg, "student.input", ("gt", "teacher"))
     _choice(cfg, "student.latent_loss", LATENT_LOSSES)
     _boolean(cfg, "student.cache_latents")
@@ -331,13 +403,12 @@ def validate_train_config(cfg: DictConfig) -> None:
         _number(cfg, "rpr.pair_offset.orientation_deg", 0, strict=False)
     _boolean(cfg, "backbone.pretrained")
     _file(cfg, "backbone.weights_path")
-    for key in ("teacher_ckpt", "student_ckpt", "decoder_ckpt"):
+    for key in CHECKPOINTS:
         _file(cfg, key)
     _validate_scene_model(cfg)
-    for index, step in enumerate(steps):
-        for key, producer in NEEDS.get(step, ()):
-            if _value(cfg, key) is None and producer not in steps[:index]:
-                raise ConfigError(f"stage={cfg.stage.name} needs {key}=PATH")
+    missing = missing_checkpoints(steps, {key: _value(cfg, key) for key in CHECKPOINTS})
+    if missing:
+        raise ConfigError(f"stage={cfg.stage.name} needs {missing[0][1]}=PATH")
     validate_data(cfg, train=True)
 
 
@@ -379,4 +450,12 @@ def validate_eval_config(cfg: DictConfig) -> None:
         )
     for key in ("student_ckpt", "teacher_ckpt", "scene_model_ckpt"):
         _file(cfg, key)
+    methods = _value(cfg, "method_ckpts")
+    if methods is not None and not isinstance(methods, ListConfig):
+        raise ConfigError(f"method_ckpts must be a list of checkpoint paths, got {methods!r}")
+    for position, path in enumerate(methods or []):
+        if not Path(str(path)).is_file():
+            raise ConfigError(f"method_ckpts[{position}]={path}: no such file")
+    if "iapr_iterations" in cfg:
+        _integer(cfg, "iapr_iterations", 1)
     validate_data(cfg, train=False)

@@ -20,9 +20,10 @@ from torch.utils.data import DataLoader
 from pae.bench.methods import bench_methods
 from pae.bench.refinement import bench_first_layer_gain, bench_index, bench_refinement
 from pae.bench.render_compare import bench_render_compare
+from pae.bench.rendering import measure_render_speed
 from pae.data.datamodule import PoseDataModule
 from pae.data.latents import TeacherLatentDataModule
-from pae.data.synthetic import measure_render_speed, write_synthetic_dataset
+from pae.data.synthetic import write_synthetic_dataset
 from pae.lit.student import StudentModule
 from pae.losses import LearnedPoseLoss
 from pae.models.backbones import Backbone

@@ -17,7 +17,6 @@ import torch
 from torch import Tensor, nn
 
 from pae.data.transforms import ImageTransform
-from pae.lit.iapr import iterate
 from pae.models.backbones import Backbone
 from pae.models.decoder import ImageDecoder
 from pae.models.iapr import IterativeAPR
@@ -25,6 +24,13 @@ from pae.models.pae import PoseAutoEncoder
 from pae.models.posenet import PoseNet
 from pae.models.rpr import SiameseRPR
 from pae.refine.index import PoseIndex
+from pae.refine.relative import (
+    ImageRefiner,
+    ImageRPR,
+    IterativeAPRRefiner,
+    RefinedPoses,
+    VirtualRPR,
+)
 from pae.refine.weights import refine_affine
 
 
@@ -94,24 +100,19 @@ def bench_methods(
             fit = refine_affine(answer.latents.joint(), neighbours[None], poses[rows][None])
         return fit.weights
 
-    def vrpr(i: int) -> Tensor:
-        query = image(i)
-        answer = teacher.estimate(query, torch.zeros(1, dtype=torch.long))
-        row = index.query(answer.pose, answer.scene, 1)[0][:, 0]
-        decoded = decoder(pae(poses[row], scene_ids[row]).joint())
-        decoded = nn.functional.interpolate(decoded, size=(crop, crop), mode="bilinear")
-        return rpr(query, ImageTransform.normalize_batch(decoded))
+    def with_method(method: ImageRefiner) -> Callable[[int], RefinedPoses]:
+        def refine(i: int) -> RefinedPoses:
+            query = image(i)
+            return method(query, teacher.estimate(query, torch.zeros(1, dtype=torch.long)))
 
-    def rpr_image(i: int) -> Tensor:
-        query = image(i)
-        answer = teacher.estimate(query, torch.zeros(1, dtype=torch.long))
-        row = index.query(answer.pose, answer.scene, 1)[0][:, 0]
-        return rpr(query, transform(store_images[row]))
+        return refine
 
-    def iapr_n(i: int) -> list[Tensor]:
-        query = image(i)
-        answer = teacher.estimate(query, torch.zeros(1, dtype=torch.long))
-        return iterate(iapr, pae, query, answer.pose, answer.scene, iapr_iterations)
+    def train_images(rows: Tensor, device: torch.device | str) -> Tensor:
+        return transform(store_images[rows.cpu()]).to(device)
+
+    vrpr = with_method(VirtualRPR(rpr, pae, decoder, index))
+    rpr_image = with_method(ImageRPR(rpr, index, train_images))
+    iapr_n = with_method(IterativeAPRRefiner(iapr, pae, iapr_iterations))
 
     pose_bytes = index.memory_bytes
     image_bytes = store_images.numel() * store_images.element_size()

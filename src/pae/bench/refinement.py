@@ -3,6 +3,7 @@ series against the plain sum it replaces, and the pose index."""
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import time
@@ -14,16 +15,18 @@ import torch
 from torch import Tensor
 
 from pae.data.labels import LabelTable, read_labels
+from pae.refine.fused import fit_mlp_weights_fused
 from pae.refine.index import PoseIndex
 from pae.refine.reference import WeightRegressor, first_layer_gain_direct, refine_affine_per_query
 from pae.refine.regressor import (
     ADAM_BETAS,
     ADAM_EPS,
     SERIES_RATIO,
-    _FirstLayerGain,
+    FirstLayerGain,
+    fit_mlp_weights,
     regressor_hidden_sizes,
 )
-from pae.refine.weights import refine_affine
+from pae.refine.weights import matching_loss, refine_affine
 
 
 def _seconds(run: Callable[[], object], repeats: int = 1) -> float:
@@ -84,6 +87,29 @@ def mlp_flops_per_query(k: int, latent_dim: int, iterations: int) -> float:
     return 2 * macs * (3 * iterations + 1)
 
 
+def fused_flops_per_query(
+    query: Tensor, neighbours: Tensor, iterations: int, generator: torch.Generator
+) -> float:
+    """FLOPs (2 per multiply-add) the fused loop actually does per query, counted by the
+    loop itself (``pae.refine.fused._fit_rows``' ``macs``), with ``refine_affine``'s defaults
+    (lr 1e-3, weight decay 0.01, the L2 objective) on these inputs."""
+    macs = np.zeros(len(query), dtype=np.int64)
+    fit_mlp_weights(
+        query,
+        neighbours,
+        iterations,
+        1e-3,
+        0.01,
+        functools.partial(matching_loss, objective="l2"),
+        None,
+        generator,
+        None,
+        64,
+        functools.partial(fit_mlp_weights_fused, mse=False, macs=macs),
+    )
+    return 2.0 * float(macs.mean())
+
+
 def matmul_gflops(size: int = 1024, repeats: int = 5) -> float:
     """Measured float32 matrix-product speed of this machine (GFLOP/s, best of ``repeats``)."""
     a, b = torch.randn(size, size), torch.randn(size, size)
@@ -110,10 +136,15 @@ def bench_refinement(
     ``repeats`` runs, so that a busy moment on a shared machine does not decide the ratio.
     "batched" is ``refine_affine``'s default on the CPU (``engine="auto"``: the fused
     compiled loop); ``tensor_ops`` is its ``engine="batched"`` path. ``speedup`` is public
-    loop / batched; ``roofline_fraction`` is the time the stored-weight arithmetic
-    (``mlp_flops_per_query``) needs at the measured matrix-product speed, over the batched
-    time. Also times the batched ``softmax_logits`` and ``closed_form`` models on the same
-    inputs.
+    loop / batched. Two figures against the measured matrix-product speed: ``roofline_fraction``
+    is the time the arithmetic the fused loop actually does (``fused_flops_per_query``,
+    ``mflop_done_per_query``) needs at that speed, over the batched time (a fraction of the
+    limit: at most 1 unless the loop outran the matrix product); ``stored_weight_ratio`` is
+    the same for the arithmetic of the model with every weight stored
+    (``mlp_flops_per_query``, ``mflop_per_query``), which the closed-form first layer and the
+    skipped zero units avoid, so it may exceed 1: how much faster than that arithmetic at
+    matrix-product speed the batched path runs. Also times the batched ``softmax_logits``
+    and ``closed_form`` models on the same inputs.
     """
     generator = torch.Generator().manual_seed(seed)
     dim = 2 * latent_dim
@@ -146,6 +177,8 @@ def bench_refinement(
     batched_ms = batched * per_query_ms
     loop_ms = loop * 1e3 / (public.stop - public.start)
     flops = mlp_flops_per_query(k, dim, iterations)
+    done = fused_flops_per_query(query, neighbours, iterations, generator)
+    seconds_per_flop_ms = 1e3 / (gflops * 1e9)
     return {
         "bench/refine/batched_ms_per_query": batched_ms,
         "bench/refine/tensor_ops_ms_per_query": tensor_ops * per_query_ms,
@@ -155,7 +188,9 @@ def bench_refinement(
         "bench/refine/speedup_vs_per_query": per_query * per_query_ms / batched_ms,
         "bench/refine/mflop_per_query": flops / 1e6,
         "bench/refine/matmul_gflops": gflops,
-        "bench/refine/roofline_fraction": flops / (gflops * 1e9) * 1e3 / batched_ms,
+        "bench/refine/mflop_done_per_query": done / 1e6,
+        "bench/refine/roofline_fraction": done * seconds_per_flop_ms / batched_ms,
+        "bench/refine/stored_weight_ratio": flops * seconds_per_flop_ms / batched_ms,
         "bench/refine/softmax_logits_ms_per_query": logits * per_query_ms,
         "bench/refine/closed_form_ms_per_query": closed * per_query_ms,
     }
@@ -164,7 +199,7 @@ def bench_refinement(
 def bench_first_layer_gain(
     batch: int = 64, k: int = 3, latent_dim: int = 256, repeats: int = 20, seed: int = 0
 ) -> dict[str, float]:
-    """Milliseconds of one ``_FirstLayerGain`` step (the MLP weight model's closed-form first
+    """Milliseconds of one ``FirstLayerGain`` step (the MLP weight model's closed-form first
     layer) on one ``refine_affine`` chunk's sizes (``batch`` queries, n = k·2·latent_dim
     inputs, h = 64k hidden units, float32 working dtype), against the plain chunked sum it
     replaces (``first_layer_gain_direct``); each includes one third of its preparation (a
@@ -178,7 +213,7 @@ def bench_first_layer_gain(
     ratio = SERIES_RATIO[torch.float32]
 
     def series() -> None:
-        gain = _FirstLayerGain(inputs, ADAM_EPS, ratio)
+        gain = FirstLayerGain(inputs, ADAM_EPS, ratio)
         for _ in range(3):
             gain(scale)
 

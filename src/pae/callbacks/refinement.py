@@ -15,6 +15,7 @@ from pae.geometry import pose_errors
 from pae.metrics import first_occurrences, summarise_errors
 from pae.models.base import Latents
 from pae.refine import (
+    ACTIVATIONS,
     ORIENTATION_MODES,
     WEIGHT_MODELS,
     PoseIndex,
@@ -86,6 +87,7 @@ class TestTimeRefinement(L.Callback):
         iterations: int = 3,
         lr: float = 1e-3,
         weight_model: str = "mlp",
+        activation: str = "relu",
         orientation: str = "teacher",
         distance: str = "normalized",
         rot_weight: float = 0.01,
@@ -103,6 +105,7 @@ class TestTimeRefinement(L.Callback):
             "iterations": iterations,
             "lr": lr,
             "weight_model": weight_model,
+            "activation": activation,
             "orientation": orientation,
         }
         self.distance = distance
@@ -120,6 +123,10 @@ class TestTimeRefinement(L.Callback):
         if weight_model not in WEIGHT_MODELS:
             raise ValueError(
                 f"unknown refine.weight_model {weight_model!r}; choose {WEIGHT_MODELS}"
+            )
+        if activation not in ACTIVATIONS:
+            raise ValueError(
+                f"unknown refine.activation {activation!r}; choose {tuple(ACTIVATIONS)}"
             )
         if orientation not in ORIENTATION_MODES:
             raise ValueError(

@@ -23,7 +23,7 @@ from pae.errors import ConfigError, LabelError
 
 
 class PoseDataModule(L.LightningDataModule):
-    """Pose-labelled images from label files (see README, "Data") under `root`.
+    """Pose-labelled images from label files (see docs/usage.md, "Data") under `root`.
 
     The validation split: `val_labels` when given; otherwise rows held out of the train
     labels, neither trained on nor stored for retrieval (`train_poses`, the fingerprint):

@@ -8,38 +8,15 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from pae.geometry import canonicalize_quaternion, compose_pose, relative_pose
+from pae.geometry import canonicalize_quaternion, relative_pose
 from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import PoseEvaluation
-from pae.lit.rpr import perturb_poses
 from pae.losses import LearnedPoseLoss
 from pae.models.base import PoseRegressor
 from pae.models.iapr import IterativeAPR
 from pae.models.pae import PoseAutoEncoder
-
-
-def iterate(
-    model: IterativeAPR,
-    pae: PoseAutoEncoder,
-    images: Tensor,
-    start: Tensor,
-    scene: Tensor,
-    iterations: int,
-    refine_orientation: bool = True,
-) -> list[Tensor]:
-    """Apply the iterative APR `iterations` times from `start` [B, 7] (unit q) -> the pose
-    after each iteration, [B, 7] each. With refine_orientation=False only positions move
-    (the starting orientation is kept)."""
-    poses, pose = [], start
-    for _ in range(iterations):
-        with torch.no_grad():
-            encoding = pae(pose, scene).joint()
-        moved = compose_pose(pose, model(images, encoding))
-        if not refine_orientation:
-            moved = torch.cat([moved[:, :3], start[:, 3:]], dim=-1)
-        poses.append(moved)
-        pose = moved
-    return poses
+from pae.pose_sampling import perturb_poses
+from pae.refine.relative import IterativeAPRRefiner
 
 
 class IAPRModule(PaeModule):
@@ -116,14 +93,7 @@ class IAPRModule(PaeModule):
         images, gt, scene, index = batch["image"], batch["pose"], batch["scene"], batch.get("index")
         answer = self.teacher.estimate(images, scene)
         self.evaluation.update(split, "teacher", answer.raw_pose, gt, scene, index)
-        steps = iterate(
-            self.iapr,
-            self.pae,
-            images,
-            answer.pose,
-            answer.scene,
-            self.iterations,
-            self.refine_orientation,
-        )
+        method = IterativeAPRRefiner(self.iapr, self.pae, self.iterations, self.refine_orientation)
+        steps = method.iterates(images, answer.pose, answer.scene)
         for i, pose in enumerate(steps, start=1):
             self.evaluation.update(split, f"iapr_{i}", pose, gt, scene, index)

@@ -3,20 +3,13 @@ the query image and an image decoded from a train pose's PAE encoding."""
 
 from __future__ import annotations
 
-import math
 from abc import ABC, abstractmethod
 from typing import Any
 
 import torch
 from torch import Tensor, nn
 
-from pae.data.transforms import ImageTransform
-from pae.geometry import (
-    canonicalize_quaternion,
-    compose_pose,
-    quaternion_multiply,
-    relative_pose,
-)
+from pae.geometry import relative_pose
 from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import PoseEvaluation
 from pae.losses import LearnedPoseLoss
@@ -24,32 +17,9 @@ from pae.models.base import PoseRegressor
 from pae.models.decoder import ImageDecoder
 from pae.models.pae import PoseAutoEncoder
 from pae.models.rpr import SiameseRPR
+from pae.pose_sampling import perturb_poses
 from pae.refine.index import PoseIndex
-
-
-def perturb_poses(
-    poses: Tensor,
-    position_m: float,
-    orientation_deg: float,
-    generator: torch.Generator | None = None,
-) -> Tensor:
-    """Starting poses around poses [B, 7] (unit q): each moved by a distance uniform in
-    [0, 2·position_m] (median position_m) in a uniformly random direction, and rotated by an
-    angle uniform in [0, 2·orientation_deg] about a uniformly random axis -> [B, 7], qw >= 0."""
-    b, device, dtype = poses.shape[0], poses.device, poses.dtype
-
-    def directions() -> Tensor:
-        v = torch.randn(b, 3, generator=generator, dtype=dtype).to(device)
-        return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-
-    def amounts(scale: float) -> Tensor:
-        return (2 * scale * torch.rand(b, 1, generator=generator, dtype=dtype)).to(device)
-
-    position = poses[:, :3] + amounts(position_m) * directions()
-    half = amounts(orientation_deg) * (math.pi / 360.0)
-    turn = torch.cat([half.cos(), half.sin() * directions()], dim=-1)
-    rotation = canonicalize_quaternion(quaternion_multiply(poses[:, 3:], turn))
-    return torch.cat([position, rotation], dim=-1)
+from pae.refine.relative import VirtualRPR
 
 
 def nearby_references(
@@ -194,31 +164,26 @@ class RPRModule(PairedRPRModule):
         )
         self.pae = pae.eval().requires_grad_(False)
         self.decoder = decoder.eval().requires_grad_(False)
+        self.method: VirtualRPR | None = None
 
     def frozen(self) -> list[nn.Module]:
         return [self.teacher, self.pae, self.decoder]
 
-    def virtual_reference(self, poses: Tensor, scenes: Tensor, crop: int) -> Tensor:
-        """Decoded images of poses [B, 7] as network input [B, 3, crop, crop]."""
-        with torch.no_grad():
-            images = self.decoder(self.pae(poses, scenes).joint())
-        images = nn.functional.interpolate(images, size=(crop, crop), mode="bilinear")
-        return ImageTransform.normalize_batch(images)
+    def use_data(self, datamodule: Any) -> None:
+        """Take the train poses (the retrieval store) and build the test-time method on them."""
+        super().use_data(datamodule)
+        assert self.index is not None
+        self.method = VirtualRPR(self.rpr, self.pae, self.decoder, self.index)
 
     def reference_images(self, rows: Tensor, poses: Tensor, scenes: Tensor, like: Tensor) -> Tensor:
-        return self.virtual_reference(poses, scenes, like.shape[-1])
+        assert self.method is not None
+        return self.method.reference_images(poses, scenes, like.shape[-1])
 
     def evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
-        assert self.index is not None
+        assert self.method is not None
         images, gt, scene = batch["image"], batch["pose"], batch["scene"]
         answer = self.teacher.estimate(images, scene)
-        nearest, _ = self.index.query(answer.pose, answer.scene, 1)
-        reference = self.index.poses.to(gt.device)[nearest[:, 0].to(gt.device)]
-        relative = self.rpr(
-            images, self.virtual_reference(reference, answer.scene, images.shape[-1])
-        )
-        position = compose_pose(reference, relative)[:, :3]
-        vrpr = torch.cat([position, answer.pose[:, 3:]], dim=-1)
+        vrpr = self.method(images, answer).poses
         index = batch.get("index")
         self.evaluation.update(split, "teacher", answer.raw_pose, gt, scene, index)
         self.evaluation.update(split, "vrpr", vrpr, gt, scene, index)

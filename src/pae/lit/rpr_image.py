@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import torch
 from torch import Tensor
 
 from pae.lit.base import OptimizerFactory, SchedulerFactory
@@ -13,26 +12,7 @@ from pae.lit.rpr import PairedRPRModule
 from pae.losses import LearnedPoseLoss
 from pae.models.base import PoseRegressor
 from pae.models.rpr import SiameseRPR
-
-
-class TrainImages:
-    """The train split's images by row, as network input (evaluation pre-processing).
-
-    Rows are read as one batch through the train dataset (a single indexing operation with
-    the in-memory image cache, batched decoding otherwise).
-    """
-
-    def __init__(self, datamodule: Any) -> None:
-        self.dataset = datamodule.datasets["train"]
-        self.preprocess = datamodule.preprocess
-
-    def __len__(self) -> int:
-        return len(self.dataset)
-
-    def __call__(self, rows: Tensor, device: torch.device | str) -> Tensor:
-        """rows [B] long indices into the train split -> images [B, 3, crop, crop]."""
-        batch = self.dataset.__getitems__(rows.cpu().tolist())
-        return self.preprocess(batch["image"].to(device), train=False)
+from pae.refine.relative import ImageRPR, TrainImages, with_position
 
 
 class ImageRPRModule(PairedRPRModule):
@@ -43,8 +23,8 @@ class ImageRPRModule(PairedRPRModule):
 
     Evaluation (each method's orientation is reported; only positions are refined, so the
     RPR methods keep the teacher's orientation):
-    - `rpr_image`: the teacher estimates the pose, the train image of the nearest train pose
-      to that estimate is the reference; position = reference position + translation.
+    - `rpr_image`: ``pae.refine.ImageRPR`` from the teacher's estimate (the train image of
+      the train pose nearest the estimate is the reference).
     - `rpr_reference`: that retrieved train pose itself used as the estimate (position and
       orientation), so one sees what the RPR adds to retrieval.
     - `rpr_image_test_store`, `rpr_reference_test_store`: the same with the train pose
@@ -79,34 +59,27 @@ class ImageRPRModule(PairedRPRModule):
             pair_offset,
         )
         self.images: TrainImages | None = None
+        self.method: ImageRPR | None = None
 
     def use_data(self, datamodule: Any) -> None:
         """Take the train poses (the retrieval store) and train images from the data module."""
         super().use_data(datamodule)
+        assert self.index is not None
         self.images = TrainImages(datamodule)
+        self.method = ImageRPR(self.rpr, self.index, self.images)
 
     def reference_images(self, rows: Tensor, poses: Tensor, scenes: Tensor, like: Tensor) -> Tensor:
         assert self.images is not None
         return self.images(rows, like.device)
 
-    def refine(self, images: Tensor, estimate: Tensor, scene: Tensor) -> tuple[Tensor, Tensor]:
-        """Query images and pose estimates [B, 7] (unit q) -> (refined poses [B, 7]: the
-        reference position + the RPR's translation and the estimate's orientation, the
-        reference poses [B, 7] retrieved for the estimates)."""
-        assert self.index is not None and self.images is not None
-        rows = self.index.query(estimate, scene, 1)[0][:, 0]
-        reference = self.index.poses.to(estimate.device)[rows.to(estimate.device)]
-        relative = self.rpr(images, self.images(rows, images.device))
-        position = reference[:, :3] + relative[:, :3]
-        return torch.cat([position, estimate[:, 3:]], dim=-1), reference
-
     def evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
+        assert self.method is not None
         images, gt, scene, index = batch["image"], batch["pose"], batch["scene"], batch.get("index")
         answer = self.teacher.estimate(images, scene)
-        refined, reference = self.refine(images, answer.pose, answer.scene)
+        refined, reference = self.method(images, answer)
         # the audit: retrieval by the true pose (and scene); the teacher's orientation kept
-        oracle, oracle_reference = self.refine(images, gt, scene)
-        oracle = torch.cat([oracle[:, :3], answer.pose[:, 3:]], dim=-1)
+        oracle, oracle_reference = self.method(images, answer._replace(pose=gt, scene=scene))
+        oracle = with_position(oracle, answer.pose)
         update = self.evaluation.update
         update(split, "teacher", answer.raw_pose, gt, scene, index)
         update(split, "rpr_image", refined, gt, scene, index)

@@ -13,7 +13,8 @@ from pae.models.pae import mlp
 class ImageDecoder(nn.Module):
     """MLP over [ẑ_x, ẑ_q] [B, 2d] -> image [B, 3, size, size] in [0, 1].
 
-    Hidden widths 512, 1024, 2048 (ReLU) and a sigmoid output, as in the paper (size 64).
+    Hidden widths 512, 1024, 2048 (ReLU) as in the paper (size 64), and a sigmoid output
+    (not in the paper: the images lie in [0, 1]; docs/departures.md).
     """
 
     def __init__(

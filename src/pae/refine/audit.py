@@ -16,8 +16,8 @@ import numpy as np
 import torch
 
 from pae.data.labels import LabelTable
+from pae.pose_sampling import perturb_positions
 from pae.refine.index import PoseDistance, PoseIndex
-from pae.refine.refiner import perturb_positions
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ each for k = 3) through memory several times, which bounds it by memory traffic.
 compiled function (numba) runs a query's whole fit, forward, backward and the AdamW update
 of each element fused, while its parameters stay in the core's cache, then moves to the next
 query. The arithmetic is that of ``pae.refine.regressor``: the first layer by its closed
-form (``_FirstLayerGain``'s series, in float64) and the later layers' AdamW element by
+form (``FirstLayerGain``'s series, in float64) and the later layers' AdamW element by
 element, in the inputs' dtype. Queries are split over ``torch.get_num_threads()`` threads
 (the function releases the GIL).
 """
@@ -14,44 +14,58 @@ element, in the inputs' dtype. Queries are split over ``torch.get_num_threads()`
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from pae.compiled import jit
-from pae.refine.regressor import _SMALLEST, ADAM_BETAS, ADAM_EPS, SERIES_RATIO, LayerParams
-
-_FASTMATH = {"reassoc", "contract"}
-"""Reassociated sums (vectorised reductions) and fused multiply-adds; no other liberties, so
-NaN and infinity keep their meaning. ``error_model="numpy"``: a division by zero gives inf or
-NaN as in numpy and torch instead of raising, which also lets divisions vectorise."""
+from pae.compiled import FASTMATH, copy_into, insert_sorted, jit, run_in_parts
+from pae.refine.regressor import ADAM_BETAS, ADAM_EPS, SERIES_RATIO, SMALLEST_INPUTS, LayerParams
 
 
-@jit(nogil=True)
-def insert_sorted(values: np.ndarray, labels: np.ndarray, value: float, label: int) -> None:
-    """Insert ``value`` (with ``label``) into the ascending ``values`` [m] (and ``labels``
-    [m]), dropping the last entry; the caller has checked that value < values[-1]."""
-    slot = values.shape[0] - 1
-    while slot > 0 and values[slot - 1] > value:
-        values[slot] = values[slot - 1]
-        labels[slot] = labels[slot - 1]
-        slot -= 1
-    values[slot] = value
-    labels[slot] = label
+@dataclass(frozen=True)
+class CompiledKernel:
+    """What a compiled fit implements of the weight regressor ``pae.refine.regressor``
+    defines: ``engine="auto"`` runs it only for a configured model it implements (the others
+    take the tensor path), and ``engine="fused"`` on any other is an error.
+
+    activations: the hidden activations (keys of ``regressor.ACTIVATIONS``); objectives: the
+    matching losses; min_hidden_layers: the fewest hidden layers it takes (any number above);
+    skip_rule: the arithmetic it leaves out, and why that is exact for those activations.
+    """
+
+    activations: tuple[str, ...]
+    objectives: tuple[str, ...]
+    min_hidden_layers: int
+    skip_rule: str
+
+    def mismatch(self, activation: str, objective: str, hidden_layers: int) -> str | None:
+        """Why this kernel cannot fit the configured model (None when it can)."""
+        if activation not in self.activations:
+            return f"it implements activation {' or '.join(self.activations)}, not {activation!r}"
+        if objective not in self.objectives:
+            return f"it implements objective {' or '.join(self.objectives)}, not {objective!r}"
+        if hidden_layers < self.min_hidden_layers:
+            return f"it needs at least {self.min_hidden_layers} hidden layer(s)"
+        return None
 
 
-@jit(nogil=True, inline="always")
-def _copy(source: np.ndarray, target: np.ndarray) -> None:
-    """target[i] = source[i] for the length of ``source`` (1-D); a plain loop, which numba
-    compiles to a vectorised copy (slice assignment takes a slower general path)."""
-    for i in range(np.uint64(source.shape[0])):
-        target[i] = source[i]
+FUSED_KERNEL = CompiledKernel(
+    activations=("relu",),
+    objectives=("l2", "mse"),
+    min_hidden_layers=1,
+    skip_rule=(
+        "a hidden unit exactly 0 after the activation adds nothing forward and gets no "
+        "gradient (ReLU's derivative is 0 there), so its weight row's AdamW step is the decay "
+        "alone while its moments are 0: exact for ReLU only"
+    ),
+)
+"""What ``fit_mlp_weights_fused`` implements (``_fit_rows``)."""
 
 
-@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
+@jit(nogil=True, fastmath=FASTMATH, error_model="numpy", inline="always")
 def _sum_powers(a: np.ndarray, sums: np.ndarray) -> None:
     """sums [5] = Σ over the positive values of a [n] of (aᵢ, 1, aᵢ⁻¹, aᵢ⁻², aᵢ⁻³)."""
     total, count, first, second, third = 0.0, 0.0, 0.0, 0.0, 0.0
@@ -67,7 +81,7 @@ def _sum_powers(a: np.ndarray, sums: np.ndarray) -> None:
     sums[0], sums[1], sums[2], sums[3], sums[4] = total, count, first, second, third
 
 
-@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy")
+@jit(nogil=True, fastmath=FASTMATH, error_model="numpy")
 def _prepare_gain(a: np.ndarray, smallest: np.ndarray, sums: np.ndarray, where: np.ndarray) -> None:
     """Fill ``smallest`` [m] with the m smallest positive values of a [n] (ascending, inf
     where fewer; among equal values the first ones) and ``sums`` [m + 1, 5] with the power
@@ -112,7 +126,7 @@ def _prepare_gain(a: np.ndarray, smallest: np.ndarray, sums: np.ndarray, where: 
             sums[c, 4] += inverse * inverse * inverse
 
 
-@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
+@jit(nogil=True, fastmath=FASTMATH, error_model="numpy", inline="always")
 def _power_sums(source: np.ndarray, a: np.ndarray, sums: np.ndarray) -> float:
     """a [n] = |source| in float64, ``sums`` [5] = its power sums (``_sum_powers``), as
     ``_prepare_gain``'s last row; returns the least positive value (inf if none)."""
@@ -125,9 +139,9 @@ def _power_sums(source: np.ndarray, a: np.ndarray, sums: np.ndarray) -> float:
     return least
 
 
-@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
+@jit(nogil=True, fastmath=FASTMATH, error_model="numpy", inline="always")
 def _series(sums: np.ndarray, s: float, eps: float) -> float:
-    """Σᵢ aᵢ² / (aᵢ·s + eps) by ``_FirstLayerGain``'s series, (1/s)·Σₚ₌₀⁴ (−eps/s)ᵖ·Σᵢ
+    """Σᵢ aᵢ² / (aᵢ·s + eps) by ``FirstLayerGain``'s series, (1/s)·Σₚ₌₀⁴ (−eps/s)ᵖ·Σᵢ
     aᵢ^(1−p), from the power sums ``sums`` [5] of ``_sum_powers`` (Horner in −eps/s)."""
     factor = -eps / s
     total = sums[4]
@@ -136,7 +150,7 @@ def _series(sums: np.ndarray, s: float, eps: float) -> float:
     return total / s
 
 
-@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy")
+@jit(nogil=True, fastmath=FASTMATH, error_model="numpy")
 def _band_gains(
     a: np.ndarray,
     smallest: np.ndarray,
@@ -149,7 +163,7 @@ def _band_gains(
 ) -> None:
     """gains[j] = Σᵢ aᵢ² / (aᵢ·s + eps) at s = spreads[j] > 0 for the units that
     ``_series_gains`` left NaN (some input below the series' range, aᵢ·s < ratio·eps), as
-    ``_FirstLayerGain`` evaluates it (float64): the series over the sums without the inputs
+    ``FirstLayerGain`` evaluates it (float64): the series over the sums without the inputs
     below the unit's threshold (``_prepare_gain``'s sums row), plus those inputs' terms
     summed directly; when every one of the m smallest inputs is below it, all n terms
     directly. The units are taken together, so that the direct terms vectorise across them.
@@ -189,7 +203,7 @@ def _band_gains(
         gains[int(units[p])] = total
 
 
-@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
+@jit(nogil=True, fastmath=FASTMATH, error_model="numpy", inline="always")
 def _adamw(
     params: np.ndarray,
     avg: np.ndarray,
@@ -226,7 +240,7 @@ def _adamw(
         params[at] = keep * params[at] - step_size * first / (np.sqrt(second) * root + eps)
 
 
-@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
+@jit(nogil=True, fastmath=FASTMATH, error_model="numpy", inline="always")
 def _decay(params: np.ndarray, base: int, count: int, keep: float) -> None:
     """AdamW's step of ``count`` parameters from ``base`` whose gradient and moments are all
     zero: the weight decay alone (the Adam term is 0 / (0 + eps) = 0)."""
@@ -235,7 +249,7 @@ def _decay(params: np.ndarray, base: int, count: int, keep: float) -> None:
         params[at] = keep * params[at]
 
 
-@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
+@jit(nogil=True, fastmath=FASTMATH, error_model="numpy", inline="always")
 def _first_layer_step(
     grads: np.ndarray,
     first_avg: np.ndarray,
@@ -261,7 +275,7 @@ def _first_layer_step(
         bias[j] = keep * bias[j] - step_size * first / (spread + eps)
 
 
-@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
+@jit(nogil=True, fastmath=FASTMATH, error_model="numpy", inline="always")
 def _series_gains(
     spreads: np.ndarray, gains: np.ndarray, full: np.ndarray, least: float, eps: float, ratio: float
 ) -> bool:
@@ -282,7 +296,7 @@ def _series_gains(
     return pending
 
 
-@jit(nogil=True, fastmath=_FASTMATH, error_model="numpy")
+@jit(nogil=True, fastmath=FASTMATH, error_model="numpy")
 def _fit_rows(
     query: np.ndarray,
     inputs: np.ndarray,
@@ -296,6 +310,7 @@ def _fit_rows(
     smallest_count: int,
     ratio: float,
     out: np.ndarray,
+    macs: np.ndarray,
 ) -> None:
     """Fit the weight regressors of rows ``query`` [b, D] / ``inputs`` [b, k·D] and write their
     final softmax weights to ``out`` [b, k].
@@ -311,6 +326,12 @@ def _fit_rows(
     while it has had no other, its moments are zero too and its AdamW step is the weight
     decay alone (``_decay``), which skips the square root and division of about half the
     rows. Its input gradient is zero, so its backward dot product is skipped as well.
+
+    ``macs`` [b] (int64) receives the multiply-adds each row's fit did: the later layers'
+    forward products, input-gradient dot products and weight gradients (one per weight row
+    updated, as ``value · grad``), the loss and its gradient (2·k·D per step), the first
+    layer's power sums (5 per input, once) and series (5 per unit and step). Not counted: the
+    element-wise AdamW arithmetic, the softmax, and the band gains' rare direct sums.
     """
     rows, dim = query.shape
     width = inputs.shape[1]
@@ -322,7 +343,7 @@ def _fit_rows(
     one = beta1 / beta1
     zero = beta1 - beta1
     iterations = schedule.shape[0]
-    eps64 = np.float64(ADAM_EPS)  # the first layer's gain, in float64 as in _FirstLayerGain
+    eps64 = np.float64(ADAM_EPS)  # the first layer's gain, in float64 as in FirstLayerGain
     params = np.empty(count, dtype=start.dtype)
     avg = np.empty(count, dtype=start.dtype)
     avg_sq = np.empty(count, dtype=start.dtype)
@@ -347,11 +368,12 @@ def _fit_rows(
     where = np.empty(smallest_count, dtype=np.int64)
     full = np.empty(5, dtype=np.float64)
     for row in range(rows):
+        done = 5 * width
         least = _power_sums(inputs[row], a, full)
         prepared = False  # ``smallest`` and ``sums``, for _band_gains, made when first needed
-        _copy(start[row if start.shape[0] > 1 else 0], params)
-        _copy(first_preactivation[row], projected)
-        _copy(first_bias[row], bias)
+        copy_into(start[row if start.shape[0] > 1 else 0], params)
+        copy_into(first_preactivation[row], projected)
+        copy_into(first_bias[row], bias)
         for j in range(h):
             first_avg[j] = zero
             first_avg_sq[j] = zero
@@ -374,6 +396,7 @@ def _fit_rows(
                 for i in range(fan_in):
                     value = units[unit_in + i]
                     if value != 0:
+                        done += fan_out
                         base = np.uint64(offset + i * fan_out)
                         for j in range(np.uint64(fan_out)):
                             units[out_at + j] += value * params[base + j]
@@ -393,8 +416,9 @@ def _fit_rows(
                 out[row, j] /= norm
             if step == iterations:
                 break
+            done += 2 * width + 5 * h
             # loss gradient with respect to the softmax weights, then the logits
-            _copy(query[row], combined)
+            copy_into(query[row], combined)
             for j in range(k):
                 neighbour = inputs[row, j * dim : (j + 1) * dim]
                 share = out[row, j]
@@ -451,6 +475,7 @@ def _fit_rows(
                             _decay(params, base, fan_out, keep)
                             continue
                     else:
+                        done += fan_out
                         back = zero
                         for j in range(np.uint64(fan_out)):
                             back += params[np.uint64(base) + j] * grads[np.uint64(unit_out) + j]
@@ -469,6 +494,7 @@ def _fit_rows(
                         root,
                         not moving[unit_in + i],
                     )
+                    done += fan_out
                     moving[unit_in + i] = True
             # the first layer: bias by AdamW, x·W₁ by its closed form (its moments are x ⊗ μ
             # and x² ⊗ ν, with μ, ν those of the bias)
@@ -482,6 +508,7 @@ def _fit_rows(
                 _band_gains(a, smallest, sums, spreads, gains, eps64, ratio, scratch)
             for j in range(h):
                 projected[j] = keep * projected[j] - step_size * first_avg[j] * gains[j]
+        macs[row] = done
 
 
 def _numpy(tensor: Tensor) -> np.ndarray:
@@ -498,11 +525,13 @@ def fit_mlp_weights_fused(
     lr: float,
     weight_decay: float,
     mse: bool,
+    macs: np.ndarray | None = None,
 ) -> Tensor:
     """Final softmax weights [B, k] of the weight regressors, fitted on the CPU by
     ``_fit_rows``. query [B, D]; neighbours [B, k, D]; first_preactivation, first_bias
     [B, h]; ``layers`` the later layers (weight [1 or B, in, out], bias [1 or B, out]; one
-    row is shared by every query). float32 or float64, as ``query``."""
+    row is shared by every query). float32 or float64, as ``query``. ``macs`` [B] (int64),
+    when given, receives the multiply-adds each query's fit did (see ``_fit_rows``)."""
     dtype = query.dtype
     batch, k, dim = neighbours.shape
     shared = all(weight.shape[0] == 1 or weight.stride(0) == 0 for weight, _ in layers)
@@ -531,7 +560,8 @@ def fit_mlp_weights_fused(
     ]
     start_np = _numpy(start)
     out = np.empty((batch, k), dtype=arrays[0].dtype)
-    smallest = min(k * dim, _SMALLEST)
+    counts = np.empty(batch, dtype=np.int64) if macs is None else macs
+    smallest = min(k * dim, SMALLEST_INPUTS)
     ratio = SERIES_RATIO.get(dtype, 1e3)
 
     def run(part: slice) -> None:
@@ -545,20 +575,8 @@ def fit_mlp_weights_fused(
             smallest,
             ratio,
             out[part],
+            counts[part],
         )
 
     run_in_parts(run, batch, min_rows=32)
     return torch.from_numpy(out).to(query.device)
-
-
-def run_in_parts(run: Callable[[slice], None], rows: int, min_rows: int) -> None:
-    """Call ``run`` on consecutive row ranges of ``min_rows`` rows covering ``rows`` rows,
-    on ``torch.get_num_threads()`` threads at once, each taking the next range when it is
-    done (queries differ in cost): for compiled functions that release the GIL."""
-    parts = [slice(lo, min(lo + min_rows, rows)) for lo in range(0, rows, min_rows)]
-    threads = max(1, min(torch.get_num_threads(), len(parts)))
-    if threads == 1:
-        run(slice(0, rows))
-        return
-    with ThreadPoolExecutor(threads) as pool:
-        list(pool.map(run, parts))

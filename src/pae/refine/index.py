@@ -9,9 +9,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pae.compiled import jit
+from pae.compiled import insert_sorted, jit, run_in_parts
 from pae.geometry import canonicalize_quaternion
-from pae.refine.fused import insert_sorted, run_in_parts
 
 PoseDistance = Literal["normalized", "fixed"]
 SearchEngine = Literal["auto", "fused", "batched"]

@@ -3,7 +3,7 @@ not part of the API (``pae.refine`` does not export them).
 
 ``refine_affine_per_query`` fits one query at a time with a fresh ``nn.Module`` and optimiser,
 as the public code does (the closed form by another method than ``closed_form_weights``);
-``first_layer_gain_direct`` is the plain chunked sum that ``_FirstLayerGain``'s series
+``first_layer_gain_direct`` is the plain chunked sum that ``FirstLayerGain``'s series
 replaces.
 """
 
@@ -19,9 +19,10 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from pae.refine.regressor import (
-    _BAND_TERMS,
+    ACTIVATIONS,
     ADAM_BETAS,
     ADAM_EPS,
+    BAND_TERMS,
     LayerParams,
     check_mlp_init,
     init_weight_regressor,
@@ -40,12 +41,14 @@ from pae.refine.weights import (
 class WeightRegressor(nn.Module):
     """One query's weight regressor: k encodings [k, D] -> softmax weights [k]."""
 
-    def __init__(self, k: int, latent_dim: int, hidden: Sequence[int]) -> None:
+    def __init__(
+        self, k: int, latent_dim: int, hidden: Sequence[int], activation: str = "relu"
+    ) -> None:
         super().__init__()
         sizes = [k * latent_dim, *hidden, k]
         layers: list[nn.Module] = []
         for fan_in, fan_out in itertools.pairwise(sizes):
-            layers += [nn.Linear(fan_in, fan_out), nn.ReLU()]
+            layers += [nn.Linear(fan_in, fan_out), ACTIVATIONS[activation]()]
         self.net = nn.Sequential(*layers[:-1])
 
     def load_batched(self, layers: Sequence[LayerParams], row: int) -> None:
@@ -100,7 +103,7 @@ def refine_affine_per_query(*args: Any, **kwargs: Any) -> AffineFit:
     MLP keeps ``nn.Linear``'s default initialisation (global RNG); with ``generator`` each
     query's parameters are drawn by ``init_weight_regressor``. ``closed_form`` is solved by
     another method than ``closed_form_weights`` (substitution and least squares, not the KKT
-    system). ``chunk_size`` does not apply.
+    system). ``chunk_size`` and ``engine`` do not apply.
     """
     bound = inspect.signature(refine_affine).bind(*args, **kwargs)
     bound.apply_defaults()
@@ -117,6 +120,7 @@ def refine_affine_per_query(*args: Any, **kwargs: Any) -> AffineFit:
     )
     lr, weight_decay, ridge = options["lr"], options["weight_decay"], options["ridge"]
     hidden, generator, init = options["hidden"], options["generator"], options["init"]
+    activation = options["activation"]
     check_fit_inputs(
         query_latent, neighbour_latents, neighbour_poses, weight_model, objective, iterations
     )
@@ -147,7 +151,7 @@ def refine_affine_per_query(*args: Any, **kwargs: Any) -> AffineFit:
                 )
                 model = _FreeLogits(logits.to(query))
             else:
-                regressor = WeightRegressor(k, dim, hidden_sizes).to(query)
+                regressor = WeightRegressor(k, dim, hidden_sizes, activation).to(query)
                 if init is not None:
                     regressor.load_batched(init, row)
                 elif generator is not None:
@@ -181,12 +185,12 @@ def refine_affine_per_query(*args: Any, **kwargs: Any) -> AffineFit:
 
 def first_layer_gain_direct(abs_inputs: Tensor, scale: Tensor, eps: float) -> Tensor:
     """S[b, j] = Σᵢ aᵢ² / (aᵢ·s[b, j] + eps) summed term by term in float64, at most
-    ``_BAND_TERMS`` terms at a time: what ``_FirstLayerGain`` computes with its series.
+    ``BAND_TERMS`` terms at a time: what ``FirstLayerGain`` computes with its series.
     abs_inputs a [b, n] >= 0; scale s [b, h] >= 0 -> [b, h] (s = 0 gives 0)."""
     a, s = abs_inputs.to(torch.float64), scale.to(torch.float64)
     out = torch.empty_like(s)
     squares = a.square()
-    rows = max(1, _BAND_TERMS // (a.shape[1] * s.shape[1]))
+    rows = max(1, BAND_TERMS // (a.shape[1] * s.shape[1]))
     for start in range(0, len(a), rows):
         part = slice(start, start + rows)
         terms = squares[part, None, :] / (a[part, None, :] * s[part, :, None] + eps)

@@ -1,8 +1,8 @@
 """The test-time position refiner: retrieval, PAE encoding, affine weights, orientation.
 
 ``PositionRefiner`` runs the paper's refinement (§3.3) for a batch of APR estimates;
-``combine_orientations`` gives the refined orientation; ``perturb_positions`` makes the
-random-guess check's queries.
+``combine_orientations`` gives the refined orientation (the random-guess check's queries
+come from ``pae.pose_sampling.perturb_positions``).
 """
 
 from __future__ import annotations
@@ -57,22 +57,6 @@ def combine_orientations(
     return average_quaternions(neighbour_q, weights.clamp(min=0.0))
 
 
-def perturb_positions(
-    poses: Tensor, sigma_m: float, generator: torch.Generator | None = None
-) -> Tensor:
-    """poses [B, 7] with N(0, sigma_m²) noise (m) added to each position coordinate.
-
-    The orientation is kept: the random-guess check of the paper's supplementary (§1.4).
-    """
-    draw_device = generator.device if generator is not None else poses.device
-    noise = torch.randn(
-        poses.shape[0], 3, generator=generator, device=draw_device, dtype=poses.dtype
-    )
-    perturbed = poses.clone()
-    perturbed[:, :3] += sigma_m * noise.to(poses.device)
-    return perturbed
-
-
 def refine_with_neighbours(
     query_latent: Tensor,
     neighbour_latents: Tensor,
@@ -96,16 +80,17 @@ def refine_with_neighbours(
 class PositionRefiner:
     """Test-time position refinement of APR estimates with a PAE and a store of train poses.
 
-    For each query: retrieve the k nearest train poses of the initial estimate in its scene,
-    encode them with the PAE (one batched call, no gradients), fit affine weights so that the
-    combined encodings match the query's latent, and return Σ aᵢ xᵢ with the orientation
-    chosen by ``orientation``. Defaults follow the paper and its public code: k=3, 3 AdamW
-    iterations, the MLP weight regressor, the teacher's orientation; the paper's L2 objective
-    and lr 1e-3 (the public script uses the mean squared error and lr 1e-2:
-    ``objective="mse", lr=1e-2``). ``seed`` seeds the generator that draws the regressors.
+        For each query: retrieve the k nearest train poses of the initial estimate in its scene,
+        encode them with the PAE (one batched call, no gradients), fit affine weights so that the
+        combined encodings match the query's latent, and return Σ aᵢ xᵢ with the orientation
+        chosen by ``orientation``. Defaults follow the paper and its public code: k=3, 3 AdamW
+        iterations, the MLP weight regressor, the teacher's orientation; the paper's L2 objective
+        and lr 1e-3 (the public script uses the mean squared error and lr 1e-2:
+        ``objective="mse", lr=1e-2``). ``hidden`` and ``activation`` shape the MLP weight model
+    (``pae.refine.regressor``). ``seed`` seeds the generator that draws the regressors.
 
-    A plain class (not an ``nn.Module``) so the PAE it uses is not registered twice in a
-    LightningModule that owns both.
+        A plain class (not an ``nn.Module``) so the PAE it uses is not registered twice in a
+        LightningModule that owns both.
     """
 
     def __init__(
@@ -121,6 +106,7 @@ class PositionRefiner:
         orientation: OrientationMode = "teacher",
         objective: Objective = "l2",
         hidden: Sequence[int] | None = None,
+        activation: str = "relu",
         chunk_size: int = 64,
         seed: int = 0,
     ) -> None:
@@ -140,6 +126,7 @@ class PositionRefiner:
         self.orientation: OrientationMode = orientation
         self.objective: Objective = objective
         self.hidden = hidden
+        self.activation = activation
         self.chunk_size = chunk_size
         self.generator = torch.Generator().manual_seed(seed)
 
@@ -188,6 +175,7 @@ class PositionRefiner:
                 weight_decay=self.weight_decay,
                 objective=self.objective,
                 hidden=self.hidden,
+                activation=self.activation,
                 generator=self.generator,
                 chunk_size=self.chunk_size,
             )

@@ -1,11 +1,15 @@
-"""The public code's weight regressor, fitted for every query of a batch at once.
+"""The public code's weight regressor, fitted for every query of a batch at once: the single
+definition of the MLP weight model (its layers, ``ACTIVATIONS``, initialisation and AdamW
+fit). ``pae.refine.fused`` compiles a part of it and declares which (``FUSED_KERNEL``);
+``pae.refine.reference`` fits it one query at a time, as a test oracle.
 
 Per query an MLP over the k concatenated neighbour encodings (k·D → 64k → 32k → 16k → k,
-ReLU) whose softmax gives the affine weights; freshly initialised for every query (the later
-layers' starting values are one draw shared by the call's queries) and optimised with AdamW.
+ReLU by default) whose softmax gives the affine weights; freshly initialised for every query
+(the later layers' starting values are one draw shared by the call's queries) and optimised
+with AdamW.
 Every query has its own parameter tensors; the large first layer (k·D × 64k per query) is
 never stored: its AdamW update is computed in closed form from the fixed input
-(``_fit_chunk``, ``_FirstLayerGain``). ``pae.refine.weights.refine_affine`` is the entry point.
+(``_fit_chunk``, ``FirstLayerGain``). ``pae.refine.weights.refine_affine`` is the entry point.
 """
 
 from __future__ import annotations
@@ -23,14 +27,23 @@ LayerParams = tuple[Tensor, Tensor]
 MatchingLoss = Callable[[Tensor, Tensor, Tensor], Tensor]
 """``(query [b, D], neighbours [b, k, D], weights [b, k]) -> scalar``, summed over queries."""
 
+ACTIVATIONS: dict[str, type[torch.nn.Module]] = {
+    "relu": torch.nn.ReLU,
+    "tanh": torch.nn.Tanh,
+    "gelu": torch.nn.GELU,
+}
+"""The hidden layers' activation by name (``relu``: the public code's). A new entry is all a
+new activation needs; the compiled engine runs only the ones it declares."""
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
 """AdamW's betas and eps for every iterative weight model (the public code's defaults)."""
 SERIES_RATIO = {torch.float64: 1e3, torch.float32: 30.0}
-"""Per working dtype, the aᵢ·s / eps above which ``_FirstLayerGain`` uses its series: the
+"""Per working dtype, the aᵢ·s / eps above which ``FirstLayerGain`` uses its series: the
 truncation error, below ratio⁻⁵, is under the dtype's rounding (1e-15; 4e-8)."""
-_BAND_TERMS = 1 << 20
-_SMALLEST = 32
+BAND_TERMS = 1 << 20
+"""The most terms ``FirstLayerGain`` (and its plain reference) sums in one tensor."""
+SMALLEST_INPUTS = 32
+"""How many of a row's smallest inputs ``FirstLayerGain`` keeps sorted for its direct sums."""
 
 
 def regressor_hidden_sizes(k: int) -> tuple[int, ...]:
@@ -137,21 +150,21 @@ class _BatchedLinear(torch.autograd.Function):
         return grad_inputs, grad_weight, grad
 
 
-class _FirstLayerGain:
+class FirstLayerGain:
     """S[b, j] = Σᵢ aᵢ² / (aᵢ·s[b, j] + eps) for fixed a = |x| [b, n] and any s [b, h] >= 0.
 
     Evaluated in float64. Terms with aᵢ·s >= ratio·eps are summed with the series
     (aᵢ/s)·Σₚ₌₀⁴ (−eps/(aᵢ s))ᵖ (relative error below ratio⁻⁵) from sums of aᵢ^(1−p),
-    prepared once; the others (aᵢ near 0) are summed term by term. Only the ``_SMALLEST``
+    prepared once; the others (aᵢ near 0) are summed term by term. Only the ``SMALLEST_INPUTS``
     smallest positive inputs of a row can fall below the series' range in practice: they are kept
     sorted, with suffix sums, and the rest's sums are prepared once, so a step costs
-    O(b·h·_SMALLEST), with no full sort. Rows whose threshold exceeds even those are summed
-    directly, at most ``_BAND_TERMS`` terms at a time. Zero inputs add nothing; s = 0 gives 0.
+    O(b·h·SMALLEST_INPUTS), with no full sort. Rows whose threshold exceeds even those are summed
+    directly, at most ``BAND_TERMS`` terms at a time. Zero inputs add nothing; s = 0 gives 0.
     """
 
     def __init__(self, abs_inputs: Tensor, eps: float, ratio: float) -> None:
         a = abs_inputs.to(torch.float64)
-        m = min(a.shape[1], _SMALLEST)
+        m = min(a.shape[1], SMALLEST_INPUTS)
         # the m smallest positive inputs, ascending; inf where a row has fewer
         positive = torch.where(a > 0, a, math.inf)
         smallest, where_small = torch.topk(positive, m, dim=1, largest=False, sorted=True)
@@ -203,7 +216,7 @@ class _FirstLayerGain:
         beyond = active & (reach == 0) & (m < self.inputs.shape[1])
         if bool(beyond.any()):  # rest values may lie below the threshold too: sum directly
             rows, cols = beyond.nonzero(as_tuple=True)
-            step = max(1, _BAND_TERMS // self.inputs.shape[1])
+            step = max(1, BAND_TERMS // self.inputs.shape[1])
             for part in range(0, len(rows), step):
                 r, c = rows[part : part + step], cols[part : part + step]
                 a, scale_rc = self.inputs[r], s[r, c].unsqueeze(-1)
@@ -221,6 +234,7 @@ def _fit_chunk(
     lr: float,
     weight_decay: float,
     loss: MatchingLoss,
+    activation: str = "relu",
 ) -> Tensor:
     """Optimise a batch of weight regressors; returns their final softmax weights [b, k].
 
@@ -229,13 +243,13 @@ def _fit_chunk(
     gradient) and AdamW's moments stay x ⊗ μ and x² ⊗ ν with μ, ν [b, h] updated by the
     same rules. One AdamW step therefore changes xW₁ to
     ``(1 − lr·wd)·xW₁ − lr/(1 − β₁ᵗ) · μ ⊙ S(√(ν/(1 − β₂ᵗ)))`` with ``S`` from
-    ``_FirstLayerGain``: the same arithmetic as a stored W₁, at O(b·h·n) per step instead
+    ``FirstLayerGain``: the same arithmetic as a stored W₁, at O(b·h·n) per step instead
     of the many passes over 4 tensors of that size. first_preactivation [b, h] is x·W₁ at
     the start; the other parameters are ordinary tensors optimised by ``torch.optim.AdamW``.
     """
     beta1, beta2 = ADAM_BETAS
     inputs = neighbours.reshape(neighbours.shape[0], -1)
-    gain = _FirstLayerGain(inputs.abs(), ADAM_EPS, SERIES_RATIO.get(query.dtype, 1e3))
+    gain = FirstLayerGain(inputs.abs(), ADAM_EPS, SERIES_RATIO.get(query.dtype, 1e3))
     projected = first_preactivation.detach().clone()
     first_avg = torch.zeros_like(projected)
     first_avg_sq = torch.zeros_like(projected)
@@ -252,12 +266,14 @@ def _fit_chunk(
         fused=fused,
     )
 
+    act = ACTIVATIONS[activation]()
+
     def weights_now() -> Tensor:
-        hidden = torch.relu(projected + bias)
+        hidden = act(projected + bias)
         for position, (weight, layer_bias) in enumerate(rest):
             hidden = _BatchedLinear.apply(hidden, weight, layer_bias)
             if position < len(rest) - 1:
-                hidden = torch.relu(hidden)
+                hidden = act(hidden)
         return torch.softmax(hidden, dim=-1)
 
     for step in range(1, iterations + 1):
@@ -298,12 +314,16 @@ def fit_mlp_weights(
     init: Sequence[LayerParams] | None,
     chunk_size: int,
     fused: Callable[..., Tensor] | None = None,
+    activation: str = "relu",
 ) -> Tensor:
     """Final softmax weights [B, k] of the batched weight regressors, one per query, each
     fitted with ``iterations`` AdamW steps on ``loss`` (see ``refine_affine``, which calls it).
     query [B, D]; neighbours [B, k, D]; ``chunk_size`` queries at a time, or all of them by
     ``fused(query, neighbours, first_preactivation, first_bias, layers, iterations, lr,
-    weight_decay)`` when given (``pae.refine.fused``, the same arithmetic compiled)."""
+    weight_decay)`` when given (``pae.refine.fused``, the same arithmetic compiled, for the
+    models its ``FUSED_KERNEL`` implements). ``activation``: a key of ``ACTIVATIONS``."""
+    if activation not in ACTIVATIONS:
+        raise ValueError(f"unknown activation {activation!r}; choose one of {list(ACTIVATIONS)}")
     batch, k, dim = neighbours.shape
     fan_in = k * dim
     if hidden is not None and (len(hidden) == 0 or min(hidden) < 1):
@@ -346,6 +366,7 @@ def fit_mlp_weights(
                 lr,
                 weight_decay,
                 loss,
+                activation,
             )
         )
     return torch.cat(chunks, dim=0)

@@ -26,8 +26,14 @@ from typing import Literal, NamedTuple
 import torch
 from torch import Tensor
 
-from pae.refine.fused import fit_mlp_weights_fused
-from pae.refine.regressor import ADAM_BETAS, ADAM_EPS, LayerParams, fit_mlp_weights
+from pae.refine.fused import FUSED_KERNEL, fit_mlp_weights_fused
+from pae.refine.regressor import (
+    ADAM_BETAS,
+    ADAM_EPS,
+    LayerParams,
+    fit_mlp_weights,
+    regressor_hidden_sizes,
+)
 
 WeightModel = Literal["softmax_logits", "mlp", "closed_form"]
 Objective = Literal["l2", "mse"]
@@ -150,6 +156,7 @@ def refine_affine(
     chunk_size: int = 64,
     ridge: float = 1e-6,
     engine: Engine = "auto",
+    activation: str = "relu",
 ) -> AffineFit:
     """Affine weights for every query at once.
 
@@ -169,7 +176,10 @@ def refine_affine(
     compiled loop per query (``pae.refine.fused``, float32 or float64 CPU tensors), or
     ``"batched"``, tensor operations over ``chunk_size`` queries at a time (their optimiser
     state then stays in cache: 64 is fastest on CPU); ``"auto"`` takes the fused loop where
-    it can run and the batched path elsewhere. They give the same result up to rounding.
+    it can run and the batched path elsewhere. ``activation`` is the MLP's hidden activation
+    (a key of ``pae.refine.regressor.ACTIVATIONS``); the fused loop implements only what
+    ``pae.refine.fused.FUSED_KERNEL`` declares, so ``"auto"`` takes the batched path for any
+    other model and ``"fused"`` refuses it. The engines give the same result up to rounding.
     Works under ``torch.no_grad`` and ``torch.inference_mode``; the outputs carry no autograd
     graph.
     """
@@ -186,8 +196,14 @@ def refine_affine(
             f"{query_latent.dtype} on {query_latent.device}"
         )
     batch, k, _ = neighbour_latents.shape
+    mismatch = None
+    if weight_model == "mlp":
+        layers = len(init) - 1 if init is not None else len(hidden or regressor_hidden_sizes(k))
+        mismatch = FUSED_KERNEL.mismatch(activation, objective, layers)
+        if engine == "fused" and mismatch:
+            raise ValueError(f"engine 'fused' cannot fit this weight regressor: {mismatch}")
     loss = functools.partial(matching_loss, objective=objective)
-    fused = weight_model == "mlp" and compilable and engine != "batched"
+    fused = weight_model == "mlp" and compilable and engine != "batched" and mismatch is None
     with torch.inference_mode(False), torch.enable_grad():
         query = query_latent.detach()
         neighbours = neighbour_latents.detach().to(query.dtype)
@@ -225,6 +241,7 @@ def refine_affine(
                 init,
                 chunk_size,
                 functools.partial(fit_mlp_weights_fused, mse=objective == "mse") if fused else None,
+                activation,
             )
         weights = weights.detach()
         return AffineFit(weights, positions_of(weights, neighbour_poses.detach()))

@@ -1,0 +1,121 @@
+"""Embedded synthetic localisation benchmark: textured rooms seen by moving pinhole cameras.
+
+The package is split at its seams: ``camera`` (pinhole model, pose conventions), ``scene``
+(rooms, boxes, textures, camera routes), ``raycast`` (the renderer and the camera response),
+``trajectories`` (train and test sequences) and ``writer`` (datasets on disk); every public
+name is importable from here.
+
+Each scene is a room (an axis-aligned box seen from inside, a few metres wide like the
+7-Scenes rooms) holding a few axis-aligned boxes and thin panels. Every face carries its own
+procedural texture: large coloured gradients and shapes (so a 64 px view tells where the
+camera is and where it looks) plus finer detail. Images are ray cast exactly in numpy,
+with a point light and 2×2 supersampling, then pass through a per-sequence camera response
+(gain, bias, tint, gamma, sensor noise). The pose can only be learnt from what the camera sees.
+
+Conventions:
+
+- World frame: metres, ``z`` up, floor at ``z = 0``, room centred on ``x = y = 0``.
+- Poses ``[7]`` = ``x, y, z, qw, qx, qy, qz``, camera-to-world, ``qw >= 0``.
+- Camera frame (OpenCV): ``x`` right, ``y`` down, looking along ``+z``.
+- Pixels: the centre of pixel ``(u, v)`` (column, row) lies at integer coordinates ``(u, v)``;
+  the principal point is the image centre ``((W - 1) / 2, (H - 1) / 2)`` and
+  ``fx = fy = (W / 2) / tan(fov / 2)`` for the horizontal field of view ``fov``.
+- Textures: texel ``(row i, column j)`` of a face covers face coordinates
+  ``a ∈ [j·s, (j+1)·s)``, ``b ∈ [i·s, (i+1)·s)`` (texel size ``s`` metres); its centre is at
+  ``((j + 0.5)·s, (i + 0.5)·s)``. Textures are sampled bilinearly between texel centres.
+
+Layout written by :func:`write_synthetic_dataset` (label format of :mod:`pae.data.labels`)::
+
+    OUT/labels/scene00_train.csv  OUT/labels/scene00_test.csv  ...  OUT/labels/all_{train,test}.csv
+    OUT/scene00/seq-01/frame-000000.png  ...
+"""
+
+from pae.data.synthetic.camera import (
+    DEFAULT_FOV_DEG,
+    DEFAULT_SIZE,
+    PinholeCamera,
+    pose_rotation_translation,
+    world_to_camera,
+)
+from pae.data.synthetic.raycast import (
+    RAYS_PER_CHUNK,
+    SUPERSAMPLE,
+    Appearance,
+    render,
+    render_batch,
+    shade_rays,
+)
+from pae.data.synthetic.scene import (
+    DEFAULT_TEST_OFFSET_M,
+    DEFAULT_TRAIN_LANE_M,
+    TEXEL_SIZE_M,
+    Box,
+    CameraRoute,
+    FaceTexture,
+    SyntheticScene,
+    furnish,
+    make_scene,
+    room_textures,
+    scene_name,
+)
+from pae.data.synthetic.trajectories import (
+    DEFAULT_STRAY_M,
+    DEFAULT_YAW_STRAY_RAD,
+    TEST_SEQUENCES,
+    TRAIN_SEQUENCES,
+    CameraSequence,
+    make_sequences,
+)
+from pae.data.synthetic.writer import (
+    DEFAULT_SCENES,
+    DEFAULT_TEST_FRAMES,
+    DEFAULT_TRAIN_FRAMES,
+    FRAMES_PER_WRITE,
+    RenderProgress,
+    SyntheticSummary,
+    render_frames,
+    write_label_files,
+    write_synthetic_dataset,
+    write_whole,
+)
+
+__all__ = [
+    "DEFAULT_FOV_DEG",
+    "DEFAULT_SCENES",
+    "DEFAULT_SIZE",
+    "DEFAULT_STRAY_M",
+    "DEFAULT_TEST_FRAMES",
+    "DEFAULT_TEST_OFFSET_M",
+    "DEFAULT_TRAIN_FRAMES",
+    "DEFAULT_TRAIN_LANE_M",
+    "DEFAULT_YAW_STRAY_RAD",
+    "FRAMES_PER_WRITE",
+    "RAYS_PER_CHUNK",
+    "SUPERSAMPLE",
+    "TEST_SEQUENCES",
+    "TEXEL_SIZE_M",
+    "TRAIN_SEQUENCES",
+    "Appearance",
+    "Box",
+    "CameraRoute",
+    "CameraSequence",
+    "FaceTexture",
+    "PinholeCamera",
+    "RenderProgress",
+    "SyntheticScene",
+    "SyntheticSummary",
+    "furnish",
+    "make_scene",
+    "make_sequences",
+    "pose_rotation_translation",
+    "render",
+    "render_batch",
+    "render_frames",
+    "room_textures",
+    "scene_name",
+    "shade_rays",
+    "world_to_camera",
+    "write_label_files",
+    "write_synthetic_dataset",
+    "write_whole",
+]

@@ -1,0 +1,279 @@
+"""Writing a synthetic dataset: images rendered in batches and written whole (atomically),
+label files in the format of ``pae.data.labels`` (``write_synthetic_dataset``)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import shutil
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pae.data.labels import LabelTable, write_labels
+from pae.data.synthetic.camera import DEFAULT_SIZE, PinholeCamera
+from pae.data.synthetic.raycast import Appearance, render_batch
+from pae.data.synthetic.scene import (
+    DEFAULT_TEST_OFFSET_M,
+    DEFAULT_TRAIN_LANE_M,
+    SyntheticScene,
+    make_scene,
+    scene_name,
+)
+from pae.data.synthetic.trajectories import DEFAULT_STRAY_M, DEFAULT_YAW_STRAY_RAD, make_sequences
+
+DEFAULT_SCENES = 2
+DEFAULT_TRAIN_FRAMES = 1600
+"""Training frames per scene."""
+DEFAULT_TEST_FRAMES = 250
+"""Test frames per scene."""
+FRAMES_PER_WRITE = 64
+"""Frames rendered before they are written, bounding memory for large images."""
+
+
+@dataclass(frozen=True)
+class SyntheticSummary:
+    """What :func:`write_synthetic_dataset` wrote and how fast."""
+
+    root: str
+    scenes: list[str]
+    train_frames: int
+    """Training frames over all scenes."""
+    test_frames: int
+    """Test frames over all scenes."""
+    size: int
+    seconds: float
+    frames_per_second: float
+
+    def summary(self) -> str:
+        """Short human-readable multi-line summary."""
+        return "\n".join(
+            [
+                f"synthetic dataset at {self.root}",
+                f"  scenes: {len(self.scenes)} ({', '.join(self.scenes)})",
+                f"  frames: {self.train_frames} train, {self.test_frames} test "
+                f"({self.size}x{self.size} px)",
+                f"  time:   {self.seconds:.1f} s ({self.frames_per_second:.1f} frames/s)",
+            ]
+        )
+
+
+def _write_png(path: Path, image_rgb: np.ndarray) -> None:
+    """Write an RGB image as PNG (into the rendering folder, renamed into place when whole)."""
+    ok, encoded = cv2.imencode(".png", cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise OSError(f"could not encode {path}")
+    path.write_bytes(encoded.tobytes())
+
+
+def _prepare_output(out: Path, overwrite: bool) -> None:
+    """Refuse a used folder unless `overwrite`, and even then one that holds no dataset."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise FileExistsError(f"{out}: exists and is not a folder")
+    if not any(out.iterdir()):
+        return
+    if not overwrite:
+        raise FileExistsError(f"{out}: folder is not empty; --overwrite replaces the dataset in it")
+    if not (out / "labels").is_dir():
+        raise FileExistsError(
+            f"{out}: folder is not empty and holds no dataset (no labels/); not replacing it"
+        )
+
+
+def _replace_folder(new: Path, out: Path) -> None:
+    """Put the folder `new` in place of `out` (moved aside, then deleted if it existed)."""
+    old = out.with_name(f".{out.name}.old-{uuid.uuid4().hex}")
+    if out.exists():
+        out.rename(old)
+    new.rename(out)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+RenderProgress = Callable[[int, int], None]
+"""``progress(done, total)``: frames rendered so far, of all the dataset's frames."""
+
+
+def render_frames(
+    out: Path,
+    paths: list[str],
+    scene: SyntheticScene,
+    poses: np.ndarray,
+    camera: PinholeCamera,
+    appearance: Appearance,
+    noise: np.random.Generator,
+) -> None:
+    """Render ``poses`` ``[n, 7]`` of one sequence and write them as PNGs at ``out / paths[i]``,
+    ``FRAMES_PER_WRITE`` frames at a time."""
+    for folder in sorted({(out / path).parent for path in paths}):
+        folder.mkdir(parents=True, exist_ok=True)
+    for start in range(0, len(poses), FRAMES_PER_WRITE):
+        images = render_batch(
+            scene, poses[start : start + FRAMES_PER_WRITE], camera, appearance, noise
+        )
+        for path, image in zip(paths[start : start + FRAMES_PER_WRITE], images, strict=True):
+            _write_png(out / path, image)
+
+
+def write_label_files(folder: Path, tables: dict[tuple[str, str], LabelTable]) -> None:
+    """``folder/<scene>_<split>.csv`` for each ``(scene, split)`` table, then
+    ``folder/all_<split>.csv`` for each split (the data modules read those last)."""
+    for (name, split), table in tables.items():
+        write_labels(folder / f"{name}_{split}.csv", table)
+    for split in dict.fromkeys(split for _, split in tables):
+        write_labels(
+            folder / f"all_{split}.csv",
+            LabelTable.concat(t for (_, s), t in tables.items() if s == split),
+        )
+
+
+def write_whole(
+    out: Path | str, overwrite: bool, render: Callable[[Path], SyntheticSummary]
+) -> SyntheticSummary:
+    """Run ``render(folder)`` into a hidden folder beside ``out``, then put it in place of
+    ``out``: ``out`` ends as exactly the new dataset, or unchanged when rendering fails.
+
+    A non-empty ``out`` is refused (FileExistsError) unless ``overwrite``, which replaces a
+    folder holding a dataset (``labels/``) as a whole, stale files included. The summary's
+    ``root`` names ``out``.
+    """
+    final = Path(out)
+    _prepare_output(final, overwrite)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    folder = final.with_name(f".{final.name}.rendering-{uuid.uuid4().hex}")
+    try:
+        summary = render(folder)
+    except BaseException:
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    _replace_folder(folder, final)
+    return dataclasses.replace(summary, root=str(final))
+
+
+def write_synthetic_dataset(
+    out: Path | str,
+    scenes: int = DEFAULT_SCENES,
+    train_frames: int = DEFAULT_TRAIN_FRAMES,
+    test_frames: int = DEFAULT_TEST_FRAMES,
+    size: int = DEFAULT_SIZE,
+    seed: int = 0,
+    test_offset_m: float = DEFAULT_TEST_OFFSET_M,
+    overwrite: bool = False,
+    train_lane_m: float = DEFAULT_TRAIN_LANE_M,
+    yaw_stray_rad: float = DEFAULT_YAW_STRAY_RAD,
+    stray_m: float = DEFAULT_STRAY_M,
+    progress: RenderProgress | None = None,
+) -> SyntheticSummary:
+    """Render the benchmark into ``out`` (see :func:`write_whole`): images first, label files
+    last.
+
+    ``train_frames`` and ``test_frames`` are per scene; ``test_offset_m`` is the test
+    sequences' lateral offset from the train route (see :func:`make_sequences`). The same
+    arguments give byte-identical files. ``progress(done, total)`` is called after each
+    sequence with the frames rendered so far.
+    """
+    for name, value, low in (
+        ("scenes", scenes, 1),
+        ("train_frames", train_frames, 1),
+        ("test_frames", test_frames, 1),
+        ("size", size, 8),
+        ("seed", seed, 0),
+    ):
+        if int(value) != value or value < low:
+            raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+    for name, value in (
+        ("test_offset_m", test_offset_m),
+        ("train_lane_m", train_lane_m),
+        ("stray_m", stray_m),
+    ):
+        if not (math.isfinite(value) and 0 <= value <= 1.0):
+            raise ValueError(f"{name} must lie in [0, 1] m, got {value!r}")
+    if not (math.isfinite(yaw_stray_rad) and 0 <= yaw_stray_rad <= math.pi / 2):
+        raise ValueError(f"yaw_stray_rad must lie in [0, pi/2], got {yaw_stray_rad!r}")
+
+    def render(folder: Path) -> SyntheticSummary:
+        started = time.perf_counter()
+        _render(
+            folder,
+            scenes,
+            train_frames,
+            test_frames,
+            size,
+            seed,
+            (test_offset_m, train_lane_m, yaw_stray_rad, stray_m),
+            progress,
+        )
+        seconds = time.perf_counter() - started
+        return SyntheticSummary(
+            root=str(folder),
+            scenes=[scene_name(i) for i in range(scenes)],
+            train_frames=scenes * train_frames,
+            test_frames=scenes * test_frames,
+            size=size,
+            seconds=seconds,
+            frames_per_second=scenes * (train_frames + test_frames) / seconds,
+        )
+
+    return write_whole(out, overwrite, render)
+
+
+def _render(
+    out: Path,
+    scenes: int,
+    train_frames: int,
+    test_frames: int,
+    size: int,
+    seed: int,
+    layout: tuple[float, float, float, float],
+    progress: RenderProgress | None = None,
+) -> None:
+    """Render every scene into `out`: images first, label files last. ``layout``: the test
+    offset, train lane (m), yaw stray (rad) and stray (m) of :func:`make_sequences`."""
+    test_offset_m, train_lane_m, yaw_stray_rad, stray_m = layout
+    total, done = scenes * (train_frames + test_frames), 0
+    camera = PinholeCamera(size)
+    label_tables: dict[tuple[str, str], LabelTable] = {}
+    for index in range(scenes):
+        scene = make_scene(index, seed, test_offset_m, train_lane_m)
+        rows: dict[str, list[tuple[str, str, np.ndarray]]] = {"train": [], "test": []}
+        sequences = make_sequences(
+            index,
+            scene,
+            train_frames,
+            test_frames,
+            seed,
+            test_offset_m,
+            train_lane_m,
+            yaw_stray_rad,
+            stray_m,
+        )
+        for sequence in sequences:
+            paths = [
+                f"{scene.name}/{sequence.name}/frame-{frame:06d}.png"
+                for frame in range(len(sequence.poses))
+            ]
+            noise = np.random.default_rng(list(sequence.noise_seed))
+            render_frames(out, paths, scene, sequence.poses, camera, sequence.appearance, noise)
+            done += len(paths)
+            if progress is not None:
+                progress(done, total)
+            rows[sequence.split] += [
+                (sequence.name, path, pose)
+                for path, pose in zip(paths, sequence.poses, strict=True)
+            ]
+        for split, split_rows in rows.items():
+            label_tables[scene.name, split] = LabelTable(
+                scene=[scene.name] * len(split_rows),
+                split=[split] * len(split_rows),
+                seq=[r[0] for r in split_rows],
+                img_path=[r[1] for r in split_rows],
+                poses=np.array([r[2] for r in split_rows]),
+                source=f"synthetic seed={seed}",
+            )
+    write_label_files(out / "labels", label_tables)

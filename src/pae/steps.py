@@ -1,0 +1,173 @@
+"""The steps of `pae-train`, in one registry: what each needs, trains and may change on resume.
+
+`pae.train` runs them, `pae.validation` checks `stage.steps` and each step's checkpoints
+against it, `pae.preflight` reads which settings a resumed run may change, and every
+`conf/stage/*.yaml` lists names from it. Importing this module loads no torch: a sweep's
+launching process reads it; a step's fit function is imported when the step runs.
+
+To add a step: write its fit function (``fit(cfg, step_dir, **checkpoints) -> (metrics,
+path of its last checkpoint)``, one keyword per entry of ``needs``), add a ``Step`` here, a
+config group ``conf/<group>/`` with ``max_epochs`` and ``optimizer``, and a ``conf/stage/``
+file that lists it.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+CHECKPOINTS = ("teacher_ckpt", "student_ckpt", "decoder_ckpt")
+"""The run's checkpoint keys (conf/train.yaml): given on the command line or made by a step."""
+
+Fit = Callable[..., tuple[dict[str, float], Path]]
+"""``fit(cfg, step_dir, **checkpoints) -> (metrics, path of the step's last checkpoint)``."""
+
+
+@dataclass(frozen=True)
+class Step:
+    """One step of a run.
+
+    name: its name in ``stage.steps`` (and its folder in a run of several steps);
+    group: the config group holding its training settings (``max_epochs``, ``optimizer``);
+    fit: ``"module:function"`` of its fit function;
+    needs: the checkpoint keys it reads (passed to ``fit`` by keyword), given or produced by
+    an earlier step of the run; optional: checkpoint keys it reads when given (passed by
+    keyword too, None when absent); produces: the checkpoint key its last checkpoint fills;
+    resumable: the settings a resumed run may change for it (prefixes of dotted keys);
+    models: the model configs it instantiates (dotted keys, each with a ``_target_``), each
+    with the constructor arguments the fit function fills in itself (``n_scenes``): preflight
+    checks their keys against the class's constructor.
+    """
+
+    name: str
+    group: str
+    fit: str
+    needs: tuple[str, ...] = ()
+    produces: str | None = None
+    resumable: tuple[str, ...] = ()
+    models: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    optional: tuple[str, ...] = ()
+
+    def fit_function(self) -> Fit:
+        """The fit function, imported now (it loads torch and Lightning)."""
+        module, function = self.fit.split(":")
+        return getattr(importlib.import_module(module), function)
+
+    def run(self, cfg: Any, step_dir: Path, checkpoints: dict[str, Any]) -> tuple[dict, Path]:
+        """Fit and test the step with the checkpoints it needs from ``checkpoints``."""
+        keys = (*self.needs, *self.optional)
+        return self.fit_function()(cfg, step_dir, **{key: checkpoints.get(key) for key in keys})
+
+
+def _step(
+    name: str,
+    group: str,
+    fit: str,
+    models: dict[str, tuple[str, ...]],
+    needs: tuple[str, ...] = (),
+    produces: str | None = None,
+) -> Step:
+    return Step(name, group, fit, needs, produces, (f"{group}.max_epochs",), models)
+
+
+STEPS: dict[str, Step] = {
+    step.name: step
+    for step in (
+        _step(
+            "teacher",
+            "teacher",
+            "pae.pipeline:fit_teacher",
+            {"teacher.model": ("n_scenes",)},
+            produces="teacher_ckpt",
+        ),
+        _step(
+            "student",
+            "student",
+            "pae.pipeline:fit_student",
+            {"pae": ("n_scenes",)},
+            ("teacher_ckpt",),
+            produces="student_ckpt",
+        ),
+        _step(
+            "decoder",
+            "decoder",
+            "pae.pipeline:fit_decoder",
+            {"decoder.model": ()},
+            ("student_ckpt",),
+            produces="decoder_ckpt",
+        ),
+        _step(
+            "rpr",
+            "rpr",
+            "pae.pipeline_relative:fit_rpr",
+            {"rpr.model": ()},
+            ("student_ckpt", "decoder_ckpt"),
+        ),
+        _step(
+            "rpr_image",
+            "rpr",
+            "pae.pipeline_relative:fit_rpr_image",
+            {"rpr.model": ()},
+            ("teacher_ckpt",),
+        ),
+        _step(
+            "iapr", "iapr", "pae.pipeline_relative:fit_iapr", {"iapr.model": ()}, ("student_ckpt",)
+        ),
+        # its model config depends on scene_model.name (validation's scene-model checks); with
+        # scene_model=pae_decoder it reads the student and decoder checkpoints too
+        Step(
+            "scene_model",
+            "scene_model",
+            "pae.pipeline_scene:fit_scene_model",
+            ("teacher_ckpt",),
+            resumable=("scene_model.max_epochs", "render_compare."),
+            optional=("student_ckpt", "decoder_ckpt"),
+        ),
+    )
+}
+"""Every step of pae-train by name, in the order a full run takes them."""
+
+GROUPS: tuple[str, ...] = tuple(dict.fromkeys(step.group for step in STEPS.values()))
+"""The config groups of the steps, each once (rpr_image trains with rpr's settings)."""
+
+MODELS: dict[str, tuple[str, ...]] = {
+    key: supplied for step in STEPS.values() for key, supplied in step.models.items()
+}
+"""Every model config a step builds -> the constructor arguments its step fills in."""
+RESUMABLE_CHANGES: tuple[str, ...] = (
+    "resume",
+    "allow_other_data",
+    "trainer.",
+    "callbacks.",
+    "logger.",
+    "refine.",
+    "data.num_workers",
+    "data.eval_batch_size",
+    *dict.fromkeys(key for step in STEPS.values() for key in step.resumable),
+)
+"""Settings a resumed run may change (``trainer.`` etc.: every key of the group): how the run
+is executed and logged, test-time refinement, and each step's ``resumable`` (its epochs)."""
+
+
+def steps_of(names: Any) -> list[Step]:
+    """The registered steps named in ``names`` (``stage.steps``); an unknown name is a
+    ValueError that lists the known ones."""
+    unknown = [name for name in names if name not in STEPS]
+    if unknown:
+        raise ValueError(f"unknown stage.steps {unknown}; choose from {list(STEPS)}")
+    return [STEPS[name] for name in names]
+
+
+def missing_checkpoints(names: Any, given: dict[str, Any]) -> list[tuple[str, str]]:
+    """(step, checkpoint key) for every checkpoint a step of ``names`` needs that is neither
+    in ``given`` (not None) nor produced by an earlier step of the run."""
+    available = {key for key, value in given.items() if value is not None}
+    missing = []
+    for step in steps_of(names):
+        missing += [(step.name, key) for key in step.needs if key not in available]
+        if step.produces:
+            available.add(step.produces)
+    return missing

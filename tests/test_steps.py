@@ -1,0 +1,110 @@
+"""The step registry (pae.steps) and the checks of model configs against their constructors."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+import yaml
+from omegaconf import open_dict
+
+from pae import CONFIG_DIR
+from pae.errors import ConfigError
+from pae.steps import RESUMABLE_CHANGES, STEPS, missing_checkpoints, steps_of
+from pae.train import run
+from pae.validation import validate_train_config
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "pae"
+
+
+def test_every_stage_lists_registered_steps_and_every_step_is_in_a_stage() -> None:
+    listed = set()
+    for path in sorted((Path(CONFIG_DIR) / "stage").glob("*.yaml")):
+        steps = yaml.safe_load(path.read_text())["steps"]
+        assert steps_of(steps), path
+        listed |= set(steps)
+    assert listed == set(STEPS)
+
+
+def test_every_fit_function_resolves_and_takes_its_checkpoints_by_name() -> None:
+    import inspect
+
+    for step in STEPS.values():
+        parameters = inspect.signature(step.fit_function()).parameters
+        assert list(parameters)[2:] == list(step.needs), step.name
+
+
+def test_unknown_step_is_an_error(compose_train) -> None:
+    cfg = compose_train("stage=teacher")
+    with open_dict(cfg):
+        cfg.stage.steps = ["teacher", "scene_modle"]
+    with pytest.raises(ConfigError, match=r"unknown stage.steps \['scene_modle'\]; choose from"):
+        validate_train_config(cfg)
+
+
+def test_checkpoints_come_from_the_command_line_or_an_earlier_step() -> None:
+    none = dict.fromkeys(("teacher_ckpt", "student_ckpt", "decoder_ckpt"))
+    assert missing_checkpoints(["teacher", "student"], none) == []
+    assert missing_checkpoints(["student"], none) == [("student", "teacher_ckpt")]
+    assert missing_checkpoints(["decoder", "rpr"], none | {"student_ckpt": "s.ckpt"}) == []
+    assert missing_checkpoints(["rpr", "decoder"], none | {"student_ckpt": "s"}) == [
+        ("rpr", "decoder_ckpt")
+    ]
+
+
+def test_every_step_may_change_its_epochs_on_resume() -> None:
+    for step in STEPS.values():
+        assert f"{step.group}.max_epochs" in RESUMABLE_CHANGES
+
+
+def test_no_private_name_is_imported_across_modules() -> None:
+    for path in SRC.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("pae"):
+                private = [a.name for a in node.names if a.name.startswith("_")]
+                assert not private, f"{path}: imports {private} from {node.module}"
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("+pae.LL=3", "pae.LL: not an argument of pae.models.pae.PoseAutoEncoder (it takes"),
+        ("+teacher.model.width=3", "teacher.model.width: not an argument of"),
+        ("+backbone.depth=3", "teacher.model.backbone.depth: not an argument of"),
+        ("+iapr.model.layers=2", "iapr.model.layers: not an argument of"),
+        ("+pae.scene_L=two", "pae.scene_L must be an integer, got 'two'"),
+        ("~iapr.model.backbone", "iapr.model.backbone: required by"),
+        ("pae._target_=pae.models.pae.Nothing", "pae._target_=pae.models.pae.Nothing: cannot"),
+    ],
+)
+def test_model_keys_are_checked_against_the_constructor_before_anything_trains(
+    compose_train, tmp_path: Path, override: str, message: str
+) -> None:
+    cfg = compose_train("stage=pipeline", override, run_dir=tmp_path)
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        run(cfg, tmp_path)
+    assert list(tmp_path.iterdir()) == [], "nothing was trained or written"
+
+
+def test_a_pae_class_with_other_arguments_passes(compose_train, tmp_path: Path) -> None:
+    """A PAE without L or hidden: its own arguments are checked, not the default PAE's."""
+    cfg = compose_train("stage=pipeline")
+    with open_dict(cfg):
+        cfg.pae = {
+            "_target_": "tests.test_steps.WidePAE",
+            "latent_dim": "${teacher.model.latent_dim}",
+            "width": 32,
+        }
+    validate_train_config(cfg)
+    with open_dict(cfg):
+        cfg.pae.width = "wide"
+    with pytest.raises(ConfigError, match=r"pae\.width must be an integer, got 'wide'"):
+        validate_train_config(cfg)
+
+
+class WidePAE:
+    """A stand-in for another PAE architecture (only its signature is read)."""
+
+    def __init__(self, latent_dim: int, width: int = 64, n_scenes: int = 1) -> None:
+        self.latent_dim, self.width, self.n_scenes = latent_dim, width, n_scenes
