@@ -675,7 +675,7 @@ def _ms_transformer_teacher(compose_train, path: Path) -> Path:
     the layout stage=teacher writes."""
     from hydra.utils import instantiate
 
-    from pae.pipeline import stored_model_config
+    from pae.pipeline_relative import stored_model_config
 
     cfg = compose_train("teacher=ms_transformer_small", "teacher.model.latent_dim=256")
     config = stored_model_config(cfg.teacher.model) | {"n_scenes": TINY["scenes"]}

@@ -32,7 +32,7 @@ def test_every_fit_function_resolves_and_takes_its_checkpoints_by_name() -> None
 
     for step in STEPS.values():
         parameters = inspect.signature(step.fit_function()).parameters
-        assert list(parameters)[2:] == list(step.needs), step.name
+        assert list(parameters)[2:] == [*step.needs, *step.optional], step.name
 
 
 def test_unknown_step_is_an_error(compose_train) -> None:
