@@ -205,6 +205,10 @@ def bench_sweep(
     }
 
 
+BENCHMARKS = ("synthetic", "student", "refine", "pae", "index", "sweep", "deploy", "render_compare")
+"""The benchmarks pae-bench runs (``--only`` picks some)."""
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="pae-bench", description=__doc__)
     parser.add_argument("--train-frames", type=int, default=800, help="per scene, student bench")
@@ -213,31 +217,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--only",
         nargs="+",
-        choices=(
-            "synthetic",
-            "student",
-            "refine",
-            "pae",
-            "index",
-            "sweep",
-            "deploy",
-            "render_compare",
-        ),
+        choices=BENCHMARKS,
         help="run only these benchmarks (default: all)",
     )
     args = parser.parse_args(argv)
     torch.manual_seed(0)
-    everything = (
-        "synthetic",
-        "student",
-        "refine",
-        "pae",
-        "index",
-        "sweep",
-        "deploy",
-        "render_compare",
-    )
-    chosen = set(args.only or everything)
+    chosen = set(args.only or BENCHMARKS)
     figures: dict[str, float] = {}
     if "synthetic" in chosen:
         figures["bench/synthetic/frames_per_s"] = measure_render_speed()
