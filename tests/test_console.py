@@ -48,15 +48,16 @@ def test_epoch_progress_says_step_epoch_loss_validation_and_eta(
 ) -> None:
     lines: list[str] = []
     monkeypatch.setattr(progress_module, "say", lines.append)
-    clock = iter([0.0, 30.0, 60.0, 0.0])
-    monkeypatch.setattr(progress_module.time, "perf_counter", lambda: next(clock))
-    callback = EpochProgress(step="teacher")
+    now = [0.0]
+    monkeypatch.setattr(progress_module.time, "perf_counter", lambda: now[0])
+    callback = EpochProgress(step="teacher", every_s=30)
     callback.on_train_start(_trainer(0), None)
     for epoch, losses in ((0, (3.0, 1.0)), (1, (1.0, 0.5))):
         trainer = _trainer(epoch, val__teacher__pos_median_m=0.5, val__teacher__rot_median_deg=9.25)
         callback.on_train_epoch_start(trainer, None)
-        for loss in losses:
-            callback.on_train_batch_end(trainer, None, {"loss": torch.tensor(loss)}, None, 0)
+        for batch, loss in enumerate(losses):
+            now[0] += 15
+            callback.on_train_batch_end(trainer, None, {"loss": torch.tensor(loss)}, None, batch)
         if epoch == 1:
             callback.on_validation_end(trainer, None)
         callback.on_train_epoch_end(trainer, None)
@@ -66,8 +67,20 @@ def test_epoch_progress_says_step_epoch_loss_validation_and_eta(
         "teacher: epoch 2/4, loss 0.75, val teacher 0.500 m / 9.25°, 1:00 elapsed, ETA 1:00",
     ]
     lines.clear()
+    slow = _trainer(2)
+    slow.num_training_batches = 4
+    callback.on_train_epoch_start(slow, None)
+    for batch in range(3):  # 40 s a batch: a line within the epoch after each
+        now[0] += 40
+        callback.on_train_batch_end(slow, None, {"loss": torch.tensor(1.0)}, None, batch)
+    # 2.25 of 4 epochs in 100 s: 1.75 epochs left take 78 s
+    assert lines[0] == "teacher: epoch 3/4, batch 1/4, loss 1, 1:40 elapsed, ETA 1:18"
+    assert len(lines) == 3 and lines[2].startswith("teacher: epoch 3/4, batch 3/4,")
+    lines.clear()
     with_bar = _trainer(0, bar=object())
     callback.on_train_start(with_bar, None)
+    now[0] += 100
+    callback.on_train_batch_end(with_bar, None, {"loss": torch.tensor(1.0)}, None, 0)
     callback.on_train_epoch_end(with_bar, None)
     assert lines == [], "a progress bar is shown: no lines"
 

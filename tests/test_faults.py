@@ -83,7 +83,9 @@ def test_a_batch_run_prints_progress_and_each_line_once(teacher_run: Path) -> No
     assert (
         lines[0].startswith("data: ") and "2 scenes (scene00, scene01); train 48 frames" in lines[0]
     )
-    epochs = [line for line in lines if line.startswith("teacher: epoch ")]
+    epochs = [
+        line for line in lines if line.startswith("teacher: epoch ") and ", batch " not in line
+    ]
     assert len(epochs) == 2
     assert epochs[0].startswith("teacher: epoch 1/2, loss ") and ", val teacher " in epochs[0]
     assert "elapsed, ETA " in epochs[0] and "ETA" not in epochs[1]
