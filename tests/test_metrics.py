@@ -30,7 +30,22 @@ def test_one_scene_has_no_per_scene_keys() -> None:
         torch.tensor([1.0, 2.0, 3.0, 4.0]), torch.zeros(4), torch.zeros(4, dtype=torch.long), ["s"]
     )
     assert figures["pos_median_m"].item() == 2.5
-    assert sorted(figures) == ["pos_mean_m", "pos_median_m", "rot_mean_deg", "rot_median_deg"]
+    assert sorted(figures) == [
+        "pos_mean_m",
+        "pos_median_m",
+        "rot_mean_deg",
+        "rot_median_deg",
+        "within_10cm_10deg",
+        "within_5cm_5deg",
+    ]
+
+
+def test_within_shares_need_both_position_and_orientation() -> None:
+    pos = torch.tensor([0.01, 0.04, 0.08, 0.01, 0.5])
+    rot = torch.tensor([1.0, 4.9, 9.0, 7.0, 1.0])
+    figures = summarise_errors(pos, rot, torch.zeros(5, dtype=torch.long), ["s"])
+    assert figures["within_5cm_5deg"].item() == pytest.approx(2 / 5)
+    assert figures["within_10cm_10deg"].item() == pytest.approx(4 / 5)
 
 
 def test_metric_reports_the_median_of_position_errors() -> None:

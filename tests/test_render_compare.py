@@ -6,6 +6,7 @@ import dataclasses
 import json
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -30,7 +31,14 @@ from pae.geometry import pose_errors
 from pae.models.oracle_scene import OracleSceneModel
 from pae.models.scene_model import camera_rays
 from pae.models.voxel_grid import VoxelGrid, VoxelGridSceneModel, camera_bounds
-from pae.refine.render_compare import RenderCompareRefiner, perturb
+from pae.refine.render_compare import (
+    RenderCompareRefiner,
+    RenderCompareResult,
+    gate,
+    perturb,
+    trimmed_zncc,
+    zncc,
+)
 from tests.conftest import TINY, tiny_data_overrides
 
 
@@ -219,9 +227,85 @@ def test_compiled_and_tensor_scores_agree() -> None:
     torch.testing.assert_close(results[0].poses, results[1].poses, atol=1e-4, rtol=0)
 
 
+def test_compiled_and_tensor_trimmed_scores_agree() -> None:
+    model, images, intrinsics, _, start = _oracle_queries(4)
+    scenes = torch.zeros(len(start), dtype=torch.long)
+    settings = {"rounds": 3, "candidates": 8, "resolution": 16, "reference_size": 12}
+    results = [
+        RenderCompareRefiner(model, trim_sigma=2.0, engine=engine, **settings)(
+            images, intrinsics, start, scenes
+        )
+        for engine in ("compiled", "torch")
+    ]
+    torch.testing.assert_close(results[0].score, results[1].score, atol=2e-3, rtol=0)
+    plain = RenderCompareRefiner(model, engine="compiled", **settings)(
+        images, intrinsics, start, scenes
+    )
+    assert not torch.allclose(plain.initial_score, results[0].initial_score)
+
+
+def test_the_trimmed_score_ignores_an_occluder_that_plain_zncc_does_not() -> None:
+    generator = torch.Generator().manual_seed(0)
+    rendered = torch.rand(4, 400, generator=generator)
+    query = 0.7 * rendered + 0.1 + 0.01 * torch.randn(4, 400, generator=generator)
+    query[:, :80] = 1.0  # a bright occluder over a fifth of the points
+    weights = torch.ones_like(query)
+    plain, trimmed = zncc(query, rendered, weights), trimmed_zncc(query, rendered, weights, 2.0)
+    assert (plain < 0.8).all()
+    assert (trimmed > 0.95).all()
+    assert torch.equal(trimmed_zncc(query, rendered, weights, 0.0), plain)
+
+
+def test_the_gate_keeps_the_start_unless_the_score_beats_it_by_the_margin() -> None:
+    initial = torch.zeros(3, 7)
+    initial[:, 3] = 1.0
+    refined = initial.clone()
+    refined[:, 0] = 1.0
+    result = RenderCompareResult(refined, torch.tensor([0.5, 0.62, 0.9]), torch.full((3,), 0.5))
+    gated = gate(result, initial, 0.1)
+    assert gated.accepted.tolist() == [False, True, True]
+    assert gated.poses[:, 0].tolist() == [0.0, 1.0, 1.0]
+
+
+def test_the_auto_margin_rejects_refinements_that_made_poses_worse() -> None:
+    from pae.callbacks.render_compare import ACCEPT_ALL, choose_margin
+
+    gains = torch.linspace(0.01, 0.5, 100)
+    start = torch.full((100,), 0.4)
+    refined = torch.where(gains > 0.2, torch.full((100,), 0.1), torch.full((100,), 2.0))
+    margin = choose_margin(gains, refined, start)
+    assert 0.2 <= margin < 0.25  # the grid point just above the worse ones
+    assert choose_margin(gains, torch.full((100,), 0.1), start) == ACCEPT_ALL
+
+
+def test_the_search_draws_the_same_numbers_chunk_by_chunk() -> None:
+    refiner = RenderCompareRefiner(OracleSceneModel([]), rounds=3, candidates=5, seed=3)
+    stream = refiner.draw_stream()
+    pieces = torch.cat([stream(n) for n in (1, 4, 2)])
+    torch.testing.assert_close(pieces, refiner.draws(7), atol=0, rtol=0)
+
+
+def test_fit_images_are_resized_with_their_intrinsics(tiny_root: Path) -> None:
+    from pae.data.rays import fit_images
+
+    data = SyntheticDataModule(
+        root=str(tiny_root), **TINY, crop=28, shorter_edge=TINY["size"], cache_images=True
+    )
+    data.setup()
+    dataset = data.datasets["train"]
+    intrinsics = data.intrinsics("train", crop=False)
+    images, scaled = fit_images(dataset, intrinsics, TINY["size"] // 2)
+    assert images.dtype == torch.uint8
+    assert images.shape == (len(dataset), 3, TINY["size"] // 2, TINY["size"] // 2)
+    torch.testing.assert_close(scaled[:, :2], intrinsics[:, :2] / 2)
+    same, unscaled = fit_images(dataset, intrinsics, None)
+    assert torch.equal(same, dataset.__getitems__(list(range(len(dataset))))["image"])
+    assert torch.equal(unscaled, intrinsics)
+
+
 def test_bounds_come_from_the_train_cameras_only(tiny_root: Path) -> None:
     from pae.data.datamodule import PoseDataModule
-    from pae.pipeline_scene import train_bounds
+    from pae.pipeline_scene import camera_extent_m, train_scale
 
     data = PoseDataModule(
         str(tiny_root),
@@ -232,12 +316,30 @@ def test_bounds_come_from_the_train_cameras_only(tiny_root: Path) -> None:
     )
     data.setup()
     poses, scenes = data.train_poses()
-    bounds = torch.tensor(train_bounds(data, [1.0, 2.0, 0.5]))
+    auto = SimpleNamespace(margin_floor_m=0.1, margin_fraction=0.5, contract_above_m=1e6)
+    fixed = train_scale(data, {"margin_m": [1.0, 2.0, 0.5], "contract": "auto"}, auto)
+    automatic = train_scale(data, {"margin_m": "auto", "contract": False}, auto)
+    assert fixed["contract"] is False and "margin_m" not in fixed
     for s in range(data.n_scenes):
         positions = poses[scenes == s, :3].double()
-        margin = torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64)
-        torch.testing.assert_close(bounds[s, 0].double(), positions.min(0).values - margin)
-        torch.testing.assert_close(bounds[s, 1].double(), positions.max(0).values + margin)
+        for config, margin in (
+            (fixed, torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64)),
+            (automatic, torch.tensor(max(0.1, 0.5 * camera_extent_m(positions))).double()),
+        ):
+            bounds = torch.tensor(config["bounds"][s], dtype=torch.float64)
+            torch.testing.assert_close(bounds[0], positions.min(0).values - margin)
+            torch.testing.assert_close(bounds[1], positions.max(0).values + margin)
+    street = SimpleNamespace(margin_floor_m=0.1, margin_fraction=0.5, contract_above_m=0.0)
+    assert train_scale(data, {"margin_m": 1.0, "contract": "auto"}, street)["contract"] is True
+
+
+def test_camera_extent_ignores_a_few_stray_frames() -> None:
+    from pae.pipeline_scene import camera_extent_m
+
+    positions = torch.zeros(200, 3)
+    positions[:, 0] = torch.linspace(0, 4, 200)
+    positions[0] = torch.tensor([500.0, 0.0, 0.0])  # one stray frame
+    assert camera_extent_m(positions) == pytest.approx(4.0, abs=0.2)
 
 
 def test_scene_model_rays_come_from_the_train_images_only(tiny_root: Path) -> None:
@@ -370,8 +472,7 @@ def test_the_callback_refines_without_reading_the_true_poses(
     callback = callback_module.RenderCompareRefinement(
         {"rounds": 3, "candidates": 8, "resolution": 16, "reference_size": 12}, oracle=False
     )
-    data = SimpleNamespace(intrinsics=lambda split: intrinsics)
-    trainer = SimpleNamespace(world_size=1, datamodule=data)
+    trainer = SimpleNamespace(world_size=1, datamodule=SimpleNamespace())
     for gt in (truth, torch.full_like(truth, float("nan"))):
         module = SimpleNamespace(
             scene_model=model,
@@ -381,6 +482,7 @@ def test_the_callback_refines_without_reading_the_true_poses(
             eval_outputs=[
                 {
                     "image": images,
+                    "intrinsics": intrinsics,
                     "estimate": start,
                     "scene_estimate": torch.zeros(n, dtype=torch.long),
                     "pose": gt,
@@ -390,8 +492,10 @@ def test_the_callback_refines_without_reading_the_true_poses(
             ],
         )
         callback.refine(trainer, module, "test")
-    assert torch.isfinite(refined[1]).all()
-    torch.testing.assert_close(refined[0], refined[1])
+    first, second = refined[: len(refined) // 2], refined[len(refined) // 2 :]
+    assert all(torch.isfinite(poses).all() for poses in second)
+    for a, b in zip(first, second, strict=True):
+        torch.testing.assert_close(a, b)
 
 
 def test_gradient_steps_run_inside_an_evaluation_loop() -> None:

@@ -71,10 +71,16 @@ def first_occurrences(index: Tensor) -> Tensor:
     return order[keep]
 
 
+WITHIN = {"5cm_5deg": (0.05, 5.0), "10cm_10deg": (0.10, 10.0)}
+"""The shares of queries within (position m, orientation deg) that localisation papers report
+beside medians: ``within_5cm_5deg``, ``within_10cm_10deg``."""
+
+
 def summarise_errors(
     pos: Tensor, rot: Tensor, scene: Tensor, scene_names: list[str]
 ) -> dict[str, Tensor]:
-    """Errors [N] with scene ids [N] -> medians and means, per scene and averaged over scenes.
+    """Errors [N] with scene ids [N] -> medians, means and the ``WITHIN`` shares (in [0, 1]),
+    per scene and averaged over scenes.
 
     Medians are numpy's: the mean of the two middle values for an even count."""
     per_scene: dict[str, list[Tensor]] = {}
@@ -88,6 +94,10 @@ def summarise_errors(
             "rot_median_deg": rot[mask].quantile(0.5),
             "pos_mean_m": pos[mask].mean(),
             "rot_mean_deg": rot[mask].mean(),
+            **{
+                f"within_{name}": ((pos[mask] <= metres) & (rot[mask] <= degrees)).float().mean()
+                for name, (metres, degrees) in WITHIN.items()
+            },
         }
         for key, value in figures.items():
             per_scene.setdefault(key, []).append(value)

@@ -9,6 +9,7 @@ from typing import Any
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
+from torch import Tensor
 
 from pae.checkpoints import LoadedModel, load_decoder, load_pae, load_scene_model, load_teacher
 from pae.data.rays import RayDataModule
@@ -32,11 +33,37 @@ from pae.pipeline import (
 SCENE_MODELS = ("voxel_grid", "pae_decoder", "oracle")
 
 
-def train_bounds(data: Any, margin_m: Any) -> list[list[list[float]]]:
-    """Per scene: the train camera positions' bounds [2, 3] plus ``margin_m`` (never the
-    scene's geometry)."""
+def camera_extent_m(positions: Tensor) -> float:
+    """The largest side (m) of the box holding the middle 96 % of camera positions [N, 3]
+    along each axis: the camera region's size, robust to a few stray frames."""
+    if len(positions) < 2:
+        return 0.0
+    q = torch.tensor([0.02, 0.98], dtype=torch.float64)
+    spread = positions.double().quantile(q, dim=0)
+    return float((spread[1] - spread[0]).max())
+
+
+def train_scale(data: Any, model: dict[str, Any], auto: Any) -> dict[str, Any]:
+    """The voxel grid's bounds and contraction from the train cameras alone (never the
+    scene's geometry): per scene the camera positions' bounds plus ``margin_m``, and
+    ``contract``. ``margin_m: auto`` is ``max(auto.margin_floor_m, auto.margin_fraction ×
+    extent)`` per scene (extent: :func:`camera_extent_m`); ``contract: auto`` contracts
+    space when some scene's extent exceeds ``auto.contract_above_m`` (a street, not a room).
+    Returns the model's config with ``bounds`` and ``contract`` set, and ``margin_m`` gone."""
     poses, scenes = data.train_poses()
-    return [camera_bounds(poses[scenes == s, :3], margin_m).tolist() for s in range(data.n_scenes)]
+    positions = [poses[scenes == s, :3] for s in range(data.n_scenes)]
+    extents = [camera_extent_m(p) for p in positions]
+    config = dict(model)
+    margin = config.pop("margin_m")
+    if margin == "auto":
+        margins = [max(auto.margin_floor_m, auto.margin_fraction * e) for e in extents]
+    else:
+        margins = [margin] * len(positions)
+    if config.get("contract") == "auto":
+        config["contract"] = max(extents, default=0.0) > auto.contract_above_m
+    pairs = zip(positions, margins, strict=True)
+    config["bounds"] = [camera_bounds(p, m).tolist() for p, m in pairs]
+    return config
 
 
 def render_compare_callback(cfg: DictConfig) -> Any:
@@ -57,7 +84,7 @@ def build_scene_model(
     if name == "voxel_grid":
         _, count = data.appearance_ids("train")
         config = OmegaConf.to_container(settings.model, resolve=True)
-        config["bounds"] = train_bounds(data, config.pop("margin_m"))
+        config = train_scale(data, config, settings.auto_scale)
         config["n_appearances"] = count
         return instantiate(config), {"scene_model_config": config}
     if name == "pae_decoder":
@@ -99,7 +126,10 @@ def fit_scene_model(
     check_data(cfg, teacher_path, teacher, images)
     scene_model, configs = build_scene_model(cfg, images, ckpt)
     settings = cfg.scene_model
-    data = RayDataModule(images, settings.rays_per_batch, settings.batches_per_epoch)
+    callback = render_compare_callback(cfg)
+    data = RayDataModule(
+        images, settings.rays_per_batch, settings.batches_per_epoch, settings.image_size
+    )
     module = SceneModelModule(
         scene_model,
         teacher.model,
@@ -109,8 +139,9 @@ def fit_scene_model(
         tv_weight=settings.tv_weight,
         quality_size=settings.quality_size,
         quality_images=settings.quality_images,
+        query_width=callback.query_width,
     )
-    callbacks = [render_compare_callback(cfg)]
+    callbacks = [callback]
     if settings.name == "voxel_grid":  # the one that trains; max_epochs=0: saved untrained
         metrics, last = fit_and_test(
             cfg, step_dir, "scene_model", module, data, settings.max_epochs, callbacks
@@ -130,14 +161,16 @@ def evaluate_scene_model(
     of checkpoint ``path`` from ``teacher``'s estimates on ``data`` (pae-eval)."""
     loaded = load_scene_model(path, "scene_model_ckpt")
     check_data(cfg, path, loaded, data)
+    callback = render_compare_callback(cfg)
     module = SceneModelModule(
         loaded.model,
         teacher.model,
         optimizer=torch.optim.Adam,
         scene_names=data.scene_names,
         configs={"teacher_config": teacher.config, "scene_model_config": loaded.config},
+        query_width=callback.query_width,
     )
-    trainer = build_trainer(cfg, run_dir / "render_compare", 0, [render_compare_callback(cfg)])
+    trainer = build_trainer(cfg, run_dir / "render_compare", 0, [callback])
     metrics = validate_and_test(trainer, module, data)
     metrics |= collect_metrics(trainer, ("bench/",))
     log_hparams(trainer, cfg, metrics)

@@ -423,14 +423,20 @@ def _validate_scene_model(cfg: DictConfig) -> None:
     _integer(cfg, "scene_model.model.num_voxels", 8)
     _integer(cfg, "scene_model.model.samples_per_ray", 1)
     _number(cfg, "scene_model.tv_weight", 0, strict=False)
-    _boolean(cfg, "scene_model.model.contract")
+    if _value(cfg, "scene_model.model.contract") != "auto":
+        _boolean(cfg, "scene_model.model.contract")
+    if _value(cfg, "scene_model.image_size") is not None:
+        _integer(cfg, "scene_model.image_size", 4)
+    for key in ("margin_floor_m", "margin_fraction", "contract_above_m"):
+        _number(cfg, f"scene_model.auto_scale.{key}", 0, strict=False)
     margin = _value(cfg, "scene_model.model.margin_m")
     values = list(margin) if isinstance(margin, ListConfig) else [margin]
-    if len(values) not in (1, 3) or not all(
-        (_is_int(v) or isinstance(v, float)) and v >= 0 for v in values
+    if margin != "auto" and (
+        len(values) not in (1, 3)
+        or not all((_is_int(v) or isinstance(v, float)) and v >= 0 for v in values)
     ):
         raise ConfigError(
-            f"scene_model.model.margin_m must be one number >= 0 or three, got {margin!r}"
+            f"scene_model.model.margin_m must be auto, one number >= 0 or three, got {margin!r}"
         )
     if _value(cfg, "render_compare") is not None:
         for key in ("rounds", "gradient_steps", "refresh_every"):
@@ -438,6 +444,12 @@ def _validate_scene_model(cfg: DictConfig) -> None:
         for key in ("candidates", "resolution", "reference_size", "chunk"):
             _integer(cfg, f"render_compare.refiner.{key}", 1)
         _choice(cfg, "render_compare.refiner.score", ("zncc", "features"))
+        _number(cfg, "render_compare.refiner.trim_sigma", 0, strict=False, optional=True)
+        margin = _value(cfg, "render_compare.accept_margin")
+        if margin != "auto" and not (_is_int(margin) or isinstance(margin, float)):
+            raise ConfigError(
+                f"render_compare.accept_margin must be auto or a number, got {margin!r}"
+            )
 
 
 def validate_eval_config(cfg: DictConfig) -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import inspect
+import logging
 import time
 from typing import Any
 
@@ -14,10 +16,31 @@ from pae.geometry import pose_errors
 from pae.metrics import first_occurrences, summarise_errors
 from pae.models.oracle_scene import OracleSceneModel
 from pae.models.scene_model import SceneModel
-from pae.refine.render_compare import RenderCompareRefiner
+from pae.refine.render_compare import RenderCompareRefiner, RenderCompareResult, gate
 
 HONEST = "render_compare"
 ORACLE = "render_compare_oracle"
+MARGIN_QUANTILES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+"""Candidate acceptance margins of ``accept_margin=auto`` besides accept-all and 0: these
+quantiles of the validation queries' score gains."""
+ACCEPT_ALL = -4.0
+"""A margin below every possible score gain (scores lie in [-2, 1]): every refinement kept."""
+log = logging.getLogger(__name__)
+
+
+def choose_margin(gains: Tensor, refined_error: Tensor, start_error: Tensor) -> float:
+    """The acceptance margin that minimises the mean position error over queries with score
+    gains [N] (refined minus start) and position errors [N] (m) of the refined poses and of
+    the starts: among accept-all (``ACCEPT_ALL``), 0 and ``MARGIN_QUANTILES`` of the gains; the
+    smallest margin wins ties."""
+    if not len(gains):
+        return 0.0
+    quantiles = gains.float().quantile(gains.new_tensor(MARGIN_QUANTILES, dtype=torch.float))
+    margins = torch.cat([gains.new_tensor([ACCEPT_ALL, 0.0], dtype=torch.float), quantiles])
+    margins = margins.sort().values
+    accepted = gains[None].float() > margins[:, None]  # [K, N]
+    errors = torch.where(accepted, refined_error[None], start_error[None]).mean(1)
+    return float(margins[int(errors.argmin())])
 
 
 def teacher_features(teacher: torch.nn.Module, layers: int) -> Any:
@@ -43,6 +66,14 @@ class RenderCompareRefinement(L.Callback):
       renderer, a bound (it knows the scene);
     - ``bench/render_compare/ms_per_query`` (test): the honest search's time per query.
 
+    A refined pose replaces the teacher's only where its score beats the start's by more
+    than ``accept_margin`` (:func:`pae.refine.render_compare.gate`); ``auto`` chooses the
+    margin on each validation run (:func:`choose_margin`, from the split's held-out train
+    sequences) and applies the last choice at test (0 where no validation ran). Beside each
+    method's figures: ``accept_margin``, ``accepted_share``, the median position error of the
+    accepted queries (refined) and of the rejected ones (kept at the start), and
+    ``ungated_pos_median_m`` (every refinement accepted).
+
     ``refiner`` holds RenderCompareRefiner's settings; ``feature_layers`` sets how many
     modules of the teacher backbone make the features of ``refiner.score=features``.
     """
@@ -53,14 +84,38 @@ class RenderCompareRefinement(L.Callback):
         oracle: bool = True,
         every_n_val_epochs: int = 1,
         feature_layers: int = 2,
+        accept_margin: float | str = "auto",
     ) -> None:
         super().__init__()
         self.settings = dict(refiner or {})
         self.oracle = oracle
         self.every_n_val_epochs = max(1, every_n_val_epochs)
         self.feature_layers = feature_layers
+        if accept_margin != "auto" and not isinstance(accept_margin, int | float):
+            raise ValueError(
+                f"render_compare.accept_margin must be a number or auto, not {accept_margin!r}"
+            )
+        self.accept_margin = accept_margin
+        self.margins: dict[str, float] = {}
         self._val_runs = 0
         RenderCompareRefiner(SceneModel(), features=lambda x: x, **self.settings)  # check keys
+
+    @property
+    def query_width(self) -> int:
+        """The width (px) at which the refiner compares queries: what evaluation keeps."""
+        default = inspect.signature(RenderCompareRefiner).parameters["resolution"].default
+        return int(self.settings.get("resolution", default))
+
+    def margin(self, name: str, split: str, result: RenderCompareResult, errors: Any) -> float:
+        """The acceptance margin of method ``name`` on ``split`` (chosen here on val with
+        ``auto``; errors: the refined and start position errors [N], m)."""
+        if self.accept_margin != "auto":
+            return float(self.accept_margin)
+        if split == "val":
+            self.margins[name] = choose_margin(result.score - result.initial_score, *errors)
+        elif name not in self.margins:
+            log.warning("render_compare.accept_margin=auto: no validation ran; 0 on %s", split)
+        return self.margins.get(name, 0.0)
 
     def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._val_runs += 1
@@ -90,7 +145,7 @@ class RenderCompareRefinement(L.Callback):
         keep = first_occurrences(outputs["index"])
         outputs = {key: value[keep] for key, value in outputs.items()}
         data = trainer.datamodule
-        intrinsics = data.intrinsics(split)[outputs["index"].cpu()].to(outputs["image"].device)
+        intrinsics = outputs["intrinsics"]
         models = {HONEST: pl_module.scene_model}
         if isinstance(pl_module.scene_model, OracleSceneModel):
             models = {ORACLE: pl_module.scene_model}
@@ -105,13 +160,36 @@ class RenderCompareRefinement(L.Callback):
                 outputs["image"], intrinsics, outputs["estimate"], outputs["scene_estimate"]
             )
             seconds = time.perf_counter() - start
-            pos, rot = pose_errors(result.poses.float(), outputs["pose"].float())
+            truth, estimate = outputs["pose"].float(), outputs["estimate"].float()
+            refined_pos, _ = pose_errors(result.poses.float(), truth)
+            start_pos, _ = pose_errors(estimate, truth)
+            margin = self.margin(name, split, result, (refined_pos, start_pos))
+            gated = gate(result, estimate, margin)
+            pos, rot = pose_errors(gated.poses.float(), truth)
             summary = summarise_errors(pos, rot, outputs["scene"], pl_module.scene_names)
             figures |= {f"{split}/{name}/{key}": value for key, value in summary.items()}
+            figures |= gate_figures(f"{split}/{name}", margin, gated.accepted, pos, refined_pos)
             if split == "test":
                 ms = torch.tensor(1000 * seconds / len(pos))
                 figures[f"bench/{name}/ms_per_query"] = ms
         pl_module.log_dict(figures)
+
+
+def gate_figures(
+    prefix: str, margin: float, accepted: Tensor, pos: Tensor, refined_pos: Tensor
+) -> dict[str, Tensor]:
+    """The acceptance gate's figures under ``prefix``: its margin, the share accepted, the
+    median position error (m) of accepted and of rejected queries (where there are any)
+    after the gate [N], and of every refinement accepted (``ungated``)."""
+    figures = {
+        f"{prefix}/accept_margin": torch.tensor(margin),
+        f"{prefix}/accepted_share": accepted.float().mean(),
+        f"{prefix}/ungated_pos_median_m": refined_pos.quantile(0.5),
+    }
+    for kind, rows in (("accepted", accepted), ("rejected", ~accepted)):
+        if rows.any():
+            figures[f"{prefix}/{kind}_pos_median_m"] = pos[rows].quantile(0.5)
+    return figures
 
 
 def oracle_scenes(data: Any) -> list[Any] | None:

@@ -6,11 +6,40 @@ from typing import Any
 
 import lightning as L
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
+from pae.data.camera import scale_intrinsics
 from pae.data.datamodule import PoseDataModule
 from pae.geometry import quaternion_to_matrix
+
+READ_ROWS = 256
+"""Train images read (and resized) at a time when the ray store is filled."""
+
+
+def fit_images(dataset: Any, intrinsics: Tensor, shorter_edge: int | None) -> tuple[Tensor, Tensor]:
+    """Every image of ``dataset`` resized so that its shorter edge is ``shorter_edge`` px
+    (None: as the dataset holds them), read ``READ_ROWS`` at a time into one uint8 tensor
+    [N, 3, h, w], and the intrinsics [N, 4] of that size (``intrinsics``: of the dataset's
+    images). Memory: the result, plus one read's images."""
+    n = len(dataset)
+    first = dataset.__getitems__([0])["image"]
+    height, width = first.shape[-2:]
+    if shorter_edge is not None and shorter_edge != min(height, width):
+        scale = shorter_edge / min(height, width)
+        size = (max(1, round(height * scale)), max(1, round(width * scale)))
+    else:
+        size = (height, width)
+    images = torch.empty((n, 3, *size), dtype=torch.uint8)
+    for start in range(0, n, READ_ROWS):
+        rows = list(range(start, min(start + READ_ROWS, n)))
+        batch = dataset.__getitems__(rows)["image"]
+        if size != (height, width):
+            small = F.interpolate(batch.float(), size=size, mode="area")
+            batch = small.round().clamp(0, 255).to(torch.uint8)
+        images[start : start + len(rows)] = batch
+    return images, scale_intrinsics(intrinsics, size[1] / width, size[0] / height)
 
 
 class RayBatches(Dataset):
@@ -64,14 +93,23 @@ class RayBatches(Dataset):
 
 
 class RayDataModule(L.LightningDataModule):
-    """Training batches of train-image rays (:class:`RayBatches`); validation and test
-    batches are the wrapped PoseDataModule's images (queries for render-and-compare)."""
+    """Training batches of train-image rays (:class:`RayBatches`) from the train images at
+    ``image_size`` px shorter edge (:func:`fit_images`; None: as the data holds them);
+    validation and test batches are the wrapped PoseDataModule's images (queries for
+    render-and-compare)."""
 
-    def __init__(self, images: PoseDataModule, rays_per_batch: int, batches_per_epoch: int) -> None:
+    def __init__(
+        self,
+        images: PoseDataModule,
+        rays_per_batch: int,
+        batches_per_epoch: int,
+        image_size: int | None = None,
+    ) -> None:
         super().__init__()
         self.images = images
         self.rays_per_batch = rays_per_batch
         self.batches_per_epoch = batches_per_epoch
+        self.image_size = image_size
 
     def setup(self, stage: str | None = None) -> None:
         self.images.setup(stage)
@@ -103,10 +141,12 @@ class RayDataModule(L.LightningDataModule):
     def train_dataloader(self) -> DataLoader:
         dataset = self.images.datasets["train"]
         appearance, _ = self.images.appearance_ids("train")
+        intrinsics = self.images.intrinsics("train", crop=False)
+        images, intrinsics = fit_images(dataset, intrinsics, self.image_size)
         rays = RayBatches(
-            dataset.__getitems__(list(range(len(dataset))))["image"],
+            images,
             dataset.poses,
-            self.images.intrinsics("train", crop=False),
+            intrinsics,
             dataset.scenes,
             appearance,
             self.rays_per_batch,

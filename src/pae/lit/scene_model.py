@@ -16,9 +16,11 @@ from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import PoseEvaluation
 from pae.models.base import PoseRegressor
 from pae.models.scene_model import SceneModel
-from pae.refine.render_compare import grey, zncc
+from pae.refine.render_compare import compare_size, grey, zncc
 
 SCENE_MODEL_METHODS = ["teacher", "mean_pose"]
+MEAN_IMAGE_ROWS = 1024
+"""Train images (evenly spaced) averaged into the mean-image baseline."""
 
 
 def fitted_psnr_db(rendered: Tensor, target: Tensor) -> Tensor:
@@ -45,8 +47,10 @@ class SceneModelModule(PaeModule):
     per-image gain and bias fit, ``.../zncc`` of grey images, and ``.../mean_image_psnr_db``
     for the mean train image, a model that ignores the pose) on the first ``quality_images``
     queries at ``quality_size`` px, and keeps every query for the refinement callback
-    (``eval_outputs``). The quality figures read the split's poses and images: they measure
-    the scene model, they steer nothing.
+    (``eval_outputs``: its image area-resized to ``query_width`` px wide, the refiner's
+    compare width, with the intrinsics of that size; None: as evaluated). The quality
+    figures read the split's poses and images: they measure the scene model, they steer
+    nothing.
     """
 
     def __init__(
@@ -61,6 +65,7 @@ class SceneModelModule(PaeModule):
         quality_size: int = 24,
         quality_images: int = 128,
         gallery_size: int = 8,
+        query_width: int | None = None,
     ) -> None:
         super().__init__(optimizer, scheduler)
         self.save_hyperparameters({**configs, "scene_names": list(scene_names)})
@@ -71,6 +76,7 @@ class SceneModelModule(PaeModule):
         self.quality_size = quality_size
         self.quality_images = quality_images
         self.gallery_size = gallery_size
+        self.query_width = query_width
         self.evaluation = PoseEvaluation(SCENE_MODEL_METHODS, scene_names)
         self.register_mean_pose_baseline(len(scene_names))
         self.register_buffer("mean_image", torch.zeros(3, quality_size, quality_size), False)
@@ -100,17 +106,20 @@ class SceneModelModule(PaeModule):
         return mse + self.tv_weight * tv
 
     def _fill_mean_image(self) -> None:
-        """The mean train image at ``quality_size`` px, read 256 rows at a time."""
+        """The mean of at most ``MEAN_IMAGE_ROWS`` evenly spaced train images at
+        ``quality_size`` px, read 256 rows at a time."""
         data = self.trainer.datamodule
         dataset = data.datasets["train"]
+        count = min(len(dataset), MEAN_IMAGE_ROWS)
+        picked = torch.linspace(0, len(dataset) - 1, count).round().long().tolist()
         total = torch.zeros_like(self.mean_image, dtype=torch.float64)
-        for start in range(0, len(dataset), 256):
-            rows = list(range(start, min(start + 256, len(dataset))))
+        for start in range(0, count, 256):
+            rows = picked[start : start + 256]
             images = data.preprocess(dataset.__getitems__(rows)["image"], train=False)
             rgb = ImageTransform.unnormalize_batch(images)
             small = nn.functional.interpolate(rgb, size=self.mean_image.shape[1:], mode="area")
             total += small.double().sum(0)
-        self.mean_image.copy_(total / max(len(dataset), 1))
+        self.mean_image.copy_(total / max(count, 1))
 
     def on_validation_epoch_start(self) -> None:
         self.eval_outputs, self._quality, self._gallery = [], [], []
@@ -160,9 +169,16 @@ class SceneModelModule(PaeModule):
         self.evaluation.update(split, "mean_pose", self.mean_poses[scene], gt, scene, index)
         rgb = ImageTransform.unnormalize_batch(batch["image"])
         self._measure_quality(rgb, batch, split)
+        h, w = rgb.shape[-2:]
+        intrinsics = self.trainer.datamodule.intrinsics(split)[index.cpu()].to(rgb.device)
+        if self.query_width is not None:
+            size = compare_size(h, w, self.query_width)
+            rgb = nn.functional.interpolate(rgb, size=size, mode="area")
+            intrinsics = scale_intrinsics(intrinsics, size[1] / w, size[0] / h)
         self.eval_outputs.append(
             {
                 "image": rgb,
+                "intrinsics": intrinsics,
                 "estimate": answer.pose,
                 "scene_estimate": answer.scene,
                 "pose": gt,

@@ -84,6 +84,33 @@ def zncc(a: Tensor, b: Tensor, weights: Tensor) -> Tensor:
     return cov / var.clamp_min(1e-12).sqrt()
 
 
+def trimmed_zncc(
+    a: Tensor, b: Tensor, weights: Tensor, trim_sigma: float, passes: int = 2
+) -> Tensor:
+    """ZNCC [...] of a, b [..., P] over the points the fit explains: ``passes`` times, after
+    a weighted least-squares fit ``a ≈ gain·b + offset`` on the points kept so far, the
+    points whose residual exceeds ``trim_sigma`` residual standard deviations (an occluder, a
+    highlight) are dropped (of all points, so a point may come back). ``trim_sigma <= 0``:
+    plain :func:`zncc`. The selection is not differentiated; the score is, through the kept
+    points."""
+    if trim_sigma <= 0 or passes < 1:
+        return zncc(a, b, weights)
+    kept = weights
+    with torch.no_grad():
+        for _ in range(passes):
+            total = kept.sum(-1, keepdim=True).clamp_min(1e-9)
+            mean_a = (kept * a).sum(-1, keepdim=True) / total
+            mean_b = (kept * b).sum(-1, keepdim=True) / total
+            cov = (kept * (a - mean_a) * (b - mean_b)).sum(-1, keepdim=True)
+            var_a = (kept * (a - mean_a).square()).sum(-1, keepdim=True)
+            var_b = (kept * (b - mean_b).square()).sum(-1, keepdim=True)
+            gain = cov / var_b.clamp_min(1e-12)
+            sigma = ((var_a - gain * cov).clamp_min(0) / total).sqrt()
+            residual = (a - mean_a) - gain * (b - mean_b)
+            kept = weights * (residual.abs() <= trim_sigma * sigma).to(weights.dtype)
+    return zncc(a, b, kept)
+
+
 def rotation_vector_to_quaternion(vector: Tensor) -> Tensor:
     """Axis-angle vectors [..., 3] (rad) -> unit quaternions [..., 4] (w first)."""
     angle = vector.norm(dim=-1, keepdim=True)
@@ -98,6 +125,26 @@ def perturb(poses: Tensor, steps: Tensor) -> Tensor:
     position = poses[..., :3] + steps[..., :3]
     q = quaternion_multiply(poses[..., 3:], rotation_vector_to_quaternion(steps[..., 3:]))
     return torch.cat([position, canonicalize_quaternion(normalize_quaternion(q))], -1)
+
+
+def compare_size(height: int, width: int, compare_width: int) -> tuple[int, int]:
+    """The (height, width) in px at which a query of ``height × width`` px is compared."""
+    return max(4, round(height * compare_width / width)), compare_width
+
+
+class GatedPoses(NamedTuple):
+    """poses [B, 7]: the refined pose where accepted, else the start; accepted [B] bool."""
+
+    poses: Tensor
+    accepted: Tensor
+
+
+def gate(result: RenderCompareResult, initial: Tensor, margin: float) -> GatedPoses:
+    """Keep a refined pose only where its score beats the start's by more than ``margin``
+    (a ZNCC difference; below -3 accepts every refinement) -> :class:`GatedPoses`."""
+    accepted = result.score - result.initial_score > margin
+    start = initial.to(result.poses)
+    return GatedPoses(torch.where(accepted[:, None], result.poses, start), accepted)
 
 
 class _Queries(NamedTuple):
@@ -126,7 +173,9 @@ class RenderCompareRefiner:
     reference_size, reference_fov_scale: the reference rendering's width in px and its field
     of view relative to the query's; refresh_every: rounds between reference renderings at
     the current best pose (0: one rendering, at the start); min_overlap: the share of
-    reference points a candidate must see, else it scores -2; gradient_steps, gradient_lr:
+    reference points a candidate must see, else it scores -2; trim_sigma, trim_passes: the
+    ZNCC's robustness (:func:`trimmed_zncc`; trim_sigma 0: plain ZNCC); gradient_steps,
+    gradient_lr:
     Adam steps on the pose after the search (translation in m, rotation in rad); score:
     ``zncc`` or ``features`` (needs ``features``); chunk: queries scored at once; engine: see
     ``ENGINES``.
@@ -146,6 +195,8 @@ class RenderCompareRefiner:
         reference_fov_scale: float = 1.3,
         refresh_every: int = 0,
         min_overlap: float = 0.4,
+        trim_sigma: float = 0.0,
+        trim_passes: int = 2,
         gradient_steps: int = 100,
         gradient_lr: float = 0.02,
         score: str = "zncc",
@@ -172,6 +223,11 @@ class RenderCompareRefiner:
                 "render_compare needs rounds >= 0, candidates >= 1, resolution >= 4 and "
                 "reference_size >= 4"
             )
+        if trim_sigma < 0 or trim_passes < 0:
+            raise ValueError(
+                f"render_compare needs trim_sigma >= 0 and trim_passes >= 0, not {trim_sigma} "
+                f"and {trim_passes}"
+            )
         self.scene_model = scene_model
         self.rounds = rounds
         self.candidates = candidates
@@ -183,6 +239,8 @@ class RenderCompareRefiner:
         self.reference_fov_scale = reference_fov_scale
         self.refresh_every = refresh_every
         self.min_overlap = min_overlap
+        self.trim_sigma = trim_sigma
+        self.trim_passes = trim_passes
         self.gradient_steps = gradient_steps
         self.gradient_lr = gradient_lr
         self.score = score
@@ -191,20 +249,33 @@ class RenderCompareRefiner:
         self.chunk = chunk
         self.engine = engine
 
-    def draws(self, n_queries: int, device: torch.device | str = "cpu") -> Tensor:
-        """The search's standard-normal draws [n_queries, rounds, candidates, 6], in query
-        order, from the refiner's seed."""
+    def draw_stream(self) -> Callable[[int], Tensor]:
+        """The search's standard-normal draws, made as they are needed: each call ``(n)``
+        returns the next ``n`` queries' draws [n, rounds, candidates, 6] from the refiner's
+        seed. Each query's share of the stream is padded to whole blocks of 16 numbers, the
+        unit of torch's CPU normal sampler, so a sequence of calls yields exactly the draws
+        of one call for all queries (tested): results never depend on the chunking."""
         generator = torch.Generator().manual_seed(self.seed)
-        shape = (n_queries, self.rounds, self.candidates, 6)
-        return torch.randn(shape, generator=generator).to(device)
+        count = self.rounds * self.candidates * 6
+        padded = -(-count // 16) * 16
+        shape = (self.rounds, self.candidates, 6)
+
+        def next_draws(n_queries: int) -> Tensor:
+            numbers = torch.randn((n_queries, padded), generator=generator)
+            return numbers[:, :count].reshape(n_queries, *shape)
+
+        return next_draws
+
+    def draws(self, n_queries: int, device: torch.device | str = "cpu") -> Tensor:
+        """The first ``n_queries`` queries' draws of :meth:`draw_stream`, in query order."""
+        return self.draw_stream()(n_queries).to(device)
 
     @torch.no_grad()
     def prepare_queries(self, images: Tensor, intrinsics: Tensor, scenes: Tensor) -> _Queries:
         """Query images [B, 3, H, W] (RGB in [0, 1]) with intrinsics [B, 4] -> what the
         score compares against, at the compare resolution."""
         h, w = images.shape[-2:]
-        width = self.resolution
-        height = max(4, round(h * width / w))
+        height, width = compare_size(h, w, self.resolution)
         small = F.interpolate(images, size=(height, width), mode="area")
         scaled = scale_intrinsics(intrinsics, width / w, height / h)
         if self.score == "features":
@@ -273,7 +344,9 @@ class RenderCompareRefiner:
             total = weights.sum(-1).clamp_min(1e-9)
             score = (cosine * weights).sum(-1) / total
         else:
-            score = zncc(sampled[:, 0], values[:, 0], weights)
+            score = trimmed_zncc(
+                sampled[:, 0], values[:, 0], weights, self.trim_sigma, self.trim_passes
+            )
         overlap = weights.sum(-1) / surface.valid.sum(-1, keepdim=True).clamp_min(1.0)
         return torch.where(overlap >= self.min_overlap, score, torch.full_like(score, -2.0))
 
@@ -296,7 +369,9 @@ class RenderCompareRefiner:
             return F.cosine_similarity(maps, target, dim=2).mean(-1)
         rendered = gaussian_blur(grey(rendering.rgb), self.blur_sigma_px).view(b, m, h * w)
         target = queries.target.view(b, 1, h * w).expand_as(rendered)
-        return zncc(rendered, target, torch.ones_like(rendered))
+        return trimmed_zncc(
+            target, rendered, torch.ones_like(rendered), self.trim_sigma, self.trim_passes
+        )
 
     def _score(self, poses: Tensor, queries: _Queries, surface: _Surface | None) -> Tensor:
         if surface is None:
@@ -313,6 +388,8 @@ class RenderCompareRefiner:
                 queries.intrinsics,
                 queries.target[:, 0],
                 self.min_overlap,
+                self.trim_sigma,
+                self.trim_passes,
             )
         return self._score_projected(poses, queries, surface)
 
@@ -382,13 +459,17 @@ class RenderCompareRefiner:
         draws: Tensor | None = None,
     ) -> RenderCompareResult:
         """Refine queries: images [B, 3, H, W] RGB in [0, 1] with intrinsics [B, 4] (px of
-        those images), initial poses [B, 7], scene ids [B]; draws as from :meth:`draws`."""
+        those images), initial poses [B, 7], scene ids [B]; draws as from :meth:`draws`
+        (None: made chunk by chunk from :meth:`draw_stream`)."""
         initial = torch.cat([initial[:, :3], normalize_quaternion(initial[:, 3:])], -1).float()
-        draws = self.draws(len(initial), initial.device) if draws is None else draws
+        stream = self.draw_stream()
         poses, scores, initial_scores = [], [], []
         for rows in torch.arange(len(initial), device=initial.device).split(self.chunk):
+            chunk_draws = stream(len(rows)) if draws is None else draws[rows.cpu()]
             queries = self.prepare_queries(images[rows].float(), intrinsics[rows], scenes[rows])
-            best, score, start, surface = self._search(initial[rows], queries, draws[rows])
+            best, score, start, surface = self._search(
+                initial[rows], queries, chunk_draws.to(initial.device)
+            )
             best, score = self._polish(best, score, queries, surface)
             poses.append(best)
             scores.append(score)

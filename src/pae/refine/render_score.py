@@ -2,7 +2,8 @@
 
 For each query and candidate camera, the reference surface points are projected into the
 candidate, the blurred grey query image is sampled bilinearly where they land, and the
-weighted ZNCC of the sampled values with the points' rendered values is returned: the score
+weighted ZNCC of the sampled values with the points' rendered values is returned (optionally
+trimmed of the points the rendering cannot explain): the score
 :meth:`RenderCompareRefiner._score_projected` computes with tensor operations (tested equal),
 in one pass per candidate instead of some twenty passes over every point.
 """
@@ -34,11 +35,16 @@ def _zncc_scores(
     intrinsics: np.ndarray,
     target: np.ndarray,
     min_overlap: float,
+    trim_sigma: float,
+    trim_passes: int,
     scores: np.ndarray,
 ) -> None:
     """points [B, P, 3], values [B, P], valid [B, P], rotations [B, M, 3, 3] (camera to
-    world), positions [B, M, 3], intrinsics [B, 4], target [B, h, w] -> scores [B, M]."""
+    world), positions [B, M, 3], intrinsics [B, 4], target [B, h, w] -> scores [B, M];
+    trim_sigma > 0: ``trim_passes`` times, ZNCC again over the points whose residual after
+    the previous pass's gain-and-bias fit is within trim_sigma residual standard deviations."""
     n_queries, n_candidates = rotations.shape[0], rotations.shape[1]
+    n_points = points.shape[1]
     h, w = target.shape[1], target.shape[2]
     for job in numba.prange(n_queries * n_candidates):
         b = job // n_candidates
@@ -48,7 +54,9 @@ def _zncc_scores(
         tx, ty, tz = positions[b, m, 0], positions[b, m, 1], positions[b, m, 2]
         total = sum_a = sum_b = sum_ab = sum_aa = sum_bb = 0.0
         reference = 0.0
-        for p in range(points.shape[1]):
+        sampled = np.empty(n_points, np.float32)
+        seen = np.zeros(n_points, np.bool_)
+        for p in range(n_points):
             if valid[b, p] <= 0:
                 continue
             reference += valid[b, p]
@@ -63,11 +71,12 @@ def _zncc_scores(
             u0 = min(int(u), w - 2)
             v0 = min(int(v), h - 2)
             fu, fv = u - u0, v - v0
-            sampled = (target[b, v0, u0] * (1 - fu) + target[b, v0, u0 + 1] * fu) * (1 - fv) + (
+            a = (target[b, v0, u0] * (1 - fu) + target[b, v0, u0 + 1] * fu) * (1 - fv) + (
                 target[b, v0 + 1, u0] * (1 - fu) + target[b, v0 + 1, u0 + 1] * fu
             ) * fv
+            sampled[p] = a
+            seen[p] = True
             weight = valid[b, p]
-            a = sampled
             c = values[b, p]
             total += weight
             sum_a += weight * a
@@ -79,8 +88,38 @@ def _zncc_scores(
             scores[b, m] = NOT_SEEN_SCORE
             continue
         cov = sum_ab - sum_a * sum_b / total
-        var = (sum_aa - sum_a * sum_a / total) * (sum_bb - sum_b * sum_b / total)
-        scores[b, m] = cov / math.sqrt(max(var, 1e-12))
+        var_a = sum_aa - sum_a * sum_a / total
+        var_b = sum_bb - sum_b * sum_b / total
+        for _ in range(trim_passes if trim_sigma > 0 else 0):
+            if total <= 0:
+                break
+            gain = cov / max(var_b, 1e-12)
+            offset = (sum_a - gain * sum_b) / total
+            limit = trim_sigma * math.sqrt(max(var_a - gain * cov, 0.0) / total)
+            total = sum_a = sum_b = sum_ab = sum_aa = sum_bb = 0.0
+            for p in range(n_points):
+                if not seen[p]:
+                    continue
+                a = sampled[p]
+                c = values[b, p]
+                if abs(a - gain * c - offset) > limit:
+                    continue
+                weight = valid[b, p]
+                total += weight
+                sum_a += weight * a
+                sum_b += weight * c
+                sum_ab += weight * a * c
+                sum_aa += weight * a * a
+                sum_bb += weight * c * c
+            if total <= 0:
+                break
+            cov = sum_ab - sum_a * sum_b / total
+            var_a = sum_aa - sum_a * sum_a / total
+            var_b = sum_bb - sum_b * sum_b / total
+        if total <= 0:
+            scores[b, m] = 0.0
+            continue
+        scores[b, m] = cov / math.sqrt(max(var_a * var_b, 1e-12))
 
 
 def compiled_zncc_scores(
@@ -92,9 +131,12 @@ def compiled_zncc_scores(
     intrinsics: Tensor,
     target: Tensor,
     min_overlap: float,
+    trim_sigma: float = 0.0,
+    trim_passes: int = 2,
 ) -> Tensor:
     """Scores [B, M] of candidates (rotations [B, M, 3, 3], positions [B, M, 3]) against
-    the blurred grey queries ``target`` [B, h, w] (see the module docstring)."""
+    the blurred grey queries ``target`` [B, h, w] (see the module docstring; ``trim_sigma``
+    and ``trim_passes`` as :func:`pae.refine.render_compare.trimmed_zncc`)."""
 
     def array(t: Tensor) -> np.ndarray:
         return t.detach().to("cpu", torch.float32).contiguous().numpy()
@@ -109,6 +151,8 @@ def compiled_zncc_scores(
         array(intrinsics),
         array(target),
         float(min_overlap),
+        float(trim_sigma),
+        int(trim_passes),
         scores,
     )
     return torch.from_numpy(scores).to(points.device)
