@@ -335,7 +335,10 @@ def test_synth_passes_arguments_and_prints_summary(
     monkeypatch.setattr(pae.data, "synthetic", fake, raising=False)
 
     assert main(["synth", str(tmp_path / "a"), "--scenes", "2", "--size", "32", "--seed", "7"]) == 0
-    assert main(["synth", str(tmp_path / "b"), "--test-offset", "0", "--train-lane", "0.5"]) == 0
+    nuisances = ["--lighting-change", "0.5", "--occluder-fraction", "0.3"]
+    nuisances += ["--sensor-noise", "0.02", "--motion-blur", "3"]
+    b = ["synth", str(tmp_path / "b"), "--test-offset", "0", "--train-lane", "0.5", *nuisances]
+    assert main(b) == 0
     written = capsys.readouterr()
     assert written.out == "synthetic summary\n" * 2
     assert f"rendering {tmp_path / 'a'}: 1/2 frames (50 %)" in written.err
@@ -352,6 +355,10 @@ def test_synth_passes_arguments_and_prints_summary(
                 train_lane_m=0.0,
                 yaw_stray_rad=0.5,
                 stray_m=0.35,
+                lighting_change=0.0,
+                occluder_fraction=0.0,
+                sensor_noise_std=0.0,
+                motion_blur_px=0.0,
                 overwrite=False,
             ),
         ),
@@ -367,9 +374,15 @@ def test_synth_passes_arguments_and_prints_summary(
                 train_lane_m=0.5,
                 yaw_stray_rad=0.5,
                 stray_m=0.35,
+                lighting_change=0.5,
+                occluder_fraction=0.3,
+                sensor_noise_std=0.02,
+                motion_blur_px=3.0,
                 overwrite=False,
             ),
         ),
     ]
     assert main(["synth", str(tmp_path / "c"), "--poses", "x.csv", "--scenes", "2"]) == 1
     assert "--poses renders the given rows only: drop --scenes" in capsys.readouterr().err
+    assert main(["synth", str(tmp_path / "c"), "--poses", "x.csv", "--motion-blur", "2"]) == 1
+    assert "--poses renders the given rows only: drop --motion-blur" in capsys.readouterr().err

@@ -24,6 +24,14 @@ SYNTHETIC_LAYOUT_BOUNDS = {
     "yaw_stray_rad": math.pi / 2,
 }
 """Upper bounds of the synthetic camera layout's settings (all >= 0), as rendering checks."""
+SYNTHETIC_NUISANCE_BOUNDS = {
+    "lighting_change": 1.0,
+    "occluder_fraction": 1.0,
+    "sensor_noise_std": 0.5,
+    "motion_blur_px": 64.0,
+}
+"""Upper bounds of the synthetic nuisances' settings (all >= 0, 0: off), as rendering checks
+(``pae.data.synthetic.NUISANCE_BOUNDS``)."""
 
 RENAMED_KEYS = {"pae_ckpt": "student_ckpt"}
 """Old key -> its new name. The old key is still read for one more release, with a one-line
@@ -267,11 +275,16 @@ def _train_set_size(cfg: DictConfig) -> int:
     scenes)."""
     data = cfg.data
     if _is_synthetic(cfg):
-        for key, high in SYNTHETIC_LAYOUT_BOUNDS.items():
+        for key, high in {**SYNTHETIC_LAYOUT_BOUNDS, **SYNTHETIC_NUISANCE_BOUNDS}.items():
             if key in data:
                 _number(cfg, f"data.{key}", 0, strict=False)
                 if data[key] > high:
                     raise ConfigError(f"data.{key} must be <= {high:g}, got {data[key]!r}")
+        on = [f"data.{key}" for key in SYNTHETIC_NUISANCE_BOUNDS if data.get(key)]
+        if data.get("poses") and on:
+            raise ConfigError(
+                f"data.poses renders the given rows without nuisances: set {', '.join(on)} to 0"
+            )
     if _renders(cfg):
         _integer(cfg, "data.scenes", 1)
         _integer(cfg, "data.train_frames", 1)

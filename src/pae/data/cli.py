@@ -4,7 +4,8 @@
 
     pae-data synth OUT [--scenes N --train-frames N --test-frames N --test-offset M
                         --train-lane M --yaw-stray RAD --stray M --size PX --seed S]
-                        [--overwrite]
+                       [--lighting-change S --occluder-fraction F --sensor-noise STD
+                        --motion-blur PX] [--overwrite]
     pae-data synth OUT --poses LABELS.csv [LABELS.csv ...] [--size PX --seed S] [--overwrite]
     pae-data convert {cambridge,7scenes} RAW_ROOT OUT_DIR
     pae-data check LABELS.csv ROOT
@@ -50,6 +51,10 @@ def _synth(args: argparse.Namespace) -> int:
                 ("--train-lane", args.train_lane),
                 ("--yaw-stray", args.yaw_stray),
                 ("--stray", args.stray),
+                ("--lighting-change", args.lighting_change),
+                ("--occluder-fraction", args.occluder_fraction),
+                ("--sensor-noise", args.sensor_noise),
+                ("--motion-blur", args.motion_blur),
             )
             if value is not None
         ]
@@ -77,6 +82,10 @@ def _synth(args: argparse.Namespace) -> int:
             train_lane_m=chosen(args.train_lane, synthetic.DEFAULT_TRAIN_LANE_M),
             yaw_stray_rad=chosen(args.yaw_stray, synthetic.DEFAULT_YAW_STRAY_RAD),
             stray_m=chosen(args.stray, synthetic.DEFAULT_STRAY_M),
+            lighting_change=chosen(args.lighting_change, 0.0),
+            occluder_fraction=chosen(args.occluder_fraction, 0.0),
+            sensor_noise_std=chosen(args.sensor_noise, 0.0),
+            motion_blur_px=chosen(args.motion_blur, 0.0),
             overwrite=args.overwrite,
             progress=_render_progress(args.out),
         )
@@ -174,6 +183,32 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         metavar="M",
         help="how far each camera strays horizontally from its lane (default: 0.1)",
+    )
+    synth.add_argument(
+        "--lighting-change",
+        type=float,
+        metavar="S",
+        help="strength in [0, 1] of lighting and exposure changing between and within "
+        "sequences (default: 0, off)",
+    )
+    synth.add_argument(
+        "--occluder-fraction",
+        type=float,
+        metavar="F",
+        help="share in [0, 1] of frames with a person-sized box in front of the camera "
+        "(default: 0, off)",
+    )
+    synth.add_argument(
+        "--sensor-noise",
+        type=float,
+        metavar="STD",
+        help="extra Gaussian sensor noise, std of values in [0, 1] (default: 0, off)",
+    )
+    synth.add_argument(
+        "--motion-blur",
+        type=float,
+        metavar="PX",
+        help="longest motion blur in pixels, each frame's random up to it (default: 0, off)",
     )
     synth.add_argument(
         "--poses",

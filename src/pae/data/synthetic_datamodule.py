@@ -27,9 +27,12 @@ def default_root(
     train_lane_m: float = 0.5,
     yaw_stray_rad: float = 0.15,
     stray_m: float = 0.1,
+    nuisances: synthetic.Nuisances | None = None,
 ) -> str:
     """The folder a synthetic dataset renders into: named by its settings, or, for
-    ``poses``, by a digest of the label files' contents (so edited files render anew)."""
+    ``poses``, by a digest of the label files' contents (so edited files render anew).
+    ``nuisances`` that are on add a suffix naming them (``_light1_occl0.3…``); off, the name
+    is the one without them."""
     if poses:
         digest = hashlib.sha256()
         for path in poses:
@@ -42,6 +45,7 @@ def default_root(
         f"{RENDER_FOLDER}/scenes{scenes}_train{train_frames}_test{test_frames}_px{size}"
         f"_seed{render_seed}_offset{test_offset_m:g}_lane{train_lane_m:g}"
         f"_yaw{yaw_stray_rad:g}_stray{stray_m:g}"
+        f"{nuisances.folder_suffix() if nuisances is not None else ''}"
     )
 
 
@@ -52,7 +56,12 @@ class SyntheticDataModule(PoseDataModule):
     Without ``poses``: the benchmark's rooms and routes (``scenes``, frames per scene, the
     lateral offsets of the test and train sequences from the route, ``test_offset_m`` and
     ``train_lane_m``, how far they stray from their lanes, ``stray_m``, and their yaw from
-    the route's heading, ``yaw_stray_rad``). With ``poses``
+    the route's heading, ``yaw_stray_rad``), and its nuisances, all off (0) by default:
+    ``lighting_change`` (strength in ``[0, 1]`` of lighting and exposure changing between and
+    within sequences), ``occluder_fraction`` (share of frames with a person-sized box in front
+    of the camera), ``sensor_noise_std`` (extra Gaussian noise, std of values in ``[0, 1]``)
+    and ``motion_blur_px`` (longest motion blur, px); see
+    :mod:`pae.data.synthetic.nuisances`. With ``poses``
     (label files, e.g. a real dataset's train and test labels): one image per row at that
     row's pose, in a world built around them (``pae-data synth --poses``). ``root`` None
     picks a folder under ``data/synthetic`` named by these settings and renders into it when
@@ -76,9 +85,21 @@ class SyntheticDataModule(PoseDataModule):
         train_lane_m: float = 0.5,
         yaw_stray_rad: float = 0.15,
         stray_m: float = 0.1,
+        lighting_change: float = 0.0,
+        occluder_fraction: float = 0.0,
+        sensor_noise_std: float = 0.0,
+        motion_blur_px: float = 0.0,
         **kwargs: Any,
     ) -> None:
         poses = [str(p) for p in poses] if poses else None
+        nuisances = synthetic.Nuisances(
+            lighting_change, occluder_fraction, sensor_noise_std, motion_blur_px
+        )
+        if poses and nuisances.active:
+            raise ValueError(
+                "data.poses renders the given rows without nuisances: set lighting_change, "
+                "occluder_fraction, sensor_noise_std and motion_blur_px to 0"
+            )
         self.renders_on_first_use = root is None
         if root is None:
             root = default_root(
@@ -92,6 +113,7 @@ class SyntheticDataModule(PoseDataModule):
                 train_lane_m,
                 yaw_stray_rad,
                 stray_m,
+                nuisances,
             )
         labels = Path(root) / "labels"
         if kwargs.get("camera") is None:
@@ -115,6 +137,10 @@ class SyntheticDataModule(PoseDataModule):
             "train_lane_m": train_lane_m,
             "yaw_stray_rad": yaw_stray_rad,
             "stray_m": stray_m,
+            "lighting_change": lighting_change,
+            "occluder_fraction": occluder_fraction,
+            "sensor_noise_std": sensor_noise_std,
+            "motion_blur_px": motion_blur_px,
         }
 
     def prepare_data(self) -> None:

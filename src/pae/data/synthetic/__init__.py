@@ -2,7 +2,8 @@
 
 The package is split at its seams: ``camera`` (pinhole model, pose conventions), ``scene``
 (rooms, boxes, textures, camera routes), ``raycast`` (the renderer and the camera response),
-``trajectories`` (train and test sequences) and ``writer`` (datasets on disk); every public
+``trajectories`` (train and test sequences), ``nuisances`` (optional lighting change,
+occluders, sensor noise and motion blur) and ``writer`` (datasets on disk); every public
 name is importable from here.
 
 Each scene is a room (an axis-aligned box seen from inside, a few metres wide like the
@@ -11,6 +12,9 @@ procedural texture: large coloured gradients and shapes (so a 64 px view tells w
 camera is and where it looks) plus finer detail. Images are ray cast exactly in numpy,
 with a point light and 2×2 supersampling, then pass through a per-sequence camera response
 (gain, bias, tint, gamma, sensor noise). The pose can only be learnt from what the camera sees.
+Nuisances, all off by default (:class:`Nuisances`), add what no scene model explains: lighting
+and exposure changing between and within sequences, person-sized occluders in front of the
+camera, more sensor noise and motion blur.
 
 Conventions:
 
@@ -28,6 +32,8 @@ Layout written by :func:`write_synthetic_dataset` (label format of :mod:`pae.dat
 
     OUT/labels/scene00_train.csv  OUT/labels/scene00_test.csv  ...  OUT/labels/all_{train,test}.csv
     OUT/scene00/seq-01/frame-000000.png  ...
+    OUT/labels/nuisances.csv   (only with a nuisance on: img_path, occluder_share, blur_px,
+                                exposure_gain per frame)
 """
 
 from pae.data.synthetic.camera import (
@@ -37,12 +43,24 @@ from pae.data.synthetic.camera import (
     pose_rotation_translation,
     world_to_camera,
 )
+from pae.data.synthetic.nuisances import (
+    MOTION_DEPTH_M,
+    NUISANCE_BOUNDS,
+    OCCLUDER_DISTANCE_M,
+    OCCLUDER_SIZE_M,
+    Nuisances,
+    person_textures,
+    sequence_nuisances,
+)
 from pae.data.synthetic.raycast import (
     RAYS_PER_CHUNK,
     SUPERSAMPLE,
     Appearance,
+    FrameConditions,
+    motion_kernel,
     render,
     render_batch,
+    render_nuisance_batch,
     shade_rays,
 )
 from pae.data.synthetic.scene import (
@@ -71,10 +89,13 @@ from pae.data.synthetic.writer import (
     DEFAULT_TEST_FRAMES,
     DEFAULT_TRAIN_FRAMES,
     FRAMES_PER_WRITE,
+    NUISANCE_COLUMNS,
+    NUISANCE_FILE,
     RenderProgress,
     SyntheticSummary,
     render_frames,
     write_label_files,
+    write_nuisance_table,
     write_synthetic_dataset,
     write_whole,
 )
@@ -90,6 +111,12 @@ __all__ = [
     "DEFAULT_TRAIN_LANE_M",
     "DEFAULT_YAW_STRAY_RAD",
     "FRAMES_PER_WRITE",
+    "MOTION_DEPTH_M",
+    "NUISANCE_BOUNDS",
+    "NUISANCE_COLUMNS",
+    "NUISANCE_FILE",
+    "OCCLUDER_DISTANCE_M",
+    "OCCLUDER_SIZE_M",
     "RAYS_PER_CHUNK",
     "SUPERSAMPLE",
     "TEST_SEQUENCES",
@@ -100,6 +127,8 @@ __all__ = [
     "CameraRoute",
     "CameraSequence",
     "FaceTexture",
+    "FrameConditions",
+    "Nuisances",
     "PinholeCamera",
     "RenderProgress",
     "SyntheticScene",
@@ -107,15 +136,20 @@ __all__ = [
     "furnish",
     "make_scene",
     "make_sequences",
+    "motion_kernel",
+    "person_textures",
     "pose_rotation_translation",
     "render",
     "render_batch",
     "render_frames",
+    "render_nuisance_batch",
     "room_textures",
     "scene_name",
+    "sequence_nuisances",
     "shade_rays",
     "world_to_camera",
     "write_label_files",
+    "write_nuisance_table",
     "write_synthetic_dataset",
     "write_whole",
 ]

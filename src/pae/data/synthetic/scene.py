@@ -6,6 +6,7 @@ from __future__ import annotations
 import colorsys
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -156,8 +157,8 @@ class SyntheticScene:
 @dataclass(frozen=True, eq=False)
 class FaceTables:
     """All face textures flattened into one ``[T, 3]`` array, with per-face lookup arrays
-    ``[F]``. Face ``6·k + f`` is face ``f`` of box ``k`` (box 0 is the room); its normal, facing
-    the free space, lies along axis ``f // 2`` with sign ``normal_sign``."""
+    ``[F]``. Face ``6·k + f`` is face ``f`` of box ``k`` (of a scene: box 0 is the room); its
+    normal, facing the free space, lies along axis ``f // 2`` with sign ``normal_sign``."""
 
     texels: np.ndarray
     offset: np.ndarray
@@ -170,10 +171,16 @@ class FaceTables:
 
     @classmethod
     def build(cls, scene: SyntheticScene) -> FaceTables:
+        """The tables of ``scene``: its room (seen from inside), then its boxes."""
+        return cls.from_boxes((scene.room, *scene.boxes), room_first=True)
+
+    @classmethod
+    def from_boxes(cls, boxes: Sequence[Box], room_first: bool) -> FaceTables:
+        """The tables of ``boxes``, all seen from outside but the first if ``room_first``."""
         images, offset, cols, rows, inv_texel = [], [], [], [], []
         origin_a, origin_b, normal_sign = [], [], []
         start = 0
-        for index, box in enumerate((scene.room, *scene.boxes)):
+        for index, box in enumerate(boxes):
             for face, texture in enumerate(box.textures):
                 _, a_axis, b_axis = Box.face_axes(face)
                 image = np.asarray(texture.image, dtype=np.float32)
@@ -186,7 +193,7 @@ class FaceTables:
                 origin_a.append(box.lo[a_axis])
                 origin_b.append(box.lo[b_axis])
                 outward = 1.0 if face % 2 else -1.0
-                normal_sign.append(-outward if index == 0 else outward)
+                normal_sign.append(-outward if room_first and index == 0 else outward)
         return cls(
             texels=np.concatenate(images),
             offset=np.asarray(offset, dtype=np.int64),

@@ -29,13 +29,15 @@ TEST_SEQUENCES = 2
 @dataclass(frozen=True, eq=False)
 class CameraSequence:
     """One recorded sequence: ``name`` (``seq-01``…), ``split``, poses ``[n, 7]`` and its
-    appearance; ``noise_seed`` seeds its sensor noise."""
+    appearance; ``noise_seed`` seeds its sensor noise, ``nuisance_seed`` its nuisances (see
+    :mod:`pae.data.synthetic.nuisances`)."""
 
     name: str
     split: str
     poses: np.ndarray
     appearance: Appearance
     noise_seed: tuple[int, ...]
+    nuisance_seed: tuple[int, ...]
 
 
 def _split_counts(total: int, parts: int) -> list[int]:
@@ -140,7 +142,12 @@ def make_sequences(
         appearance = Appearance.random(rng)
         sequences.append(
             CameraSequence(
-                f"seq-{number:02d}", split, poses, appearance, (seed, scene_index, 2, number)
+                f"seq-{number:02d}",
+                split,
+                poses,
+                appearance,
+                (seed, scene_index, 2, number),
+                (seed, scene_index, 3, number),
             )
         )
     return sequences

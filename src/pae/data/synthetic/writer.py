@@ -1,5 +1,7 @@
 """Writing a synthetic dataset: images rendered in batches and written whole (atomically),
-label files in the format of ``pae.data.labels`` (``write_synthetic_dataset``)."""
+label files in the format of ``pae.data.labels`` (``write_synthetic_dataset``), and, when a
+nuisance is on, ``labels/nuisances.csv`` (``NUISANCE_COLUMNS``): each frame's occluder share,
+blur and exposure, for analysis only (the label files stay as they are)."""
 
 from __future__ import annotations
 
@@ -17,7 +19,8 @@ import numpy as np
 
 from pae.data.labels import LabelTable, write_labels
 from pae.data.synthetic.camera import DEFAULT_SIZE, PinholeCamera
-from pae.data.synthetic.raycast import Appearance, render_batch
+from pae.data.synthetic.nuisances import Nuisances, sequence_nuisances
+from pae.data.synthetic.raycast import Appearance, FrameConditions, render_nuisance_batch
 from pae.data.synthetic.scene import (
     DEFAULT_TEST_OFFSET_M,
     DEFAULT_TRAIN_LANE_M,
@@ -34,6 +37,12 @@ DEFAULT_TEST_FRAMES = 250
 """Test frames per scene."""
 FRAMES_PER_WRITE = 64
 """Frames rendered before they are written, bounding memory for large images."""
+NUISANCE_FILE = "nuisances.csv"
+"""Name of the per-frame nuisance table in ``labels/`` (only written when a nuisance is on)."""
+NUISANCE_COLUMNS = ("img_path", "occluder_share", "blur_px", "exposure_gain")
+"""Its columns: the image (as in the label files), the share of the image its occluder covers
+(0–1, 0: none), its motion blur's length (px) and its total gain (the sequence's gain times
+the frame's exposure)."""
 
 
 @dataclass(frozen=True)
@@ -108,17 +117,36 @@ def render_frames(
     camera: PinholeCamera,
     appearance: Appearance,
     noise: np.random.Generator,
-) -> None:
-    """Render ``poses`` ``[n, 7]`` of one sequence and write them as PNGs at ``out / paths[i]``,
-    ``FRAMES_PER_WRITE`` frames at a time."""
+    conditions: FrameConditions | None = None,
+) -> np.ndarray:
+    """Render ``poses`` ``[n, 7]`` of one sequence (with its frames' nuisances ``conditions``,
+    if any) and write them as PNGs at ``out / paths[i]``, ``FRAMES_PER_WRITE`` frames at a
+    time: -> the share ``[n]`` of each image its occluder covers."""
     for folder in sorted({(out / path).parent for path in paths}):
         folder.mkdir(parents=True, exist_ok=True)
+    shares = np.zeros(len(poses))
     for start in range(0, len(poses), FRAMES_PER_WRITE):
-        images = render_batch(
-            scene, poses[start : start + FRAMES_PER_WRITE], camera, appearance, noise
+        batch = slice(start, start + FRAMES_PER_WRITE)
+        images, shares[batch] = render_nuisance_batch(
+            scene,
+            poses[batch],
+            camera,
+            appearance,
+            noise,
+            conditions=None if conditions is None else conditions[batch],
         )
-        for path, image in zip(paths[start : start + FRAMES_PER_WRITE], images, strict=True):
+        for path, image in zip(paths[batch], images, strict=True):
             _write_png(out / path, image)
+    return shares
+
+
+def write_nuisance_table(path: Path, rows: list[tuple[str, float, float, float]]) -> None:
+    """Write ``rows`` ``(img_path, occluder_share, blur_px, exposure_gain)`` to ``path`` as
+    CSV with a header of ``NUISANCE_COLUMNS``."""
+    lines = [",".join(NUISANCE_COLUMNS)]
+    lines += [f"{img},{share:.4f},{blur:.3f},{gain:.4f}" for img, share, blur, gain in rows]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
 
 
 def write_label_files(folder: Path, tables: dict[tuple[str, str], LabelTable]) -> None:
@@ -169,6 +197,10 @@ def write_synthetic_dataset(
     yaw_stray_rad: float = DEFAULT_YAW_STRAY_RAD,
     stray_m: float = DEFAULT_STRAY_M,
     progress: RenderProgress | None = None,
+    lighting_change: float = 0.0,
+    occluder_fraction: float = 0.0,
+    sensor_noise_std: float = 0.0,
+    motion_blur_px: float = 0.0,
 ) -> SyntheticSummary:
     """Render the benchmark into ``out`` (see :func:`write_whole`): images first, label files
     last.
@@ -176,8 +208,12 @@ def write_synthetic_dataset(
     ``train_frames`` and ``test_frames`` are per scene; ``test_offset_m`` is the test
     sequences' lateral offset from the train route (see :func:`make_sequences`). The same
     arguments give byte-identical files. ``progress(done, total)`` is called after each
-    sequence with the frames rendered so far.
+    sequence with the frames rendered so far. ``lighting_change``, ``occluder_fraction``,
+    ``sensor_noise_std`` and ``motion_blur_px`` are the nuisances of train and test frames
+    alike (:class:`~pae.data.synthetic.nuisances.Nuisances`; all 0: none, and no
+    ``labels/nuisances.csv``).
     """
+    nuisances = Nuisances(lighting_change, occluder_fraction, sensor_noise_std, motion_blur_px)
     for name, value, low in (
         ("scenes", scenes, 1),
         ("train_frames", train_frames, 1),
@@ -208,6 +244,7 @@ def write_synthetic_dataset(
             seed,
             (test_offset_m, train_lane_m, yaw_stray_rad, stray_m),
             progress,
+            nuisances,
         )
         seconds = time.perf_counter() - started
         return SyntheticSummary(
@@ -232,13 +269,16 @@ def _render(
     seed: int,
     layout: tuple[float, float, float, float],
     progress: RenderProgress | None = None,
+    nuisances: Nuisances | None = None,
 ) -> None:
     """Render every scene into `out`: images first, label files last. ``layout``: the test
-    offset, train lane (m), yaw stray (rad) and stray (m) of :func:`make_sequences`."""
+    offset, train lane (m), yaw stray (rad) and stray (m) of :func:`make_sequences`;
+    ``nuisances`` on (not None or all 0): each sequence's, and ``labels/nuisances.csv``."""
     test_offset_m, train_lane_m, yaw_stray_rad, stray_m = layout
     total, done = scenes * (train_frames + test_frames), 0
     camera = PinholeCamera(size)
     label_tables: dict[tuple[str, str], LabelTable] = {}
+    nuisance_rows: list[tuple[str, float, float, float]] = []
     for index in range(scenes):
         scene = make_scene(index, seed, test_offset_m, train_lane_m)
         rows: dict[str, list[tuple[str, str, np.ndarray]]] = {"train": [], "test": []}
@@ -259,7 +299,22 @@ def _render(
                 for frame in range(len(sequence.poses))
             ]
             noise = np.random.default_rng(list(sequence.noise_seed))
-            render_frames(out, paths, scene, sequence.poses, camera, sequence.appearance, noise)
+            appearance, conditions = sequence.appearance, None
+            if nuisances is not None and nuisances.active:
+                appearance, conditions = sequence_nuisances(
+                    nuisances, scene, sequence.poses, camera, appearance, sequence.nuisance_seed
+                )
+            shares = render_frames(
+                out, paths, scene, sequence.poses, camera, appearance, noise, conditions
+            )
+            if conditions is not None:
+                nuisance_rows += zip(
+                    paths,
+                    shares.tolist(),
+                    conditions.blur_px.tolist(),
+                    (appearance.gain * conditions.exposure).tolist(),
+                    strict=True,
+                )
             done += len(paths)
             if progress is not None:
                 progress(done, total)
@@ -276,4 +331,6 @@ def _render(
                 poses=np.array([r[2] for r in split_rows]),
                 source=f"synthetic seed={seed}",
             )
+    if nuisance_rows:
+        write_nuisance_table(out / "labels" / NUISANCE_FILE, nuisance_rows)
     write_label_files(out / "labels", label_tables)
