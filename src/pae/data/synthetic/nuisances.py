@@ -30,12 +30,12 @@ from pae.data.synthetic.scene import (
     Box,
     FaceTexture,
     SyntheticScene,
-    _finish,
-    _pattern_patch,
-    _rgb,
-    _texel_shape,
+    finish_texture,
+    hsv_rgb,
+    pattern_patch,
+    texel_shape,
 )
-from pae.data.synthetic.trajectories import _smooth_wave
+from pae.data.synthetic.trajectories import smooth_wave
 
 NUISANCE_BOUNDS = {
     "lighting_change": 1.0,
@@ -89,7 +89,7 @@ class Nuisances:
 def _wave(rng: np.random.Generator, frames: int) -> np.ndarray:
     """Slow drift ``[frames]`` within ``[-1, 1]``: two sines, 0.3–1 and 2–3 cycles per
     sequence."""
-    return _smooth_wave(rng, np.arange(frames) / max(frames, 1), (0.3, 1.0), (0.8, 0.2))
+    return smooth_wave(rng, np.arange(frames) / max(frames, 1), (0.3, 1.0), (0.8, 0.2))
 
 
 def _lighting(
@@ -124,14 +124,16 @@ def person_textures(rng: np.random.Generator, size: np.ndarray) -> tuple[FaceTex
     """Six face textures of a person-like box of ``size`` ``[3]`` (m): around its sides legs,
     torso (plain, striped or checked) and head, in colours of their own; its top the head's."""
     height = size[2]
-    legs, torso = (_rgb(rng.random(), rng.uniform(0.3, 0.9), rng.uniform(0.15, 0.8)) for _ in "lt")
-    head = _rgb(rng.uniform(0.02, 0.1), rng.uniform(0.3, 0.6), rng.uniform(0.35, 0.9))
+    legs, torso = (
+        hsv_rgb(rng.random(), rng.uniform(0.3, 0.9), rng.uniform(0.15, 0.8)) for _ in "lt"
+    )
+    head = hsv_rgb(rng.uniform(0.02, 0.1), rng.uniform(0.3, 0.6), rng.uniform(0.35, 0.9))
     pattern = rng.integers(3)
     textures = []
     for face in range(6):
         _, a_axis, b_axis = Box.face_axes(face)
         width_m, height_m = size[a_axis], size[b_axis]
-        image = np.empty((*_texel_shape(width_m, height_m), 3), dtype=np.float32)
+        image = np.empty((*texel_shape(width_m, height_m), 3), dtype=np.float32)
         if b_axis != 2:  # the top and bottom faces
             image[:] = head if face == 5 else legs
         else:
@@ -143,8 +145,8 @@ def person_textures(rng: np.random.Generator, size: np.ndarray) -> tuple[FaceTex
             )
             if pattern:
                 centre = np.array([width_m / 2, 0.66 * height])
-                _pattern_patch(rng, image, centre, width_m / 2, 0.19 * height, pattern == 1)
-        textures.append(_finish(rng, image))
+                pattern_patch(rng, image, centre, width_m / 2, 0.19 * height, pattern == 1)
+        textures.append(finish_texture(rng, image))
     return tuple(textures)
 
 

@@ -211,11 +211,11 @@ def scene_name(index: int) -> str:
     return f"scene{index:02d}"
 
 
-def _rgb(hue: float, saturation: float, value: float) -> tuple[float, float, float]:
+def hsv_rgb(hue: float, saturation: float, value: float) -> tuple[float, float, float]:
     return colorsys.hsv_to_rgb(hue % 1.0, float(np.clip(saturation, 0, 1)), float(value))
 
 
-def _texel_shape(width_m: float, height_m: float) -> tuple[int, int]:
+def texel_shape(width_m: float, height_m: float) -> tuple[int, int]:
     """``(rows, cols)`` of a texture covering ``width_m × height_m``."""
     return max(2, math.ceil(height_m / TEXEL_SIZE_M)), max(2, math.ceil(width_m / TEXEL_SIZE_M))
 
@@ -247,7 +247,7 @@ def _draw_shapes(
     scale = (1 << shift) / TEXEL_SIZE_M
     for _ in range(count):
         kind = rng.integers(6)
-        colour = _rgb(rng.random(), rng.uniform(0.5, 1.0), rng.uniform(0.3, 1.0))
+        colour = hsv_rgb(rng.random(), rng.uniform(0.5, 1.0), rng.uniform(0.3, 1.0))
         size = rng.uniform(*size_m)
         centre_m = np.array([rng.uniform(0, cols), rng.uniform(0, rows)]) * TEXEL_SIZE_M
         centre = tuple(int(v) for v in centre_m * scale)
@@ -270,10 +270,10 @@ def _draw_shapes(
             bottom_right = (centre[0] + half_w, centre[1] + half_h)
             cv2.rectangle(image, top_left, bottom_right, colour, -1, cv2.LINE_AA, shift)
             if kind >= 4:
-                _pattern_patch(rng, image, centre_m, half_w / scale, half_h / scale, kind == 4)
+                pattern_patch(rng, image, centre_m, half_w / scale, half_h / scale, kind == 4)
 
 
-def _pattern_patch(
+def pattern_patch(
     rng: np.random.Generator,
     image: np.ndarray,
     centre_m: np.ndarray,
@@ -299,13 +299,13 @@ def _pattern_patch(
     else:
         mask = ((jj // (period / 2) + ii // (period / 2)) % 2).astype(np.float32)
     colour = np.array(
-        _rgb(rng.random(), rng.uniform(0.3, 1.0), rng.uniform(0.2, 1.0)), dtype=np.float32
+        hsv_rgb(rng.random(), rng.uniform(0.3, 1.0), rng.uniform(0.2, 1.0)), dtype=np.float32
     )
     patch = image[r0:r1, c0:c1]
     patch += mask[:, :, None] * (colour - patch)
 
 
-def _finish(rng: np.random.Generator, image: np.ndarray) -> FaceTexture:
+def finish_texture(rng: np.random.Generator, image: np.ndarray) -> FaceTexture:
     """Add fine detail, band-limit to a few centimetres, clip to ``[0, 1]``."""
     shape = image.shape[:2]
     image = image * (1.0 + 0.25 * _value_noise(rng, shape, 3))
@@ -318,27 +318,29 @@ def _wall_texture(
     rng: np.random.Generator, width_m: float, height_m: float, hue: float
 ) -> FaceTexture:
     """Wall with a dominant ``hue``: colour gradients, a dado band, big shapes and detail."""
-    shape = _texel_shape(width_m, height_m)
+    shape = texel_shape(width_m, height_m)
     cells = (2, max(2, round(width_m / 1.5)))
     colours = [
-        _rgb(hue + rng.normal(0, 0.05), rng.uniform(0.3, 0.8), rng.uniform(0.35, 0.9))
+        hsv_rgb(hue + rng.normal(0, 0.05), rng.uniform(0.3, 0.8), rng.uniform(0.35, 0.9))
         for _ in range(cells[0] * cells[1])
     ]
     image = _smooth_field(shape, cells, np.array(colours))
     band_lo, band_hi = sorted(rng.uniform(0.3, 1.2, 2))
     band = slice(int(band_lo / TEXEL_SIZE_M), int(band_hi / TEXEL_SIZE_M) + 2)
-    image[band] = 0.5 * image[band] + 0.5 * np.float32(_rgb(hue + 0.5, 0.6, rng.uniform(0.2, 0.8)))
+    image[band] = 0.5 * image[band] + 0.5 * np.float32(
+        hsv_rgb(hue + 0.5, 0.6, rng.uniform(0.2, 0.8))
+    )
     _draw_shapes(rng, image, 3 + int(width_m * height_m / 1.5), (0.3, 1.1))
     _draw_shapes(rng, image, int(width_m * height_m), (0.08, 0.3))
-    return _finish(rng, image)
+    return finish_texture(rng, image)
 
 
 def _floor_texture(rng: np.random.Generator, width_m: float, depth_m: float) -> FaceTexture:
     """Tiled floor shaded by a gradient, with a few rugs."""
-    rows, cols = _texel_shape(width_m, depth_m)
+    rows, cols = texel_shape(width_m, depth_m)
     hue = rng.random()
     colours = [
-        _rgb(hue + rng.normal(0, 0.08), rng.uniform(0.2, 0.6), rng.uniform(0.4, 0.9))
+        hsv_rgb(hue + rng.normal(0, 0.08), rng.uniform(0.2, 0.6), rng.uniform(0.4, 0.9))
         for _ in range(9)
     ]
     image = _smooth_field((rows, cols), (3, 3), np.array(colours))
@@ -347,15 +349,15 @@ def _floor_texture(rng: np.random.Generator, width_m: float, depth_m: float) -> 
     checker = ((jj // tile + ii // tile) % 2).astype(np.float32)[:, :, None]
     image *= 1.0 - 0.3 * checker
     _draw_shapes(rng, image, 3 + int(width_m * depth_m / 8), (0.8, 2.0))
-    return _finish(rng, image)
+    return finish_texture(rng, image)
 
 
 def _ceiling_texture(rng: np.random.Generator, width_m: float, depth_m: float) -> FaceTexture:
     """Pale ceiling with a grid of light panels and a few shapes."""
-    rows, cols = _texel_shape(width_m, depth_m)
+    rows, cols = texel_shape(width_m, depth_m)
     hue = rng.random()
     colours = [
-        _rgb(hue + rng.normal(0, 0.1), rng.uniform(0.05, 0.4), rng.uniform(0.6, 0.95))
+        hsv_rgb(hue + rng.normal(0, 0.1), rng.uniform(0.05, 0.4), rng.uniform(0.6, 0.95))
         for _ in range(4)
     ]
     image = _smooth_field((rows, cols), (2, 2), np.array(colours))
@@ -368,7 +370,7 @@ def _ceiling_texture(rng: np.random.Generator, width_m: float, depth_m: float) -
                 max(0, int(c) - 2 * panel) : int(c) + 2 * panel,
             ] = 1.0
     _draw_shapes(rng, image, 2 + int(width_m * depth_m / 10), (0.3, 1.0))
-    return _finish(rng, image)
+    return finish_texture(rng, image)
 
 
 def _box_textures(
@@ -380,15 +382,15 @@ def _box_textures(
     for face in range(6):
         _, a_axis, b_axis = Box.face_axes(face)
         width_m, height_m = hi[a_axis] - lo[a_axis], hi[b_axis] - lo[b_axis]
-        shape = _texel_shape(width_m, height_m)
-        base = _rgb(hue + rng.normal(0, 0.04), rng.uniform(0.4, 0.9), rng.uniform(0.3, 0.9))
+        shape = texel_shape(width_m, height_m)
+        base = hsv_rgb(hue + rng.normal(0, 0.04), rng.uniform(0.4, 0.9), rng.uniform(0.3, 0.9))
         image = np.empty((*shape, 3), dtype=np.float32)
         image[:] = base
         centre = np.array([width_m, height_m]) / 2
-        _pattern_patch(rng, image, centre, width_m / 2, height_m / 2, bool(rng.random() < 0.5))
+        pattern_patch(rng, image, centre, width_m / 2, height_m / 2, bool(rng.random() < 0.5))
         image = 0.6 * image + 0.4 * np.float32(base)
         _draw_shapes(rng, image, 1 + int(width_m * height_m), (0.15, 0.5))
-        textures.append(_finish(rng, image))
+        textures.append(finish_texture(rng, image))
     return tuple(textures)
 
 

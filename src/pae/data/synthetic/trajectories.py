@@ -46,7 +46,7 @@ def _split_counts(total: int, parts: int) -> list[int]:
     return [total // parts + (1 if i < total % parts else 0) for i in range(parts)]
 
 
-def _smooth_wave(
+def smooth_wave(
     rng: np.random.Generator,
     t: np.ndarray,
     cycles: tuple[float, float],
@@ -95,15 +95,15 @@ def trajectory(
         route_position = route_position + offset_m * _route_normals(scene.route, tau)
     position = route_position + np.stack(
         [
-            stray_m * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3)),
-            stray_m * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3)),
-            0.1 * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3)),
+            stray_m * smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3)),
+            stray_m * smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3)),
+            0.1 * smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3)),
         ],
         axis=1,
     )
-    yaw = route_yaw + yaw_stray_rad * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3))
-    pitch = np.radians(-3.0) + np.radians(11.0) * _smooth_wave(rng, t, (0.5, 1.5), (0.8, 0.2))
-    roll = np.radians(5.0) * _smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3))
+    yaw = route_yaw + yaw_stray_rad * smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3))
+    pitch = np.radians(-3.0) + np.radians(11.0) * smooth_wave(rng, t, (0.5, 1.5), (0.8, 0.2))
+    roll = np.radians(5.0) * smooth_wave(rng, t, (0.5, 1.5), (0.7, 0.3))
     rotations = look_rotations(yaw, pitch, roll)
     quaternions = matrix_to_quaternion(torch.from_numpy(rotations)).numpy()
     return np.concatenate([position, quaternions], axis=1)
