@@ -92,3 +92,18 @@ def test_compare_table_has_a_column_per_run(
         "| refined_test_store * |" in out and "| the same ÷ teacher's median error | 0.70 |" in out
     )
     assert main([*args[:-1], "one"]) == 1
+
+
+def test_the_best_refinement_is_chosen_on_validation_and_reported_on_test() -> None:
+    from pae.reporting import best_refinement
+
+    metrics = {
+        "test/teacher/pos_median_m": 1.0,
+        "test/refined/pos_median_m": 0.5,
+        "test/render_compare/pos_median_m": 0.6,
+        "val/refined/pos_median_m": 0.9,
+        "val/render_compare/pos_median_m": 0.4,
+    }
+    assert best_refinement(metrics) == "render_compare"
+    without_val = {k: v for k, v in metrics.items() if k.startswith("test/")}
+    assert best_refinement(without_val) == "refined"
