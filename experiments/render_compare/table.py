@@ -3,7 +3,8 @@ every job of a sweep), named by its command-line overrides, with the median posi
 orientation error of the teacher and of render-and-compare on the validation split (held-out
 train sequences: what settings are chosen on) and on the test split, the change in median
 position against the teacher, the test split's oracle bound, the honest search's ms per
-query and the scene model's PSNR at the test poses.
+query, the scene model's PSNR at the test poses, the share of test refinements the gate
+accepted and the share of test queries within (0.10 m, 10 deg) after render-and-compare.
 
     python experiments/render_compare/table.py outputs/multirun/eval/<date> [more dirs]
 """
@@ -53,13 +54,20 @@ def row(run: Path) -> str:
     cells = [cell(metrics, split, method) for split, method in COLUMNS]
     ms = metrics.get("bench/render_compare/ms_per_query")
     quality = metrics.get("test/scene_model/psnr_db")
-    cells += [f"{ms:.1f}" if ms else "-", f"{quality:.1f}" if quality else "-"]
+    accepted = metrics.get("test/render_compare/accepted_share")
+    within = metrics.get("test/render_compare/within_10cm_10deg")
+    cells += [
+        f"{ms:.1f}" if ms else "-",
+        f"{quality:.1f}" if quality else "-",
+        "-" if accepted is None else f"{accepted:.0%}",
+        "-" if within is None else f"{within:.0%}",
+    ]
     return f"| {name(run)} | " + " | ".join(cells) + " |"
 
 
 def main(argv: list[str]) -> int:
     header = ["run", *(f"{split} {method}" for split, method in COLUMNS)]
-    header += ["ms/query", "PSNR at test poses [dB]"]
+    header += ["ms/query", "PSNR at test poses [dB]", "test accepted", "test within 10 cm, 10°"]
     print("| " + " | ".join(header) + " |")
     print("|---" * len(header) + "|")
     for root in argv:
