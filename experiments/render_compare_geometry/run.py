@@ -88,9 +88,9 @@ def main(argv: list[str]) -> int:
     parser.add_argument(
         "--scenes", nargs="+", help="in this order (default: every scene of both datasets)"
     )
-    parser.add_argument("--max-train", type=int, default=800)
-    parser.add_argument("--max-test", type=int, default=200)
-    parser.add_argument("--steps", type=int, default=1200)
+    parser.add_argument("--max-train", type=int, default=600)
+    parser.add_argument("--max-test", type=int, default=150)
+    parser.add_argument("--steps", type=int, default=800)
     args = parser.parse_args(own)
     dataset_of = {scene: dataset for dataset, names in DATASETS.items() for scene in names}
     for scene in args.scenes or list(dataset_of):
