@@ -376,6 +376,7 @@ def test_render_compare_step_logs_its_rows_and_marks_the_oracle(
         "scene_model.batches_per_epoch=3",
         "scene_model.rays_per_batch=1024",
         "scene_model.model.num_voxels=8000",
+        "scene_model.image_size=16",  # fit to smaller images than the data's
         "render_compare.refiner.rounds=2",
         "render_compare.refiner.candidates=4",
         "stage.steps=[teacher,scene_model]",
@@ -385,6 +386,10 @@ def test_render_compare_step_logs_its_rows_and_marks_the_oracle(
     metrics = run(cfg, tmp_path)
     for method in ("render_compare", "render_compare_oracle"):
         assert math.isfinite(metrics[f"test/{method}/pos_median_m"])
+        assert 0 <= metrics[f"test/{method}/within_10cm_10deg"] <= 1
+        assert 0 <= metrics[f"test/{method}/accepted_share"] <= 1
+        # the margin applied at test is the one chosen on the last validation run
+        assert metrics[f"test/{method}/accept_margin"] == metrics[f"val/{method}/accept_margin"]
     assert "test/scene_model/psnr_db" in metrics
     assert metrics["bench/render_compare/ms_per_query"] > 0
     saved = json.loads((tmp_path / "metrics.json").read_text())
