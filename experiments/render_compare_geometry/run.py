@@ -7,7 +7,7 @@ so the script resumes where it stopped.
 Long scenes are subsampled: every k-th row of a label file, k the smallest that leaves at
 most ``--max-train`` train and ``--max-test`` test rows (whole sequences stay, thinned). The
 teacher and student train for about ``--steps`` optimiser steps whatever the scene's size
-(epochs = steps x batch / train rows, within [30, 300]).
+(epochs = steps x batch / train rows, within [20, 150]).
 
     python experiments/render_compare_geometry/run.py --labels ../shared/reference/labels \
         --out outputs/render_compare_geometry [--scenes chess ShopFacade] [-- OVERRIDES]
@@ -59,7 +59,7 @@ def run_scene(dataset: str, scene: str, args: argparse.Namespace, overrides: lis
         print(f"{scene} {split}: every {step}. row, {rows} rows", flush=True)
         files.append(target)
         if split == "train":
-            epochs = min(300, max(30, math.ceil(args.steps * BATCH_SIZE / rows)))
+            epochs = min(150, max(20, math.ceil(args.steps * BATCH_SIZE / rows)))
     command = [
         sys.executable,
         "-m",
@@ -90,7 +90,7 @@ def main(argv: list[str]) -> int:
     )
     parser.add_argument("--max-train", type=int, default=600)
     parser.add_argument("--max-test", type=int, default=150)
-    parser.add_argument("--steps", type=int, default=800)
+    parser.add_argument("--steps", type=int, default=400)
     args = parser.parse_args(own)
     dataset_of = {scene: dataset for dataset, names in DATASETS.items() for scene in names}
     for scene in args.scenes or list(dataset_of):
