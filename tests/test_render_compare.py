@@ -539,3 +539,23 @@ def test_the_paper_decoder_is_a_scene_model_without_depth() -> None:
             model, rounds=2, candidates=4, resolution=24, gradient_steps=0
         )(images, intrinsics, poses, torch.zeros(3, dtype=torch.long))
     assert torch.isfinite(result.poses).all() and (result.score >= result.initial_score).all()
+
+
+def test_the_search_steps_follow_the_teachers_val_error() -> None:
+    from pae.callbacks.render_compare import RenderCompareRefinement
+
+    truth = torch.zeros(4, 7)
+    truth[:, 3] = 1.0
+    estimate = truth.clone()
+    estimate[:, 0] = torch.tensor([1.0, 2.0, 3.0, 4.0])  # median position error 2.5 m
+    callback = RenderCompareRefinement(
+        {"rounds": 2}, oracle=False, step_from_val={"position": 0.4, "orientation": 0.5}
+    )
+    assert callback.refiner(OracleSceneModel([]), None).sigma == pytest.approx(
+        (0.25, math.radians(4.0))
+    )
+    callback.choose_steps(estimate, truth)
+    assert callback.steps["position_sigma_m"] == pytest.approx(1.0)
+    assert callback.refiner(OracleSceneModel([]), None).sigma[0] == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="step_from_val"):
+        RenderCompareRefinement(step_from_val={"position": 0.4})

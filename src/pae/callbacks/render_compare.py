@@ -74,6 +74,12 @@ class RenderCompareRefinement(L.Callback):
     accepted queries (refined) and of the rejected ones (kept at the start), and
     ``ungated_pos_median_m`` (every refinement accepted).
 
+    ``step_from_val`` (``{"position": a, "orientation": b}``) sets the search's first steps
+    from the teacher's typical error, so that the search covers it at every scene scale: on
+    each validation run ``position_sigma_m`` = a × the teacher's median val position error
+    (m) and ``orientation_sigma_deg`` = b × its median val orientation error (deg), applied
+    at test (the refiner's own settings where no validation ran; None: always those).
+
     ``refiner`` holds RenderCompareRefiner's settings; ``feature_layers`` sets how many
     modules of the teacher backbone make the features of ``refiner.score=features``.
     """
@@ -85,6 +91,7 @@ class RenderCompareRefinement(L.Callback):
         every_n_val_epochs: int = 1,
         feature_layers: int = 2,
         accept_margin: float | str = "auto",
+        step_from_val: dict[str, float] | None = None,
     ) -> None:
         super().__init__()
         self.settings = dict(refiner or {})
@@ -97,6 +104,16 @@ class RenderCompareRefinement(L.Callback):
             )
         self.accept_margin = accept_margin
         self.margins: dict[str, float] = {}
+        self.step_from_val = dict(step_from_val) if step_from_val is not None else None
+        if self.step_from_val is not None and (
+            set(self.step_from_val) != {"position", "orientation"}
+            or min(self.step_from_val.values()) <= 0
+        ):
+            raise ValueError(
+                "render_compare.step_from_val needs position and orientation fractions > 0, "
+                f"got {step_from_val!r}"
+            )
+        self.steps: dict[str, float] = {}
         self._val_runs = 0
         RenderCompareRefiner(SceneModel(), features=lambda x: x, **self.settings)  # check keys
 
@@ -126,11 +143,23 @@ class RenderCompareRefinement(L.Callback):
         self.refine(trainer, pl_module, "test")
 
     def refiner(self, scene_model: SceneModel, teacher: torch.nn.Module) -> RenderCompareRefiner:
-        """The configured refiner against ``scene_model`` (features from ``teacher``)."""
+        """The configured refiner against ``scene_model`` (features from ``teacher``), with the
+        steps chosen on the last validation run (``step_from_val``)."""
         features = None
         if self.settings.get("score") == "features":
             features = teacher_features(teacher, self.feature_layers)
-        return RenderCompareRefiner(scene_model, features=features, **self.settings)
+        return RenderCompareRefiner(scene_model, features=features, **(self.settings | self.steps))
+
+    def choose_steps(self, estimate: Tensor, truth: Tensor) -> None:
+        """``step_from_val``: the search's first steps from the teacher's median errors of
+        the validation estimates [N, 7] against their true poses [N, 7]."""
+        if self.step_from_val is None:
+            return
+        pos, rot = pose_errors(estimate.float(), truth.float())
+        self.steps = {
+            "position_sigma_m": float(self.step_from_val["position"] * pos.quantile(0.5)),
+            "orientation_sigma_deg": float(self.step_from_val["orientation"] * rot.quantile(0.5)),
+        }
 
     def refine(self, trainer: L.Trainer, pl_module: L.LightningModule, split: str) -> None:
         """Refine all queries of the finished evaluation epoch and log the figures."""
@@ -153,7 +182,11 @@ class RenderCompareRefinement(L.Callback):
             scenes = oracle_scenes(data)
             if scenes is not None:
                 models[ORACLE] = OracleSceneModel(scenes)
-        figures: dict[str, Tensor] = {}
+        if split == "val":
+            self.choose_steps(outputs["estimate"], outputs["pose"])
+        figures: dict[str, Tensor] = {
+            f"{split}/{HONEST}/{key}": torch.tensor(value) for key, value in self.steps.items()
+        }
         for name, model in models.items():
             start = time.perf_counter()
             result = self.refiner(model, pl_module.teacher)(
