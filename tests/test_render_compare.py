@@ -556,6 +556,8 @@ def test_the_search_steps_follow_the_teachers_val_error() -> None:
     )
     callback.choose_steps(estimate, truth)
     assert callback.steps["position_sigma_m"] == pytest.approx(1.0)
-    assert callback.refiner(OracleSceneModel([]), None).sigma[0] == pytest.approx(1.0)
+    refiner = callback.refiner(OracleSceneModel([]), None)
+    assert refiner.sigma[0] == pytest.approx(1.0)
+    assert refiner.gradient_position_scale == pytest.approx(1.0 / 0.25)
     with pytest.raises(ValueError, match="step_from_val"):
         RenderCompareRefinement(step_from_val={"position": 0.4})

@@ -175,8 +175,9 @@ class RenderCompareRefiner:
     the current best pose (0: one rendering, at the start); min_overlap: the share of
     reference points a candidate must see, else it scores -2; trim_sigma, trim_passes: the
     ZNCC's robustness (:func:`trimmed_zncc`; trim_sigma 0: plain ZNCC); gradient_steps,
-    gradient_lr:
-    Adam steps on the pose after the search (translation in m, rotation in rad); score:
+    gradient_lr, gradient_position_scale:
+    Adam steps on the pose after the search (rotation in rad, translation in units of
+    gradient_position_scale m: a scene k times larger moves k times further); score:
     ``zncc`` or ``features`` (needs ``features``); chunk: queries scored at once; engine: see
     ``ENGINES``.
     """
@@ -199,6 +200,7 @@ class RenderCompareRefiner:
         trim_passes: int = 2,
         gradient_steps: int = 100,
         gradient_lr: float = 0.02,
+        gradient_position_scale: float = 1.0,
         score: str = "zncc",
         features: FeatureExtractor | None = None,
         seed: int = 0,
@@ -243,6 +245,7 @@ class RenderCompareRefiner:
         self.trim_passes = trim_passes
         self.gradient_steps = gradient_steps
         self.gradient_lr = gradient_lr
+        self.gradient_position_scale = gradient_position_scale
         self.score = score
         self.features = features
         self.seed = seed
@@ -438,14 +441,15 @@ class RenderCompareRefiner:
             )
             increment = torch.zeros(len(poses), 6, dtype=poses.dtype, requires_grad=True)
             optimiser = torch.optim.Adam([increment], lr=self.gradient_lr)
+            units = poses.new_tensor([self.gradient_position_scale] * 3 + [1.0] * 3)
             for _ in range(self.gradient_steps):
-                moved = perturb(poses, increment)
+                moved = perturb(poses, increment * units)
                 loss = -self._score_projected(moved[:, None], queries, surface).sum()
                 optimiser.zero_grad()
                 loss.backward()
                 optimiser.step()
         with torch.no_grad():
-            polished = perturb(poses, increment.detach())
+            polished = perturb(poses, increment.detach() * units)
             after = self._score(polished[:, None], queries, surface)[:, 0]
         better = after > scores
         return torch.where(better[:, None], polished, poses), torch.where(better, after, scores)
