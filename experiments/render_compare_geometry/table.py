@@ -5,6 +5,10 @@ refinements the gate accepted, the scene model's quality at the test poses, its 
 the refiner's ms per query; then each dataset's mean over its scenes.
 
     python experiments/render_compare_geometry/table.py outputs/render_compare_geometry
+
+With a second folder (the `pae-eval` runs of the same scene models with other refiner
+settings, one ``<scene>/metrics.json`` each), the refinement figures come from it and the fit
+seconds from the first.
 """
 
 from __future__ import annotations
@@ -69,14 +73,17 @@ def mean(rows: list[dict[str, float]]) -> dict[str, float]:
 
 def main(argv: list[str]) -> int:
     root = Path(argv[0] if argv else "outputs/render_compare_geometry")
+    evaluated = Path(argv[1]) if len(argv) > 1 else root
     print(HEADER)
     for dataset, scenes in DATASETS.items():
         rows = []
         for scene in scenes:
-            path = root / scene / "metrics.json"
-            if not path.is_file():
+            path, fitted = evaluated / scene / "metrics.json", root / scene / "metrics.json"
+            if not path.is_file() or not fitted.is_file():
                 continue
-            rows.append(figures(json.loads(path.read_text())))
+            row = figures(json.loads(path.read_text()))
+            row["fit"] = figures(json.loads(fitted.read_text()))["fit"]
+            rows.append(row)
             print(line(scene, rows[-1]))
         if rows:
             print(line(f"**{dataset} mean ({len(rows)} scenes)**", mean(rows)))
