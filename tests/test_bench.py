@@ -100,3 +100,68 @@ def test_bench_sweep_splits_the_speedup_into_cache_and_parallel_shares(
     caches = [next(o for o in c if o.startswith("student.latent_cache_dir=")) for c in commands[2:]]
     assert len(set(caches)) == 2  # each cached sweep starts with its own empty cache
     assert "hydra/launcher=joblib" not in cached and "hydra.launcher.n_jobs=2" in parallel
+
+
+def test_sequence_frames_share_out_7_scenes_size() -> None:
+    from pae.bench.scale import SEVEN_SCENES_TEST, SEVEN_SCENES_TRAIN, sequence_frames
+
+    assert (SEVEN_SCENES_TRAIN, SEVEN_SCENES_TEST) == (26_000, 17_000)
+    full = sequence_frames(26_000, 17_000)
+    assert sum(n for _, split, _, n in full if split == "train") == 26_000
+    assert sum(n for _, split, _, n in full if split == "test") == 17_000
+    assert ("stairs", "train", "seq-06", 500) in full and ("chess", "test", "seq-05", 1000) in full
+    small = sequence_frames(61, 20, scenes=2)
+    assert {name for name, *_ in small} == {"chess", "fire"}
+    assert sum(n for _, split, _, n in small if split == "train") == 61
+    assert min(n for *_, n in small) >= 1
+    with pytest.raises(ValueError, match="frames for"):
+        sequence_frames(3, 20, scenes=2)  # 6 train sequences
+
+
+def test_write_scale_dataset_links_few_files_into_7_scenes_labels(tmp_path: Path) -> None:
+    import cv2
+
+    from pae.bench.scale import write_scale_dataset
+    from pae.data.holdout import held_out_rows
+    from pae.data.labels import read_labels
+
+    counts = write_scale_dataset(tmp_path, 60, 20, 2, 64, 48, unique=8)
+    assert counts == {"train": 60, "test": 20, "files": 2 * (8 + 2)}
+    train = read_labels(tmp_path / "labels" / "all_train.csv")
+    test = read_labels(tmp_path / "labels" / "all_test.csv")
+    assert (len(train), len(test)) == (60, 20) and train.scene_names == ["chess", "fire"]
+    inodes = {(tmp_path / p).stat().st_ino for p in train.img_path + test.img_path}
+    assert len(inodes) == counts["files"]  # hard links to the unique files
+    assert cv2.imread(str(tmp_path / train.img_path[0])).shape == (48, 64, 3)
+    held, _ = held_out_rows(train, 1, 0.1)  # data=seven_scenes: one sequence per scene
+    assert sorted({train.seq[i] for i in held.nonzero()[0]}) == ["seq-02", "seq-06"]
+    spread = train.poses[:, :3].max(0) - train.poses[:, :3].min(0)
+    assert (spread[:2] > 0.2).all() and (spread[:2] < 3.0 + 1e-9).all()
+
+
+def test_run_measured_reads_the_childs_peak_rss(tmp_path: Path) -> None:
+    import sys
+
+    from pae.bench.scale import run_measured
+
+    grow = (
+        "import time; b = bytearray(300_000_000); b[::4096] = b'x' * len(b[::4096]); time.sleep(1)"
+    )
+    figures = run_measured([sys.executable, "-c", grow], tmp_path / "log")
+    assert 300 < figures["rss_mb"] < 1000 and figures["s"] > 1
+    with pytest.raises(RuntimeError, match="failed"):
+        run_measured([sys.executable, "-c", "raise SystemExit(3)"], tmp_path / "log")
+
+
+@pytest.mark.slow
+def test_bench_render_compare_scale_at_tiny_size(tmp_path: Path) -> None:
+    from pae.bench.scale import bench_render_compare_scale
+
+    figures = bench_render_compare_scale(60, 20, 2, 64, 48, root=tmp_path, batches_per_epoch=2)
+    prefix = "bench/render_compare"
+    for key in ("peak_rss_mb", "scale_fit_s", "scale_refine_s", "scale_teacher_peak_rss_mb"):
+        assert figures[f"{prefix}/{key}"] > 0, key
+    assert figures[f"{prefix}/scale_train_images"] == 60
+    assert figures[f"{prefix}/scale_fit_images"] == 40  # one of 4 and 2 sequences held out
+    assert figures[f"{prefix}/scale_test_images"] == 20
+    assert list(tmp_path.iterdir()) == []  # everything removed

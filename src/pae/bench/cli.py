@@ -2,6 +2,15 @@
 
 Prints one JSON object of `bench/...` keys. Inputs are the synthetic benchmark and, where
 present, the real label files in ../shared/reference/labels (poses only).
+
+Benchmarks (``--only`` picks some): synthetic (rendering speed), student (cached teacher
+latents), refine (the MLP weight refinement), pae (PAE latency, size, Adam step), index
+(pose retrieval over the reference labels), sweep (a student sweep of fresh commands),
+deploy (what each method keeps and its time per query), render_compare (the refiner's time
+per query and its compiled paths), render_compare_scale (the scene-model step run as
+`pae-train stage=render_compare` on a dataset of 7-Scenes' size, 26,000 train and 17,000
+test images of 640x480: its peak resident memory, fit and refinement seconds; minutes, so
+only with --only; the --scale-* options shrink it).
 """
 
 from __future__ import annotations
@@ -21,6 +30,12 @@ from pae.bench.methods import bench_methods
 from pae.bench.refinement import bench_first_layer_gain, bench_index, bench_refinement
 from pae.bench.render_compare import bench_render_compare
 from pae.bench.rendering import measure_render_speed
+from pae.bench.scale import (
+    SEVEN_SCENES,
+    SEVEN_SCENES_TEST,
+    SEVEN_SCENES_TRAIN,
+    bench_render_compare_scale,
+)
 from pae.data.datamodule import PoseDataModule
 from pae.data.latents import TeacherLatentDataModule
 from pae.data.synthetic import write_synthetic_dataset
@@ -205,8 +220,21 @@ def bench_sweep(
     }
 
 
-BENCHMARKS = ("synthetic", "student", "refine", "pae", "index", "sweep", "deploy", "render_compare")
+BENCHMARKS = (
+    "synthetic",
+    "student",
+    "refine",
+    "pae",
+    "index",
+    "sweep",
+    "deploy",
+    "render_compare",
+    "render_compare_scale",
+)
 """The benchmarks pae-bench runs (``--only`` picks some)."""
+DEFAULT_BENCHMARKS = tuple(name for name in BENCHMARKS if name != "render_compare_scale")
+"""What a plain `pae-bench` (`make bench`) runs: all but the minutes-long
+render_compare_scale."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -214,21 +242,45 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--train-frames", type=int, default=800, help="per scene, student bench")
     parser.add_argument("--queries", type=int, default=500, help="refinement bench queries")
     parser.add_argument("--labels", type=Path, default=REFERENCE_LABELS)
+    scale = parser.add_argument_group(
+        "render_compare_scale", "the scene-model step's dataset (default: 7-Scenes' size)"
+    )
+    scale.add_argument("--scale-train", type=int, default=SEVEN_SCENES_TRAIN, metavar="N")
+    scale.add_argument("--scale-test", type=int, default=SEVEN_SCENES_TEST, metavar="N")
+    scale.add_argument(
+        "--scale-scenes", type=int, default=len(SEVEN_SCENES), choices=range(1, 8), metavar="N"
+    )
+    scale.add_argument(
+        "--scale-size",
+        type=int,
+        nargs=2,
+        default=(640, 480),
+        metavar=("WIDTH", "HEIGHT"),
+        help="px of the image files",
+    )
+    scale.add_argument(
+        "--scale-root",
+        type=Path,
+        default=None,
+        help="folder for the dataset and runs (a temporary folder inside it, removed after; "
+        "default: the system's temporary folder)",
+    )
     parser.add_argument(
         "--only",
         nargs="+",
         choices=BENCHMARKS,
-        help="run only these benchmarks (default: all)",
+        help="run only these benchmarks (default: all but render_compare_scale)",
     )
     args = parser.parse_args(argv)
     torch.manual_seed(0)
-    chosen = set(args.only or BENCHMARKS)
+    chosen = set(args.only or DEFAULT_BENCHMARKS)
     figures: dict[str, float] = {}
     if "synthetic" in chosen:
         figures["bench/synthetic/frames_per_s"] = measure_render_speed()
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
-        write_synthetic_dataset(root, scenes=2, train_frames=args.train_frames, test_frames=20)
+        if chosen & {"student", "sweep"}:
+            write_synthetic_dataset(root, scenes=2, train_frames=args.train_frames, test_frames=20)
         if "student" in chosen:
             demo_teacher = bench_student_cache(root, "small_cnn", 64, 56)
             figures |= demo_teacher
@@ -249,6 +301,14 @@ def main(argv: list[str] | None = None) -> int:
         figures |= bench_methods()
     if "render_compare" in chosen:
         figures |= bench_render_compare()
+    if "render_compare_scale" in chosen:
+        figures |= bench_render_compare_scale(
+            args.scale_train,
+            args.scale_test,
+            args.scale_scenes,
+            *args.scale_size,
+            root=args.scale_root,
+        )
     train_files = sorted(args.labels.glob("*/*_train.csv")) if args.labels.is_dir() else []
     if train_files and "index" in chosen:
         figures |= bench_index(train_files)
