@@ -165,3 +165,22 @@ def test_bench_render_compare_scale_at_tiny_size(tmp_path: Path) -> None:
     assert figures[f"{prefix}/scale_fit_images"] == 40  # one of 4 and 2 sequences held out
     assert figures[f"{prefix}/scale_test_images"] == 20
     assert list(tmp_path.iterdir()) == []  # everything removed
+
+
+def test_pae_bench_runs_the_scale_bench_only_when_asked(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from pae.bench import cli
+
+    calls = []
+    monkeypatch.setattr(
+        cli,
+        "bench_render_compare_scale",
+        lambda *args, **kwargs: calls.append((args, kwargs)) or {"bench/x": 1.0},
+    )
+    assert "render_compare_scale" in cli.BENCHMARKS
+    assert "render_compare_scale" not in cli.DEFAULT_BENCHMARKS
+    argv = ["--only", "render_compare_scale", "--scale-train", "60", "--scale-test", "20"]
+    cli.main([*argv, "--scale-scenes", "2", "--scale-size", "64", "48"])
+    assert calls == [((60, 20, 2, 64, 48), {"root": None})]
+    assert '"bench/x": 1.0' in capsys.readouterr().out

@@ -248,7 +248,11 @@ def main(argv: list[str] | None = None) -> int:
     scale.add_argument("--scale-train", type=int, default=SEVEN_SCENES_TRAIN, metavar="N")
     scale.add_argument("--scale-test", type=int, default=SEVEN_SCENES_TEST, metavar="N")
     scale.add_argument(
-        "--scale-scenes", type=int, default=len(SEVEN_SCENES), choices=range(1, 8), metavar="N"
+        "--scale-scenes",
+        type=int,
+        default=len(SEVEN_SCENES),
+        choices=range(1, len(SEVEN_SCENES) + 1),
+        metavar="N",
     )
     scale.add_argument(
         "--scale-size",
