@@ -25,6 +25,35 @@ NOT_SEEN_SCORE = -2.0
 """The score of a candidate that sees too few of the reference points."""
 
 
+@jit(nogil=True, fastmath=True)
+def _fitted_moments(
+    sampled: np.ndarray,
+    seen: np.ndarray,
+    values: np.ndarray,
+    valid: np.ndarray,
+    gain: float,
+    offset: float,
+    limit: float,
+) -> tuple[float, float, float, float, float, float]:
+    """Weighted sums (total, Σa, Σc, Σac, Σaa, Σcc) over the seen points [P] whose residual
+    ``|a − gain·c − offset|`` is within ``limit`` (a: sampled query, c: rendered values)."""
+    total = sum_a = sum_c = sum_ac = sum_aa = sum_cc = 0.0
+    for p in range(sampled.shape[0]):
+        if not seen[p]:
+            continue
+        a, c = sampled[p], values[p]
+        if abs(a - gain * c - offset) > limit:
+            continue
+        weight = valid[p]
+        total += weight
+        sum_a += weight * a
+        sum_c += weight * c
+        sum_ac += weight * a * c
+        sum_aa += weight * a * a
+        sum_cc += weight * c * c
+    return total, sum_a, sum_c, sum_ac, sum_aa, sum_cc
+
+
 @jit(parallel=True, nogil=True, fastmath=True)
 def _zncc_scores(
     points: np.ndarray,
@@ -52,9 +81,8 @@ def _zncc_scores(
         fx, fy, cx, cy = intrinsics[b, 0], intrinsics[b, 1], intrinsics[b, 2], intrinsics[b, 3]
         r = rotations[b, m]
         tx, ty, tz = positions[b, m, 0], positions[b, m, 1], positions[b, m, 2]
-        total = sum_a = sum_b = sum_ab = sum_aa = sum_bb = 0.0
         reference = 0.0
-        sampled = np.empty(n_points, np.float32)
+        sampled = np.zeros(n_points, np.float32)
         seen = np.zeros(n_points, np.bool_)
         for p in range(n_points):
             if valid[b, p] <= 0:
@@ -71,54 +99,34 @@ def _zncc_scores(
             u0 = min(int(u), w - 2)
             v0 = min(int(v), h - 2)
             fu, fv = u - u0, v - v0
-            a = (target[b, v0, u0] * (1 - fu) + target[b, v0, u0 + 1] * fu) * (1 - fv) + (
+            sampled[p] = (target[b, v0, u0] * (1 - fu) + target[b, v0, u0 + 1] * fu) * (1 - fv) + (
                 target[b, v0 + 1, u0] * (1 - fu) + target[b, v0 + 1, u0 + 1] * fu
             ) * fv
-            sampled[p] = a
             seen[p] = True
-            weight = valid[b, p]
-            c = values[b, p]
-            total += weight
-            sum_a += weight * a
-            sum_b += weight * c
-            sum_ab += weight * a * c
-            sum_aa += weight * a * a
-            sum_bb += weight * c * c
+        total, sum_a, sum_b, sum_ab, sum_aa, sum_bb = _fitted_moments(
+            sampled, seen, values[b], valid[b], 0.0, 0.0, np.inf
+        )
         if reference <= 0 or total < min_overlap * reference:
             scores[b, m] = NOT_SEEN_SCORE
+            continue
+        for _ in range(trim_passes if trim_sigma > 0 else 0):
+            cov = sum_ab - sum_a * sum_b / total
+            var_a = sum_aa - sum_a * sum_a / total
+            var_b = sum_bb - sum_b * sum_b / total
+            gain = cov / max(var_b, 1e-12)
+            offset = (sum_a - gain * sum_b) / total
+            limit = trim_sigma * math.sqrt(max(var_a - gain * cov, 0.0) / total)
+            total, sum_a, sum_b, sum_ab, sum_aa, sum_bb = _fitted_moments(
+                sampled, seen, values[b], valid[b], gain, offset, limit
+            )
+            if total <= 0:
+                break
+        if total <= 0:
+            scores[b, m] = 0.0
             continue
         cov = sum_ab - sum_a * sum_b / total
         var_a = sum_aa - sum_a * sum_a / total
         var_b = sum_bb - sum_b * sum_b / total
-        for _ in range(trim_passes if trim_sigma > 0 else 0):
-            if total <= 0:
-                break
-            gain = cov / max(var_b, 1e-12)
-            offset = (sum_a - gain * sum_b) / total
-            limit = trim_sigma * math.sqrt(max(var_a - gain * cov, 0.0) / total)
-            total = sum_a = sum_b = sum_ab = sum_aa = sum_bb = 0.0
-            for p in range(n_points):
-                if not seen[p]:
-                    continue
-                a = sampled[p]
-                c = values[b, p]
-                if abs(a - gain * c - offset) > limit:
-                    continue
-                weight = valid[b, p]
-                total += weight
-                sum_a += weight * a
-                sum_b += weight * c
-                sum_ab += weight * a * c
-                sum_aa += weight * a * a
-                sum_bb += weight * c * c
-            if total <= 0:
-                break
-            cov = sum_ab - sum_a * sum_b / total
-            var_a = sum_aa - sum_a * sum_a / total
-            var_b = sum_bb - sum_b * sum_b / total
-        if total <= 0:
-            scores[b, m] = 0.0
-            continue
         scores[b, m] = cov / math.sqrt(max(var_a * var_b, 1e-12))
 
 
