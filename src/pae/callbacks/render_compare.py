@@ -119,11 +119,15 @@ class RenderCompareRefinement(L.Callback):
         self._val_runs = 0
         RenderCompareRefiner(SceneModel(), features=lambda x: x, **self.settings)  # check keys
 
+    def setting(self, name: str) -> Any:
+        """The refiner's setting ``name``: as configured, else RenderCompareRefiner's default."""
+        default = inspect.signature(RenderCompareRefiner).parameters[name].default
+        return self.settings.get(name, default)
+
     @property
     def query_width(self) -> int:
         """The width (px) at which the refiner compares queries: what evaluation keeps."""
-        default = inspect.signature(RenderCompareRefiner).parameters["resolution"].default
-        return int(self.settings.get("resolution", default))
+        return int(self.setting("resolution"))
 
     def margin(self, name: str, split: str, result: RenderCompareResult, errors: Any) -> float:
         """The acceptance margin of method ``name`` on ``split`` (chosen here on val with
@@ -159,12 +163,10 @@ class RenderCompareRefinement(L.Callback):
             return
         pos, rot = pose_errors(estimate.float(), truth.float())
         position = float(self.step_from_val["position"] * pos.quantile(0.5))
-        configured = inspect.signature(RenderCompareRefiner).parameters["position_sigma_m"]
         self.steps = {
             "position_sigma_m": position,
             "orientation_sigma_deg": float(self.step_from_val["orientation"] * rot.quantile(0.5)),
-            "gradient_position_scale": position
-            / float(self.settings.get("position_sigma_m", configured.default)),
+            "gradient_position_scale": position / float(self.setting("position_sigma_m")),
         }
 
     def refine(self, trainer: L.Trainer, pl_module: L.LightningModule, split: str) -> None:

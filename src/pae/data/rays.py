@@ -24,17 +24,19 @@ def fit_images(dataset: Any, intrinsics: Tensor, shorter_edge: int | None) -> tu
     [N, 3, h, w], and the intrinsics [N, 4] of that size (``intrinsics``: of the dataset's
     images). Memory: the result, plus one read's images."""
     n = len(dataset)
-    first = dataset.__getitems__([0])["image"]
-    height, width = first.shape[-2:]
-    if shorter_edge is not None and shorter_edge != min(height, width):
-        scale = shorter_edge / min(height, width)
-        size = (max(1, round(height * scale)), max(1, round(width * scale)))
-    else:
-        size = (height, width)
-    images = torch.empty((n, 3, *size), dtype=torch.uint8)
+    if n == 0:
+        raise ValueError("the scene model has no train images to fit to (the train split is empty)")
+    images = None
     for start in range(0, n, READ_ROWS):
         rows = list(range(start, min(start + READ_ROWS, n)))
         batch = dataset.__getitems__(rows)["image"]
+        if images is None:
+            height, width = batch.shape[-2:]
+            size = (height, width)
+            if shorter_edge is not None and shorter_edge != min(height, width):
+                scale = shorter_edge / min(height, width)
+                size = (max(1, round(height * scale)), max(1, round(width * scale)))
+            images = torch.empty((n, 3, *size), dtype=torch.uint8)
         if size != (height, width):
             small = F.interpolate(batch.float(), size=size, mode="area")
             batch = small.round().clamp(0, 255).to(torch.uint8)

@@ -83,6 +83,7 @@ class SceneModelModule(PaeModule):
         self.eval_outputs: list[dict[str, Tensor]] = []
         self._quality: list[Tensor] = []
         self._gallery: list[Tensor] = []
+        self._split_intrinsics: dict[str, Tensor] = {}
 
     def train(self, mode: bool = True) -> SceneModelModule:
         super().train(mode)
@@ -121,8 +122,16 @@ class SceneModelModule(PaeModule):
             total += small.double().sum(0)
         self.mean_image.copy_(total / max(count, 1))
 
+    def _intrinsics(self, split: str, index: Tensor) -> Tensor:
+        """Intrinsics [B, 4] of the split's rows ``index`` [B] (the split's table computed
+        once per evaluation epoch)."""
+        if split not in self._split_intrinsics:
+            self._split_intrinsics[split] = self.trainer.datamodule.intrinsics(split)
+        return self._split_intrinsics[split][index.cpu()]
+
     def on_validation_epoch_start(self) -> None:
         self.eval_outputs, self._quality, self._gallery = [], [], []
+        self._split_intrinsics = {}
         if not self.mean_image.any():
             self._fill_mean_image()
 
@@ -139,7 +148,7 @@ class SceneModelModule(PaeModule):
         size = self.quality_size
         target = nn.functional.interpolate(rgb[:keep], size=(size, size), mode="area")
         h, w = rgb.shape[-2:]
-        intrinsics = self.trainer.datamodule.intrinsics(split)[batch["index"][:keep].cpu()]
+        intrinsics = self._intrinsics(split, batch["index"][:keep])
         rendering = self.scene_model.render(
             batch["pose"][:keep],
             batch["scene"][:keep],
@@ -170,7 +179,7 @@ class SceneModelModule(PaeModule):
         rgb = ImageTransform.unnormalize_batch(batch["image"])
         self._measure_quality(rgb, batch, split)
         h, w = rgb.shape[-2:]
-        intrinsics = self.trainer.datamodule.intrinsics(split)[index.cpu()].to(rgb.device)
+        intrinsics = self._intrinsics(split, index).to(rgb.device)
         if self.query_width is not None:
             size = compare_size(h, w, self.query_width)
             rgb = nn.functional.interpolate(rgb, size=size, mode="area")
