@@ -561,3 +561,73 @@ def test_the_search_steps_follow_the_teachers_val_error() -> None:
     assert refiner.gradient_position_scale == pytest.approx(1.0 / 0.25)
     with pytest.raises(ValueError, match="step_from_val"):
         RenderCompareRefinement(step_from_val={"position": 0.4})
+
+
+def test_per_image_appearance_gives_each_train_row_its_own_code(tiny_root: Path) -> None:
+    data = SyntheticDataModule(root=str(tiny_root), **TINY, crop=28, shorter_edge=TINY["size"])
+    data.setup()
+    n = len(data.datasets["train"])
+    ids, count = data.appearance_ids("train", "image")
+    assert count == n and torch.equal(ids, torch.arange(n))
+    sequence_ids, sequences = data.appearance_ids("train")
+    assert sequences < n and sequence_ids.max() == sequences - 1
+    with pytest.raises(ValueError, match=r"scene_model\.appearance"):
+        data.appearance_ids("train", "frame")
+
+
+def _fit_module(**kwargs: object) -> object:
+    import functools
+
+    from pae.lit.scene_model import SceneModelModule
+
+    bounds = [[[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]]
+    return SceneModelModule(
+        VoxelGridSceneModel(bounds, n_appearances=4, num_voxels=1000, samples_per_ray=8),
+        torch.nn.Linear(1, 1),
+        functools.partial(torch.optim.Adam, lr=0.1),
+        scene_names=["scene00"],
+        configs={},
+        **kwargs,
+    )
+
+
+@pytest.mark.filterwarnings("ignore:You are trying to `self.log")
+def test_the_trimmed_fit_leaves_the_worst_explained_rays_out() -> None:
+    """With fit_trim 0.25 the loss is the mean error of the best-explained three quarters of
+    the rays: rays whose colour no grid explains (an occluder's) do not pull the fit."""
+    torch.manual_seed(0)
+    rays = 64
+    directions = torch.nn.functional.normalize(torch.randn(rays, 3), dim=1)
+    colours = torch.full((rays, 3), 0.5)
+    colours[:16] = torch.tensor([1.0, 0.0, 1.0])  # a quarter of the rays: an occluder
+    batch = {
+        "origins": torch.zeros(rays, 3),
+        "directions": directions,
+        "scene": torch.zeros(rays, dtype=torch.long),
+        "appearance": torch.zeros(rays, dtype=torch.long),
+        "rgb": colours,
+    }
+    losses = {}
+    for trim in (0.0, 0.25):
+        module = _fit_module(tv_weight=0.0, fit_trim=trim, fit_trim_from_epoch=0)
+        torch.manual_seed(1)
+        losses[trim] = module.training_step(batch, 0).item()
+        torch.manual_seed(1)
+        rgb, _, _ = module.scene_model.render_rays(
+            batch["origins"], batch["directions"], batch["scene"], jitter=True
+        )
+        errors = (rgb - colours).square().mean(1)
+    assert losses[0.25] == pytest.approx(errors.sort().values[:48].mean().item(), rel=1e-5)
+    assert losses[0.25] < 0.5 * losses[0.0]
+    with pytest.raises(ValueError, match="fit_trim"):
+        _fit_module(fit_trim=1.0)
+
+
+def test_the_appearance_codes_get_their_own_learning_rate() -> None:
+    module = _fit_module(appearance_lr=0.01)
+    groups = module.trainable_parameters()
+    assert [g.get("lr") for g in groups] == [None, 0.01]
+    codes = {id(p) for p in module.scene_model.appearance.parameters()}
+    assert {id(p) for p in groups[1]["params"]} == codes
+    assert codes.isdisjoint(id(p) for p in groups[0]["params"])
+    assert len(_fit_module().trainable_parameters()) == len(list(module.scene_model.parameters()))

@@ -82,7 +82,7 @@ def build_scene_model(
     settings = cfg.scene_model
     name = settings.name
     if name == "voxel_grid":
-        _, count = data.appearance_ids("train")
+        _, count = data.appearance_ids("train", settings.appearance)
         config = OmegaConf.to_container(settings.model, resolve=True)
         config = train_scale(data, config, settings.auto_scale)
         config["n_appearances"] = count
@@ -128,7 +128,11 @@ def fit_scene_model(
     settings = cfg.scene_model
     callback = render_compare_callback(cfg)
     data = RayDataModule(
-        images, settings.rays_per_batch, settings.batches_per_epoch, settings.image_size
+        images,
+        settings.rays_per_batch,
+        settings.batches_per_epoch,
+        settings.image_size,
+        settings.appearance,
     )
     module = SceneModelModule(
         scene_model,
@@ -137,6 +141,9 @@ def fit_scene_model(
         scene_names=images.scene_names,
         configs={"teacher_config": teacher.config, **configs},
         tv_weight=settings.tv_weight,
+        fit_trim=settings.fit_trim,
+        fit_trim_from_epoch=settings.fit_trim_from_epoch,
+        appearance_lr=settings.appearance_lr,
         quality_size=settings.quality_size,
         quality_images=settings.quality_images,
         query_width=callback.query_width,

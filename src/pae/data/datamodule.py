@@ -179,10 +179,16 @@ class PoseDataModule(L.LightningDataModule):
             vectors[:, 3] -= top
         return vectors.float()
 
-    def appearance_ids(self, split: str = "train") -> tuple[Tensor, int]:
-        """Index [N] of each row's (scene, sequence) among the split's, and their count:
-        what a scene model's per-sequence appearance is keyed on."""
+    def appearance_ids(self, split: str = "train", per: str = "sequence") -> tuple[Tensor, int]:
+        """Index [N] of each row's appearance among the split's, and their count: what a
+        scene model's appearance is keyed on. ``per``: ``sequence`` (one per scene and
+        sequence) or ``image`` (one per row: exposure and light that drift within a
+        sequence)."""
         table = self.tables[split]
+        if per == "image":
+            return torch.arange(len(table.scene)), len(table.scene)
+        if per != "sequence":
+            raise ConfigError(f"scene_model.appearance: unknown {per!r}; choose sequence or image")
         keys = [f"{scene}/{seq}" for scene, seq in zip(table.scene, table.seq, strict=True)]
         names = sorted(set(keys))
         index = {key: i for i, key in enumerate(names)}

@@ -96,9 +96,10 @@ class RayBatches(Dataset):
 
 class RayDataModule(L.LightningDataModule):
     """Training batches of train-image rays (:class:`RayBatches`) from the train images at
-    ``image_size`` px shorter edge (:func:`fit_images`; None: as the data holds them);
-    validation and test batches are the wrapped PoseDataModule's images (queries for
-    render-and-compare)."""
+    ``image_size`` px shorter edge (:func:`fit_images`; None: as the data holds them), each
+    ray keyed on its image's appearance ``appearance_per`` (``sequence`` or ``image``,
+    :meth:`PoseDataModule.appearance_ids`); validation and test batches are the wrapped
+    PoseDataModule's images (queries for render-and-compare)."""
 
     def __init__(
         self,
@@ -106,12 +107,14 @@ class RayDataModule(L.LightningDataModule):
         rays_per_batch: int,
         batches_per_epoch: int,
         image_size: int | None = None,
+        appearance_per: str = "sequence",
     ) -> None:
         super().__init__()
         self.images = images
         self.rays_per_batch = rays_per_batch
         self.batches_per_epoch = batches_per_epoch
         self.image_size = image_size
+        self.appearance_per = appearance_per
 
     def setup(self, stage: str | None = None) -> None:
         self.images.setup(stage)
@@ -142,7 +145,7 @@ class RayDataModule(L.LightningDataModule):
 
     def train_dataloader(self) -> DataLoader:
         dataset = self.images.datasets["train"]
-        appearance, _ = self.images.appearance_ids("train")
+        appearance, _ = self.images.appearance_ids("train", self.appearance_per)
         intrinsics = self.images.intrinsics("train", crop=False)
         images, intrinsics = fit_images(dataset, intrinsics, self.image_size)
         rays = RayBatches(

@@ -12,6 +12,7 @@ from torch import Tensor, nn
 
 from pae.data.camera import scale_intrinsics
 from pae.data.transforms import ImageTransform
+from pae.errors import ConfigError
 from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import PoseEvaluation
 from pae.models.base import PoseRegressor
@@ -41,9 +42,12 @@ def grey_zncc(rendered: Tensor, target: Tensor) -> Tensor:
 
 class SceneModelModule(PaeModule):
     """Trains ``scene_model`` (when it has parameters) on ray batches: the mean squared error
-    of its renderings, as each ray's train sequence saw them, plus ``tv_weight`` times its
-    total variation. Evaluates with the frozen ``teacher``: logs ``teacher`` and ``mean_pose``,
-    the model's quality at the split's poses (``{split}/scene_model/psnr_db`` after a
+    of its renderings, as each ray's train image's appearance saw them, plus ``tv_weight``
+    times its total variation. ``fit_trim``: from epoch ``fit_trim_from_epoch`` (0-based) on,
+    the share of each batch's rays with the largest errors left out of the mean (what the
+    grid cannot explain: occluders, glare); ``appearance_lr``: the appearance codes' learning
+    rate (None: the optimiser's). Evaluates with the frozen ``teacher``: logs ``teacher`` and
+    ``mean_pose``, the model's quality at the split's poses (``{split}/scene_model/psnr_db`` after a
     per-image gain and bias fit, ``.../zncc`` of grey images, and ``.../mean_image_psnr_db``
     for the mean train image, a model that ignores the pose) on the first ``quality_images``
     queries at ``quality_size`` px, and keeps every query for the refinement callback
@@ -62,6 +66,9 @@ class SceneModelModule(PaeModule):
         configs: dict[str, Any],
         scheduler: SchedulerFactory | None = None,
         tv_weight: float = 1e-3,
+        fit_trim: float = 0.0,
+        fit_trim_from_epoch: int = 1,
+        appearance_lr: float | None = None,
         quality_size: int = 24,
         quality_images: int = 128,
         gallery_size: int = 8,
@@ -73,6 +80,11 @@ class SceneModelModule(PaeModule):
         self.teacher = teacher.eval().requires_grad_(False)
         self.scene_names = list(scene_names)
         self.tv_weight = tv_weight
+        if not 0.0 <= fit_trim < 1.0:
+            raise ConfigError(f"scene_model.fit_trim must be in [0, 1), got {fit_trim}")
+        self.fit_trim = fit_trim
+        self.fit_trim_from_epoch = fit_trim_from_epoch
+        self.appearance_lr = appearance_lr
         self.quality_size = quality_size
         self.quality_images = quality_images
         self.gallery_size = gallery_size
@@ -90,21 +102,31 @@ class SceneModelModule(PaeModule):
         self.teacher.eval()
         return self
 
-    def trainable_parameters(self) -> list[nn.Parameter]:
-        return list(self.scene_model.parameters())
+    def trainable_parameters(self) -> list[nn.Parameter] | list[dict[str, Any]]:
+        appearance = getattr(self.scene_model, "appearance", None)
+        if self.appearance_lr is None or appearance is None:
+            return list(self.scene_model.parameters())
+        codes = set(appearance.parameters())
+        rest = [p for p in self.scene_model.parameters() if p not in codes]
+        return [{"params": rest}, {"params": list(codes), "lr": self.appearance_lr}]
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         rgb, _, _ = self.scene_model.render_rays(
             batch["origins"], batch["directions"], batch["scene"], jitter=True
         )
         rgb = self.scene_model.with_appearance(rgb, batch["appearance"])
-        mse = (rgb - batch["rgb"]).square().mean()
+        errors = (rgb - batch["rgb"]).square().mean(1)  # [R]
+        mse = errors.mean()
+        loss = mse
+        if self.fit_trim and self.current_epoch >= self.fit_trim_from_epoch:
+            keep = len(errors) - int(self.fit_trim * len(errors))
+            loss = errors.topk(keep, largest=False, sorted=False).values.mean()
         tv = self.scene_model.total_variation()
         self.log_dict(
             {"train/mse": mse, "train/psnr_db": -10 * torch.log10(mse), "train/tv": tv},
             prog_bar=True,
         )
-        return mse + self.tv_weight * tv
+        return loss + self.tv_weight * tv
 
     def _fill_mean_image(self) -> None:
         """The mean of at most ``MEAN_IMAGE_ROWS`` evenly spaced train images at
