@@ -19,7 +19,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-import pae.pipeline
+import pae.runs.trainer
 from pae.checkpoints import read_checkpoint
 from pae.data.cli import main as pae_data
 from pae.data.dataset import PoseDataset
@@ -159,9 +159,9 @@ class Interrupt(L.Callback):
 
 
 def interrupted_at(monkeypatch: pytest.MonkeyPatch, epoch: int) -> None:
-    build_trainer = pae.pipeline.build_trainer
+    build_trainer = pae.runs.trainer.build_trainer
     monkeypatch.setattr(
-        pae.pipeline,
+        pae.runs.trainer,
         "build_trainer",
         lambda cfg, step_dir, epochs, callbacks, **kw: build_trainer(
             cfg, step_dir, epochs, [*callbacks, Interrupt(epoch)], **kw
@@ -188,7 +188,7 @@ def test_checkpoints_are_written_whole(
 ) -> None:
     from pae.checkpoints import AtomicCheckpointIO
 
-    trainer = pae.pipeline.build_trainer(compose_train(), tmp_path, 1, [])
+    trainer = pae.runs.trainer.build_trainer(compose_train(), tmp_path, 1, [])
     assert isinstance(trainer.strategy.checkpoint_io, AtomicCheckpointIO)
     path = tmp_path / "last.ckpt"
     AtomicCheckpointIO().save_checkpoint({"global_step": 1}, path)
@@ -617,7 +617,7 @@ def test_non_finite_figures_are_never_results(tmp_path: Path) -> None:
 
     from pae.atomic import write_json_atomic
     from pae.errors import DivergenceError
-    from pae.pipeline import collect_metrics
+    from pae.runs.trainer import collect_metrics
 
     trainer = SimpleNamespace(
         callback_metrics={"test/teacher/pos_median_m": torch.tensor(float("nan"))}
@@ -678,7 +678,7 @@ def _ms_transformer_teacher(compose_train, path: Path) -> Path:
     the layout stage=teacher writes."""
     from hydra.utils import instantiate
 
-    from pae.pipeline_relative import stored_model_config
+    from pae.runs.relative import stored_model_config
 
     cfg = compose_train("teacher=ms_transformer_small", "teacher.model.latent_dim=256")
     config = stored_model_config(cfg.teacher.model) | {"n_scenes": TINY["scenes"]}

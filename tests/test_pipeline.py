@@ -244,8 +244,8 @@ def _refined_by_hand(cfg, student_ckpt: Path, weight_model: str) -> dict[str, fl
     from pae.geometry import pose_errors
     from pae.metrics import summarise_errors
     from pae.models.base import Latents
-    from pae.pipeline import build_data
     from pae.refine import PoseIndex, PositionRefiner
+    from pae.runs.inputs import build_data
 
     teacher, pae = load_teacher(student_ckpt).model, load_pae(student_ckpt).model
     data = build_data(cfg, augment=False)
@@ -451,7 +451,7 @@ def test_real_data_layout_trains_end_to_end(tiny_root: Path, tmp_path: Path) -> 
     ],
 )
 def test_bad_refine_options_name_the_key(compose_train, override: str, message: str) -> None:
-    from pae.pipeline import refinement_callbacks
+    from pae.runs.trainer import refinement_callbacks
 
     with pytest.raises(ConfigError, match=message):
         refinement_callbacks(compose_train(override))
@@ -459,7 +459,7 @@ def test_bad_refine_options_name_the_key(compose_train, override: str, message: 
 
 def test_refine_groups_instantiate_their_callback(compose_train) -> None:
     from pae.callbacks.refinement import TestTimeRefinement
-    from pae.pipeline import refinement_callbacks
+    from pae.runs.trainer import refinement_callbacks
 
     assert refinement_callbacks(compose_train("refine=none")) == []
     (callback,) = refinement_callbacks(compose_train("refine=knn_closed_form", "refine.k=5"))
@@ -490,7 +490,7 @@ def test_resume_continues_an_interrupted_run(
 ) -> None:
     import lightning as L
 
-    import pae.pipeline
+    import pae.runs.trainer
     from pae.checkpoints import read_checkpoint
 
     class Interrupt(L.Callback):
@@ -498,10 +498,10 @@ def test_resume_continues_an_interrupted_run(
             if trainer.current_epoch == 1:
                 raise RuntimeError("interrupted")
 
-    build_trainer = pae.pipeline.build_trainer
+    build_trainer = pae.runs.trainer.build_trainer
     with monkeypatch.context() as patch:
         patch.setattr(
-            pae.pipeline,
+            pae.runs.trainer,
             "build_trainer",
             lambda cfg, step_dir, epochs, callbacks, **kw: build_trainer(
                 cfg, step_dir, epochs, [*callbacks, Interrupt()], **kw

@@ -28,8 +28,9 @@ def main(cfg: DictConfig) -> float | None:
         import lightning as L
         from lightning.pytorch.utilities import rank_zero_only
 
-        from pae.pipeline import evaluate_checkpoints, record_dataset
+        from pae.pipeline import evaluate_checkpoints
         from pae.pipeline_relative import evaluate_methods
+        from pae.runs.inputs import record_dataset
 
         apply_renamed_keys(cfg, "pae-eval")
         validate_eval_config(cfg)

@@ -9,8 +9,8 @@ from lightning.pytorch.loggers import TensorBoardLogger
 
 FINAL_FIGURE_PREFIXES = ("test/", "bench/")
 """Keys logged once per run (test figures, timings): no scalar chart of one point each. They
-reach TensorBoard as HParams metrics and the TEXT table ``results`` (pae.pipeline.log_hparams),
-and metrics.json holds them all."""
+reach TensorBoard as HParams metrics and the TEXT table ``results``
+(pae.runs.hparams.log_hparams), and metrics.json holds them all."""
 
 
 class CurvesTensorBoardLogger(TensorBoardLogger):

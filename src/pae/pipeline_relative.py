@@ -7,10 +7,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import torch
 from hydra.utils import instantiate
-from lightning.pytorch.utilities import rank_zero_info
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from pae.checkpoints import (
     checkpoint_kind,
@@ -21,67 +19,17 @@ from pae.checkpoints import (
     load_teacher,
     read_checkpoint,
 )
-from pae.errors import CheckpointError, ConfigError
+from pae.errors import CheckpointError
 from pae.lit.iapr import IAPRModule
 from pae.lit.methods import ImageMethodEvaluator
 from pae.lit.rpr import RPRModule
 from pae.lit.rpr_image import ImageRPRModule
-from pae.models.base import PoseRegressor
-from pae.pipeline import (
-    Metrics,
-    build_data,
-    build_trainer,
-    check_data,
-    fit_and_test,
-    optimisation,
-    required,
-    validate_and_test,
-)
 from pae.refine.index import PoseIndex
 from pae.refine.relative import ImageRPR, IterativeAPRRefiner, TrainImages, VirtualRPR
-
-
-def init_backbone_from_teacher(model: torch.nn.Module, teacher: PoseRegressor, key: str) -> None:
-    """Copy the teacher's backbone weights into `model.backbone` (same backbone config);
-    a ConfigError naming `key` when they do not fit."""
-    source = getattr(teacher, "backbone", None)
-    try:
-        model.backbone.load_state_dict(source.state_dict())
-    except (AttributeError, RuntimeError):
-        raise ConfigError(
-            f"{key}=teacher: the teacher's backbone does not match this model's backbone "
-            f"(use {key}=null)"
-        ) from None
-    rank_zero_info(f"{key}: backbone initialised from the teacher's")
-
-
-def stored_model_config(model_config: DictConfig) -> dict[str, Any]:
-    """A model config as stored in a checkpoint: the weights come from the state dict, so
-    no pretrained download and no weights file."""
-    config = OmegaConf.to_container(model_config, resolve=True)
-    config["backbone"]["pretrained"] = False
-    config["backbone"]["weights_path"] = None
-    return config
-
-
-def relative_model(cfg: DictConfig, group: str, teacher: PoseRegressor) -> torch.nn.Module:
-    """The model of a relative regressor's group (`rpr`, `iapr`), its backbone copied from
-    the teacher's when `{group}.init_backbone` is `teacher`."""
-    settings = cfg[group]
-    model = instantiate(settings.model)
-    if settings.get("init_backbone") == "teacher":
-        init_backbone_from_teacher(model, teacher, f"{group}.init_backbone")
-    return model
-
-
-def rpr_pairs(cfg: DictConfig) -> dict[str, Any]:
-    """How an RPR draws its training references: `pair_k` and `pair_offset` (None: around
-    the true pose)."""
-    offset = cfg.rpr.get("pair_offset")
-    return {
-        "pair_k": cfg.rpr.pair_k,
-        "pair_offset": OmegaConf.to_container(offset, resolve=True) if offset else None,
-    }
+from pae.runs import Metrics
+from pae.runs.inputs import build_data, check_data, required
+from pae.runs.relative import relative_model, rpr_pairs, stored_model_config
+from pae.runs.trainer import build_trainer, fit_and_test, optimisation, validate_and_test
 
 
 def fit_rpr(

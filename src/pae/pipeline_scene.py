@@ -17,16 +17,14 @@ from pae.errors import ConfigError
 from pae.lit.scene_model import SceneModelModule
 from pae.models.scene_model import PaeDecoderSceneModel, SceneModel
 from pae.models.voxel_grid import camera_bounds
-from pae.pipeline import (
-    Metrics,
-    build_data,
+from pae.runs import Metrics
+from pae.runs.hparams import log_hparams
+from pae.runs.inputs import build_data, check_data, required
+from pae.runs.trainer import (
     build_trainer,
-    check_data,
     collect_metrics,
     fit_and_test,
-    log_hparams,
     optimisation,
-    required,
     validate_and_test,
 )
 

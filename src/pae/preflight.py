@@ -44,7 +44,7 @@ def _checkpoint_folders(run_dir: Path) -> list[Path]:
 
 def _changed_settings(old: DictConfig, new: DictConfig) -> list[str]:
     """Keys whose value differs between two run configs, except RESUMABLE_CHANGES."""
-    from pae.pipeline import flat_config
+    from pae.runs.hparams import flat_config
 
     before, after = flat_config(old, sep="."), flat_config(new, sep=".")
     changed = []

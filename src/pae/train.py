@@ -31,7 +31,7 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, float | int | str]:
     from lightning.pytorch.utilities import rank_zero_only
 
     from pae.console import duration, quiet_third_party, say
-    from pae.pipeline import record_dataset
+    from pae.runs.inputs import record_dataset
 
     quiet_third_party()
     apply_renamed_keys(cfg, "pae-train")

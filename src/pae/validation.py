@@ -371,7 +371,7 @@ def validate_refine(cfg: DictConfig) -> None:
         _number(cfg, "refine.rot_weight", 0, strict=False)
     if "guess_sigma_m" in refine:
         _number(cfg, "refine.guess_sigma_m", 0, strict=False, optional=True)
-    from pae.pipeline import refinement_callbacks
+    from pae.runs.trainer import refinement_callbacks
 
     refinement_callbacks(cfg)
 
