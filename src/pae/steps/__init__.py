@@ -3,12 +3,14 @@
 `pae.train` runs them, `pae.validation` checks `stage.steps` and each step's checkpoints
 against it, `pae.preflight` reads which settings a resumed run may change, and every
 `conf/stage/*.yaml` lists names from it. Importing this module loads no torch: a sweep's
-launching process reads it; a step's fit function is imported when the step runs.
+launching process reads it; a step's fit function, in the step's own module of this package
+(``pae.steps.teacher``, ...), is imported when the step runs. Those modules import the
+helpers they share from ``pae.runs``, and no step imports another.
 
-To add a step: write its fit function (``fit(cfg, step_dir, **checkpoints) -> (metrics,
-path of its last checkpoint)``, one keyword per entry of ``needs``), add a ``Step`` here, a
-config group ``conf/<group>/`` with ``max_epochs`` and ``optimizer``, and a ``conf/stage/``
-file that lists it.
+To add a step: write its fit function in ``pae/steps/<name>.py`` (``fit(cfg, step_dir,
+**checkpoints) -> (metrics, path of its last checkpoint)``, one keyword per entry of
+``needs``), add a ``Step`` here, a config group ``conf/<group>/`` with ``max_epochs`` and
+``optimizer``, and a ``conf/stage/`` file that lists it.
 """
 
 from __future__ import annotations
@@ -79,7 +81,7 @@ STEPS: dict[str, Step] = {
         _step(
             "teacher",
             "teacher",
-            "pae.pipeline:fit_teacher",
+            "pae.steps.teacher:fit_teacher",
             {"teacher.model": ("n_scenes",)},
             produces="teacher_ckpt",
         ),
