@@ -88,7 +88,7 @@ STEPS: dict[str, Step] = {
         _step(
             "student",
             "student",
-            "pae.pipeline:fit_student",
+            "pae.steps.student:fit_student",
             {"pae": ("n_scenes",)},
             ("teacher_ckpt",),
             produces="student_ckpt",
