@@ -1,42 +1,21 @@
-"""The steps a run executes: fit a decoder, evaluate checkpoints."""
+"""pae-eval's evaluation of a student checkpoint and of a scene-model checkpoint."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from pae.checkpoints import CheckpointError, architecture_differences, load_pae, load_teacher
-from pae.lit.decoder import DecoderModule
 from pae.lit.student import StudentEvaluator
 from pae.runs import Metrics
 from pae.runs.hparams import log_hparams
-from pae.runs.inputs import build_data, check_data, load_frozen
+from pae.runs.inputs import build_data, check_data
 from pae.runs.trainer import (
     build_trainer,
-    fit_and_test,
-    optimisation,
     refinement_callbacks,
     validate_and_test,
 )
-
-
-def fit_decoder(
-    cfg: DictConfig, step_dir: Path, student_ckpt: str | Path | None
-) -> tuple[Metrics, Path]:
-    """Train an image decoder on a frozen PAE (from a student checkpoint), then test it."""
-    _, pae, data = load_frozen(cfg, student_ckpt, "student_ckpt", "decoder", load_pae)
-    decoder_config = OmegaConf.to_container(cfg.decoder.model, resolve=True)
-    module = DecoderModule(
-        pae.model,
-        instantiate(decoder_config),
-        **optimisation(cfg.decoder),
-        scene_names=data.scene_names,
-        pae_config=pae.config,
-        decoder_config=decoder_config,
-    )
-    return fit_and_test(cfg, step_dir, "decoder", module, data, cfg.decoder.max_epochs)
 
 
 def evaluate_checkpoints(cfg: DictConfig, run_dir: Path) -> Metrics:

@@ -96,7 +96,7 @@ STEPS: dict[str, Step] = {
         _step(
             "decoder",
             "decoder",
-            "pae.pipeline:fit_decoder",
+            "pae.steps.decoder:fit_decoder",
             {"decoder.model": ()},
             ("student_ckpt",),
             produces="decoder_ckpt",
