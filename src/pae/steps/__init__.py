@@ -104,7 +104,7 @@ STEPS: dict[str, Step] = {
         _step(
             "rpr",
             "rpr",
-            "pae.pipeline_relative:fit_rpr",
+            "pae.steps.rpr:fit_rpr",
             {"rpr.model": ()},
             ("student_ckpt", "decoder_ckpt"),
         ),
