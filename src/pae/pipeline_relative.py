@@ -22,37 +22,12 @@ from pae.checkpoints import (
 from pae.errors import CheckpointError
 from pae.lit.iapr import IAPRModule
 from pae.lit.methods import ImageMethodEvaluator
-from pae.lit.rpr_image import ImageRPRModule
 from pae.refine.index import PoseIndex
 from pae.refine.relative import ImageRPR, IterativeAPRRefiner, TrainImages, VirtualRPR
 from pae.runs import Metrics
 from pae.runs.inputs import build_data, check_data, required
-from pae.runs.relative import relative_model, rpr_pairs, stored_model_config
+from pae.runs.relative import relative_model, stored_model_config
 from pae.runs.trainer import build_trainer, fit_and_test, optimisation, validate_and_test
-
-
-def fit_rpr_image(
-    cfg: DictConfig, step_dir: Path, teacher_ckpt: str | Path | None
-) -> tuple[Metrics, Path]:
-    """Train the Siamese RPR (the `rpr` group's model and training settings) on real
-    train-image pairs, then test `rpr_image` and its audits (`test/rpr_image/...`)."""
-    teacher_ckpt = required(teacher_ckpt, "teacher_ckpt", "rpr_image")
-    teacher = load_teacher(teacher_ckpt, "teacher_ckpt")
-    data = build_data(cfg)
-    check_data(cfg, teacher_ckpt, teacher, data)
-    module = ImageRPRModule(
-        relative_model(cfg, "rpr", teacher.model),
-        teacher.model,
-        loss=instantiate(cfg.rpr.loss),
-        **optimisation(cfg.rpr),
-        scene_names=data.scene_names,
-        configs={
-            "teacher_config": teacher.config,
-            "rpr_config": stored_model_config(cfg.rpr.model),
-        },
-        **rpr_pairs(cfg),
-    )
-    return fit_and_test(cfg, step_dir, "rpr_image", module, data, cfg.rpr.max_epochs)
 
 
 def fit_iapr(

@@ -111,7 +111,7 @@ STEPS: dict[str, Step] = {
         _step(
             "rpr_image",
             "rpr",
-            "pae.pipeline_relative:fit_rpr_image",
+            "pae.steps.rpr_image:fit_rpr_image",
             {"rpr.model": ()},
             ("teacher_ckpt",),
         ),
