@@ -115,9 +115,7 @@ STEPS: dict[str, Step] = {
             {"rpr.model": ()},
             ("teacher_ckpt",),
         ),
-        _step(
-            "iapr", "iapr", "pae.pipeline_relative:fit_iapr", {"iapr.model": ()}, ("student_ckpt",)
-        ),
+        _step("iapr", "iapr", "pae.steps.iapr:fit_iapr", {"iapr.model": ()}, ("student_ckpt",)),
         # its model config depends on scene_model.name (validation's scene-model checks); with
         # scene_model=pae_decoder it reads the student and decoder checkpoints too
         Step(
