@@ -305,7 +305,7 @@ def test_fit_images_are_resized_with_their_intrinsics(tiny_root: Path) -> None:
 
 def test_bounds_come_from_the_train_cameras_only(tiny_root: Path) -> None:
     from pae.data.datamodule import PoseDataModule
-    from pae.pipeline_scene import camera_extent_m, train_scale
+    from pae.steps.scene_model import camera_extent_m, train_scale
 
     data = PoseDataModule(
         str(tiny_root),
@@ -334,7 +334,7 @@ def test_bounds_come_from_the_train_cameras_only(tiny_root: Path) -> None:
 
 
 def test_camera_extent_ignores_a_few_stray_frames() -> None:
-    from pae.pipeline_scene import camera_extent_m
+    from pae.steps.scene_model import camera_extent_m
 
     positions = torch.zeros(200, 3)
     positions[:, 0] = torch.linspace(0, 4, 200)

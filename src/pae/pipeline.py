@@ -48,7 +48,7 @@ def evaluate_checkpoints(cfg: DictConfig, run_dir: Path) -> Metrics:
         metrics |= validate_and_test(trainer, module, data)
         log_hparams(trainer, cfg, metrics)
     if cfg.get("scene_model_ckpt"):
-        from pae.pipeline_scene import evaluate_scene_model
+        from pae.steps.scene_model import evaluate_scene_model
 
         metrics |= evaluate_scene_model(cfg, run_dir, cfg.scene_model_ckpt, teacher, data)
     return metrics

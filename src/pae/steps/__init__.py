@@ -121,7 +121,7 @@ STEPS: dict[str, Step] = {
         Step(
             "scene_model",
             "scene_model",
-            "pae.pipeline_scene:fit_scene_model",
+            "pae.steps.scene_model:fit_scene_model",
             ("teacher_ckpt",),
             resumable=("scene_model.max_epochs", "render_compare."),
             optional=("student_ckpt", "decoder_ckpt"),

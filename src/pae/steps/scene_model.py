@@ -1,5 +1,6 @@
-"""The scene-model step: fit a scene model from the train images, poses and intrinsics, then
-test render-and-compare refinement of a frozen teacher (`test/render_compare/...`)."""
+"""The scene_model step: fit a scene model from the train images, poses and intrinsics, then
+test render-and-compare refinement of a frozen teacher (`test/render_compare/...`); and
+pae-eval's test of a scene-model checkpoint."""
 
 from __future__ import annotations
 
