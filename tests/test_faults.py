@@ -695,7 +695,7 @@ def test_pae_eval_takes_a_teacher_of_the_students_architecture_only(
     from hydra import compose, initialize_config_dir
 
     from pae import CONFIG_DIR
-    from pae.pipeline import evaluate_checkpoints
+    from pae.checkpoint_evaluation import evaluate_checkpoints
     from tests.conftest import tiny_data_overrides
 
     teacher_ckpt = teacher_run / "checkpoints" / "last.ckpt"

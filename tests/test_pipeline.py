@@ -9,9 +9,9 @@ import pytest
 import torch
 from omegaconf import open_dict
 
+from pae.checkpoint_evaluation import evaluate_checkpoints
 from pae.checkpoints import load_pae, load_teacher
 from pae.errors import CheckpointError, ConfigError
-from pae.pipeline import evaluate_checkpoints
 from pae.train import run
 
 EXPECTED_METHODS = (
@@ -548,7 +548,7 @@ def test_pae_eval_runs_the_image_methods_of_their_checkpoints(
     from hydra import compose, initialize_config_dir
 
     from pae import CONFIG_DIR
-    from pae.pipeline_relative import evaluate_methods
+    from pae.checkpoint_evaluation import evaluate_methods
     from pae.validation import validate_eval_config
     from tests.conftest import tiny_data_overrides
 

@@ -1,7 +1,8 @@
 """`pae-eval`: evaluate trained checkpoints with test-time refinement, and the methods of
 rpr, rpr_image and iapr checkpoints (`method_ckpts`) (Hydra; conf/eval.yaml).
 
-Torch, Lightning and the pipeline are imported when a run starts, as in `pae-train`.
+Torch, Lightning and the evaluations (`pae.checkpoint_evaluation`) are imported when a run
+starts, as in `pae-train`.
 """
 
 from __future__ import annotations
@@ -28,8 +29,7 @@ def main(cfg: DictConfig) -> float | None:
         import lightning as L
         from lightning.pytorch.utilities import rank_zero_only
 
-        from pae.pipeline import evaluate_checkpoints
-        from pae.pipeline_relative import evaluate_methods
+        from pae.checkpoint_evaluation import evaluate_checkpoints, evaluate_methods
         from pae.runs.inputs import record_dataset
 
         apply_renamed_keys(cfg, "pae-eval")

@@ -1,7 +1,12 @@
-"""pae-eval's evaluation of the relative regressors' checkpoints (`method_ckpts`), which read
-the query image at test time: virtual RPR (references decoded from PAE encodings, `vrpr`),
-the image RPR (real train images as references, `rpr_image`) and the iterative APR
-(`iapr_{n}`)."""
+"""What pae-eval evaluates: a student checkpoint with the configured refinement (and
+optionally another teacher of its teacher's architecture), a scene-model checkpoint with
+render-and-compare, and the methods of the relative regressors' checkpoints
+(`method_ckpts`), which read the query image at test time: virtual RPR (references decoded
+from PAE encodings, `vrpr`), the image RPR (real train images as references, `rpr_image`)
+and the iterative APR (`iapr_{n}`).
+
+It imports the steps whose checkpoints it tests; no step imports it.
+"""
 
 from __future__ import annotations
 
@@ -11,6 +16,8 @@ from typing import Any
 from omegaconf import DictConfig
 
 from pae.checkpoints import (
+    CheckpointError,
+    architecture_differences,
     checkpoint_kind,
     load_decoder,
     load_iapr,
@@ -19,13 +26,49 @@ from pae.checkpoints import (
     load_teacher,
     read_checkpoint,
 )
-from pae.errors import CheckpointError
 from pae.lit.methods import ImageMethodEvaluator
+from pae.lit.student import StudentEvaluator
 from pae.refine.index import PoseIndex
 from pae.refine.relative import ImageRPR, IterativeAPRRefiner, TrainImages, VirtualRPR
 from pae.runs import Metrics
+from pae.runs.hparams import log_hparams
 from pae.runs.inputs import build_data, check_data
-from pae.runs.trainer import build_trainer, validate_and_test
+from pae.runs.trainer import build_trainer, refinement_callbacks, validate_and_test
+from pae.steps.scene_model import evaluate_scene_model
+
+
+def evaluate_checkpoints(cfg: DictConfig, run_dir: Path) -> Metrics:
+    """Test a student checkpoint (and optionally another teacher of its teacher's
+    architecture) with the configured refinement, and/or a scene-model checkpoint with
+    render-and-compare refinement."""
+    metrics: Metrics = {}
+    teacher_path = cfg.teacher_ckpt or cfg.student_ckpt or cfg.get("scene_model_ckpt")
+    teacher = load_teacher(teacher_path, "teacher_ckpt" if cfg.teacher_ckpt else None)
+    data = build_data(cfg, augment=False)
+    check_data(cfg, teacher_path, teacher, data)
+    if cfg.student_ckpt:
+        pae = load_pae(cfg.student_ckpt, "student_ckpt")
+        if cfg.teacher_ckpt:
+            changed = architecture_differences(pae.hparams["teacher_config"], teacher.config)
+            if changed:
+                raise CheckpointError(
+                    f"teacher_ckpt={teacher_path}: another architecture than the teacher the "
+                    f"PAE of {cfg.student_ckpt} was trained on ({'; '.join(changed[:3])}): "
+                    "its latents mean nothing to that PAE"
+                )
+        check_data(cfg, cfg.student_ckpt, pae, data)
+        if pae.model.latent_dim != teacher.model.latent_dim:
+            raise CheckpointError(
+                f"{cfg.student_ckpt}: PAE latent size {pae.model.latent_dim} does not match "
+                f"the teacher's {teacher.model.latent_dim} ({teacher_path})"
+            )
+        module = StudentEvaluator(teacher.model, pae.model, data.scene_names)
+        trainer = build_trainer(cfg, run_dir, 0, refinement_callbacks(cfg))
+        metrics |= validate_and_test(trainer, module, data)
+        log_hparams(trainer, cfg, metrics)
+    if cfg.get("scene_model_ckpt"):
+        metrics |= evaluate_scene_model(cfg, run_dir, cfg.scene_model_ckpt, teacher, data)
+    return metrics
 
 
 def method_evaluator(
