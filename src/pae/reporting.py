@@ -28,64 +28,9 @@ from pae.errors import (
     LabelError,
     RunDirInUseError,
 )
+from pae.method_rows import ORACLE_SUFFIX, TEST_STORE_SUFFIX, marked, table_methods
+from pae.seed_stats import seed_report
 from pae.sweep_jobs import MULTIRUN_FILE, sweep_jobs
-
-METHOD_ORDER = (
-    "teacher",
-    "student",
-    "student_gt",
-    "refined",
-    "knn_mean",
-    "vrpr",
-    "rpr_image",
-    "rpr_reference",
-    "iapr_1",
-    "iapr_2",
-    "iapr_3",
-    "guess_initial",
-    "guess_refined",
-    "refined_test_store",
-    "knn_mean_test_store",
-    "guess_refined_test_store",
-    "rpr_image_test_store",
-    "rpr_reference_test_store",
-    "render_compare",
-    "render_compare_oracle",
-    "mean_pose",
-)
-"""Row order of the results tables; other methods (refinement alternatives) follow
-``refined`` and ``knn_mean`` in the order of their keys."""
-TEST_STORE_SUFFIX = "_test_store"
-"""Methods whose name ends so read the evaluated split's labels (they retrieve among its own
-poses, or by its true poses): audits."""
-ORACLE_SUFFIX = "_oracle"
-"""Methods whose name ends so know what no method may (the true scene): bounds."""
-
-
-def marked(method: str) -> str:
-    """A table row's label: ``*`` after audits, ``†`` after bounds."""
-    if method.endswith(TEST_STORE_SUFFIX):
-        return f"{method} *"
-    return f"{method} †" if method.endswith(ORACLE_SUFFIX) else method
-
-
-def table_methods(metrics: Mapping[str, float], split: str = "test") -> list[str]:
-    """Methods with a ``{split}/{method}/pos_median_m`` figure, in table order."""
-    found = list(
-        dict.fromkeys(
-            key.split("/")[1]
-            for key in metrics
-            if key.startswith(f"{split}/") and key.endswith("/pos_median_m") and key.count("/") == 2
-        )
-    )
-    known = [m for m in METHOD_ORDER if m in found]
-    extra = [m for m in found if m not in METHOD_ORDER]
-    if not extra:
-        return known
-    anchors = [known.index(m) + 1 for m in ("refined", "knn_mean") if m in known]
-    cut = max(anchors, default=len(known))
-    return known[:cut] + extra + known[cut:]
-
 
 REFERENCE_METHODS = (
     "teacher",
@@ -514,8 +459,6 @@ class SweepReport(Callback):
     when jobs differ only by seed)."""
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        from pae.seed_stats import seed_report
-
         sweep_dir = Path(config.hydra.sweep.dir)
         try:
             table = sweep_table(sweep_dir)
@@ -536,8 +479,6 @@ def main(argv: list[str] | None = None) -> int:
     differences between the sweep's variants over their seeds; `pae-report --compare RUN
     [RUN ...] --names A,B,...`: methods × runs (runs that are seed sweeps: paired). Exit
     status 1 when a job failed or is missing."""
-    from pae.seed_stats import seed_report
-
     parser = argparse.ArgumentParser(prog="pae-report", description=sweep_table.__doc__)
     parser.add_argument("directory", type=Path, nargs="?")
     parser.add_argument("--split", default="test", choices=("test", "val"))

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from pae.reporting import TEST_STORE_SUFFIX, table_methods
+from pae.method_rows import TEST_STORE_SUFFIX, table_methods
 
 Metrics = dict[str, float]
 Variants = dict[str, dict[int, Metrics]]

@@ -1,0 +1,67 @@
+"""The rows of the results tables: the methods a run's figures hold, in table order, and the
+marks of audits (they read the evaluated split's labels) and bounds (they know the true
+scene). Read by pae.reporting and pae.seed_stats alike."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+METHOD_ORDER = (
+    "teacher",
+    "student",
+    "student_gt",
+    "refined",
+    "knn_mean",
+    "vrpr",
+    "rpr_image",
+    "rpr_reference",
+    "iapr_1",
+    "iapr_2",
+    "iapr_3",
+    "guess_initial",
+    "guess_refined",
+    "refined_test_store",
+    "knn_mean_test_store",
+    "guess_refined_test_store",
+    "rpr_image_test_store",
+    "rpr_reference_test_store",
+    "render_compare",
+    "render_compare_oracle",
+    "mean_pose",
+)
+"""Row order of the results tables; other methods (refinement alternatives) follow
+``refined`` and ``knn_mean`` in the order of their keys."""
+
+
+TEST_STORE_SUFFIX = "_test_store"
+"""Methods whose name ends so read the evaluated split's labels (they retrieve among its own
+poses, or by its true poses): audits."""
+
+
+ORACLE_SUFFIX = "_oracle"
+"""Methods whose name ends so know what no method may (the true scene): bounds."""
+
+
+def marked(method: str) -> str:
+    """A table row's label: ``*`` after audits, ``†`` after bounds."""
+    if method.endswith(TEST_STORE_SUFFIX):
+        return f"{method} *"
+    return f"{method} †" if method.endswith(ORACLE_SUFFIX) else method
+
+
+def table_methods(metrics: Mapping[str, float], split: str = "test") -> list[str]:
+    """Methods with a ``{split}/{method}/pos_median_m`` figure, in table order."""
+    found = list(
+        dict.fromkeys(
+            key.split("/")[1]
+            for key in metrics
+            if key.startswith(f"{split}/") and key.endswith("/pos_median_m") and key.count("/") == 2
+        )
+    )
+    known = [m for m in METHOD_ORDER if m in found]
+    extra = [m for m in found if m not in METHOD_ORDER]
+    if not extra:
+        return known
+    anchors = [known.index(m) + 1 for m in ("refined", "knn_mean") if m in known]
+    cut = max(anchors, default=len(known))
+    return known[:cut] + extra + known[cut:]
