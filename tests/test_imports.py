@@ -1,0 +1,121 @@
+"""The import graph of the package: no module of ``pae`` imports itself back, directly or
+through others (imports at module level and inside functions alike)."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+
+Graph = dict[str, set[str]]
+"""module -> the ``pae`` modules it imports."""
+
+
+def module_name(path: Path) -> str:
+    """The dotted name of the module in ``path`` (a package by its ``__init__.py``)."""
+    parts = path.relative_to(SRC).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def imported_modules(path: Path, modules: set[str]) -> set[str]:
+    """The modules of ``modules`` that the file at ``path`` imports anywhere in its code; in
+    ``from pae.x import y`` the module ``pae.x.y`` when ``y`` is one, else ``pae.x``."""
+    name = module_name(path)
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*anchor, *([base] if base else [])])
+            submodules = {f"{base}.{alias.name}" for alias in node.names}
+            found |= (submodules & modules) or {base}
+    return (found & modules) - {name}
+
+
+def import_graph() -> Graph:
+    """Every module under ``src/pae`` -> the ``pae`` modules it imports."""
+    paths = {module_name(path): path for path in sorted((SRC / "pae").rglob("*.py"))}
+    return {name: imported_modules(path, set(paths)) for name, path in paths.items()}
+
+
+def find_cycle(graph: Graph) -> list[str] | None:
+    """One import cycle of ``graph`` as the modules along it, the first repeated at the end;
+    None when there is none."""
+    done: set[str] = set()
+
+    def visit(module: str, path: list[str]) -> list[str] | None:
+        if module in path:
+            return [*path[path.index(module) :], module]
+        if module in done:
+            return None
+        for imported in sorted(graph[module]):
+            cycle = visit(imported, [*path, module])
+            if cycle:
+                return cycle
+        done.add(module)
+        return None
+
+    for module in sorted(graph):
+        cycle = visit(module, [])
+        if cycle:
+            return cycle
+    return None
+
+
+def find_cycles(graph: Graph) -> list[list[str]]:
+    """Import cycles of ``graph`` until every one is broken: each found (find_cycle), then
+    its closing import left out to look for the next."""
+    remaining = {module: set(imported) for module, imported in graph.items()}
+    cycles = []
+    while cycle := find_cycle(remaining):
+        cycles.append(cycle)
+        remaining[cycle[-2]].discard(cycle[-1])
+    return cycles
+
+
+def reachable(graph: Graph, module: str) -> set[str]:
+    """The modules ``module`` imports, directly or through others."""
+    found: set[str] = set()
+    todo = [module]
+    while todo:
+        for imported in graph[todo.pop()] - found:
+            found.add(imported)
+            todo.append(imported)
+    return found
+
+
+def test_the_graph_reads_the_forms_of_import() -> None:
+    graph = import_graph()
+    assert "pae.steps" in graph["pae.train"]  # from pae.steps import CHECKPOINTS, ...
+    assert "pae.data.synthetic" in graph["pae.data.cli"]  # imported inside a function
+
+
+def test_cycles_are_found() -> None:
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a", "d"}, "d": set()}
+    assert find_cycle(graph) == ["a", "b", "c", "a"]
+    assert find_cycle(graph | {"c": {"d"}}) is None
+    assert find_cycles(graph | {"d": {"b"}}) == [["a", "b", "c", "a"], ["b", "c", "d", "b"]]
+
+
+def test_no_module_imports_itself_back() -> None:
+    cycles = find_cycles(import_graph())
+    assert not cycles, "import cycles:\n" + "\n".join(" -> ".join(c) for c in cycles)
+
+
+def test_steps_import_their_helpers_and_no_other_step() -> None:
+    """A step's module (``pae.steps.<name>``) reaches no other step and not pae-eval's
+    evaluations; the helpers of ``pae.runs`` reach no step."""
+    graph = import_graph()
+    steps = {module for module in graph if module.startswith("pae.steps.")}
+    assert "pae.steps.teacher" in steps
+    for step in steps:
+        found = reachable(graph, step) & (steps | {"pae.checkpoint_evaluation"})
+        assert not found, f"{step} imports {sorted(found)}"
+    for helper in (module for module in graph if module.startswith("pae.runs")):
+        found = reachable(graph, helper) & steps
+        assert not found, f"{helper} imports {sorted(found)}"
