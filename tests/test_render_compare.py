@@ -458,10 +458,10 @@ def test_a_focal_column_with_a_bad_value_names_its_line(tmp_path: Path) -> None:
 
 
 def test_the_callback_refines_without_reading_the_true_poses(
-    monkeypatch: pytest.MonkeyPatch,
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
     """The refined poses are the same whatever the evaluated split's true poses are: they
-    only enter the error figures."""
+    only enter the error figures and the per-query file."""
     from types import SimpleNamespace
 
     import pae.callbacks.render_compare as callback_module
@@ -478,7 +478,7 @@ def test_the_callback_refines_without_reading_the_true_poses(
     callback = callback_module.RenderCompareRefinement(
         {"rounds": 3, "candidates": 8, "resolution": 16, "reference_size": 12}, oracle=False
     )
-    trainer = SimpleNamespace(world_size=1, datamodule=SimpleNamespace())
+    trainer = SimpleNamespace(world_size=1, datamodule=SimpleNamespace(), log_dir=str(tmp_path))
     for gt in (truth, torch.full_like(truth, float("nan"))):
         module = SimpleNamespace(
             scene_model=model,
@@ -498,6 +498,15 @@ def test_the_callback_refines_without_reading_the_true_poses(
             ],
         )
         callback.refine(trainer, module, "test")
+        if torch.isfinite(gt).all():
+            rows = (tmp_path / "queries_test_render_compare_oracle.csv").read_text().splitlines()
+    header, *rows = [row.split(",") for row in rows]
+    assert header[:3] == ["index", "scene", "start_pos_m"] and len(rows) == n
+    assert [int(r[0]) for r in rows] == list(range(n)) and {r[1] for r in rows} == {"scene00"}
+    start_pos, _ = pose_errors(start, truth)
+    torch.testing.assert_close(
+        torch.tensor([float(r[2]) for r in rows]), start_pos.float(), atol=1e-5, rtol=0
+    )
     first, second = refined[: len(refined) // 2], refined[len(refined) // 2 :]
     assert all(torch.isfinite(poses).all() for poses in second)
     for a, b in zip(first, second, strict=True):
