@@ -15,6 +15,9 @@ refiner=(
   "blur_sigma_px=2.0" "reference_size=32" "reference_fov_scale=1.6" "min_overlap=0.2"
   "highpass_sigma_px=4.0" "trim_sigma=2.0"
 )
+# the callback's own settings (step_from_val replaces position_sigma_m and
+# orientation_sigma_deg by fractions of the teacher's val error, and scales the gradient steps)
+callback=("step_from_val.position=0.5" "step_from_val.orientation=0.8" "accept_margin=0.0")
 # several overrides of one setting are joined by "+"
 scene_model=(
   "auto_scale.margin_floor_m=1.0" "auto_scale.margin_floor_m=3.0"
@@ -28,6 +31,13 @@ for setting in defaults "${refiner[@]}"; do
   [ "$setting" != defaults ] && extra=("render_compare.refiner.$setting")
   "$BIN/pae-eval" "scene_model_ckpt=$DEMO/scene_model/checkpoints/last.ckpt" \
     render_compare.oracle=false "${extra[@]}" "hydra.run.dir=$dir" \
+    >"$dir.log" 2>&1 || echo "$setting failed (log $dir.log)"
+done
+for setting in "${callback[@]}"; do
+  dir="$OUT/render_compare.${setting//=/_}"
+  [ -f "$dir/metrics.json" ] && continue
+  "$BIN/pae-eval" "scene_model_ckpt=$DEMO/scene_model/checkpoints/last.ckpt" \
+    render_compare.oracle=false "render_compare.$setting" "hydra.run.dir=$dir" \
     >"$dir.log" 2>&1 || echo "$setting failed (log $dir.log)"
 done
 for setting in "${scene_model[@]}"; do
