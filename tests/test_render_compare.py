@@ -34,6 +34,7 @@ from pae.models.voxel_grid import VoxelGrid, VoxelGridSceneModel, camera_bounds
 from pae.refine.render_compare import (
     RenderCompareRefiner,
     RenderCompareResult,
+    band_pass,
     gate,
     perturb,
     trimmed_zncc,
@@ -457,10 +458,10 @@ def test_a_focal_column_with_a_bad_value_names_its_line(tmp_path: Path) -> None:
 
 
 def test_the_callback_refines_without_reading_the_true_poses(
-    monkeypatch: pytest.MonkeyPatch,
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
     """The refined poses are the same whatever the evaluated split's true poses are: they
-    only enter the error figures."""
+    only enter the error figures and the per-query file."""
     from types import SimpleNamespace
 
     import pae.callbacks.render_compare as callback_module
@@ -477,7 +478,7 @@ def test_the_callback_refines_without_reading_the_true_poses(
     callback = callback_module.RenderCompareRefinement(
         {"rounds": 3, "candidates": 8, "resolution": 16, "reference_size": 12}, oracle=False
     )
-    trainer = SimpleNamespace(world_size=1, datamodule=SimpleNamespace())
+    trainer = SimpleNamespace(world_size=1, datamodule=SimpleNamespace(), log_dir=str(tmp_path))
     for gt in (truth, torch.full_like(truth, float("nan"))):
         module = SimpleNamespace(
             scene_model=model,
@@ -497,6 +498,15 @@ def test_the_callback_refines_without_reading_the_true_poses(
             ],
         )
         callback.refine(trainer, module, "test")
+        if torch.isfinite(gt).all():
+            rows = (tmp_path / "queries_test_render_compare_oracle.csv").read_text().splitlines()
+    header, *rows = [row.split(",") for row in rows]
+    assert header[:3] == ["index", "scene", "start_pos_m"] and len(rows) == n
+    assert [int(r[0]) for r in rows] == list(range(n)) and {r[1] for r in rows} == {"scene00"}
+    start_pos, _ = pose_errors(start, truth)
+    torch.testing.assert_close(
+        torch.tensor([float(r[2]) for r in rows]), start_pos.float(), atol=1e-5, rtol=0
+    )
     first, second = refined[: len(refined) // 2], refined[len(refined) // 2 :]
     assert all(torch.isfinite(poses).all() for poses in second)
     for a, b in zip(first, second, strict=True):
@@ -631,3 +641,23 @@ def test_the_appearance_codes_get_their_own_learning_rate() -> None:
     assert {id(p) for p in groups[1]["params"]} == codes
     assert codes.isdisjoint(id(p) for p in groups[0]["params"])
     assert len(_fit_module().trainable_parameters()) == len(list(module.scene_model.parameters()))
+
+
+def test_the_band_pass_score_ignores_smooth_shading_that_plain_zncc_does_not() -> None:
+    """A light fall-off across the image (a ramp ten times the texture's contrast) halves
+    the plain ZNCC of an image with itself; after the band pass it stays above 0.8 (the
+    replicated edges leave some of the ramp)."""
+    torch.manual_seed(0)
+    texture = torch.rand(1, 1, 32, 32)
+    ramp = torch.linspace(0, 3, 32).view(1, 1, 1, 32).expand(1, 1, 32, 32)
+    lit = texture + ramp
+
+    def score(a: torch.Tensor, b: torch.Tensor, highpass: float) -> float:
+        x, y = band_pass(a, 1.0, highpass).flatten(1), band_pass(b, 1.0, highpass).flatten(1)
+        return zncc(x, y, torch.ones_like(x)).item()
+
+    assert score(texture, lit, 0.0) < 0.5
+    assert score(texture, lit, 4.0) > 0.8
+    torch.testing.assert_close(band_pass(texture, 1.0, 0.0), band_pass(texture, 1.0, -1.0))
+    with pytest.raises(ValueError, match="highpass_sigma_px"):
+        RenderCompareRefiner(OracleSceneModel([]), highpass_sigma_px=-1.0)

@@ -30,12 +30,14 @@ def runs(root: Path) -> list[Path]:
 
 
 def name(run: Path) -> str:
-    """The run's command-line overrides (checkpoint and Hydra paths left out)."""
+    """The run's command-line overrides (checkpoints, Hydra paths and the oracle switch left
+    out)."""
     overrides = run / ".hydra" / "overrides.yaml"
     if not overrides.is_file():
         return run.name
     lines = [line.removeprefix("- ").strip() for line in overrides.read_text().splitlines()]
-    kept = [line for line in lines if line and not line.startswith(("hydra.", "scene_model_ckpt"))]
+    skipped = ("hydra.", "scene_model_ckpt", "teacher_ckpt", "render_compare.oracle")
+    kept = [line for line in lines if line and not line.startswith(skipped)]
     return " ".join(kept) or "(defaults)"
 
 

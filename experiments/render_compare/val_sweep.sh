@@ -13,10 +13,19 @@ mkdir -p "$OUT"
 refiner=(
   "candidates=64" "position_sigma_m=0.4" "orientation_sigma_deg=8.0" "shrink=0.8"
   "blur_sigma_px=2.0" "reference_size=32" "reference_fov_scale=1.6" "min_overlap=0.2"
+  "highpass_sigma_px=4.0" "trim_sigma=2.0"
 )
-scene_model=("auto_scale.margin_floor_m=1.0" "auto_scale.margin_floor_m=3.0")
+# the callback's own settings (step_from_val replaces position_sigma_m and
+# orientation_sigma_deg by fractions of the teacher's val error, and scales the gradient steps)
+callback=("step_from_val.position=0.5" "step_from_val.orientation=0.8" "accept_margin=0.0")
+# several overrides of one setting are joined by "+"
+scene_model=(
+  "auto_scale.margin_floor_m=1.0" "auto_scale.margin_floor_m=3.0"
+  "appearance=image+appearance_lr=0.01" "fit_trim=0.1"
+)
+# a run folder is named by its setting, "=" written "_" (Hydra reads "=" in a value as a key)
 for setting in defaults "${refiner[@]}"; do
-  dir="$OUT/$setting"
+  dir="$OUT/${setting//=/_}"
   [ -f "$dir/metrics.json" ] && continue
   extra=()
   [ "$setting" != defaults ] && extra=("render_compare.refiner.$setting")
@@ -24,11 +33,19 @@ for setting in defaults "${refiner[@]}"; do
     render_compare.oracle=false "${extra[@]}" "hydra.run.dir=$dir" \
     >"$dir.log" 2>&1 || echo "$setting failed (log $dir.log)"
 done
-for setting in "${scene_model[@]}"; do
-  dir="$OUT/scene_model.$setting"
+for setting in "${callback[@]}"; do
+  dir="$OUT/render_compare.${setting//=/_}"
   [ -f "$dir/metrics.json" ] && continue
+  "$BIN/pae-eval" "scene_model_ckpt=$DEMO/scene_model/checkpoints/last.ckpt" \
+    render_compare.oracle=false "render_compare.$setting" "hydra.run.dir=$dir" \
+    >"$dir.log" 2>&1 || echo "$setting failed (log $dir.log)"
+done
+for setting in "${scene_model[@]}"; do
+  dir="$OUT/scene_model.${setting//=/_}"
+  [ -f "$dir/metrics.json" ] && continue
+  IFS=+ read -ra parts <<<"$setting"
   "$BIN/pae-train" experiment=demo "stage.steps=[scene_model]" \
     "teacher_ckpt=$DEMO/teacher/checkpoints/last.ckpt" render_compare.oracle=false \
-    "scene_model.$setting" "hydra.run.dir=$dir" >"$dir.log" 2>&1 \
+    "${parts[@]/#/scene_model.}" "hydra.run.dir=$dir" >"$dir.log" 2>&1 \
     || echo "$setting failed (log $dir.log)"
 done

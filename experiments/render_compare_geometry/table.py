@@ -2,13 +2,15 @@
 orientation deg) of the teacher, render-and-compare (with its ratio to the teacher's
 position error) and the oracle bound, the shares within (0.10 m, 10 deg), the share of
 refinements the gate accepted, the scene model's quality at the test poses, its fit time and
-the refiner's ms per query; then each dataset's mean over its scenes.
+the refiner's ms per query; then each dataset's mean over its scenes that
+reached the refinement.
 
     python experiments/render_compare_geometry/table.py outputs/render_compare_geometry
 
 With a second folder (the `pae-eval` runs of the same scene models with other refiner
-settings, one ``<scene>/metrics.json`` each), the refinement figures come from it and the fit
-seconds from the first.
+settings, one ``<scene>/metrics.json`` each), the refinement figures of the scenes it holds
+come from it (their names marked ``*``), the others' from their training runs, and the fit
+seconds always from the first.
 """
 
 from __future__ import annotations
@@ -79,12 +81,14 @@ def main(argv: list[str]) -> int:
         rows = []
         for scene in scenes:
             path, fitted = evaluated / scene / "metrics.json", root / scene / "metrics.json"
-            if not path.is_file() or not fitted.is_file():
+            if not fitted.is_file():
                 continue
-            row = figures(json.loads(path.read_text()))
+            again = evaluated != root and path.is_file()
+            row = figures(json.loads((path if again else fitted).read_text()))
             row["fit"] = figures(json.loads(fitted.read_text()))["fit"]
-            rows.append(row)
-            print(line(scene, rows[-1]))
+            print(line(f"{scene} *" if again else scene, row))
+            if row["r_pos"] is not None:  # a run that has not reached its refinement yet
+                rows.append(row)
         if rows:
             print(line(f"**{dataset} mean ({len(rows)} scenes)**", mean(rows)))
     return 0

@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import csv
 import inspect
 import logging
 import time
+from pathlib import Path
 from typing import Any
 
 import lightning as L
 import torch
 from torch import Tensor
 
+from pae.atomic import atomic_write
 from pae.data.transforms import ImageTransform
 from pae.geometry import pose_errors
 from pae.metrics import first_occurrences, summarise_errors
@@ -64,7 +67,9 @@ class RenderCompareRefinement(L.Callback):
     - with ``oracle`` on data that knows its true scenes (the synthetic benchmark),
       ``{split}/render_compare_oracle/...``: the same search against the benchmark's own
       renderer, a bound (it knows the scene);
-    - ``bench/render_compare/ms_per_query`` (test): the honest search's time per query.
+    - ``bench/render_compare/ms_per_query`` (test): the honest search's time per query;
+    - ``queries_{split}_{method}.csv`` in the trainer's log folder: each query's start and
+      refined errors, scores and whether the gate accepted it (:func:`write_queries`).
 
     A refined pose replaces the teacher's only where its score beats the start's by more
     than ``accept_margin`` (:func:`pae.refine.render_compare.gate`); ``auto`` chooses the
@@ -210,10 +215,61 @@ class RenderCompareRefinement(L.Callback):
             summary = summarise_errors(pos, rot, outputs["scene"], pl_module.scene_names)
             figures |= {f"{split}/{name}/{key}": value for key, value in summary.items()}
             figures |= gate_figures(f"{split}/{name}", margin, gated.accepted, pos, refined_pos)
+            if getattr(trainer, "log_dir", None) is not None:
+                refined = (refined_pos, pose_errors(result.poses.float(), truth)[1])
+                starts = pose_errors(estimate, truth)
+                path = Path(trainer.log_dir) / f"queries_{split}_{name}.csv"
+                names = [pl_module.scene_names[s] for s in outputs["scene"].tolist()]
+                write_queries(path, outputs["index"], names, starts, refined, result, gated)
             if split == "test":
                 ms = torch.tensor(1000 * seconds / len(pos))
                 figures[f"bench/{name}/ms_per_query"] = ms
         pl_module.log_dict(figures)
+
+
+QUERY_COLUMNS = (
+    "index",
+    "scene",
+    "start_pos_m",
+    "start_rot_deg",
+    "refined_pos_m",
+    "refined_rot_deg",
+    "start_score",
+    "refined_score",
+    "accepted",
+)
+
+
+def write_queries(
+    path: Path,
+    index: Tensor,
+    scenes: list[str],
+    start: tuple[Tensor, Tensor],
+    refined: tuple[Tensor, Tensor],
+    result: RenderCompareResult,
+    gated: Any,
+) -> None:
+    """One row per query [N] (``QUERY_COLUMNS``, in split order): its row ``index`` in the
+    split's label file, scene name, the position (m) and orientation (deg) errors of the
+    start and of the refined pose (before the gate), both scores and the gate's verdict;
+    written atomically."""
+    order = index.argsort()
+    columns = [
+        index,
+        *start,
+        *refined,
+        result.initial_score,
+        result.score,
+        gated.accepted.int(),
+    ]
+    values = [c[order].tolist() for c in columns]
+    with atomic_write(path, newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(QUERY_COLUMNS)
+        for i, row in enumerate(zip(*values, strict=True)):
+            name = scenes[int(order[i])]
+            numbers = [f"{v:.5f}" for v in row[1:-1]]
+            writer.writerow([int(row[0]), name, *numbers, int(row[-1])])
 
 
 def gate_figures(

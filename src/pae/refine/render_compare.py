@@ -163,6 +163,15 @@ class _Surface(NamedTuple):
     valid: Tensor  # [B, P] float: the model explains that pixel
 
 
+def band_pass(images: Tensor, sigma_px: float, highpass_sigma_px: float) -> Tensor:
+    """[B, C, H, W] blurred at ``sigma_px`` minus, when ``highpass_sigma_px`` > 0, its blur at
+    that wider σ (a difference of Gaussians: smooth shading and light fall-off removed)."""
+    blurred = gaussian_blur(images, sigma_px)
+    if highpass_sigma_px <= 0:
+        return blurred
+    return blurred - gaussian_blur(images, highpass_sigma_px)
+
+
 class RenderCompareRefiner:
     """Render-and-compare refinement of APR estimates against ``scene_model``.
 
@@ -170,15 +179,16 @@ class RenderCompareRefiner:
     far); position_sigma_m, orientation_sigma_deg: the first round's step sizes (standard
     deviations per axis); shrink: the factor on a query's steps after a round without
     improvement; resolution: the compare images' width in px; blur_sigma_px: at that width;
-    reference_size, reference_fov_scale: the reference rendering's width in px and its field
-    of view relative to the query's; refresh_every: rounds between reference renderings at
-    the current best pose (0: one rendering, at the start); min_overlap: the share of
-    reference points a candidate must see, else it scores -2; trim_sigma, trim_passes: the
-    ZNCC's robustness (:func:`trimmed_zncc`; trim_sigma 0: plain ZNCC); gradient_steps,
-    gradient_lr, gradient_position_scale:
-    Adam steps on the pose after the search (rotation in rad, translation in units of
-    gradient_position_scale m: a scene k times larger moves k times further); score:
-    ``zncc`` or ``features`` (needs ``features``); chunk: queries scored at once; engine: see
+    highpass_sigma_px: at that width, the blur subtracted from the compared images (0: none;
+    see :func:`band_pass`); reference_size, reference_fov_scale: the reference rendering's
+    width in px and its field of view relative to the query's; refresh_every: rounds between
+    reference renderings at the current best pose (0: one rendering, at the start);
+    min_overlap: the share of reference points a candidate must see, else it scores -2;
+    trim_sigma, trim_passes: the ZNCC's robustness (:func:`trimmed_zncc`; trim_sigma 0: plain
+    ZNCC); gradient_steps, gradient_lr, gradient_position_scale: Adam steps on the pose after
+    the search (rotation in rad, translation in units of gradient_position_scale m: a scene k
+    times larger moves k times further); score: ``zncc`` or ``features`` (needs
+    ``features``); chunk: queries scored at once; engine: see
     ``ENGINES``.
     """
 
@@ -192,6 +202,7 @@ class RenderCompareRefiner:
         shrink: float = 0.6,
         resolution: int = 32,
         blur_sigma_px: float = 1.0,
+        highpass_sigma_px: float = 0.0,
         reference_size: int = 24,
         reference_fov_scale: float = 1.3,
         refresh_every: int = 0,
@@ -225,6 +236,10 @@ class RenderCompareRefiner:
                 "render_compare needs rounds >= 0, candidates >= 1, resolution >= 4 and "
                 "reference_size >= 4"
             )
+        if highpass_sigma_px < 0:
+            raise ValueError(
+                f"render_compare needs highpass_sigma_px >= 0, not {highpass_sigma_px:g}"
+            )
         if trim_sigma < 0 or trim_passes < 0:
             raise ValueError(
                 f"render_compare needs trim_sigma >= 0 and trim_passes >= 0, not {trim_sigma} "
@@ -237,6 +252,7 @@ class RenderCompareRefiner:
         self.shrink = shrink
         self.resolution = resolution
         self.blur_sigma_px = blur_sigma_px
+        self.highpass_sigma_px = highpass_sigma_px
         self.reference_size = reference_size
         self.reference_fov_scale = reference_fov_scale
         self.refresh_every = refresh_every
@@ -286,7 +302,8 @@ class RenderCompareRefiner:
             maps = self.features(small)
             fh, fw = maps.shape[-2:]
             return _Queries(maps, scale_intrinsics(scaled, fw / width, fh / height), scenes)
-        return _Queries(gaussian_blur(grey(small), self.blur_sigma_px), scaled, scenes)
+        target = band_pass(grey(small), self.blur_sigma_px, self.highpass_sigma_px)
+        return _Queries(target, scaled, scenes)
 
     def _reference_intrinsics(self, queries: _Queries) -> tuple[Tensor, int, int]:
         """Intrinsics [B, 4] of the reference renderings (a wider view centred like the
@@ -315,8 +332,9 @@ class RenderCompareRefiner:
             values = F.interpolate(maps, size=(height, width), mode="bilinear").flatten(2)
         else:
             target_fx = queries.intrinsics[:, 0]
-            sigma = float(self.blur_sigma_px * (intrinsics[:, 0] / target_fx).mean())
-            values = gaussian_blur(grey(rendering.rgb), sigma).flatten(2)
+            scale = float((intrinsics[:, 0] / target_fx).mean())
+            sigmas = (self.blur_sigma_px * scale, self.highpass_sigma_px * scale)
+            values = band_pass(grey(rendering.rgb), *sigmas).flatten(2)
         valid = (rendering.opacity.flatten(1) > 0.5).to(points.dtype)
         return _Surface(points, values, valid)
 
@@ -370,7 +388,8 @@ class RenderCompareRefiner:
             maps = self.features(rendering.rgb).view(b, m, c, h * w)
             target = queries.target.flatten(2)[:, None]
             return F.cosine_similarity(maps, target, dim=2).mean(-1)
-        rendered = gaussian_blur(grey(rendering.rgb), self.blur_sigma_px).view(b, m, h * w)
+        rendered = band_pass(grey(rendering.rgb), self.blur_sigma_px, self.highpass_sigma_px)
+        rendered = rendered.view(b, m, h * w)
         target = queries.target.view(b, 1, h * w).expand_as(rendered)
         return trimmed_zncc(
             target, rendered, torch.ones_like(rendered), self.trim_sigma, self.trim_passes
