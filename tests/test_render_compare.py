@@ -268,15 +268,39 @@ def test_the_gate_keeps_the_start_unless_the_score_beats_it_by_the_margin() -> N
     assert gated.poses[:, 0].tolist() == [0.0, 1.0, 1.0]
 
 
+def test_the_gate_also_keeps_the_start_where_the_refined_score_is_below_the_floor() -> None:
+    initial = torch.zeros(3, 7)
+    initial[:, 3] = 1.0
+    refined = initial.clone()
+    refined[:, 0] = 1.0
+    result = RenderCompareResult(refined, torch.tensor([0.3, 0.62, 0.9]), torch.zeros(3))
+    assert gate(result, initial, 0.1, floor=0.5).accepted.tolist() == [False, True, True]
+    assert gate(result, initial, 0.1).accepted.all()
+
+
 def test_the_auto_margin_rejects_refinements_that_made_poses_worse() -> None:
-    from pae.callbacks.render_compare import ACCEPT_ALL, choose_margin
+    from pae.callbacks.render_compare import ACCEPT_ALL, choose_gate
 
     gains = torch.linspace(0.01, 0.5, 100)
+    scores = torch.full((100,), 0.8)
     start = torch.full((100,), 0.4)
     refined = torch.where(gains > 0.2, torch.full((100,), 0.1), torch.full((100,), 2.0))
-    margin = choose_margin(gains, refined, start)
-    assert 0.2 <= margin < 0.25  # the grid point just above the worse ones
-    assert choose_margin(gains, torch.full((100,), 0.1), start) == ACCEPT_ALL
+    margin, floor = choose_gate(gains, scores, refined, start)
+    assert 0.2 <= margin < 0.25 and floor == ACCEPT_ALL  # the grid point above the worse ones
+    assert choose_gate(gains, scores, torch.full((100,), 0.1), start) == (ACCEPT_ALL, ACCEPT_ALL)
+
+
+def test_the_auto_floor_rejects_refinements_the_scene_model_does_not_explain() -> None:
+    """Gains do not tell the bad refinements apart, their low final scores do: the floor
+    chosen is the grid point just above the bad ones, and a fixed margin is kept."""
+    from pae.callbacks.render_compare import ACCEPT_ALL, choose_gate
+
+    gains = torch.rand(100, generator=torch.Generator().manual_seed(0))
+    scores = torch.linspace(0.2, 0.9, 100)
+    start = torch.full((100,), 0.4)
+    refined = torch.where(scores > 0.45, torch.full((100,), 0.1), torch.full((100,), 2.0))
+    margin, floor = choose_gate(gains, scores, refined, start, margin=ACCEPT_ALL)
+    assert margin == ACCEPT_ALL and 0.45 <= floor < 0.5  # the grid point above the bad ones
 
 
 def test_the_search_draws_the_same_numbers_chunk_by_chunk() -> None:

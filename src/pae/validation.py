@@ -458,11 +458,10 @@ def _validate_scene_model(cfg: DictConfig) -> None:
             _integer(cfg, f"render_compare.refiner.{key}", 1)
         _choice(cfg, "render_compare.refiner.score", ("zncc", "features"))
         _number(cfg, "render_compare.refiner.trim_sigma", 0, strict=False, optional=True)
-        margin = _value(cfg, "render_compare.accept_margin")
-        if margin != "auto" and not (_is_int(margin) or isinstance(margin, float)):
-            raise ConfigError(
-                f"render_compare.accept_margin must be auto or a number, got {margin!r}"
-            )
+        for key in ("accept_margin", "accept_score"):
+            value = _value(cfg, f"render_compare.{key}")
+            if value != "auto" and not (_is_int(value) or isinstance(value, float)):
+                raise ConfigError(f"render_compare.{key} must be auto or a number, got {value!r}")
 
 
 def validate_eval_config(cfg: DictConfig) -> None:

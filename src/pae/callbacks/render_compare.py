@@ -24,26 +24,45 @@ from pae.refine.render_compare import RenderCompareRefiner, RenderCompareResult,
 HONEST = "render_compare"
 ORACLE = "render_compare_oracle"
 MARGIN_QUANTILES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
-"""Candidate acceptance margins of ``accept_margin=auto`` besides accept-all and 0: these
-quantiles of the validation queries' score gains."""
+"""Candidate acceptance margins of ``accept_margin=auto`` besides accept-all and 0, and
+score floors of ``accept_score=auto`` besides none: these quantiles of the validation
+queries' score gains and refined scores."""
 ACCEPT_ALL = -4.0
-"""A margin below every possible score gain (scores lie in [-2, 1]): every refinement kept."""
+"""A margin (floor) below every possible score gain (score; scores lie in [-2, 1]): every
+refinement kept."""
 log = logging.getLogger(__name__)
 
 
-def choose_margin(gains: Tensor, refined_error: Tensor, start_error: Tensor) -> float:
-    """The acceptance margin that minimises the mean position error over queries with score
-    gains [N] (refined minus start) and position errors [N] (m) of the refined poses and of
-    the starts: among accept-all (``ACCEPT_ALL``), 0 and ``MARGIN_QUANTILES`` of the gains; the
-    smallest margin wins ties."""
+def choose_gate(
+    gains: Tensor,
+    scores: Tensor,
+    refined_error: Tensor,
+    start_error: Tensor,
+    margin: float | None = None,
+    floor: float | None = None,
+) -> tuple[float, float]:
+    """The acceptance margin and score floor that minimise the mean position error over
+    queries with score gains [N] (refined minus start), refined scores [N] and position
+    errors [N] (m) of the refined poses and of the starts. Margins: accept-all
+    (``ACCEPT_ALL``), 0 and ``MARGIN_QUANTILES`` of the gains; floors: none (``ACCEPT_ALL``)
+    and those quantiles of the refined scores; a given ``margin`` or ``floor`` is kept as it
+    is. The smallest margin, then the smallest floor, wins ties."""
     if not len(gains):
-        return 0.0
-    quantiles = gains.float().quantile(gains.new_tensor(MARGIN_QUANTILES, dtype=torch.float))
-    margins = torch.cat([gains.new_tensor([ACCEPT_ALL, 0.0], dtype=torch.float), quantiles])
-    margins = margins.sort().values
-    accepted = gains[None].float() > margins[:, None]  # [K, N]
-    errors = torch.where(accepted, refined_error[None], start_error[None]).mean(1)
-    return float(margins[int(errors.argmin())])
+        return (0.0 if margin is None else margin), (ACCEPT_ALL if floor is None else floor)
+    levels = gains.new_tensor(MARGIN_QUANTILES, dtype=torch.float)
+
+    def candidates(values: Tensor, fixed: float | None, base: list[float]) -> Tensor:
+        if fixed is not None:
+            return torch.tensor([float(fixed)])
+        grid = torch.cat([torch.tensor(base), values.float().quantile(levels)])
+        return grid.sort().values
+
+    margins = candidates(gains, margin, [ACCEPT_ALL, 0.0])
+    floors = candidates(scores, floor, [ACCEPT_ALL])
+    accepted = (gains.float() > margins[:, None, None]) & (scores.float() > floors[None, :, None])
+    errors = torch.where(accepted, refined_error, start_error).mean(-1)  # [K, F]
+    best = int(errors.flatten().argmin())
+    return float(margins[best // len(floors)]), float(floors[best % len(floors)])
 
 
 def teacher_features(teacher: torch.nn.Module, layers: int) -> Any:
@@ -72,10 +91,12 @@ class RenderCompareRefinement(L.Callback):
       refined errors, scores and whether the gate accepted it (:func:`write_queries`).
 
     A refined pose replaces the teacher's only where its score beats the start's by more
-    than ``accept_margin`` (:func:`pae.refine.render_compare.gate`); ``auto`` chooses the
-    margin on each validation run (:func:`choose_margin`, from the split's held-out train
-    sequences) and applies the last choice at test (0 where no validation ran). Beside each
-    method's figures: ``accept_margin``, ``accepted_share``, the median position error of the
+    than ``accept_margin`` and itself exceeds ``accept_score``
+    (:func:`pae.refine.render_compare.gate`: a low final score marks a query the scene model
+    does not explain); ``auto`` chooses each on every validation run (:func:`choose_gate`,
+    jointly, from the split's held-out train sequences) and applies the last choice at test
+    (margin 0 and no floor where no validation ran). Beside each method's figures:
+    ``accept_margin``, ``accept_score``, ``accepted_share``, the median position error of the
     accepted queries (refined) and of the rejected ones (kept at the start), and
     ``ungated_pos_median_m`` (every refinement accepted).
 
@@ -98,6 +119,7 @@ class RenderCompareRefinement(L.Callback):
         every_n_val_epochs: int = 1,
         feature_layers: int = 2,
         accept_margin: float | str = "auto",
+        accept_score: float | str = "auto",
         step_from_val: dict[str, float] | None = None,
     ) -> None:
         super().__init__()
@@ -109,8 +131,13 @@ class RenderCompareRefinement(L.Callback):
             raise ValueError(
                 f"render_compare.accept_margin must be a number or auto, not {accept_margin!r}"
             )
+        if accept_score != "auto" and not isinstance(accept_score, int | float):
+            raise ValueError(
+                f"render_compare.accept_score must be a number or auto, not {accept_score!r}"
+            )
         self.accept_margin = accept_margin
-        self.margins: dict[str, float] = {}
+        self.accept_score = accept_score
+        self.gates: dict[str, tuple[float, float]] = {}
         self.step_from_val = dict(step_from_val) if step_from_val is not None else None
         if self.step_from_val is not None and (
             set(self.step_from_val) != {"position", "orientation"}
@@ -134,16 +161,30 @@ class RenderCompareRefinement(L.Callback):
         """The width (px) at which the refiner compares queries: what evaluation keeps."""
         return int(self.setting("resolution"))
 
-    def margin(self, name: str, split: str, result: RenderCompareResult, errors: Any) -> float:
-        """The acceptance margin of method ``name`` on ``split`` (chosen here on val with
-        ``auto``; errors: the refined and start position errors [N], m)."""
-        if self.accept_margin != "auto":
-            return float(self.accept_margin)
+    def gate_setting(
+        self, name: str, split: str, result: RenderCompareResult, errors: Any
+    ) -> tuple[float, float]:
+        """The acceptance margin and score floor of method ``name`` on ``split`` (each chosen
+        here on val where ``auto``; errors: the refined and start position errors [N], m)."""
+        fixed_margin = None if self.accept_margin == "auto" else float(self.accept_margin)
+        fixed_floor = None if self.accept_score == "auto" else float(self.accept_score)
+        if fixed_margin is not None and fixed_floor is not None:
+            return fixed_margin, fixed_floor
         if split == "val":
-            self.margins[name] = choose_margin(result.score - result.initial_score, *errors)
-        elif name not in self.margins:
-            log.warning("render_compare.accept_margin=auto: no validation ran; 0 on %s", split)
-        return self.margins.get(name, 0.0)
+            gains = result.score - result.initial_score
+            self.gates[name] = choose_gate(
+                gains, result.score, *errors, margin=fixed_margin, floor=fixed_floor
+            )
+        elif name not in self.gates:
+            log.warning(
+                "render_compare: no validation ran to choose the gate; margin 0, no floor on %s",
+                split,
+            )
+        default = (
+            0.0 if fixed_margin is None else fixed_margin,
+            ACCEPT_ALL if fixed_floor is None else fixed_floor,
+        )
+        return self.gates.get(name, default)
 
     def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._val_runs += 1
@@ -209,12 +250,14 @@ class RenderCompareRefinement(L.Callback):
             truth, estimate = outputs["pose"].float(), outputs["estimate"].float()
             refined_pos, _ = pose_errors(result.poses.float(), truth)
             start_pos, _ = pose_errors(estimate, truth)
-            margin = self.margin(name, split, result, (refined_pos, start_pos))
-            gated = gate(result, estimate, margin)
+            margin, floor = self.gate_setting(name, split, result, (refined_pos, start_pos))
+            gated = gate(result, estimate, margin, floor)
             pos, rot = pose_errors(gated.poses.float(), truth)
             summary = summarise_errors(pos, rot, outputs["scene"], pl_module.scene_names)
             figures |= {f"{split}/{name}/{key}": value for key, value in summary.items()}
-            figures |= gate_figures(f"{split}/{name}", margin, gated.accepted, pos, refined_pos)
+            figures |= gate_figures(
+                f"{split}/{name}", (margin, floor), gated.accepted, pos, refined_pos
+            )
             if getattr(trainer, "log_dir", None) is not None:
                 refined = (refined_pos, pose_errors(result.poses.float(), truth)[1])
                 starts = pose_errors(estimate, truth)
@@ -273,13 +316,19 @@ def write_queries(
 
 
 def gate_figures(
-    prefix: str, margin: float, accepted: Tensor, pos: Tensor, refined_pos: Tensor
+    prefix: str,
+    setting: tuple[float, float],
+    accepted: Tensor,
+    pos: Tensor,
+    refined_pos: Tensor,
 ) -> dict[str, Tensor]:
-    """The acceptance gate's figures under ``prefix``: its margin, the share accepted, the
-    median position error (m) of accepted and of rejected queries (where there are any)
-    after the gate [N], and of every refinement accepted (``ungated``)."""
+    """The acceptance gate's figures under ``prefix``: its margin and score floor
+    (``setting``), the share accepted, the median position error (m) of accepted and of
+    rejected queries (where there are any) after the gate [N], and of every refinement
+    accepted (``ungated``)."""
     figures = {
-        f"{prefix}/accept_margin": torch.tensor(margin),
+        f"{prefix}/accept_margin": torch.tensor(setting[0]),
+        f"{prefix}/accept_score": torch.tensor(setting[1]),
         f"{prefix}/accepted_share": accepted.float().mean(),
         f"{prefix}/ungated_pos_median_m": refined_pos.quantile(0.5),
     }

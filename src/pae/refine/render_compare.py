@@ -139,10 +139,13 @@ class GatedPoses(NamedTuple):
     accepted: Tensor
 
 
-def gate(result: RenderCompareResult, initial: Tensor, margin: float) -> GatedPoses:
+def gate(
+    result: RenderCompareResult, initial: Tensor, margin: float, floor: float = -4.0
+) -> GatedPoses:
     """Keep a refined pose only where its score beats the start's by more than ``margin``
-    (a ZNCC difference; below -3 accepts every refinement) -> :class:`GatedPoses`."""
-    accepted = result.score - result.initial_score > margin
+    (a ZNCC difference; below -3 accepts every refinement) and itself exceeds ``floor`` (a
+    ZNCC; below -2 accepts any) -> :class:`GatedPoses`."""
+    accepted = (result.score - result.initial_score > margin) & (result.score > floor)
     start = initial.to(result.poses)
     return GatedPoses(torch.where(accepted[:, None], result.poses, start), accepted)
 
