@@ -17,6 +17,7 @@ import lightning as L
 import numpy as np
 import pytest
 import torch
+from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 import pae.runs.trainer
@@ -867,3 +868,55 @@ def test_a_failing_start_check_stops_the_run(
         pae.preflight.Preflight("pae-train").on_run_start(cfg)
     assert stopped.value.code == 1
     assert "RuntimeError: a bug in a check" in capsys.readouterr().err
+
+
+# Runs that cannot be fooled: damaged checkpoints, intrinsics that disagree, scenes a split lacks.
+
+
+def _tiny_teacher_checkpoint(path: Path) -> Path:
+    """An untrained small_cnn PoseNet teacher saved as pae's teacher step saves it (its
+    config and scene names as hyper-parameters, its weights under `teacher.`): nothing trains."""
+    backbone = {"_target_": "pae.models.backbones.Backbone", "name": "small_cnn"}
+    config = {"_target_": "pae.models.posenet.PoseNet", "backbone": backbone, "n_scenes": 2}
+    teacher = instantiate(config)
+    checkpoint = {
+        "epoch": 0,
+        "global_step": 0,
+        "state_dict": {f"teacher.{key}": value for key, value in teacher.state_dict().items()},
+        "hyper_parameters": {"teacher_config": config, "scene_names": ["scene00", "scene01"]},
+    }
+    torch.save(checkpoint, path)
+    return path
+
+
+def _with_flipped_bits(path: Path, copy: Path, n_bytes: int = 40_000) -> Path:
+    """`copy`: `path` with the lowest bit of `n_bytes` bytes in its middle flipped."""
+    data = bytearray(path.read_bytes())
+    start = (len(data) - n_bytes) // 2
+    data[start : start + n_bytes] = bytes(byte ^ 1 for byte in data[start : start + n_bytes])
+    copy.write_bytes(bytes(data))
+    return copy
+
+
+def test_a_damaged_checkpoint_is_refused_wherever_it_is_loaded(tmp_path: Path) -> None:
+    from pae.checkpoints import load_teacher
+    from pae.runs.trainer import _resume_path
+
+    intact = _tiny_teacher_checkpoint(tmp_path / "intact.ckpt")
+    assert load_teacher(intact, "teacher_ckpt").scene_names == ["scene00", "scene01"]
+    step_dir = tmp_path / "teacher"
+    (step_dir / "checkpoints").mkdir(parents=True)
+    last = _with_flipped_bits(intact, step_dir / "checkpoints" / "last.ckpt")
+    damaged = rf"{last}: damaged checkpoint file \(\S+ fails its CRC check\): copy it again"
+    with pytest.raises(CheckpointError, match=damaged):  # its weights stay finite
+        load_teacher(last, "teacher_ckpt")
+    with pytest.raises(
+        CheckpointError, match=rf"no readable checkpoint to resume from \({damaged}"
+    ):
+        _resume_path(OmegaConf.create({"resume": True}), step_dir, data=None)
+    checkpoint = read_checkpoint(intact)
+    checkpoint["state_dict"]["teacher.head_x.weight"][1, 2] = float("nan")
+    torch.save(checkpoint, last)
+    nan_weight = r"damaged checkpoint file \(weight teacher\.head_x\.weight holds nan\)"
+    with pytest.raises(CheckpointError, match=rf"^{last}: {nan_weight}: copy it again, or retrain"):
+        load_teacher(last, "teacher_ckpt")
