@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import json
 import os
@@ -920,3 +921,47 @@ def test_a_damaged_checkpoint_is_refused_wherever_it_is_loaded(tmp_path: Path) -
     nan_weight = r"damaged checkpoint file \(weight teacher\.head_x\.weight holds nan\)"
     with pytest.raises(CheckpointError, match=rf"^{last}: {nan_weight}: copy it again, or retrain"):
         load_teacher(last, "teacher_ckpt")
+
+
+def _with_focal(
+    labels: Path, copy: Path, focal: float | None, odd: dict[int, float] | None = None
+) -> Path:
+    """`copy`: the label file `labels` with a focal column of `focal` px (None: without one),
+    but `odd[i]` px in row i."""
+    table = read_labels(labels)
+    column = None if focal is None else np.full(len(table), focal)
+    for row, value in (odd or {}).items():
+        column[row] = value
+    write_labels(copy, dataclasses.replace(table, focal=column))
+    return copy
+
+
+def test_intrinsics_are_checked_by_check_and_loaders(
+    tiny_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from pae.data.datamodule import PoseDataModule
+
+    labels = tiny_root / "labels"
+    train = _with_focal(labels / "all_train.csv", tmp_path / "train.csv", 25.0)
+    test = _with_focal(labels / "all_test.csv", tmp_path / "test.csv", None)
+    mismatch = f"{test}: no focal column, unlike {train}: the label files of all splits give"
+    assert pae_data(["check", str(train), str(test), str(tiny_root)]) == 1
+    assert mismatch in capsys.readouterr().out
+    with pytest.raises(LabelError, match=re.escape(mismatch)):
+        PoseDataModule(str(tiny_root), str(train), str(test)).setup()
+    val = _with_focal(labels / "all_test.csv", tmp_path / "val.csv", None)
+    test = _with_focal(labels / "all_test.csv", tmp_path / "test.csv", 25.0)
+    with pytest.raises(LabelError, match=re.escape(f"{val}: no focal column, unlike {train}")):
+        PoseDataModule(str(tiny_root), str(train), str(test), val_labels=str(val)).setup()
+    odd = _with_focal(labels / "all_train.csv", tmp_path / "odd.csv", 25.0, {3: 1e-9, 7: 1e12})
+    assert pae_data(["check", str(odd), str(test), str(tiny_root)]) == 1
+    out = capsys.readouterr().out
+    implausible = "px is implausible for images 32 px wide (expected 3.2 to 320 px: 0.1 to 10"
+    assert f"odd.csv:5: focal length 1e-09 {implausible}" in out
+    assert f"odd.csv:9: focal length 1e+12 {implausible}" in out
+    nominal = {"fx": 25.0, "fy": 25.0, "cx": 15.5, "cy": 15.5, "width": 32, "height": 32}
+    for camera in (None, nominal, {**nominal, "width": 64, "height": 64}):
+        width = camera["width"] if camera else 32  # the focal lengths are px at this width
+        message = rf"odd\.csv:5: focal length 1e-09 px is implausible for images {width} px wide"
+        with pytest.raises(LabelError, match=message):
+            PoseDataModule(str(tiny_root), str(odd), str(test), camera=camera).setup()
