@@ -28,8 +28,8 @@ from pae.data.dataset import PoseDataset
 from pae.data.labels import LabelTable, read_labels, write_labels
 from pae.data.synthetic import write_synthetic_dataset
 from pae.errors import CheckpointError, ConfigError, ImageError, LabelError, LabelWarning
+from pae.reporting import format_results_table, sweep_report, sweep_table
 from pae.reporting import main as reporting_main
-from pae.reporting import sweep_report, sweep_table
 from pae.train import run
 from tests.conftest import TINY, tiny_overrides
 
@@ -965,3 +965,24 @@ def test_intrinsics_are_checked_by_check_and_loaders(
         message = rf"odd\.csv:5: focal length 1e-09 px is implausible for images {width} px wide"
         with pytest.raises(LabelError, match=message):
             PoseDataModule(str(tiny_root), str(odd), str(test), camera=camera).setup()
+
+
+def test_a_missing_scene_in_an_evaluated_split_is_said_and_recorded(
+    compose_train, tiny_root: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    root = tmp_path / "data"
+    shutil.copytree(tiny_root, root)
+    test = read_labels(root / "labels" / "all_test.csv")
+    kept = [i for i, scene in enumerate(test.scene) if scene != "scene01"]
+    write_labels(root / "labels" / "all_test.csv", test.select(kept))
+    cfg = compose_train("teacher.max_epochs=0", f"data.root={root}", run_dir=tmp_path / "run")
+    with caplog.at_level("INFO"):
+        metrics = run(cfg, tmp_path / "run")
+    assert metrics["test/missing_scenes"] == 1 and "val/missing_scenes" not in metrics
+    written = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert written["test/missing_scenes"] == 1
+    assert (
+        "teacher: warning: the test split has no rows of the train scenes scene01: its figures "
+        "and their overall average cover the other scenes only"
+    ) in caplog.messages
+    assert "1 train scene(s) have no test rows" in format_results_table(written)

@@ -168,6 +168,12 @@ class PoseDataModule(L.LightningDataModule):
     def n_scenes(self) -> int:
         return len(self.scene_names)
 
+    def scenes_without_rows(self, split: str) -> list[str]:
+        """The train scenes that have no rows in `split` (val, test): its per-scene figures
+        and their overall average leave them out."""
+        present = set(self.tables[split].scene_names)
+        return [scene for scene in self.scene_names if scene not in present]
+
     def train_poses(self) -> tuple[Tensor, Tensor]:
         """The train poses [N, 7] and scene ids [N] (the store for pose retrieval)."""
         dataset = self.datasets["train"]
