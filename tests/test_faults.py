@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import json
 import os
@@ -17,6 +18,7 @@ import lightning as L
 import numpy as np
 import pytest
 import torch
+from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 import pae.runs.trainer
@@ -26,8 +28,8 @@ from pae.data.dataset import PoseDataset
 from pae.data.labels import LabelTable, read_labels, write_labels
 from pae.data.synthetic import write_synthetic_dataset
 from pae.errors import CheckpointError, ConfigError, ImageError, LabelError, LabelWarning
+from pae.reporting import format_results_table, sweep_report, sweep_table
 from pae.reporting import main as reporting_main
-from pae.reporting import sweep_report, sweep_table
 from pae.train import run
 from tests.conftest import TINY, tiny_overrides
 
@@ -867,3 +869,120 @@ def test_a_failing_start_check_stops_the_run(
         pae.preflight.Preflight("pae-train").on_run_start(cfg)
     assert stopped.value.code == 1
     assert "RuntimeError: a bug in a check" in capsys.readouterr().err
+
+
+# Runs that cannot be fooled: damaged checkpoints, intrinsics that disagree, scenes a split lacks.
+
+
+def _tiny_teacher_checkpoint(path: Path) -> Path:
+    """An untrained small_cnn PoseNet teacher saved as pae's teacher step saves it (its
+    config and scene names as hyper-parameters, its weights under `teacher.`): nothing trains."""
+    backbone = {"_target_": "pae.models.backbones.Backbone", "name": "small_cnn"}
+    config = {"_target_": "pae.models.posenet.PoseNet", "backbone": backbone, "n_scenes": 2}
+    teacher = instantiate(config)
+    checkpoint = {
+        "epoch": 0,
+        "global_step": 0,
+        "state_dict": {f"teacher.{key}": value for key, value in teacher.state_dict().items()},
+        "hyper_parameters": {"teacher_config": config, "scene_names": ["scene00", "scene01"]},
+    }
+    torch.save(checkpoint, path)
+    return path
+
+
+def _with_flipped_bits(path: Path, copy: Path, n_bytes: int = 40_000) -> Path:
+    """`copy`: `path` with the lowest bit of `n_bytes` bytes in its middle flipped."""
+    data = bytearray(path.read_bytes())
+    start = (len(data) - n_bytes) // 2
+    data[start : start + n_bytes] = bytes(byte ^ 1 for byte in data[start : start + n_bytes])
+    copy.write_bytes(bytes(data))
+    return copy
+
+
+def test_a_damaged_checkpoint_is_refused_wherever_it_is_loaded(tmp_path: Path) -> None:
+    from pae.checkpoints import load_teacher
+    from pae.runs.trainer import _resume_path
+
+    intact = _tiny_teacher_checkpoint(tmp_path / "intact.ckpt")
+    assert load_teacher(intact, "teacher_ckpt").scene_names == ["scene00", "scene01"]
+    step_dir = tmp_path / "teacher"
+    (step_dir / "checkpoints").mkdir(parents=True)
+    last = _with_flipped_bits(intact, step_dir / "checkpoints" / "last.ckpt")
+    damaged = rf"{last}: damaged checkpoint file \(\S+ fails its CRC check\): copy it again"
+    with pytest.raises(CheckpointError, match=damaged):  # its weights stay finite
+        load_teacher(last, "teacher_ckpt")
+    with pytest.raises(
+        CheckpointError, match=rf"no readable checkpoint to resume from \({damaged}"
+    ):
+        _resume_path(OmegaConf.create({"resume": True}), step_dir, data=None)
+    checkpoint = read_checkpoint(intact)
+    checkpoint["state_dict"]["teacher.head_x.weight"][1, 2] = float("nan")
+    torch.save(checkpoint, last)
+    nan_weight = r"damaged checkpoint file \(weight teacher\.head_x\.weight holds nan\)"
+    with pytest.raises(CheckpointError, match=rf"^{last}: {nan_weight}: copy it again, or retrain"):
+        load_teacher(last, "teacher_ckpt")
+
+
+def _with_focal(
+    labels: Path, copy: Path, focal: float | None, odd: dict[int, float] | None = None
+) -> Path:
+    """`copy`: the label file `labels` with a focal column of `focal` px (None: without one),
+    but `odd[i]` px in row i."""
+    table = read_labels(labels)
+    column = None if focal is None else np.full(len(table), focal)
+    for row, value in (odd or {}).items():
+        column[row] = value
+    write_labels(copy, dataclasses.replace(table, focal=column))
+    return copy
+
+
+def test_intrinsics_are_checked_by_check_and_loaders(
+    tiny_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from pae.data.datamodule import PoseDataModule
+
+    labels = tiny_root / "labels"
+    train = _with_focal(labels / "all_train.csv", tmp_path / "train.csv", 25.0)
+    test = _with_focal(labels / "all_test.csv", tmp_path / "test.csv", None)
+    mismatch = f"{test}: no focal column, unlike {train}: the label files of all splits give"
+    assert pae_data(["check", str(train), str(test), str(tiny_root)]) == 1
+    assert mismatch in capsys.readouterr().out
+    with pytest.raises(LabelError, match=re.escape(mismatch)):
+        PoseDataModule(str(tiny_root), str(train), str(test)).setup()
+    val = _with_focal(labels / "all_test.csv", tmp_path / "val.csv", None)
+    test = _with_focal(labels / "all_test.csv", tmp_path / "test.csv", 25.0)
+    with pytest.raises(LabelError, match=re.escape(f"{val}: no focal column, unlike {train}")):
+        PoseDataModule(str(tiny_root), str(train), str(test), val_labels=str(val)).setup()
+    odd = _with_focal(labels / "all_train.csv", tmp_path / "odd.csv", 25.0, {3: 1e-9, 7: 1e12})
+    assert pae_data(["check", str(odd), str(test), str(tiny_root)]) == 1
+    out = capsys.readouterr().out
+    implausible = "px is implausible for images 32 px wide (expected 3.2 to 320 px: 0.1 to 10"
+    assert f"odd.csv:5: focal length 1e-09 {implausible}" in out
+    assert f"odd.csv:9: focal length 1e+12 {implausible}" in out
+    nominal = {"fx": 25.0, "fy": 25.0, "cx": 15.5, "cy": 15.5, "width": 32, "height": 32}
+    for camera in (None, nominal, {**nominal, "width": 64, "height": 64}):
+        width = camera["width"] if camera else 32  # the focal lengths are px at this width
+        message = rf"odd\.csv:5: focal length 1e-09 px is implausible for images {width} px wide"
+        with pytest.raises(LabelError, match=message):
+            PoseDataModule(str(tiny_root), str(odd), str(test), camera=camera).setup()
+
+
+def test_a_missing_scene_in_an_evaluated_split_is_said_and_recorded(
+    compose_train, tiny_root: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    root = tmp_path / "data"
+    shutil.copytree(tiny_root, root)
+    test = read_labels(root / "labels" / "all_test.csv")
+    kept = [i for i, scene in enumerate(test.scene) if scene != "scene01"]
+    write_labels(root / "labels" / "all_test.csv", test.select(kept))
+    cfg = compose_train("teacher.max_epochs=0", f"data.root={root}", run_dir=tmp_path / "run")
+    with caplog.at_level("INFO"):
+        metrics = run(cfg, tmp_path / "run")
+    assert metrics["test/missing_scenes"] == 1 and "val/missing_scenes" not in metrics
+    written = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert written["test/missing_scenes"] == 1
+    assert (
+        "teacher: warning: the test split has no rows of the train scenes scene01: its figures "
+        "and their overall average cover the other scenes only"
+    ) in caplog.messages
+    assert "1 train scene(s) have no test rows" in format_results_table(written)

@@ -441,7 +441,7 @@ def test_the_oracle_needs_synthetic_data(tiny_root: Path) -> None:
 
 def test_a_focal_column_sets_each_rows_intrinsics(tiny_root: Path, tmp_path: Path) -> None:
     """Per-image focal lengths (px at data.camera's size) are read, written back and carried
-    through the loaders' resize and crop; rows without the column keep the camera's."""
+    through the loaders' resize and crop."""
     from pae.data.datamodule import PoseDataModule
     from pae.data.labels import read_labels, write_labels
 
@@ -450,11 +450,14 @@ def test_a_focal_column_sets_each_rows_intrinsics(tiny_root: Path, tmp_path: Pat
     labels = tmp_path / "train.csv"
     write_labels(labels, dataclasses.replace(table, focal=focal))
     np.testing.assert_array_equal(read_labels(labels).focal, focal)
+    test_table = read_labels(tiny_root / "labels" / "all_test.csv")
+    test_labels = tmp_path / "test.csv"
+    write_labels(test_labels, dataclasses.replace(test_table, focal=np.full(len(test_table), 25.0)))
     camera = {"fx": 25.0, "fy": 25.0, "cx": 15.5, "cy": 15.5, "width": 32, "height": 32}
     data = PoseDataModule(
         str(tiny_root),
         str(labels),
-        str(tiny_root / "labels" / "all_test.csv"),
+        str(test_labels),
         shorter_edge=64,
         crop=56,
         camera=camera,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pickle
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -19,13 +20,46 @@ DATA_FINGERPRINT_KEY = "pae_data_fingerprint"
 """Checkpoint entry with the fingerprint of the training data (see PoseDataModule.fingerprint)."""
 
 
+DAMAGED_HINT = "copy it again, or retrain it"
+"""What to do with a damaged checkpoint file."""
+
+
+def verify_archive(path: Path) -> None:
+    """A checkpoint in torch's zip format whose members all match their stored CRC-32; a
+    file that is not a zip archive is left to torch.load (its error names it)."""
+    if not zipfile.is_zipfile(path):
+        return
+    try:
+        with zipfile.ZipFile(path) as archive:
+            bad_member = archive.testzip()
+        problem = None if bad_member is None else f"{bad_member} fails its CRC check"
+    except (zipfile.BadZipFile, zlib.error, EOFError, ValueError):
+        problem = "its zip directory is unreadable"
+    if problem is not None:
+        raise CheckpointError(f"{path}: damaged checkpoint file ({problem}): {DAMAGED_HINT}")
+
+
+def first_non_finite_weight(checkpoint: Any) -> tuple[str, float] | None:
+    """(key, value) of the first weight tensor holding NaN or inf in a checkpoint's state
+    dict (in a plain state dict: its own tensors), or None when every weight is finite."""
+    weights = checkpoint.get("state_dict", checkpoint) if isinstance(checkpoint, dict) else {}
+    for key, value in weights.items() if isinstance(weights, dict) else ():
+        if isinstance(value, torch.Tensor) and value.is_floating_point():
+            finite = torch.isfinite(value)
+            if not bool(finite.all()):
+                return str(key), float(value[~finite][0])
+    return None
+
+
 def read_checkpoint(path: str | Path) -> dict[str, Any]:
-    """torch.load with weights_only=True: no pickled code is ever executed."""
+    """torch.load with weights_only=True (no pickled code is ever executed) of a checkpoint
+    whose archive passes its CRC check and whose weights are all finite."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint not found")
+    verify_archive(path)
     try:
-        return torch.load(path, map_location="cpu", weights_only=True)
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:
         if not zipfile.is_zipfile(path):
             raise CheckpointError(
@@ -39,6 +73,13 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
             f"{path}: not a readable checkpoint (not a torch file, or it holds objects that "
             "weights-only loading refuses to unpickle)"
         ) from None
+    bad_weight = first_non_finite_weight(checkpoint)
+    if bad_weight is not None:
+        key, value = bad_weight
+        raise CheckpointError(
+            f"{path}: damaged checkpoint file (weight {key} holds {value}): {DAMAGED_HINT}"
+        )
+    return checkpoint
 
 
 def newest_readable_checkpoint(folder: str | Path) -> tuple[Path | None, list[str]]:

@@ -185,6 +185,11 @@ def format_results_table(metrics: Mapping[str, float], split: str = "test") -> s
             "† renders the true scene (the synthetic benchmark's own renderer): a bound, "
             "not a method"
         )
+    missing = metrics.get(f"{split}/missing_scenes")
+    if missing:
+        lines.append(
+            f"overall averages the scenes shown: {missing:g} train scene(s) have no {split} rows"
+        )
     accuracy = metrics.get(f"{split}/teacher/scene_accuracy")
     if accuracy is not None:
         lines.append(f"teacher scene accuracy: {100 * accuracy:.1f} %")

@@ -8,7 +8,7 @@
                         --motion-blur PX] [--overwrite]
     pae-data synth OUT --poses LABELS.csv [LABELS.csv ...] [--size PX --seed S] [--overwrite]
     pae-data convert {cambridge,7scenes} RAW_ROOT OUT_DIR
-    pae-data check LABELS.csv ROOT
+    pae-data check LABELS.csv [LABELS.csv ...] ROOT
     pae-data audit-guess --test TEST.csv [...] --train TRAIN.csv [...] [--sigma M --k K --seed S]
 
 Bad input ends with exit status 1 and a one-line ``pae-data: error: ...`` message on stderr.
@@ -23,7 +23,14 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from pae.console import Progress
-from pae.data.labels import LabelTable, find_image_problems, read_labels, read_labels_lenient
+from pae.data.labels import (
+    FOCAL_COLUMN,
+    LabelTable,
+    find_image_problems,
+    focal_column_mismatch,
+    read_labels,
+    read_labels_lenient,
+)
 from pae.errors import LabelError, LabelWarning
 
 PROG = "pae-data"
@@ -108,21 +115,31 @@ def _convert(args: argparse.Namespace) -> int:
 
 
 def _check(args: argparse.Namespace) -> int:
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", LabelWarning)
-        table, label_errors = read_labels_lenient(args.labels)
-    for warning in caught:
-        print(f"{PROG}: warning: {warning.message}", file=sys.stderr)
-    image_problems = find_image_problems(table, args.root)
-    problems = [str(error) for error in label_errors] + image_problems
-    rows = len(table) + len(label_errors)
-    if problems:
-        for problem in problems:
-            print(problem)
-        print(f"FAILED: {len(problems)} of {rows} rows in {args.labels} have problems")
-        return 1
-    print(f"OK: {rows} rows, {len(table.scene_names)} scenes")
-    return 0
+    """Every row of each label file, then whether the files agree on the focal column."""
+    failed, tables = False, []
+    for labels in args.labels:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", LabelWarning)
+            table, label_errors = read_labels_lenient(labels)
+        for warning in caught:
+            print(f"{PROG}: warning: {warning.message}", file=sys.stderr)
+        image_problems = find_image_problems(table, args.root)
+        problems = [str(error) for error in label_errors] + image_problems
+        rows = len(table) + len(label_errors)
+        tables.append(table)
+        if problems:
+            for problem in problems:
+                print(problem)
+            print(f"FAILED: {len(problems)} of {rows} rows in {labels} have problems")
+            failed = True
+        else:
+            print(f"OK: {rows} rows, {len(table.scene_names)} scenes")
+    mismatch = focal_column_mismatch(tables)
+    if mismatch is not None:
+        print(mismatch)
+        print(f"FAILED: the {len(tables)} label files disagree on the {FOCAL_COLUMN} column")
+        failed = True
+    return 1 if failed else 0
 
 
 def _read_tables(paths: Sequence[Path]) -> LabelTable:
@@ -240,11 +257,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     check = commands.add_parser(
         "check",
-        help="validate a label file and its images",
-        description="Validate every row of LABELS.csv and decode its image under ROOT; "
-        "exit 1 listing every bad row.",
+        help="validate label files and their images",
+        description="Validate every row of each LABELS.csv (its focal length, if any, "
+        "against the width of its images) and decode its image under ROOT; with the files of "
+        "several splits, check that all or none have a focal column; exit 1 listing every "
+        "problem.",
     )
-    check.add_argument("labels", type=Path, metavar="LABELS.csv")
+    check.add_argument("labels", type=Path, nargs="+", metavar="LABELS.csv")
     check.add_argument("root", type=Path, metavar="ROOT", help="dataset root of img_path")
     check.set_defaults(run=_check)
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import sys
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -17,8 +18,8 @@ from torch.utils.data import DataLoader, WeightedRandomSampler
 from pae.data.camera import Intrinsics, centre_crop_origin, resized_size, scale_intrinsics
 from pae.data.dataset import PoseDataset, collate_batch
 from pae.data.holdout import HeldOut, held_out_rows
-from pae.data.labels import LabelTable, read_labels
-from pae.data.transforms import ImageTransform
+from pae.data.labels import LabelTable, focal_column_mismatch, focal_problems, read_labels
+from pae.data.transforms import ImageTransform, image_size
 from pae.errors import ConfigError, LabelError
 
 
@@ -95,6 +96,11 @@ class PoseDataModule(L.LightningDataModule):
             path: self._keep_scenes(read_labels(path)) for path in set(self.label_paths.values())
         }
         self.tables = {split: read[path] for split, path in self.label_paths.items()}
+        files = {id(table): table for table in self.tables.values()}.values()
+        mismatch = focal_column_mismatch(files)
+        if mismatch is not None:
+            raise mismatch
+        self._check_focal_lengths(files)
         self.scene_names = self.tables["train"].scene_names
         for table in self.tables.values():
             unknown = sorted(set(table.scene_names) - set(self.scene_names))
@@ -118,6 +124,21 @@ class PoseDataModule(L.LightningDataModule):
             self.datasets[split] = datasets[id(table)]
         self.datasets["val"].load()
         self.datasets["test"].load()
+
+    def _check_focal_lengths(self, tables: Iterable[LabelTable]) -> None:
+        """LabelError at the first row whose focal length is implausible for the width of the
+        images it refers to: ``data.camera``'s width, else that of the file's first image."""
+        for table in tables:
+            if table.focal is None or not len(table):
+                continue
+            if self.camera is not None:
+                width = self.camera.width
+            else:
+                width = image_size(str(self.root / table.img_path[0]))[1]
+            problems = focal_problems(table, width)
+            if problems:
+                first = min(problems)
+                raise LabelError(table.source, table.file_line(first), problems[first])
 
     def _hold_out(self, sequences: HeldOut, fraction: float | None) -> None:
         """Move the held-out train rows into the val table (see pae.data.holdout)."""
@@ -146,6 +167,12 @@ class PoseDataModule(L.LightningDataModule):
     @property
     def n_scenes(self) -> int:
         return len(self.scene_names)
+
+    def scenes_without_rows(self, split: str) -> list[str]:
+        """The train scenes that have no rows in `split` (val, test): its per-scene figures
+        and their overall average leave them out."""
+        present = set(self.tables[split].scene_names)
+        return [scene for scene in self.scene_names if scene not in present]
 
     def train_poses(self) -> tuple[Tensor, Tensor]:
         """The train poses [N, 7] and scene ids [N] (the store for pose retrieval)."""

@@ -35,6 +35,8 @@ __all__ = [
     "LabelTable",
     "LabelWarning",
     "find_image_problems",
+    "focal_column_mismatch",
+    "focal_problems",
     "odd_sizes",
     "outside_root",
     "read_labels",
@@ -58,6 +60,8 @@ LABEL_COLUMNS: tuple[str, ...] = (
 TEXT_COLUMNS = LABEL_COLUMNS[:4]
 POSE_COLUMNS = LABEL_COLUMNS[4:]
 FOCAL_COLUMN = "focal"
+FOCAL_WIDTH_RANGE = (0.1, 10.0)
+"""Plausible focal lengths, as multiples of the width (px) of the images they refer to."""
 REQUIRED_TEXT_COLUMNS = ("scene", "split", "img_path")
 
 ZERO_QUATERNION_NORM = 1e-8
@@ -367,7 +371,8 @@ def find_image_problems(
     table: LabelTable, root: str | os.PathLike[str], workers: int | None = None
 ) -> list[str]:
     """One message per row whose image is outside ``root``, missing, not decodable, or of
-    another size than most images (loaders need one size per label file).
+    another size than most images (loaders need one size per label file), or whose focal
+    length is implausible for the width of most images (``focal_problems``).
 
     Images are fully decoded with OpenCV, on ``workers`` threads.
     """
@@ -391,8 +396,44 @@ def find_image_problems(
                 sizes[i] = shape
     for i, problem in odd_sizes(sizes).items():
         problems[i] = f"{problem}: {table.img_path[i]!r}"
+    if sizes:
+        [(width, _)] = Counter(w for _, w in sizes.values()).most_common(1)
+        problems = focal_problems(table, width) | problems
     location = table.source or "row"
     return [f"{location}:{table.file_line(i)}: {problems[i]}" for i in sorted(problems)]
+
+
+def focal_problems(table: LabelTable, width: int) -> dict[int, str]:
+    """Why each row's focal length (px) is implausible, by row index: outside
+    ``FOCAL_WIDTH_RANGE`` times ``width``, the width (px) of the images it refers to. Empty
+    for a table without a focal column."""
+    if table.focal is None:
+        return {}
+    low, high = (factor * width for factor in FOCAL_WIDTH_RANGE)
+    return {
+        int(i): (
+            f"focal length {table.focal[i]:g} px is implausible for images {width} px wide "
+            f"(expected {low:g} to {high:g} px: {FOCAL_WIDTH_RANGE[0]:g} to "
+            f"{FOCAL_WIDTH_RANGE[1]:g} times the width)"
+        )
+        for i in np.flatnonzero((table.focal < low) | (table.focal > high))
+    }
+
+
+def focal_column_mismatch(tables: Iterable[LabelTable]) -> LabelError | None:
+    """The error when some label files (one per split) have a focal column and others do
+    not: a split without one would use the nominal focal length. None when they agree."""
+    tables = list(tables)
+    with_focal = [t for t in tables if t.focal is not None]
+    without = [t for t in tables if t.focal is None]
+    if not with_focal or not without:
+        return None
+    return LabelError(
+        without[0].source,
+        None,
+        f"no {FOCAL_COLUMN} column, unlike {with_focal[0].source}: the label files of all "
+        "splits give per-image focal lengths, or none does",
+    )
 
 
 def odd_sizes(sizes: Mapping[int, tuple[int, int]]) -> dict[int, str]:

@@ -231,6 +231,9 @@ class TeacherLatentDataModule(L.LightningDataModule):
             rows = len(self.images.tables["train"])
             self.latents, self.cache_hit = self.cache.load_or_compute(key, rows, compute)
 
+    def scenes_without_rows(self, split: str) -> list[str]:
+        return self.images.scenes_without_rows(split)
+
     def train_poses(self) -> tuple[Tensor, Tensor]:
         return self.images.train_poses()
 

@@ -137,6 +137,9 @@ class RayDataModule(L.LightningDataModule):
     def preprocess(self, images: Tensor, train: bool) -> Tensor:
         return self.images.preprocess(images, train)
 
+    def scenes_without_rows(self, split: str) -> list[str]:
+        return self.images.scenes_without_rows(split)
+
     def train_poses(self) -> tuple[Tensor, Tensor]:
         return self.images.train_poses()
 

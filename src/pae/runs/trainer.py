@@ -26,6 +26,7 @@ from pae.checkpoints import (
 )
 from pae.console import say
 from pae.errors import ConfigError, DivergenceError
+from pae.lit.evaluation import EVAL_SPLITS
 from pae.reporting import first_line
 from pae.runs import Metrics
 from pae.runs.hparams import log_hparams
@@ -119,7 +120,25 @@ def validate_and_test(
     trainer.validate(module, datamodule=data, verbose=False)
     metrics = collect_metrics(trainer, ("val/",), **checks)
     trainer.test(module, datamodule=data, verbose=False)
-    return metrics | collect_metrics(trainer, **checks)
+    metrics |= collect_metrics(trainer, **checks)
+    return metrics | missing_scenes(data, checks.get("step", "evaluation"))
+
+
+def missing_scenes(data: L.LightningDataModule, step: str) -> Metrics:
+    """`{split}/missing_scenes`: the number of train scenes without rows in each evaluated
+    split that lacks some, each split's said in a warning line naming them (its figures and
+    their overall average cover the other scenes only)."""
+    counts = {}
+    for split in EVAL_SPLITS:
+        missing = data.scenes_without_rows(split)
+        if missing:
+            say(
+                f"{step}: warning: the {split} split has no rows of the train scenes "
+                f"{', '.join(missing)}: its figures and their overall average cover the other "
+                "scenes only"
+            )
+            counts[f"{split}/missing_scenes"] = float(len(missing))
+    return counts
 
 
 def fit_and_test(
