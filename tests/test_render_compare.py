@@ -31,12 +31,12 @@ from pae.geometry import pose_errors
 from pae.models.oracle_scene import OracleSceneModel
 from pae.models.scene_model import camera_rays
 from pae.models.voxel_grid import VoxelGrid, VoxelGridSceneModel, camera_bounds
+from pae.pose_sampling import perturb
 from pae.refine.render_compare import (
     RenderCompareRefiner,
     RenderCompareResult,
     band_pass,
     gate,
-    perturb,
     trimmed_zncc,
     zncc,
 )

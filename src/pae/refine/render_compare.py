@@ -28,13 +28,9 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from pae.data.camera import project, scale_intrinsics
-from pae.geometry import (
-    canonicalize_quaternion,
-    normalize_quaternion,
-    quaternion_multiply,
-    quaternion_to_matrix,
-)
+from pae.geometry import normalize_quaternion, quaternion_to_matrix
 from pae.models.scene_model import SceneModel, camera_rays
+from pae.pose_sampling import perturb
 from pae.refine.render_score import compiled_zncc_scores
 
 SCORES = ("zncc", "features")
@@ -109,22 +105,6 @@ def trimmed_zncc(
             residual = (a - mean_a) - gain * (b - mean_b)
             kept = weights * (residual.abs() <= trim_sigma * sigma).to(weights.dtype)
     return zncc(a, b, kept)
-
-
-def rotation_vector_to_quaternion(vector: Tensor) -> Tensor:
-    """Axis-angle vectors [..., 3] (rad) -> unit quaternions [..., 4] (w first)."""
-    angle = vector.norm(dim=-1, keepdim=True)
-    half = angle / 2
-    scale = torch.where(angle > 1e-9, torch.sin(half) / angle.clamp_min(1e-9), 0.5 - angle**2 / 48)
-    return torch.cat([torch.cos(half), vector * scale], -1)
-
-
-def perturb(poses: Tensor, steps: Tensor) -> Tensor:
-    """Poses [..., 7] moved by steps [..., 6]: a world-frame translation (m) and a rotation
-    vector (rad) in the camera frame (``R' = R · exp(ω)``)."""
-    position = poses[..., :3] + steps[..., :3]
-    q = quaternion_multiply(poses[..., 3:], rotation_vector_to_quaternion(steps[..., 3:]))
-    return torch.cat([position, canonicalize_quaternion(normalize_quaternion(q))], -1)
 
 
 def compare_size(height: int, width: int, compare_width: int) -> tuple[int, int]:
