@@ -10,10 +10,14 @@ and ``F.interpolate`` do), so ``fx -> fx·s`` and ``cx -> (cx + 0.5)·s - 0.5``;
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import TypeVar
 
 import numpy as np
 import torch
 from torch import Tensor
+
+Scalar = TypeVar("Scalar", float, Tensor)
+"""A focal length or principal-point coordinate (px): one float, or a tensor of them."""
 
 
 def resized_size(width: int, height: int, shorter_edge: int) -> tuple[int, int]:
@@ -30,6 +34,11 @@ def centre_crop_origin(width: int, height: int, crop: int) -> tuple[int, int]:
     return (width - crop) // 2, (height - crop) // 2
 
 
+def _resized_axis(focal: Scalar, centre: Scalar, scale: float) -> tuple[Scalar, Scalar]:
+    """Focal length and principal point (px) along one image axis resized by ``scale``."""
+    return focal * scale, (centre + 0.5) * scale - 0.5
+
+
 @dataclass(frozen=True)
 class Intrinsics:
     """Focal lengths ``fx, fy`` and principal point ``cx, cy`` in px of ``width × height``
@@ -44,15 +53,9 @@ class Intrinsics:
 
     def resized(self, width: int, height: int) -> Intrinsics:
         """The same camera for images resized to ``width × height`` px."""
-        sx, sy = width / self.width, height / self.height
-        return Intrinsics(
-            self.fx * sx,
-            self.fy * sy,
-            (self.cx + 0.5) * sx - 0.5,
-            (self.cy + 0.5) * sy - 0.5,
-            width,
-            height,
-        )
+        fx, cx = _resized_axis(self.fx, self.cx, width / self.width)
+        fy, cy = _resized_axis(self.fy, self.cy, height / self.height)
+        return Intrinsics(fx, fy, cx, cy, width, height)
 
     def cropped(self, left: int, top: int, width: int, height: int) -> Intrinsics:
         """The same camera for the ``width × height`` window at ``(left, top)``."""
@@ -82,9 +85,9 @@ class Intrinsics:
 def scale_intrinsics(vectors: Tensor, scale_x: float, scale_y: float) -> Tensor:
     """Intrinsics ``[..., 4]`` (fx, fy, cx, cy) for images resized by ``scale_x, scale_y``."""
     fx, fy, cx, cy = vectors.unbind(-1)
-    return torch.stack(
-        [fx * scale_x, fy * scale_y, (cx + 0.5) * scale_x - 0.5, (cy + 0.5) * scale_y - 0.5], -1
-    )
+    fx, cx = _resized_axis(fx, cx, scale_x)
+    fy, cy = _resized_axis(fy, cy, scale_y)
+    return torch.stack([fx, fy, cx, cy], -1)
 
 
 def project(points_camera: Tensor, intrinsics: Tensor) -> Tensor:
