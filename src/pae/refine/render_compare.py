@@ -27,9 +27,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from pae.data.camera import project, scale_intrinsics
+from pae.data.camera import camera_rays, project, scale_intrinsics
 from pae.geometry import normalize_quaternion, quaternion_to_matrix
-from pae.models.scene_model import SceneModel, camera_rays
+from pae.models.scene_model import SceneModel
 from pae.pose_sampling import perturb
 from pae.refine.render_score import compiled_zncc_scores
 
