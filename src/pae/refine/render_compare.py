@@ -31,7 +31,7 @@ from pae.data.camera import camera_rays, project, scale_intrinsics
 from pae.geometry import normalize_quaternion, quaternion_to_matrix
 from pae.models.scene_model import SceneModel
 from pae.pose_sampling import perturb
-from pae.refine.render_score import compiled_zncc_scores
+from pae.refine.render_score import MIN_DEPTH_M, NOT_SEEN_SCORE, compiled_zncc_scores
 
 SCORES = ("zncc", "features")
 ENGINES = ("auto", "compiled", "torch")
@@ -166,13 +166,13 @@ class RenderCompareRefiner:
     see :func:`band_pass`); reference_size, reference_fov_scale: the reference rendering's
     width in px and its field of view relative to the query's; refresh_every: rounds between
     reference renderings at the current best pose (0: one rendering, at the start);
-    min_overlap: the share of reference points a candidate must see, else it scores -2;
-    trim_sigma, trim_passes: the ZNCC's robustness (:func:`trimmed_zncc`; trim_sigma 0: plain
-    ZNCC); gradient_steps, gradient_lr, gradient_position_scale: Adam steps on the pose after
-    the search (rotation in rad, translation in units of gradient_position_scale m: a scene k
-    times larger moves k times further); score: ``zncc`` or ``features`` (needs
-    ``features``); chunk: queries scored at once; engine: see
-    ``ENGINES``.
+    min_overlap: the share of reference points a candidate must see, else it scores
+    ``NOT_SEEN_SCORE`` (-2); trim_sigma, trim_passes: the ZNCC's robustness
+    (:func:`trimmed_zncc`; trim_sigma 0: plain ZNCC); gradient_steps, gradient_lr,
+    gradient_position_scale: Adam steps on the pose after the search (rotation in rad,
+    translation in units of gradient_position_scale m: a scene k times larger moves k times
+    further); score: ``zncc`` or ``features`` (needs ``features``); chunk: queries scored at
+    once; engine: see ``ENGINES``.
     """
 
     def __init__(
@@ -331,7 +331,7 @@ class RenderCompareRefiner:
         h, w = queries.target.shape[-2:]
         uv = project(local, queries.intrinsics[:, None, None])
         inside = (
-            (local[..., 2] > 0.05)
+            (local[..., 2] > MIN_DEPTH_M)
             & (uv[..., 0] >= 0)
             & (uv[..., 0] <= w - 1)
             & (uv[..., 1] >= 0)
@@ -352,7 +352,9 @@ class RenderCompareRefiner:
                 sampled[:, 0], values[:, 0], weights, self.trim_sigma, self.trim_passes
             )
         overlap = weights.sum(-1) / surface.valid.sum(-1, keepdim=True).clamp_min(1.0)
-        return torch.where(overlap >= self.min_overlap, score, torch.full_like(score, -2.0))
+        return torch.where(
+            overlap >= self.min_overlap, score, torch.full_like(score, NOT_SEEN_SCORE)
+        )
 
     @torch.no_grad()
     def _score_rendered(self, poses: Tensor, queries: _Queries) -> Tensor:
