@@ -14,7 +14,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from pae import CONFIG_DIR
-from pae.data.camera import Intrinsics, project, resized_size
+from pae.data.camera import Intrinsics, camera_rays, project, resized_size
 from pae.data.synthetic import (
     Appearance,
     PinholeCamera,
@@ -29,14 +29,13 @@ from pae.data.synthetic import (
 from pae.data.synthetic_datamodule import SyntheticDataModule
 from pae.geometry import pose_errors
 from pae.models.oracle_scene import OracleSceneModel
-from pae.models.scene_model import camera_rays
 from pae.models.voxel_grid import VoxelGrid, VoxelGridSceneModel, camera_bounds
+from pae.pose_sampling import perturb
 from pae.refine.render_compare import (
     RenderCompareRefiner,
     RenderCompareResult,
     band_pass,
     gate,
-    perturb,
     trimmed_zncc,
     zncc,
 )

@@ -38,6 +38,7 @@ __all__ = [
     "quaternion_multiply",
     "quaternion_to_matrix",
     "relative_pose",
+    "rotation_vector_to_quaternion",
 ]
 
 
@@ -89,6 +90,14 @@ def quaternion_apply(q: Tensor, v: Tensor) -> Tensor:
     w, u = q[..., :1], q[..., 1:]
     uv = 2.0 * _cross(u, v)
     return v + w * uv + _cross(u, uv)
+
+
+def rotation_vector_to_quaternion(vector: Tensor) -> Tensor:
+    """Axis-angle vectors [..., 3] (rad) -> unit quaternions [..., 4] (w first)."""
+    angle = vector.norm(dim=-1, keepdim=True)
+    half = angle / 2
+    scale = torch.where(angle > 1e-9, torch.sin(half) / angle.clamp_min(1e-9), 0.5 - angle**2 / 48)
+    return torch.cat([torch.cos(half), vector * scale], -1)
 
 
 def quaternion_to_matrix(q: Tensor) -> Tensor:

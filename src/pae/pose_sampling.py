@@ -1,6 +1,6 @@
-"""Poses drawn around given poses: training starts and references for the relative
-regressors (``perturb_poses``) and the random-guess check of refinement
-(``perturb_positions``)."""
+"""Poses moved around given poses: by given steps (``perturb``, the candidates of
+render-and-compare), drawn as training starts and references for the relative regressors
+(``perturb_poses``) and for the random-guess check of refinement (``perturb_positions``)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,20 @@ import math
 import torch
 from torch import Tensor
 
-from pae.geometry import canonicalize_quaternion, quaternion_multiply
+from pae.geometry import (
+    canonicalize_quaternion,
+    normalize_quaternion,
+    quaternion_multiply,
+    rotation_vector_to_quaternion,
+)
+
+
+def perturb(poses: Tensor, steps: Tensor) -> Tensor:
+    """Poses [..., 7] moved by steps [..., 6]: a world-frame translation (m) and a rotation
+    vector (rad) in the camera frame (``R' = R · exp(ω)``)."""
+    position = poses[..., :3] + steps[..., :3]
+    q = quaternion_multiply(poses[..., 3:], rotation_vector_to_quaternion(steps[..., 3:]))
+    return torch.cat([position, canonicalize_quaternion(normalize_quaternion(q))], -1)
 
 
 def perturb_poses(

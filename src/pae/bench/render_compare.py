@@ -16,7 +16,8 @@ import torch
 
 from pae.geometry import matrix_to_quaternion
 from pae.models.voxel_grid import VoxelGridSceneModel
-from pae.refine.render_compare import RenderCompareRefiner, perturb
+from pae.pose_sampling import perturb
+from pae.refine.render_compare import RenderCompareRefiner
 
 ROOM_HALF_M = (3.5, 3.0)
 """Half the room's width and depth (m); the room spans z in [0, 2.8] m."""

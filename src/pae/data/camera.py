@@ -1,4 +1,5 @@
-"""Pinhole camera intrinsics, kept consistent through every resize and crop of the images.
+"""Pinhole camera intrinsics, kept consistent through every resize and crop of the images,
+and the rays through their pixels.
 
 Convention (OpenCV's, and the synthetic benchmark's): the centre of pixel ``(u, v)`` (column,
 row) lies at integer coordinates ``(u, v)``; the camera frame has ``x`` right, ``y`` down and
@@ -10,10 +11,16 @@ and ``F.interpolate`` do), so ``fx -> fx·s`` and ``cx -> (cx + 0.5)·s - 0.5``;
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import TypeVar
 
 import numpy as np
 import torch
 from torch import Tensor
+
+from pae.geometry import quaternion_to_matrix
+
+Scalar = TypeVar("Scalar", float, Tensor)
+"""A focal length or principal-point coordinate (px): one float, or a tensor of them."""
 
 
 def resized_size(width: int, height: int, shorter_edge: int) -> tuple[int, int]:
@@ -30,6 +37,11 @@ def centre_crop_origin(width: int, height: int, crop: int) -> tuple[int, int]:
     return (width - crop) // 2, (height - crop) // 2
 
 
+def _resized_axis(focal: Scalar, centre: Scalar, scale: float) -> tuple[Scalar, Scalar]:
+    """Focal length and principal point (px) along one image axis resized by ``scale``."""
+    return focal * scale, (centre + 0.5) * scale - 0.5
+
+
 @dataclass(frozen=True)
 class Intrinsics:
     """Focal lengths ``fx, fy`` and principal point ``cx, cy`` in px of ``width × height``
@@ -44,15 +56,9 @@ class Intrinsics:
 
     def resized(self, width: int, height: int) -> Intrinsics:
         """The same camera for images resized to ``width × height`` px."""
-        sx, sy = width / self.width, height / self.height
-        return Intrinsics(
-            self.fx * sx,
-            self.fy * sy,
-            (self.cx + 0.5) * sx - 0.5,
-            (self.cy + 0.5) * sy - 0.5,
-            width,
-            height,
-        )
+        fx, cx = _resized_axis(self.fx, self.cx, width / self.width)
+        fy, cy = _resized_axis(self.fy, self.cy, height / self.height)
+        return Intrinsics(fx, fy, cx, cy, width, height)
 
     def cropped(self, left: int, top: int, width: int, height: int) -> Intrinsics:
         """The same camera for the ``width × height`` window at ``(left, top)``."""
@@ -82,9 +88,9 @@ class Intrinsics:
 def scale_intrinsics(vectors: Tensor, scale_x: float, scale_y: float) -> Tensor:
     """Intrinsics ``[..., 4]`` (fx, fy, cx, cy) for images resized by ``scale_x, scale_y``."""
     fx, fy, cx, cy = vectors.unbind(-1)
-    return torch.stack(
-        [fx * scale_x, fy * scale_y, (cx + 0.5) * scale_x - 0.5, (cy + 0.5) * scale_y - 0.5], -1
-    )
+    fx, cx = _resized_axis(fx, cx, scale_x)
+    fy, cy = _resized_axis(fy, cy, scale_y)
+    return torch.stack([fx, fy, cx, cy], -1)
 
 
 def project(points_camera: Tensor, intrinsics: Tensor) -> Tensor:
@@ -97,12 +103,34 @@ def project(points_camera: Tensor, intrinsics: Tensor) -> Tensor:
     return torch.stack([u, v], -1)
 
 
+def directions_through(u: Tensor, v: Tensor, intrinsics: Tensor) -> Tensor:
+    """Camera-frame ray directions ``[..., 3]`` (``z = 1``) through the pixel coordinates
+    ``u, v`` ``[...]`` (px; column, row) of cameras with intrinsics ``[..., 4]`` (fx, fy, cx,
+    cy), all broadcast against each other."""
+    fx, fy, cx, cy = intrinsics.unbind(-1)
+    x, y = torch.broadcast_tensors((u - cx) / fx, (v - cy) / fy)
+    return torch.stack([x, y, torch.ones_like(x)], -1)
+
+
 def pixel_directions(intrinsics: Tensor, width: int, height: int) -> Tensor:
     """Camera-frame ray directions ``[B, height, width, 3]`` (``z = 1``) through the pixel
     centres of ``B`` cameras with intrinsics ``[B, 4]``."""
-    fx, fy, cx, cy = (v[:, None, None] for v in intrinsics.unbind(-1))
     u = torch.arange(width, dtype=intrinsics.dtype, device=intrinsics.device)[None, None, :]
     v = torch.arange(height, dtype=intrinsics.dtype, device=intrinsics.device)[None, :, None]
-    x = ((u - cx) / fx).expand(-1, height, width)
-    y = ((v - cy) / fy).expand(-1, height, width)
-    return torch.stack([x, y, torch.ones_like(x)], -1)
+    return directions_through(u, v, intrinsics[:, None, None])
+
+
+def camera_rays(
+    poses: Tensor, intrinsics: Tensor, width: int, height: int
+) -> tuple[Tensor, Tensor]:
+    """World-frame rays of every pixel of ``B`` cameras: origins [B, H·W, 3] and directions
+    [B, H·W, 3] whose camera-frame ``z`` is 1 (a distance ``t`` along them is a depth).
+
+    poses [B, 7] camera-to-world; intrinsics [B, 4] (fx, fy, cx, cy) of ``width × height``
+    images.
+    """
+    local = pixel_directions(intrinsics, width, height).flatten(1, 2)  # [B, HW, 3]
+    rotation = quaternion_to_matrix(poses[:, 3:])
+    directions = torch.einsum("bij,bnj->bni", rotation, local)
+    origins = poses[:, None, :3].expand_as(directions)
+    return origins, directions

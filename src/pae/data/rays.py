@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
-from pae.data.camera import scale_intrinsics
+from pae.data.camera import directions_through, scale_intrinsics
 from pae.data.datamodule import PoseDataModule
 from pae.geometry import quaternion_to_matrix
 
@@ -83,8 +83,7 @@ class RayBatches(Dataset):
         r = self.rays_per_batch
         row = torch.randint(n, (r,))
         v, u = torch.randint(h, (r,)), torch.randint(w, (r,))
-        fx, fy, cx, cy = self.intrinsics[row].unbind(-1)
-        local = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones(r)], -1)
+        local = directions_through(u, v, self.intrinsics[row])
         return {
             "origins": self.positions[row],
             "directions": torch.einsum("rij,rj->ri", self.rotations[row], local),

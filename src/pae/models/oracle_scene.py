@@ -6,8 +6,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from pae.data.camera import camera_rays
 from pae.data.synthetic import SyntheticScene, shade_rays
-from pae.models.scene_model import SceneModel, SceneRendering, camera_rays
+from pae.models.scene_model import SceneModel, SceneRendering
 
 
 class OracleSceneModel(SceneModel):

@@ -4,11 +4,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import torch
 from torch import Tensor, nn
-
-from pae.data.camera import pixel_directions
-from pae.geometry import quaternion_to_matrix
 
 
 class SceneRendering(NamedTuple):
@@ -22,22 +18,6 @@ class SceneRendering(NamedTuple):
     rgb: Tensor
     depth: Tensor | None = None
     opacity: Tensor | None = None
-
-
-def camera_rays(
-    poses: Tensor, intrinsics: Tensor, width: int, height: int
-) -> tuple[Tensor, Tensor]:
-    """World-frame rays of every pixel of ``B`` cameras: origins [B, H·W, 3] and directions
-    [B, H·W, 3] whose camera-frame ``z`` is 1 (a distance ``t`` along them is a depth).
-
-    poses [B, 7] camera-to-world; intrinsics [B, 4] (fx, fy, cx, cy) of ``width × height``
-    images.
-    """
-    local = pixel_directions(intrinsics, width, height).flatten(1, 2)  # [B, HW, 3]
-    rotation = quaternion_to_matrix(poses[:, 3:])
-    directions = torch.einsum("bij,bnj->bni", rotation, local)
-    origins = poses[:, None, :3].expand_as(directions)
-    return origins, directions
 
 
 class SceneModel(nn.Module):

@@ -17,7 +17,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from pae.models.scene_model import SceneModel, SceneRendering, camera_rays
+from pae.data.camera import camera_rays
+from pae.models.scene_model import SceneModel, SceneRendering
 from pae.models.voxel_render import CompiledComposite
 
 _EPS = 1e-9

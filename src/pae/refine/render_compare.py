@@ -27,15 +27,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from pae.data.camera import project, scale_intrinsics
-from pae.geometry import (
-    canonicalize_quaternion,
-    normalize_quaternion,
-    quaternion_multiply,
-    quaternion_to_matrix,
-)
-from pae.models.scene_model import SceneModel, camera_rays
-from pae.refine.render_score import compiled_zncc_scores
+from pae.data.camera import camera_rays, project, scale_intrinsics
+from pae.geometry import normalize_quaternion, quaternion_to_matrix
+from pae.models.scene_model import SceneModel
+from pae.pose_sampling import perturb
+from pae.refine.render_score import MIN_DEPTH_M, NOT_SEEN_SCORE, compiled_zncc_scores
 
 SCORES = ("zncc", "features")
 ENGINES = ("auto", "compiled", "torch")
@@ -111,22 +107,6 @@ def trimmed_zncc(
     return zncc(a, b, kept)
 
 
-def rotation_vector_to_quaternion(vector: Tensor) -> Tensor:
-    """Axis-angle vectors [..., 3] (rad) -> unit quaternions [..., 4] (w first)."""
-    angle = vector.norm(dim=-1, keepdim=True)
-    half = angle / 2
-    scale = torch.where(angle > 1e-9, torch.sin(half) / angle.clamp_min(1e-9), 0.5 - angle**2 / 48)
-    return torch.cat([torch.cos(half), vector * scale], -1)
-
-
-def perturb(poses: Tensor, steps: Tensor) -> Tensor:
-    """Poses [..., 7] moved by steps [..., 6]: a world-frame translation (m) and a rotation
-    vector (rad) in the camera frame (``R' = R · exp(ω)``)."""
-    position = poses[..., :3] + steps[..., :3]
-    q = quaternion_multiply(poses[..., 3:], rotation_vector_to_quaternion(steps[..., 3:]))
-    return torch.cat([position, canonicalize_quaternion(normalize_quaternion(q))], -1)
-
-
 def compare_size(height: int, width: int, compare_width: int) -> tuple[int, int]:
     """The (height, width) in px at which a query of ``height × width`` px is compared."""
     return max(4, round(height * compare_width / width)), compare_width
@@ -186,13 +166,13 @@ class RenderCompareRefiner:
     see :func:`band_pass`); reference_size, reference_fov_scale: the reference rendering's
     width in px and its field of view relative to the query's; refresh_every: rounds between
     reference renderings at the current best pose (0: one rendering, at the start);
-    min_overlap: the share of reference points a candidate must see, else it scores -2;
-    trim_sigma, trim_passes: the ZNCC's robustness (:func:`trimmed_zncc`; trim_sigma 0: plain
-    ZNCC); gradient_steps, gradient_lr, gradient_position_scale: Adam steps on the pose after
-    the search (rotation in rad, translation in units of gradient_position_scale m: a scene k
-    times larger moves k times further); score: ``zncc`` or ``features`` (needs
-    ``features``); chunk: queries scored at once; engine: see
-    ``ENGINES``.
+    min_overlap: the share of reference points a candidate must see, else it scores
+    ``NOT_SEEN_SCORE`` (-2); trim_sigma, trim_passes: the ZNCC's robustness
+    (:func:`trimmed_zncc`; trim_sigma 0: plain ZNCC); gradient_steps, gradient_lr,
+    gradient_position_scale: Adam steps on the pose after the search (rotation in rad,
+    translation in units of gradient_position_scale m: a scene k times larger moves k times
+    further); score: ``zncc`` or ``features`` (needs ``features``); chunk: queries scored at
+    once; engine: see ``ENGINES``.
     """
 
     def __init__(
@@ -351,7 +331,7 @@ class RenderCompareRefiner:
         h, w = queries.target.shape[-2:]
         uv = project(local, queries.intrinsics[:, None, None])
         inside = (
-            (local[..., 2] > 0.05)
+            (local[..., 2] > MIN_DEPTH_M)
             & (uv[..., 0] >= 0)
             & (uv[..., 0] <= w - 1)
             & (uv[..., 1] >= 0)
@@ -372,7 +352,9 @@ class RenderCompareRefiner:
                 sampled[:, 0], values[:, 0], weights, self.trim_sigma, self.trim_passes
             )
         overlap = weights.sum(-1) / surface.valid.sum(-1, keepdim=True).clamp_min(1.0)
-        return torch.where(overlap >= self.min_overlap, score, torch.full_like(score, -2.0))
+        return torch.where(
+            overlap >= self.min_overlap, score, torch.full_like(score, NOT_SEEN_SCORE)
+        )
 
     @torch.no_grad()
     def _score_rendered(self, poses: Tensor, queries: _Queries) -> Tensor:
