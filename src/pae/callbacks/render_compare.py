@@ -93,12 +93,12 @@ class RenderCompareRefinement(L.Callback):
     A refined pose replaces the teacher's only where its score beats the start's by more
     than ``accept_margin`` and itself exceeds ``accept_score``
     (:func:`pae.refine.render_compare.gate`: a low final score marks a query the scene model
-    does not explain); ``auto`` chooses each on every validation run (:func:`choose_gate`,
-    jointly, from the split's held-out train sequences) and applies the last choice at test
-    (margin 0 and no floor where no validation ran). Beside each method's figures:
-    ``accept_margin``, ``accept_score``, ``accepted_share``, the median position error of the
-    accepted queries (refined) and of the rejected ones (kept at the start), and
-    ``ungated_pos_median_m`` (every refinement accepted).
+    does not explain; ``ACCEPT_ALL``, the default: no floor); ``auto`` chooses each on every
+    validation run (:func:`choose_gate`, jointly, from the split's held-out train sequences)
+    and applies the last choice at test (margin 0 and no floor where no validation ran).
+    Beside each method's figures: ``accept_margin``, ``accept_score``, ``accepted_share``, the
+    median position error of the accepted queries (refined) and of the rejected ones (kept at
+    the start), and ``ungated_pos_median_m`` (every refinement accepted).
 
     ``step_from_val`` (``{"position": a, "orientation": b}``) sets the search's first steps
     from the teacher's typical error, so that the search covers it at every scene scale: on
@@ -119,7 +119,7 @@ class RenderCompareRefinement(L.Callback):
         every_n_val_epochs: int = 1,
         feature_layers: int = 2,
         accept_margin: float | str = "auto",
-        accept_score: float | str = "auto",
+        accept_score: float | str = ACCEPT_ALL,
         step_from_val: dict[str, float] | None = None,
     ) -> None:
         super().__init__()
