@@ -236,6 +236,26 @@ def test_resume_falls_back_and_continues_a_longer_schedule(
     assert "teacher.max_epochs=3" in (run_dir / ".hydra" / "overrides.yaml").read_text()
 
 
+def test_resume_without_a_complete_checkpoint_says_so_and_clears_unfinished_files(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A run killed while writing its first checkpoint left only a temporary file: resuming
+    removes it and says, in one line, that the step starts from epoch 0."""
+    from pae.runs.trainer import _resume_path
+
+    folder = tmp_path / "scene_model" / "checkpoints"
+    folder.mkdir(parents=True)
+    (folder / ".last.ckpt.k3x9.tmp").write_bytes(b"PK\x03\x04 half a checkpoint")
+    with caplog.at_level("INFO"):
+        assert _resume_path(OmegaConf.create({"resume": True}), folder.parent, data=None) is None
+    assert list(folder.iterdir()) == []
+    lines = [r.getMessage() for r in caplog.records if "resume:" in r.getMessage()]
+    assert lines == [
+        f"resume: no complete checkpoint in {folder} (removed 1 unfinished .tmp file(s)); "
+        "the step starts from epoch 0"
+    ]
+
+
 @pytest.mark.parametrize(
     ("case", "message"),
     [

@@ -68,14 +68,23 @@ def build_trainer(
 
 def _resume_path(cfg: DictConfig, step_dir: Path, data: L.LightningDataModule) -> str | None:
     """With resume=true: the newest readable checkpoint of the step (said in one line when a
-    newer one is unreadable), checked against the data; None when the step has none yet."""
+    newer one is unreadable), checked against the data; None, said in one line, when the step
+    has no complete checkpoint yet (it starts from epoch 0). The unfinished `*.tmp` files of a
+    run killed while writing a checkpoint are removed first."""
     folder = step_dir / "checkpoints"
     if not cfg.get("resume"):
         return None
+    unfinished = sorted(folder.glob("*.tmp"))
+    for stale in unfinished:
+        stale.unlink(missing_ok=True)
     path, skipped = newest_readable_checkpoint(folder)
     if path is None and skipped:
         raise CheckpointError(f"{folder}: no readable checkpoint to resume from ({skipped[0]})")
     if path is None:
+        removed = f" (removed {len(unfinished)} unfinished .tmp file(s))" if unfinished else ""
+        rank_zero_info(
+            f"resume: no complete checkpoint in {folder}{removed}; the step starts from epoch 0"
+        )
         return None
     trained = read_checkpoint(path).get(DATA_FINGERPRINT_KEY)
     if trained is not None:
