@@ -108,3 +108,21 @@ class WidePAE:
 
     def __init__(self, latent_dim: int, width: int = 64, n_scenes: int = 1) -> None:
         self.latent_dim, self.width, self.n_scenes = latent_dim, width, n_scenes
+
+
+def test_a_key_added_to_a_steps_settings_is_refused_with_its_nearest_name(
+    compose_train, tmp_path: Path
+) -> None:
+    """`+teacher.max_epoch=3` (for max_epochs) would be read by nothing and train the default
+    epochs: refused before any work; keys added inside a model config or to the trainer are
+    left to their own checks."""
+    from pae.validation import check_added_keys
+
+    cfg = compose_train("stage=pipeline", "+teacher.max_epoch=3", run_dir=tmp_path)
+    message = r"teacher\.max_epoch: not a setting of teacher .*did you mean teacher\.max_epochs\?"
+    with pytest.raises(ConfigError, match=message):
+        check_added_keys(cfg, ["+teacher.max_epoch=3"])
+    with pytest.raises(ConfigError, match=r"student\.latent_los: .*student\.latent_loss\?"):
+        check_added_keys(cfg, ["+student.latent_los=l2"])
+    check_added_keys(cfg, ["+trainer.enable_progress_bar=false", "teacher.max_epochs=3"])
+    check_added_keys(cfg, ["+teacher.model.width=3"])  # the constructor check's business

@@ -35,7 +35,8 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, float | int | str]:
 
     quiet_third_party()
     apply_renamed_keys(cfg, "pae-train")
-    validate_train_config(cfg)
+    overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
+    validate_train_config(cfg, overrides)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     if rank_zero_only.rank == 0:
         save_corrected_config(cfg, run_dir)

@@ -384,10 +384,45 @@ def _validate_common(cfg: DictConfig) -> None:
     validate_refine(cfg)
 
 
-def validate_train_config(cfg: DictConfig) -> None:
-    """All of pae-train's settings (conf/train.yaml); raises ConfigError naming the key."""
+ADDED_KEY_GROUPS = GROUPS
+"""The steps' groups, whose settings are exactly their YAML's: a key added to one with ``+``
+is a typo, unless it lies in a model config (those are checked against their
+constructors)."""
+
+
+def check_added_keys(cfg: DictConfig, overrides: list[str]) -> None:
+    """Command-line overrides that add a key (``+group.key=value``) to a group of
+    ``ADDED_KEY_GROUPS`` outside its model configs (a node with ``_target_``): pae reads no
+    such setting, so it is refused, naming the key and the group's nearest setting."""
+    import difflib
+
+    for override in overrides:
+        if not override.startswith("+") or override.startswith("++") or "=" not in override:
+            continue
+        key = override[1:].split("=", 1)[0]
+        parts = key.split(".")
+        if parts[0] not in ADDED_KEY_GROUPS or len(parts) < 2:
+            continue
+        node: Any = cfg
+        inside_model = False
+        for part in parts[:-1]:
+            node = node.get(part) if isinstance(node, DictConfig) else None
+            if isinstance(node, DictConfig) and "_target_" in node:
+                inside_model = True
+        if inside_model or not isinstance(node, DictConfig):
+            continue
+        known = [name for name in node if name != parts[-1]]
+        near = difflib.get_close_matches(parts[-1], known, n=1)
+        hint = f"; did you mean {'.'.join([*parts[:-1], near[0]])}?" if near else ""
+        raise ConfigError(f"{key}: not a setting of {'.'.join(parts[:-1])} (added with +){hint}")
+
+
+def validate_train_config(cfg: DictConfig, overrides: list[str] | None = None) -> None:
+    """All of pae-train's settings (conf/train.yaml), and the keys ``overrides`` (the command
+    line's) add; raises ConfigError naming the key."""
     from pae.losses import LATENT_LOSSES
 
+    check_added_keys(cfg, overrides or [])
     steps = list(cfg.stage.steps)
     try:
         steps_of(steps)
