@@ -1006,3 +1006,21 @@ def test_a_missing_scene_in_an_evaluated_split_is_said_and_recorded(
         "and their overall average cover the other scenes only"
     ) in caplog.messages
     assert "1 train scene(s) have no test rows" in format_results_table(written)
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("scene_model.appearance=frame", "unknown scene_model.appearance 'frame'"),
+        ("scene_model.fit_trim=1.0", r"scene_model.fit_trim must be a number in \[0, 1\)"),
+        ("render_compare.refiner.highpass_sigma_px=-1", "highpass_sigma_px must be a number >= 0"),
+    ],
+)
+def test_scene_model_and_score_settings_are_checked_before_any_work(
+    compose_train, override: str, message: str
+) -> None:
+    from pae.validation import validate_train_config
+
+    cfg = compose_train("stage=render_compare", override)
+    with pytest.raises(ConfigError, match=message):
+        validate_train_config(cfg)

@@ -471,6 +471,12 @@ def _validate_scene_model(cfg: DictConfig) -> None:
     _integer(cfg, "scene_model.model.num_voxels", 8)
     _integer(cfg, "scene_model.model.samples_per_ray", 1)
     _number(cfg, "scene_model.tv_weight", 0, strict=False)
+    _choice(cfg, "scene_model.appearance", ("sequence", "image"))
+    _number(cfg, "scene_model.appearance_lr", 0, strict=True, optional=True)
+    _integer(cfg, "scene_model.fit_trim_from_epoch", 0)
+    fit_trim = _value(cfg, "scene_model.fit_trim")
+    if not (_is_int(fit_trim) or isinstance(fit_trim, float)) or not 0 <= fit_trim < 1:
+        raise ConfigError(f"scene_model.fit_trim must be a number in [0, 1), got {fit_trim!r}")
     if _value(cfg, "scene_model.model.contract") != "auto":
         _boolean(cfg, "scene_model.model.contract")
     if _value(cfg, "scene_model.image_size") is not None:
@@ -493,6 +499,7 @@ def _validate_scene_model(cfg: DictConfig) -> None:
             _integer(cfg, f"render_compare.refiner.{key}", 1)
         _choice(cfg, "render_compare.refiner.score", ("zncc", "features"))
         _number(cfg, "render_compare.refiner.trim_sigma", 0, strict=False, optional=True)
+        _number(cfg, "render_compare.refiner.highpass_sigma_px", 0, strict=False, optional=True)
         for key in ("accept_margin", "accept_score"):
             value = _value(cfg, f"render_compare.{key}")
             if value != "auto" and not (_is_int(value) or isinstance(value, float)):

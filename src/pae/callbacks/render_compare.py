@@ -19,7 +19,12 @@ from pae.geometry import pose_errors
 from pae.metrics import first_occurrences, summarise_errors
 from pae.models.oracle_scene import OracleSceneModel
 from pae.models.scene_model import SceneModel
-from pae.refine.render_compare import RenderCompareRefiner, RenderCompareResult, gate
+from pae.refine.render_compare import (
+    ACCEPT_ALL,
+    RenderCompareRefiner,
+    RenderCompareResult,
+    gate,
+)
 
 HONEST = "render_compare"
 ORACLE = "render_compare_oracle"
@@ -27,9 +32,6 @@ MARGIN_QUANTILES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
 """Candidate acceptance margins of ``accept_margin=auto`` besides accept-all and 0, and
 score floors of ``accept_score=auto`` besides none: these quantiles of the validation
 queries' score gains and refined scores."""
-ACCEPT_ALL = -4.0
-"""A margin (floor) below every possible score gain (score; scores lie in [-2, 1]): every
-refinement kept."""
 log = logging.getLogger(__name__)
 
 
@@ -248,8 +250,8 @@ class RenderCompareRefinement(L.Callback):
             )
             seconds = time.perf_counter() - start
             truth, estimate = outputs["pose"].float(), outputs["estimate"].float()
-            refined_pos, _ = pose_errors(result.poses.float(), truth)
-            start_pos, _ = pose_errors(estimate, truth)
+            refined_pos, refined_rot = pose_errors(result.poses.float(), truth)
+            start_pos, start_rot = pose_errors(estimate, truth)
             margin, floor = self.gate_setting(name, split, result, (refined_pos, start_pos))
             gated = gate(result, estimate, margin, floor)
             pos, rot = pose_errors(gated.poses.float(), truth)
@@ -259,10 +261,9 @@ class RenderCompareRefinement(L.Callback):
                 f"{split}/{name}", (margin, floor), gated.accepted, pos, refined_pos
             )
             if getattr(trainer, "log_dir", None) is not None:
-                refined = (refined_pos, pose_errors(result.poses.float(), truth)[1])
-                starts = pose_errors(estimate, truth)
                 path = Path(trainer.log_dir) / f"queries_{split}_{name}.csv"
                 names = [pl_module.scene_names[s] for s in outputs["scene"].tolist()]
+                starts, refined = (start_pos, start_rot), (refined_pos, refined_rot)
                 write_queries(path, outputs["index"], names, starts, refined, result, gated)
             if split == "test":
                 ms = torch.tensor(1000 * seconds / len(pos))

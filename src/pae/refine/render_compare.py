@@ -119,8 +119,13 @@ class GatedPoses(NamedTuple):
     accepted: Tensor
 
 
+ACCEPT_ALL = -4.0
+"""A margin (floor) below every possible score gain (score; scores lie in [-2, 1]): every
+refinement kept."""
+
+
 def gate(
-    result: RenderCompareResult, initial: Tensor, margin: float, floor: float = -4.0
+    result: RenderCompareResult, initial: Tensor, margin: float, floor: float = ACCEPT_ALL
 ) -> GatedPoses:
     """Keep a refined pose only where its score beats the start's by more than ``margin``
     (a ZNCC difference; below -3 accepts every refinement) and itself exceeds ``floor`` (a
