@@ -31,14 +31,8 @@ from pae.geometry import pose_errors
 from pae.models.oracle_scene import OracleSceneModel
 from pae.models.voxel_grid import VoxelGrid, VoxelGridSceneModel, camera_bounds
 from pae.pose_sampling import perturb
-from pae.refine.render_compare import (
-    RenderCompareRefiner,
-    RenderCompareResult,
-    band_pass,
-    gate,
-    trimmed_zncc,
-    zncc,
-)
+from pae.refine.render_compare import RenderCompareRefiner, RenderCompareResult, gate
+from pae.refine.render_images import band_pass, trimmed_zncc, zncc
 from tests.conftest import TINY, tiny_data_overrides
 
 
@@ -194,7 +188,6 @@ def test_refinement_against_the_true_scene_moves_estimates_towards_the_truth() -
     before, _ = pose_errors(start, truth)
     after, _ = pose_errors(result.poses, truth)
     assert after.median() < 0.6 * before.median()
-    assert (result.score >= result.initial_score).all()
 
 
 def test_batched_search_equals_a_per_query_search_for_a_fixed_seed() -> None:
@@ -539,22 +532,23 @@ def test_the_callback_refines_without_reading_the_true_poses(
         torch.testing.assert_close(a, b)
 
 
-def test_gradient_steps_run_inside_an_evaluation_loop() -> None:
-    """Lightning evaluates in inference mode; the gradient steps still run there and never
-    lower a query's score."""
-    model, images, intrinsics, _, start = _oracle_queries(3)
+def test_the_polish_runs_inside_an_evaluation_loop_and_aligns_further() -> None:
+    """Lightning evaluates in inference mode; the Levenberg–Marquardt polish runs there and
+    takes the search's poses closer to the truth."""
+    model, images, intrinsics, truth, start = _oracle_queries(4)
     scenes = torch.zeros(len(start), dtype=torch.long)
-    settings = {"rounds": 2, "candidates": 4, "resolution": 16, "reference_size": 12}
+    settings = {"rounds": 3, "candidates": 8, "resolution": 24, "reference_size": 16}
     with torch.inference_mode():
-        plain = RenderCompareRefiner(model, gradient_steps=0, **settings)(
+        plain = RenderCompareRefiner(model, polish_steps=0, **settings)(
             images, intrinsics, start, scenes
         )
-        polished = RenderCompareRefiner(model, gradient_steps=5, **settings)(
+        polished = RenderCompareRefiner(model, polish_steps=8, **settings)(
             images, intrinsics, start, scenes
         )
+    searched, _ = pose_errors(plain.poses, truth)
+    aligned, _ = pose_errors(polished.poses, truth)
     assert torch.isfinite(polished.poses).all()
-    assert not torch.equal(plain.poses, polished.poses)
-    assert (polished.score >= plain.score).all()
+    assert aligned.median() < 0.5 * searched.median()
 
 
 def test_the_paper_decoder_is_a_scene_model_without_depth() -> None:
@@ -571,10 +565,10 @@ def test_the_paper_decoder_is_a_scene_model_without_depth() -> None:
     assert rendering.rgb.shape == (3, 3, 24, 24) and rendering.depth is None
     with torch.no_grad():
         images = rendering.rgb.detach()
-        result = RenderCompareRefiner(
-            model, rounds=2, candidates=4, resolution=24, gradient_steps=0
-        )(images, intrinsics, poses, torch.zeros(3, dtype=torch.long))
-    assert torch.isfinite(result.poses).all() and (result.score >= result.initial_score).all()
+        result = RenderCompareRefiner(model, rounds=2, candidates=4, resolution=24)(
+            images, intrinsics, poses, torch.zeros(3, dtype=torch.long)
+        )
+    assert torch.isfinite(result.poses).all() and torch.isfinite(result.score).all()
 
 
 def test_the_search_steps_follow_the_teachers_val_error() -> None:
@@ -594,7 +588,6 @@ def test_the_search_steps_follow_the_teachers_val_error() -> None:
     assert callback.steps["position_sigma_m"] == pytest.approx(1.0)
     refiner = callback.refiner(OracleSceneModel([]), None)
     assert refiner.sigma[0] == pytest.approx(1.0)
-    assert refiner.gradient_position_scale == pytest.approx(1.0 / 0.25)
     with pytest.raises(ValueError, match="step_from_val"):
         RenderCompareRefinement(step_from_val={"position": 0.4})
 

@@ -493,10 +493,12 @@ def _validate_scene_model(cfg: DictConfig) -> None:
             f"scene_model.model.margin_m must be auto, one number >= 0 or three, got {margin!r}"
         )
     if _value(cfg, "render_compare") is not None:
-        for key in ("rounds", "gradient_steps", "refresh_every"):
+        for key in ("rounds", "polish_steps", "final_reference_size"):
             _integer(cfg, f"render_compare.refiner.{key}", 0)
-        for key in ("candidates", "resolution", "reference_size", "chunk"):
+        for key in ("candidates", "hypotheses", "levels", "chunk"):
             _integer(cfg, f"render_compare.refiner.{key}", 1)
+        for key in ("resolution", "reference_size"):
+            _integer(cfg, f"render_compare.refiner.{key}", 8)
         _choice(cfg, "render_compare.refiner.score", ("zncc", "features"))
         _number(cfg, "render_compare.refiner.trim_sigma", 0, strict=False, optional=True)
         _number(cfg, "render_compare.refiner.highpass_sigma_px", 0, strict=False, optional=True)

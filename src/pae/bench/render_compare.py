@@ -64,18 +64,48 @@ def _seconds(run) -> float:
     return time.perf_counter() - start
 
 
-def bench_render_compare(queries: int = 250, scenes: int = 2, crop: int = 56) -> dict[str, float]:
-    """`bench/render_compare/ms_per_query` (default settings, batched), the compiled scorer's
-    and the compiled renderer's speed-ups over their tensor versions (same inputs)."""
-    model = room_grid(scenes)
-    images, intrinsics, start, scene_ids = _queries(queries, scenes, crop, seed=0)
+def machine_gflops(size: int = 1024, repeats: int = 5) -> float:
+    """The machine's measured float32 throughput (GFLOP/s): the best of ``repeats``
+    ``size``-square matrix products on torch's threads, the roof the kernels are put
+    against."""
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    a @ b
+    best = min(_seconds(lambda: a @ b) for _ in range(repeats))
+    return 2 * size**3 / best / 1e9
+
+
+def bench_render_compare(
+    queries: int = 250, scenes: int = 2, crop: int = 56, device: str = "cpu"
+) -> dict[str, float]:
+    """The refiner at its default settings, batched as the callback runs it, on ``device``:
+    `bench/render_compare/ms_per_query` and its parts (the search's scores, the polish, the
+    reference renderings), the kernels' counted work (`mflop_per_query`) and its rate against
+    the machine's measured throughput (`roofline_fraction`); on CPU also the compiled
+    scorer's and renderer's speed-ups over their tensor versions (same inputs)."""
+    model = room_grid(scenes).to(device)
+    images, intrinsics, start, scene_ids = (
+        t.to(device) for t in _queries(queries, scenes, crop, seed=0)
+    )
+    RenderCompareRefiner(model)(images[:4], intrinsics[:4], start[:4], scene_ids[:4])  # compile
     refiner = RenderCompareRefiner(model)
-    refiner(images[:4], intrinsics[:4], start[:4], scene_ids[:4])  # compile, warm up
+    seconds = _seconds(lambda: refiner(images, intrinsics, start, scene_ids))
+    work = refiner.work
+    kernel_s = work.score_s + work.polish_s
+    prefix = "bench/render_compare"
     figures = {
-        "bench/render_compare/ms_per_query": 1000
-        * _seconds(lambda: refiner(images, intrinsics, start, scene_ids))
-        / queries
+        f"{prefix}/ms_per_query": 1000 * seconds / queries,
+        f"{prefix}/search_ms_per_query": 1000 * work.score_s / queries,
+        f"{prefix}/polish_ms_per_query": 1000 * work.polish_s / queries,
+        f"{prefix}/render_ms_per_query": 1000 * work.render_s / queries,
+        f"{prefix}/mflop_per_query": work.kernel_mflop / queries,
+        f"{prefix}/kernel_gflops": work.kernel_mflop / kernel_s / 1000,
     }
+    if device != "cpu":
+        return figures
+    figures[f"{prefix}/machine_gflops"] = machine_gflops()
+    figures[f"{prefix}/roofline_fraction"] = (
+        figures[f"{prefix}/kernel_gflops"] / figures[f"{prefix}/machine_gflops"]
+    )
     few = slice(0, 16)
     compiled, tensor = (
         _seconds(
@@ -85,7 +115,7 @@ def bench_render_compare(queries: int = 250, scenes: int = 2, crop: int = 56) ->
         )
         for engine in ("compiled", "torch")
     )
-    figures["bench/render_compare/compiled_score_speedup"] = tensor / compiled
+    figures[f"{prefix}/compiled_engine_speedup"] = tensor / compiled
     grid = model.grids[0]
     rays = torch.randn(20_000, 3)
     origins = torch.zeros(20_000, 3) + torch.tensor([0.0, 0.0, 1.4])
@@ -95,7 +125,7 @@ def bench_render_compare(queries: int = 250, scenes: int = 2, crop: int = 56) ->
             _seconds(lambda c=c: grid.composite(origins, rays, 48, 0.05, False, c))
             for c in (True, False)
         )
-    figures["bench/render_compare/compiled_render_speedup"] = slow / fast
+    figures[f"{prefix}/compiled_render_speedup"] = slow / fast
     figures["bench/deploy/render_compare/scene_model_bytes"] = sum(
         p.numel() * p.element_size() for p in model.parameters()
     )

@@ -105,10 +105,9 @@ class RenderCompareRefinement(L.Callback):
     ``step_from_val`` (``{"position": a, "orientation": b}``) sets the search's first steps
     from the teacher's typical error, so that the search covers it at every scene scale: on
     each validation run ``position_sigma_m`` = a × the teacher's median val position error
-    (m) and ``orientation_sigma_deg`` = b × its median val orientation error (deg), and the
-    gradient steps' translations grow by as much as the position step did over the
-    configured one (``gradient_position_scale``); applied at test (the refiner's own
-    settings where no validation ran; None: always those).
+    (m) and ``orientation_sigma_deg`` = b × its median val orientation error (deg), applied
+    at test (the refiner's own settings where no validation ran; None: always those). The
+    polish needs no scale: its Levenberg–Marquardt steps are invariant to the units.
 
     ``refiner`` holds RenderCompareRefiner's settings; ``feature_layers`` sets how many
     modules of the teacher backbone make the features of ``refiner.score=features``.
@@ -210,11 +209,9 @@ class RenderCompareRefinement(L.Callback):
         if self.step_from_val is None:
             return
         pos, rot = pose_errors(estimate.float(), truth.float())
-        position = float(self.step_from_val["position"] * pos.quantile(0.5))
         self.steps = {
-            "position_sigma_m": position,
+            "position_sigma_m": float(self.step_from_val["position"] * pos.quantile(0.5)),
             "orientation_sigma_deg": float(self.step_from_val["orientation"] * rot.quantile(0.5)),
-            "gradient_position_scale": position / float(self.setting("position_sigma_m")),
         }
 
     def refine(self, trainer: L.Trainer, pl_module: L.LightningModule, split: str) -> None:

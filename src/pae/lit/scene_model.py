@@ -17,7 +17,7 @@ from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import PoseEvaluation
 from pae.models.base import PoseRegressor
 from pae.models.scene_model import SceneModel
-from pae.refine.render_compare import compare_size, grey, zncc
+from pae.refine.render_images import compare_size, grey, zncc
 
 SCENE_MODEL_METHODS = ["teacher", "mean_pose"]
 MEAN_IMAGE_ROWS = 1024
