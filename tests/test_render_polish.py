@@ -98,3 +98,21 @@ def test_the_polish_never_lowers_a_score_and_moves_towards_the_truth() -> None:
     before_m, _ = pose_errors(start, truth)
     after_m, _ = pose_errors(after, truth)
     assert after_m.median() < 0.5 * before_m.median()
+
+
+def test_the_counted_work_is_the_candidates_and_steps_the_settings_ask_for() -> None:
+    """One level, no final rendering: per query the start, two rounds of hypotheses ×
+    candidates and the start again at the end are scored, against the same reference; each
+    hypothesis takes polish_steps steps over it."""
+    model, images, intrinsics, _, start = _oracle_queries(3)
+    scenes = torch.zeros(3, dtype=torch.long)
+    settings = {"resolution": 24, "levels": 1, "final_reference_size": 0, "reference_size": 16}
+    refiner = RenderCompareRefiner(
+        model, rounds=2, candidates=3, hypotheses=2, polish_steps=4, **settings
+    )
+    refiner(images, intrinsics, start, scenes)
+    level = refiner.pyramid(images, intrinsics, scenes)[-1]
+    valid = int(refiner.reference(start, level, 16).valid.sum())
+    assert refiner.work.score_points == valid * (1 + 2 * 2 * 3 + 1)
+    assert refiner.work.polish_point_steps == valid * 2 * 4
+    assert refiner.work.rendered_rays == 2 * 3 * 16 * 16

@@ -100,7 +100,9 @@ class RenderCompareRefinement(L.Callback):
     and applies the last choice at test (margin 0 and no floor where no validation ran).
     Beside each method's figures: ``accept_margin``, ``accept_score``, ``accepted_share``, the
     median position error of the accepted queries (refined) and of the rejected ones (kept at
-    the start), and ``ungated_pos_median_m`` (every refinement accepted).
+    the start), ``ungated_pos_median_m`` (every refinement accepted) and
+    ``worse_than_start_share`` (queries that end farther from the truth than the teacher's
+    estimate: a wrong basin).
 
     ``step_from_val`` (``{"position": a, "orientation": b}``) sets the search's first steps
     from the teacher's typical error, so that the search covers it at every scene scale: on
@@ -257,6 +259,7 @@ class RenderCompareRefinement(L.Callback):
             figures |= gate_figures(
                 f"{split}/{name}", (margin, floor), gated.accepted, pos, refined_pos
             )
+            figures[f"{split}/{name}/worse_than_start_share"] = (pos > start_pos).float().mean()
             if getattr(trainer, "log_dir", None) is not None:
                 path = Path(trainer.log_dir) / f"queries_{split}_{name}.csv"
                 names = [pl_module.scene_names[s] for s in outputs["scene"].tolist()]
