@@ -423,6 +423,70 @@ def test_checkpoints_remember_their_data(
     assert "test/student/pos_median_m" in run(compose_train(*student), tmp_path / "c")
 
 
+def test_checkpoints_remember_their_train_images(
+    teacher_run: Path,
+    compose_train,
+    tiny_root: Path,
+    tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Images rendered at the same poses with another seed are other data: the fingerprint
+    tells them apart, a checkpoint trained on the first refuses the second (naming both),
+    allow_other_data=true is said and recorded, and a checkpoint written before images were
+    fingerprinted loads with a warning line."""
+    from pae.checkpoints import DATA_FINGERPRINT_KEY
+
+    labels = [str(tiny_root / "labels" / f"all_{split}.csv") for split in ("train", "test")]
+    fingerprints = []
+    for seed in (0, 1):
+        root = tmp_path / f"seed{seed}"
+        synth = ["synth", str(root), "--poses", *labels, "--size", "32", "--seed", str(seed)]
+        assert pae_data(synth) == 0
+        data = instantiate(compose_train(f"data.root={root}").data)
+        data.setup()
+        fingerprints.append(data.fingerprint())
+    assert fingerprints[0]["train_poses_sha256"] == fingerprints[1]["train_poses_sha256"]
+    assert fingerprints[0]["train_images_sha256"] != fingerprints[1]["train_images_sha256"]
+
+    teacher_ckpt = teacher_run / "checkpoints" / "last.ckpt"
+    other = tmp_path / "seed1"
+    student = ("stage=student", f"teacher_ckpt={teacher_ckpt}", "student.max_epochs=0")
+    cfg = compose_train(*student, f"data.root={other}")
+    message = (
+        f"{teacher_ckpt}: trained on other train images than those of the data at {other} "
+        "(allow_other_data=true uses it anyway)"
+    )
+    with pytest.raises(CheckpointError, match=f"^{re.escape(message)}$"):
+        run(cfg, tmp_path / "refused")
+    cfg = compose_train(*student, f"data.root={other}", "allow_other_data=true")
+    with caplog.at_level("INFO"):
+        run(cfg, tmp_path / "allowed")
+    assert (
+        f"data: warning: allow_other_data=true: {teacher_ckpt} was trained on other train "
+        f"images than those of the data at {other}; used anyway"
+    ) in caplog.messages
+    written = json.loads((tmp_path / "allowed" / "metrics.json").read_text())
+    assert written["data/other_data_checkpoints"] == 1
+    assert "allow_other_data=true: 1 checkpoint(s) read were trained on other data" in (
+        format_results_table(written)
+    )
+
+    old = tmp_path / "old.ckpt"  # as pae wrote checkpoints before it hashed the images
+    checkpoint = read_checkpoint(teacher_ckpt)
+    del checkpoint[DATA_FINGERPRINT_KEY]["train_images_sha256"]
+    torch.save(checkpoint, old)
+    caplog.clear()
+    with caplog.at_level("INFO"):
+        metrics = run(
+            compose_train(*student[:1], f"teacher_ckpt={old}", student[2]), tmp_path / "c"
+        )
+    assert "test/student/pos_median_m" in metrics and "data/other_data_checkpoints" not in metrics
+    assert (
+        f"data: warning: {old} records no fingerprint of its train images (written before pae "
+        f"recorded one): its images are not checked against those of the data at {tiny_root}"
+    ) in caplog.messages
+
+
 def test_synth_into_a_used_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     small = ["--train-frames", "3", "--test-frames", "2", "--size", "16"]
     fresh, used = tmp_path / "fresh", tmp_path / "used"

@@ -153,7 +153,9 @@ def format_results_table(metrics: Mapping[str, float], split: str = "test") -> s
     """Paper-style table: median position / orientation error per method, overall and per scene.
 
     Rows of methods that retrieve among the evaluated split's own poses carry a ``*`` and a
-    footnote: they read the test labels. The geometry diagnostics follow the table.
+    footnote: they read the test labels. Footnotes also say which train scenes the split
+    lacks and, with allow_other_data=true, how many checkpoints were trained on other data.
+    The geometry diagnostics follow the table.
     """
     methods = table_methods(metrics, split)
     scenes = sorted(
@@ -189,6 +191,14 @@ def format_results_table(metrics: Mapping[str, float], split: str = "test") -> s
     if missing:
         lines.append(
             f"overall averages the scenes shown: {missing:g} train scene(s) have no {split} rows"
+        )
+    other_data = metrics.get("data/other_data_checkpoints")
+    if other_data is not None:
+        lines.append(
+            f"allow_other_data=true: {other_data:g} checkpoint(s) read were trained on other "
+            "data than these figures'"
+            if other_data
+            else "allow_other_data=true: every checkpoint read was trained on this data"
         )
     accuracy = metrics.get(f"{split}/teacher/scene_accuracy")
     if accuracy is not None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import lightning as L
@@ -144,6 +145,10 @@ class RayDataModule(L.LightningDataModule):
 
     def fingerprint(self) -> dict[str, Any]:
         return self.images.fingerprint()
+
+    @property
+    def root(self) -> Path:
+        return self.images.root
 
     def train_dataloader(self) -> DataLoader:
         dataset = self.images.datasets["train"]
