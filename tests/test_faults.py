@@ -236,6 +236,39 @@ def test_resume_falls_back_and_continues_a_longer_schedule(
     assert "teacher.max_epochs=3" in (run_dir / ".hydra" / "overrides.yaml").read_text()
 
 
+def test_a_resumed_scene_model_run_gives_the_figures_of_an_uninterrupted_one(
+    teacher_run: Path, compose_train, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every random draw of the scene-model step (ray batches, the samples' jitter) comes
+    from (seed, epoch, batch): a run stopped after its first epoch and resumed reports every
+    figure of a run that was never stopped (timings aside)."""
+    scene_model = (
+        "stage=render_compare",
+        f"teacher_ckpt={teacher_run / 'checkpoints' / 'last.ckpt'}",
+        "scene_model.max_epochs=2",
+        "scene_model.batches_per_epoch=2",
+        "scene_model.rays_per_batch=512",
+        "scene_model.model.num_voxels=4000",
+        "scene_model.image_size=16",
+        "render_compare.oracle=false",
+        "render_compare.refiner.rounds=1",
+        "render_compare.refiner.candidates=4",
+        "render_compare.refiner.gradient_steps=2",
+    )
+    whole = run(compose_train(*scene_model), tmp_path / "whole")
+    with monkeypatch.context() as patch:
+        interrupted_at(patch, 1)
+        with pytest.raises(RuntimeError, match="interrupted"):
+            run(compose_train(*scene_model), tmp_path / "resumed")
+    resumed = run(compose_train(*scene_model, "resume=true"), tmp_path / "resumed")
+
+    def figures(metrics: dict[str, float | int | str]) -> dict[str, float | int | str]:
+        return {key: value for key, value in metrics.items() if not key.startswith("bench/")}
+
+    assert "test/scene_model/psnr_db" in whole and "val/render_compare/pos_median_m" in whole
+    assert figures(resumed) == figures(whole)
+
+
 def test_resume_without_a_complete_checkpoint_says_so_and_clears_unfinished_files(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
