@@ -918,6 +918,35 @@ def test_a_full_disk_is_one_line_naming_the_device_and_the_file(
     ]
 
 
+def test_a_full_disk_under_tensorboard_is_one_line_naming_the_event_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """TensorBoard writes its event file from a thread of its own: a full disk there is no
+    thread traceback but the run's one-line error, naming the event file."""
+    from tensorboard.summary.writer.record_writer import RecordWriter
+    from torch.utils.tensorboard import SummaryWriter
+
+    from pae.atomic import device_of
+    from pae.reporting import reporting_errors
+
+    with reporting_errors("pae-train"):  # installs the writer threads' hook, as every run does
+        writer = SummaryWriter(str(tmp_path))
+    writer.flush()
+    (events,) = tmp_path.glob("events.out.tfevents.*")
+
+    def disk_full(self: RecordWriter, data: bytes) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(RecordWriter, "write", disk_full)
+    writer.add_scalar("train/loss", 1.0)
+    writer.file_writer.event_writer._async_writer._worker.join()  # the thread met the full disk
+    with pytest.raises(SystemExit), reporting_errors("pae-train"):
+        writer.add_scalar("train/loss", 2.0)
+    assert capsys.readouterr().err.splitlines() == [
+        f"pae-train: error: no space left on {device_of(events)} while writing {events}"
+    ]
+
+
 def test_a_missing_scene_is_named_with_the_scenes_present(tiny_root: Path) -> None:
     from hydra import compose, initialize_config_dir
 
