@@ -31,7 +31,7 @@ from pae.errors import CheckpointError, ConfigError, ImageError, LabelError, Lab
 from pae.reporting import format_results_table, sweep_report, sweep_table
 from pae.reporting import main as reporting_main
 from pae.train import run
-from tests.conftest import TINY, tiny_overrides
+from tests.conftest import TINY, tiny_data_overrides, tiny_overrides
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 
@@ -318,6 +318,31 @@ def test_resume_that_cannot_work_stops_before_the_run_dir_is_touched(
     assert len(error_lines(result.stderr)) == 1 and message in result.stderr
     assert {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()} == before
     assert not (tmp_path / "missing").exists()
+
+
+def test_pae_eval_into_a_training_run_names_what_pae_eval_can_do(
+    teacher_run: Path, tiny_root: Path, tmp_path: Path
+) -> None:
+    """pae-eval takes no resume=true: its refusal of a run directory with checkpoints says
+    to choose another directory, and touches nothing there."""
+    run_dir = copy_run(teacher_run, tmp_path)
+    before = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
+    student = f"student_ckpt={run_dir / 'checkpoints' / 'last.ckpt'}"
+    result = pae_command(
+        "evaluate",
+        *tiny_data_overrides(tiny_root),
+        student,
+        f"hydra.run.dir={run_dir}",
+        cwd=tmp_path,
+    )
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    assert error_lines(result.stderr) == [
+        f"pae-eval: error: hydra.run.dir={run_dir} already holds the checkpoints of a run "
+        f"({run_dir / 'checkpoints'}): pae-eval would write its metrics.json and .hydra/ over "
+        "that run's; choose another directory (the checkpoints are read from student_ckpt, "
+        "scene_model_ckpt, ...)"
+    ]
+    assert {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()} == before
 
 
 @pytest.mark.parametrize(
