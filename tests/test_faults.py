@@ -1138,6 +1138,27 @@ def test_intrinsics_are_checked_by_check_and_loaders(
             PoseDataModule(str(tiny_root), str(odd), str(test), camera=camera).setup()
 
 
+def test_val_sequences_as_many_as_a_scene_has_is_said_in_a_warning(
+    tiny_root: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """data.val_sequences=6 on scenes of six train sequences cannot hold out whole sequences:
+    the fallback to a row holdout is said in a warning line that names a sequence instead."""
+    from pae.data.datamodule import PoseDataModule
+
+    labels = [str(tiny_root / "labels" / f"all_{split}.csv") for split in ("train", "test")]
+    with caplog.at_level("INFO"):
+        PoseDataModule(str(tiny_root), *labels, crop=28, shorter_edge=32, val_sequences=6).setup()
+    assert (
+        "data: warning: data.val_sequences=6 holds out the last 6 train sequences of each "
+        "scene, but scene00, scene01 have no more than 6 (scene00: seq-01 to seq-06): they "
+        "hold out their last 10 % of rows instead (data.val_sequences=[seq-06] names a sequence)"
+    ) in caplog.messages
+    caplog.clear()
+    with caplog.at_level("INFO"):
+        PoseDataModule(str(tiny_root), *labels, crop=28, shorter_edge=32, val_sequences=5).setup()
+    assert not [line for line in caplog.messages if "warning" in line]
+
+
 def test_a_missing_scene_in_an_evaluated_split_is_said_and_recorded(
     compose_train, tiny_root: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -18,7 +18,7 @@ from torch.utils.data import DataLoader, WeightedRandomSampler
 from pae.data.camera import Intrinsics, centre_crop_origin, resized_size, scale_intrinsics
 from pae.data.dataset import PoseDataset, collate_batch
 from pae.data.fingerprint import images_sha256
-from pae.data.holdout import HeldOut, held_out_rows
+from pae.data.holdout import HeldOut, held_out_rows, scenes_short_of_sequences
 from pae.data.labels import LabelTable, focal_column_mismatch, focal_problems, read_labels
 from pae.data.transforms import ImageTransform, image_size
 from pae.errors import ConfigError, LabelError
@@ -155,6 +155,16 @@ class PoseDataModule(L.LightningDataModule):
             )
         self.tables["val"], self.tables["train"] = train.select(mask), train.select(~mask)
         rank_zero_info("validation split, held out of the train labels: " + "; ".join(held))
+        short = scenes_short_of_sequences(train, sequences)
+        if short:
+            scene, names = next(iter(short.items()))
+            instead = "nothing" if fraction is None else f"their last {100 * fraction:g} % of rows"
+            rank_zero_info(
+                f"data: warning: data.val_sequences={sequences} holds out the last {sequences} "
+                f"train sequences of each scene, but {', '.join(short)} have no more than "
+                f"{sequences} ({scene}: {names[0]} to {names[-1]}): they hold out {instead} "
+                f"instead (data.val_sequences=[{names[-1]}] names a sequence)"
+            )
 
     def _keep_scenes(self, table: LabelTable) -> LabelTable:
         if self.keep_scenes is None:
