@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import lightning as L
@@ -10,6 +12,7 @@ import torch.nn.functional as F
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
+from pae import streams
 from pae.data.camera import directions_through, scale_intrinsics
 from pae.data.datamodule import PoseDataModule
 from pae.geometry import quaternion_to_matrix
@@ -45,13 +48,17 @@ def fit_images(dataset: Any, intrinsics: Tensor, shorter_edge: int | None) -> tu
 
 
 class RayBatches(Dataset):
-    """``batches`` batches (items) of ``rays_per_batch`` random pixels of the train images, each
-    ``{"origins": [R, 3], "directions": [R, 3] (camera z = 1), "rgb": [R, 3] in [0, 1],
-    "scene": [R], "appearance": [R]}`` (drawn from torch's global generator, so seeded runs
-    repeat).
+    """Batches of ``rays_per_batch`` random pixels of the train images: item ``i`` is batch
+    ``n = epoch() × batches + i`` of the run (``epoch``: the epoch under way when the item is
+    read, e.g. the trainer's), drawn from a generator seeded with (``seed``, n) alone
+    (:mod:`pae.streams`), so a batch is the same whatever ran before it: a resumed run draws
+    what an uninterrupted one would, and under DDP each process its share. Each is ``{"origins":
+    [R, 3], "directions": [R, 3] (camera z = 1), "rgb": [R, 3] in [0, 1], "scene": [R],
+    "appearance": [R], "seed": int}``, ``seed`` the one for the draws rendering the batch
+    makes (its samples' jitter).
 
     images: uint8 [N, 3, H, W] as the dataset holds them; poses [N, 7]; intrinsics [N, 4] of
-    those images; scenes, appearance: ids [N].
+    those images; scenes, appearance: ids [N]; ``batches``: per epoch.
     """
 
     def __init__(
@@ -63,6 +70,8 @@ class RayBatches(Dataset):
         appearance: Tensor,
         rays_per_batch: int,
         batches: int,
+        seed: int = 0,
+        epoch: Callable[[], int] = lambda: 0,
     ) -> None:
         super().__init__()
         self.images = images
@@ -73,16 +82,20 @@ class RayBatches(Dataset):
         self.appearance = appearance
         self.rays_per_batch = rays_per_batch
         self.batches = batches
+        self.seed = seed
+        self.epoch = epoch
 
     def __len__(self) -> int:
         return self.batches
 
-    def __getitem__(self, index: int) -> dict[str, Tensor]:
-        """A random batch of rays (whatever ``index``)."""
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        """Batch ``index`` of the epoch under way."""
         n, _, h, w = self.images.shape
         r = self.rays_per_batch
-        row = torch.randint(n, (r,))
-        v, u = torch.randint(h, (r,)), torch.randint(w, (r,))
+        number = self.epoch() * self.batches + index
+        draws = streams.generator(self.seed, "rays", number)
+        row = torch.randint(n, (r,), generator=draws)
+        v, u = torch.randint(h, (r,), generator=draws), torch.randint(w, (r,), generator=draws)
         local = directions_through(u, v, self.intrinsics[row])
         return {
             "origins": self.positions[row],
@@ -90,15 +103,16 @@ class RayBatches(Dataset):
             "rgb": self.images[row, :, v, u].float() / 255.0,
             "scene": self.scenes[row],
             "appearance": self.appearance[row],
+            "seed": streams.derived_seed(self.seed, "render", number),
         }
 
 
 class RayDataModule(L.LightningDataModule):
-    """Training batches of train-image rays (:class:`RayBatches`) from the train images at
-    ``image_size`` px shorter edge (:func:`fit_images`; None: as the data holds them), each
-    ray keyed on its image's appearance ``appearance_per`` (``sequence`` or ``image``,
-    :meth:`PoseDataModule.appearance_ids`); validation and test batches are the wrapped
-    PoseDataModule's images (queries for render-and-compare)."""
+    """Training batches of train-image rays (:class:`RayBatches`, drawn from ``seed``) from
+    the train images at ``image_size`` px shorter edge (:func:`fit_images`; None: as the data
+    holds them), each ray keyed on its image's appearance ``appearance_per`` (``sequence`` or
+    ``image``, :meth:`PoseDataModule.appearance_ids`); validation and test batches are the
+    wrapped PoseDataModule's images (queries for render-and-compare)."""
 
     def __init__(
         self,
@@ -107,9 +121,11 @@ class RayDataModule(L.LightningDataModule):
         batches_per_epoch: int,
         image_size: int | None = None,
         appearance_per: str = "sequence",
+        seed: int = 0,
     ) -> None:
         super().__init__()
         self.images = images
+        self.seed = seed
         self.rays_per_batch = rays_per_batch
         self.batches_per_epoch = batches_per_epoch
         self.image_size = image_size
@@ -145,6 +161,10 @@ class RayDataModule(L.LightningDataModule):
     def fingerprint(self) -> dict[str, Any]:
         return self.images.fingerprint()
 
+    @property
+    def root(self) -> Path:
+        return self.images.root
+
     def train_dataloader(self) -> DataLoader:
         dataset = self.images.datasets["train"]
         appearance, _ = self.images.appearance_ids("train", self.appearance_per)
@@ -158,8 +178,14 @@ class RayDataModule(L.LightningDataModule):
             appearance,
             self.rays_per_batch,
             self.batches_per_epoch,
+            self.seed,
+            self._epoch,
         )
         return DataLoader(rays, batch_size=None)
+
+    def _epoch(self) -> int:
+        """The training epoch under way (0 without a trainer)."""
+        return self.trainer.current_epoch if self.trainer is not None else 0
 
     def val_dataloader(self) -> DataLoader:
         return self.images.val_dataloader()

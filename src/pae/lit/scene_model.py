@@ -18,6 +18,7 @@ from pae.lit.evaluation import PoseEvaluation
 from pae.models.base import PoseRegressor
 from pae.models.scene_model import SceneModel
 from pae.refine.render_images import compare_size, grey, zncc
+from pae.streams import seeded_global
 
 SCENE_MODEL_METHODS = ["teacher", "mean_pose"]
 MEAN_IMAGE_ROWS = 1024
@@ -41,7 +42,8 @@ def grey_zncc(rendered: Tensor, target: Tensor) -> Tensor:
 
 
 class SceneModelModule(PaeModule):
-    """Trains ``scene_model`` (when it has parameters) on ray batches: the mean squared error
+    """Trains ``scene_model`` (when it has parameters) on ray batches (pae.data.rays: each
+    with the seed its rendering draws from): the mean squared error
     of its renderings, as each ray's train image's appearance saw them, plus ``tv_weight``
     times its total variation. ``fit_trim``: from epoch ``fit_trim_from_epoch`` (0-based) on,
     the share of each batch's rays with the largest errors left out of the mean (what the
@@ -110,10 +112,11 @@ class SceneModelModule(PaeModule):
         rest = [p for p in self.scene_model.parameters() if p not in codes]
         return [{"params": rest}, {"params": list(codes), "lr": self.appearance_lr}]
 
-    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
-        rgb, _, _ = self.scene_model.render_rays(
-            batch["origins"], batch["directions"], batch["scene"], jitter=True
-        )
+    def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor:
+        with seeded_global(batch["seed"], self.device):  # the samples' jitter: the batch's own
+            rgb, _, _ = self.scene_model.render_rays(
+                batch["origins"], batch["directions"], batch["scene"], jitter=True
+            )
         rgb = self.scene_model.with_appearance(rgb, batch["appearance"])
         errors = (rgb - batch["rgb"]).square().mean(1)  # [R]
         mse = errors.mean()

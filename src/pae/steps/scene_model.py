@@ -132,6 +132,7 @@ def fit_scene_model(
         settings.batches_per_epoch,
         settings.image_size,
         settings.appearance,
+        cfg.seed,
     )
     module = SceneModelModule(
         scene_model,
