@@ -6,7 +6,6 @@ import dataclasses
 import json
 import math
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -327,38 +326,89 @@ def test_fit_images_are_resized_with_their_intrinsics(tiny_root: Path) -> None:
     assert torch.equal(unscaled, intrinsics)
 
 
-def test_bounds_come_from_the_train_cameras_only(tiny_root: Path) -> None:
-    from pae.data.datamodule import PoseDataModule
-    from pae.steps.scene_model import camera_extent_m, train_scale
+POISON_M = 1000.0
+"""How far (m) the poisoned validation and test rows are moved."""
+MAGENTA = (255, 0, 255)
+"""The colour of every poisoned validation and test image."""
 
-    data = PoseDataModule(
-        str(tiny_root),
-        str(tiny_root / "labels" / "all_train.csv"),
-        str(tiny_root / "labels" / "all_test.csv"),
-        shorter_edge=TINY["size"],
-        crop=28,
+
+@pytest.fixture(scope="module")
+def poisoned_root(tiny_root: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The tiny benchmark with its validation rows (the held-out train sequences) and test
+    rows moved ``POISON_M`` away and their images magenta: what reads them shows it."""
+    import shutil
+
+    from PIL import Image
+
+    from pae.data.holdout import held_out_rows
+    from pae.data.labels import read_labels, write_labels
+
+    root = tmp_path_factory.mktemp("poisoned") / "data"
+    shutil.copytree(tiny_root, root)
+    for split in ("train", "test"):
+        path = root / "labels" / f"all_{split}.csv"
+        table = read_labels(path)
+        rows = np.ones(len(table), bool) if split == "test" else held_out_rows(table, 1, 0.1)[0]
+        poses = table.poses.copy()
+        poses[rows, :3] += POISON_M
+        write_labels(path, dataclasses.replace(table, poses=poses))
+        for i in np.flatnonzero(rows).tolist():
+            image = Image.open(root / table.img_path[i])
+            Image.new("RGB", image.size, MAGENTA).save(root / table.img_path[i])
+    return root
+
+
+def _poisoned_data(root: Path) -> SyntheticDataModule:
+    data = SyntheticDataModule(
+        root=str(root), **TINY, crop=28, shorter_edge=TINY["size"], cache_images=True
     )
     data.setup()
-    poses, scenes = data.train_poses()
-    auto = SimpleNamespace(margin_floor_m=0.1, margin_fraction=0.5, contract_above_m=1e6)
-    fixed = train_scale(data, {"margin_m": [1.0, 2.0, 0.5], "contract": "auto"}, auto)
-    automatic = train_scale(data, {"margin_m": "auto", "contract": False}, auto)
-    assert fixed["contract"] is False and "margin_m" not in fixed
-    for s in range(data.n_scenes):
-        positions = poses[scenes == s, :3].double()
+    return data
+
+
+def test_bounds_come_from_the_train_cameras_only(poisoned_root: Path) -> None:
+    """The grid's bounds are the clean train rows' positions plus the margin, read from the
+    label file here; a validation or test row read would move them by POISON_M."""
+    from pae.data.labels import read_labels
+    from pae.models.scene_model import SceneModelInputs
+    from pae.models.voxel_grid import camera_extent_m
+
+    data = _poisoned_data(poisoned_root)
+    table = read_labels(poisoned_root / "labels" / "all_train.csv")
+    clean = np.abs(table.poses[:, :3]).max(1) < POISON_M / 2
+    inputs = SceneModelInputs(data, "sequence", lambda key: None)
+    auto = {"margin_floor_m": 0.1, "margin_fraction": 0.5, "contract_above_m": 1e6}
+    _, fixed = VoxelGridSceneModel.build(
+        {"margin_m": [1.0, 2.0, 0.5], "contract": "auto", "auto_scale": auto, "num_voxels": 512},
+        inputs,
+    )
+    _, automatic = VoxelGridSceneModel.build(
+        {"margin_m": "auto", "contract": False, "auto_scale": auto, "num_voxels": 512}, inputs
+    )
+    assert fixed["contract"] is False and "margin_m" not in fixed and "auto_scale" not in fixed
+    assert fixed["n_appearances"] == len(
+        {(s, q) for s, q, c in zip(table.scene, table.seq, clean, strict=True) if c}
+    )
+    for s, name in enumerate(data.scene_names):
+        rows = clean & (np.asarray(table.scene) == name)
+        positions = torch.from_numpy(table.poses[rows, :3])
+        extent = torch.tensor(max(0.1, 0.5 * camera_extent_m(positions))).double()
         for config, margin in (
             (fixed, torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64)),
-            (automatic, torch.tensor(max(0.1, 0.5 * camera_extent_m(positions))).double()),
+            (automatic, extent),
         ):
             bounds = torch.tensor(config["bounds"][s], dtype=torch.float64)
             torch.testing.assert_close(bounds[0], positions.min(0).values - margin)
             torch.testing.assert_close(bounds[1], positions.max(0).values + margin)
-    street = SimpleNamespace(margin_floor_m=0.1, margin_fraction=0.5, contract_above_m=0.0)
-    assert train_scale(data, {"margin_m": 1.0, "contract": "auto"}, street)["contract"] is True
+    street = {**auto, "contract_above_m": 0.0}
+    _, contracted = VoxelGridSceneModel.build(
+        {"margin_m": 1.0, "contract": "auto", "auto_scale": street, "num_voxels": 512}, inputs
+    )
+    assert contracted["contract"] is True
 
 
 def test_camera_extent_ignores_a_few_stray_frames() -> None:
-    from pae.steps.scene_model import camera_extent_m
+    from pae.models.voxel_grid import camera_extent_m
 
     positions = torch.zeros(200, 3)
     positions[:, 0] = torch.linspace(0, 4, 200)
@@ -366,20 +416,31 @@ def test_camera_extent_ignores_a_few_stray_frames() -> None:
     assert camera_extent_m(positions) == pytest.approx(4.0, abs=0.2)
 
 
-def test_scene_model_rays_come_from_the_train_images_only(tiny_root: Path) -> None:
+def test_scene_model_rays_come_from_the_train_images_only(poisoned_root: Path) -> None:
+    """Every ray starts at a clean train camera, runs through one of its pixels and carries
+    that pixel's colour; a validation or test row read would start POISON_M away or be
+    magenta."""
+    from pae.data.camera import camera_rays
     from pae.data.rays import RayDataModule
 
-    data = SyntheticDataModule(
-        root=str(tiny_root), **TINY, crop=28, shorter_edge=TINY["size"], cache_images=True
-    )
-    data.setup()
-    data.datasets["test"].poses.fill_(float("nan"))  # a test pose read would show up
+    data = _poisoned_data(poisoned_root)
     rays = RayDataModule(data, rays_per_batch=512, batches_per_epoch=2)
     batch = next(iter(rays.train_dataloader()))
-    train_positions = data.datasets["train"].poses[:, :3]
-    nearest = (batch["origins"][:, None] - train_positions[None]).norm(dim=-1).min(1).values
-    assert torch.isfinite(batch["directions"]).all()
-    assert nearest.max() < 1e-6
+    train = data.datasets["train"]
+    assert (train.poses[:, :3].abs().amax(1) < POISON_M / 2).all()
+    images = train.__getitems__(list(range(len(train))))["image"]
+    h, w = images.shape[-2:]
+    _, directions = camera_rays(train.poses, data.intrinsics("train", crop=False), w, h)
+    row = (batch["origins"][:, None] - train.poses[None, :, :3]).norm(dim=-1).argmin(1)
+    assert torch.allclose(batch["origins"], train.poses[row, :3])
+    unit = directions[row] / directions[row].norm(dim=-1, keepdim=True)
+    ray = batch["directions"] / batch["directions"].norm(dim=-1, keepdim=True)
+    pixel = (unit * ray[:, None]).sum(-1).argmax(1)  # the pixel whose ray it is
+    torch.testing.assert_close(batch["directions"], directions[row, pixel], atol=1e-5, rtol=0)
+    colours = images[row].flatten(2)[torch.arange(len(row)), :, pixel].float() / 255
+    torch.testing.assert_close(batch["rgb"], colours)
+    magenta = torch.tensor(MAGENTA) / 255
+    assert not (batch["rgb"] == magenta).all(1).any()
 
 
 def test_render_compare_step_logs_its_rows_and_marks_the_oracle(
@@ -655,8 +716,6 @@ def test_the_trimmed_fit_leaves_the_worst_explained_rays_out() -> None:
         errors = (rgb - colours).square().mean(1)
     assert losses[0.25] == pytest.approx(errors.sort().values[:48].mean().item(), rel=1e-5)
     assert losses[0.25] < 0.5 * losses[0.0]
-    with pytest.raises(ValueError, match="fit_trim"):
-        _fit_module(fit_trim=1.0)
 
 
 def test_the_appearance_codes_get_their_own_learning_rate() -> None:

@@ -12,7 +12,6 @@ from torch import Tensor, nn
 
 from pae.data.camera import scale_intrinsics
 from pae.data.transforms import ImageTransform
-from pae.errors import ConfigError
 from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import PoseEvaluation
 from pae.models.base import PoseRegressor
@@ -80,8 +79,6 @@ class SceneModelModule(PaeModule):
         self.teacher = teacher.eval().requires_grad_(False)
         self.scene_names = list(scene_names)
         self.tv_weight = tv_weight
-        if not 0.0 <= fit_trim < 1.0:
-            raise ConfigError(f"scene_model.fit_trim must be in [0, 1), got {fit_trim}")
         self.fit_trim = fit_trim
         self.fit_trim_from_epoch = fit_trim_from_epoch
         self.appearance_lr = appearance_lr

@@ -11,14 +11,18 @@ evenly in inverse depth out to ``far_factor`` times the bounds' size.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import torch
 import torch.nn.functional as F
+from omegaconf import DictConfig, ListConfig
 from torch import Tensor, nn
 
+from pae.config_checks import boolean, integer, is_int, number, setting
 from pae.data.camera import camera_rays
-from pae.models.scene_model import SceneModel, SceneRendering
+from pae.errors import ConfigError
+from pae.models.scene_model import SceneModel, SceneModelInputs, SceneRendering
 from pae.models.voxel_render import CompiledComposite
 
 _EPS = 1e-9
@@ -37,6 +41,41 @@ def camera_bounds(positions: Tensor, margin_m: float | Sequence[float]) -> Tenso
     margin = torch.as_tensor(margin_m, dtype=torch.float64).expand(3)
     positions = positions.double()
     return torch.stack([positions.min(0).values - margin, positions.max(0).values + margin])
+
+
+def camera_extent_m(positions: Tensor) -> float:
+    """The largest side (m) of the box holding the middle 96 % of camera positions [N, 3]
+    along each axis: the camera region's size, robust to a few stray frames."""
+    if len(positions) < 2:
+        return 0.0
+    q = torch.tensor([0.02, 0.98], dtype=torch.float64)
+    spread = positions.double().quantile(q, dim=0)
+    return float((spread[1] - spread[0]).max())
+
+
+def train_scale(
+    poses: Tensor, scenes: Tensor, n_scenes: int, config: Mapping[str, Any]
+) -> dict[str, Any]:
+    """The grid's bounds and contraction from the train cameras alone (poses [N, 7] of scene
+    ids [N]; never the scene's geometry): per scene the camera positions' bounds plus
+    ``margin_m``, and ``contract``. ``margin_m: auto`` is ``max(auto_scale.margin_floor_m,
+    auto_scale.margin_fraction × extent)`` per scene (extent: :func:`camera_extent_m`);
+    ``contract: auto`` contracts space when some scene's extent exceeds
+    ``auto_scale.contract_above_m`` (a street, not a room). Returns ``config`` with ``bounds``
+    and ``contract`` set, and ``margin_m`` and ``auto_scale`` gone."""
+    positions = [poses[scenes == s, :3] for s in range(n_scenes)]
+    extents = [camera_extent_m(p) for p in positions]
+    config = dict(config)
+    margin, auto = config.pop("margin_m"), config.pop("auto_scale")
+    if margin == "auto":
+        margins = [max(auto["margin_floor_m"], auto["margin_fraction"] * e) for e in extents]
+    else:
+        margins = [margin] * len(positions)
+    if config.get("contract") == "auto":
+        config["contract"] = max(extents, default=0.0) > auto["contract_above_m"]
+    pairs = zip(positions, margins, strict=True)
+    config["bounds"] = [camera_bounds(p, m).tolist() for p, m in pairs]
+    return config
 
 
 class VoxelGrid(nn.Module):
@@ -174,10 +213,15 @@ class VoxelGridSceneModel(SceneModel):
 
     bounds: per scene [2, 3] (lo, hi) in metres; n_appearances: the train sequences over all
     scenes; num_voxels: per scene; samples_per_ray: stratified samples; near_m: the nearest
-    depth rendered.
+    depth rendered. Built by the scene_model step from the train cameras (:func:`train_scale`:
+    its config's ``margin_m``, ``auto_scale`` and ``contract: auto``) and the train images'
+    appearance ids.
     """
 
     has_depth = True
+    trains = True
+    from_run = ("bounds", "n_appearances")
+    build_keys = ("margin_m", "auto_scale", "contract")
 
     def __init__(
         self,
@@ -196,6 +240,38 @@ class VoxelGridSceneModel(SceneModel):
         self.samples_per_ray = samples_per_ray
         self.near_m = near_m
         self.chunk_rays = chunk_rays
+
+    @classmethod
+    def check_config(cls, cfg: DictConfig, key: str) -> None:
+        """num_voxels >= 8, samples_per_ray >= 1, contract true, false or auto, margin_m auto,
+        one number >= 0 or three, auto_scale's numbers >= 0."""
+        integer(cfg, f"{key}.num_voxels", 8)
+        integer(cfg, f"{key}.samples_per_ray", 1)
+        number(cfg, f"{key}.near_m", 0, strict=False)
+        if setting(cfg, f"{key}.contract") != "auto":
+            boolean(cfg, f"{key}.contract")
+        for name in ("margin_floor_m", "margin_fraction", "contract_above_m"):
+            number(cfg, f"{key}.auto_scale.{name}", 0, strict=False)
+        margin = setting(cfg, f"{key}.margin_m")
+        values = list(margin) if isinstance(margin, ListConfig) else [margin]
+        if margin != "auto" and (
+            len(values) not in (1, 3)
+            or not all((is_int(v) or isinstance(v, float)) and v >= 0 for v in values)
+        ):
+            raise ConfigError(
+                f"{key}.margin_m must be auto, one number >= 0 or three, got {margin!r}"
+            )
+
+    @classmethod
+    def build(
+        cls, config: dict[str, Any], inputs: SceneModelInputs
+    ) -> tuple[SceneModel, dict[str, Any] | None]:
+        """Bounds from the train cameras, one appearance code per train sequence or image."""
+        data = inputs.data
+        poses, scenes = data.train_poses()
+        config = train_scale(poses, scenes, data.n_scenes, config)
+        _, config["n_appearances"] = data.appearance_ids("train", inputs.appearance)
+        return cls(**config), config
 
     def render_rays(
         self, origins: Tensor, directions: Tensor, scenes: Tensor, jitter: bool = False
