@@ -193,7 +193,7 @@ def test_refinement_against_the_true_scene_moves_estimates_towards_the_truth() -
     before, _ = pose_errors(start, truth)
     after, _ = pose_errors(result.poses, truth)
     assert after.median() < 0.6 * before.median()
-    assert (result.score >= result.initial_score).all()
+    assert (result.score > result.initial_score).float().mean() >= 0.8
 
 
 def test_batched_search_equals_a_per_query_search_for_a_fixed_seed() -> None:
@@ -470,9 +470,20 @@ def test_render_compare_step_logs_its_rows_and_marks_the_oracle(
         cfg = compose("train", overrides=overrides)
     metrics = run(cfg, tmp_path)
     for method in ("render_compare", "render_compare_oracle"):
-        assert math.isfinite(metrics[f"test/{method}/pos_median_m"])
-        assert 0 <= metrics[f"test/{method}/within_10cm_10deg"] <= 1
-        assert 0 <= metrics[f"test/{method}/accepted_share"] <= 1
+        # the figures are those of the per-query records: the gate's pose where accepted,
+        # the start elsewhere
+        (path,) = tmp_path.rglob(f"queries_test_{method}.csv")
+        rows = np.genfromtxt(path, delimiter=",", names=True, dtype=None, encoding="utf-8")
+        accepted = rows["accepted"] == 1
+        pos = np.where(accepted, rows["refined_pos_m"], rows["start_pos_m"])
+        rot = np.where(accepted, rows["refined_rot_deg"], rows["start_rot_deg"])
+        for scene in ("scene00", "scene01"):  # figures per scene (the CSV rounds to 1e-5)
+            rows_of = rows["scene"] == scene
+            figure = metrics[f"test/{method}/{scene}/pos_median_m"]
+            assert figure == pytest.approx(np.median(pos[rows_of]), abs=1e-5)
+            within = np.mean((pos[rows_of] <= 0.1) & (rot[rows_of] <= 10.0))
+            assert metrics[f"test/{method}/{scene}/within_10cm_10deg"] == pytest.approx(within)
+        assert metrics[f"test/{method}/accepted_share"] == pytest.approx(accepted.mean())
         # the margin applied at test is the one chosen on the last validation run
         assert metrics[f"test/{method}/accept_margin"] == metrics[f"val/{method}/accept_margin"]
     assert "test/scene_model/psnr_db" in metrics
