@@ -123,7 +123,7 @@ def _one_box_scene() -> SyntheticScene:
 def test_a_grid_fitted_to_a_one_box_scene_renders_an_unseen_view() -> None:
     """Trained on 48 views of a one-box room, the grid renders a view between them well
     above what the mean train image explains (PSNR after a per-image gain and bias fit)."""
-    from pae.lit.scene_model import fitted_psnr_db
+    from pae.callbacks.scene_quality import fitted_psnr_db
 
     scene = _one_box_scene()
     size = 24

@@ -12,6 +12,7 @@ import torch
 from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from pae.callbacks.scene_quality import SceneModelQuality
 from pae.checkpoints import LoadedModel, load_decoder, load_pae, load_scene_model, load_teacher
 from pae.data.rays import RayDataModule
 from pae.errors import ConfigError
@@ -108,11 +109,9 @@ def fit_scene_model(
         fit_trim=settings.fit_trim,
         fit_trim_from_epoch=settings.fit_trim_from_epoch,
         appearance_lr=settings.appearance_lr,
-        quality_size=settings.quality_size,
-        quality_images=settings.quality_images,
         query_width=callback.query_width,
     )
-    callbacks = [callback]
+    callbacks = [callback, SceneModelQuality(settings.quality_size, settings.quality_images)]
     if scene_model.trains:  # max_epochs=0: saved untrained
         metrics, last = fit_and_test(
             cfg, step_dir, "scene_model", module, data, settings.max_epochs, callbacks
@@ -141,7 +140,8 @@ def evaluate_scene_model(
         configs={"teacher_config": teacher.config, "scene_model_config": loaded.config},
         query_width=callback.query_width,
     )
-    trainer = build_trainer(cfg, run_dir / "render_compare", 0, [callback])
+    callbacks = [callback, SceneModelQuality()]
+    trainer = build_trainer(cfg, run_dir / "render_compare", 0, callbacks)
     metrics = validate_and_test(trainer, module, data)
     metrics |= collect_metrics(trainer, ("bench/",))
     log_hparams(trainer, cfg, metrics)
