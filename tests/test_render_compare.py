@@ -421,11 +421,11 @@ def test_scene_model_rays_come_from_the_train_images_only(poisoned_root: Path) -
     that pixel's colour; a validation or test row read would start POISON_M away or be
     magenta."""
     from pae.data.camera import camera_rays
-    from pae.data.rays import RayDataModule
+    from pae.data.rays import RayLoader
 
     data = _poisoned_data(poisoned_root)
-    rays = RayDataModule(data, rays_per_batch=512, batches_per_epoch=2)
-    batch = next(iter(rays.train_dataloader()))
+    data.train_batches = RayLoader(rays_per_batch=512, batches=2)
+    batch = next(iter(data.train_dataloader()))
     train = data.datasets["train"]
     assert (train.poses[:, :3].abs().amax(1) < POISON_M / 2).all()
     images = train.__getitems__(list(range(len(train))))["image"]

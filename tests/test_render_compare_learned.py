@@ -12,7 +12,7 @@ import torch
 from omegaconf import OmegaConf
 
 from pae import CONFIG_DIR
-from pae.data.rays import RayDataModule
+from pae.data.rays import RayLoader
 from pae.data.synthetic import write_synthetic_dataset
 from pae.data.synthetic_datamodule import SyntheticDataModule
 from pae.data.transforms import ImageTransform
@@ -66,7 +66,8 @@ def test_a_learned_grid_halves_the_start_error_on_unseen_views(tmp_path: Path) -
         enable_model_summary=False,
         limit_val_batches=0,
     )
-    trainer.fit(module, datamodule=RayDataModule(data, 2048, 40))
+    data.train_batches = RayLoader(rays_per_batch=2048, batches=40)
+    trainer.fit(module, datamodule=data)
 
     test = data.datasets["test"]
     batch = test.__getitems__(list(range(len(test))))

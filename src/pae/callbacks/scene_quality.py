@@ -69,7 +69,7 @@ class SceneModelQuality(L.Callback):
 
     def _start(self, trainer: L.Trainer, split: str) -> None:
         self._figures, self._gallery = [], []
-        data = getattr(trainer.datamodule, "images", trainer.datamodule)
+        data = trainer.datamodule
         self._intrinsics = data.intrinsics(split)
         if self.mean_image is None:
             self.mean_image = mean_train_image(data, self.size)

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
-import lightning as L
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -93,62 +93,24 @@ class RayBatches(Dataset):
         }
 
 
-class RayDataModule(L.LightningDataModule):
-    """Training batches of train-image rays (:class:`RayBatches`) from the train images at
+@dataclass(frozen=True)
+class RayLoader:
+    """A scene model's train batches, as a PoseDataModule's ``train_batches``: ``batches``
+    batches of ``rays_per_batch`` random pixels (:class:`RayBatches`) of the train images at
     ``image_size`` px shorter edge (:func:`fit_images`; None: as the data holds them), each
-    ray keyed on its image's appearance ``appearance_per`` (``sequence`` or ``image``,
-    :meth:`PoseDataModule.appearance_ids`); validation and test batches are the wrapped
-    PoseDataModule's images (queries for render-and-compare)."""
+    ray keyed on its image's appearance ``appearance`` (``sequence`` or ``image``,
+    :meth:`PoseDataModule.appearance_ids`)."""
 
-    def __init__(
-        self,
-        images: PoseDataModule,
-        rays_per_batch: int,
-        batches_per_epoch: int,
-        image_size: int | None = None,
-        appearance_per: str = "sequence",
-    ) -> None:
-        super().__init__()
-        self.images = images
-        self.rays_per_batch = rays_per_batch
-        self.batches_per_epoch = batches_per_epoch
-        self.image_size = image_size
-        self.appearance_per = appearance_per
+    rays_per_batch: int
+    batches: int
+    image_size: int | None = None
+    appearance: str = "sequence"
 
-    def setup(self, stage: str | None = None) -> None:
-        self.images.setup(stage)
-
-    @property
-    def scene_names(self) -> list[str]:
-        return self.images.scene_names
-
-    @property
-    def n_scenes(self) -> int:
-        return self.images.n_scenes
-
-    @property
-    def datasets(self) -> dict[str, Any]:
-        return self.images.datasets
-
-    def intrinsics(self, split: str, crop: bool = True) -> Tensor:
-        return self.images.intrinsics(split, crop)
-
-    def preprocess(self, images: Tensor, train: bool) -> Tensor:
-        return self.images.preprocess(images, train)
-
-    def scenes_without_rows(self, split: str) -> list[str]:
-        return self.images.scenes_without_rows(split)
-
-    def train_poses(self) -> tuple[Tensor, Tensor]:
-        return self.images.train_poses()
-
-    def fingerprint(self) -> dict[str, Any]:
-        return self.images.fingerprint()
-
-    def train_dataloader(self) -> DataLoader:
-        dataset = self.images.datasets["train"]
-        appearance, _ = self.images.appearance_ids("train", self.appearance_per)
-        intrinsics = self.images.intrinsics("train", crop=False)
+    def __call__(self, data: PoseDataModule) -> DataLoader:
+        """The loader of ray batches from ``data``'s train split."""
+        dataset = data.datasets["train"]
+        appearance, _ = data.appearance_ids("train", self.appearance)
+        intrinsics = data.intrinsics("train", crop=False)
         images, intrinsics = fit_images(dataset, intrinsics, self.image_size)
         rays = RayBatches(
             images,
@@ -157,17 +119,6 @@ class RayDataModule(L.LightningDataModule):
             dataset.scenes,
             appearance,
             self.rays_per_batch,
-            self.batches_per_epoch,
+            self.batches,
         )
         return DataLoader(rays, batch_size=None)
-
-    def val_dataloader(self) -> DataLoader:
-        return self.images.val_dataloader()
-
-    def test_dataloader(self) -> DataLoader:
-        return self.images.test_dataloader()
-
-    def on_after_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
-        if isinstance(batch, dict) and batch.get("image") is not None:
-            batch = {**batch, "image": self.images.preprocess(batch["image"], train=False)}
-        return batch

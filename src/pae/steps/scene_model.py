@@ -14,7 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pae.callbacks.scene_quality import SceneModelQuality
 from pae.checkpoints import LoadedModel, load_decoder, load_pae, load_scene_model, load_teacher
-from pae.data.rays import RayDataModule
+from pae.data.rays import RayLoader
 from pae.errors import ConfigError
 from pae.lit.scene_model import SceneModelModule
 from pae.models.scene_model import SceneModel, SceneModelInputs
@@ -92,8 +92,7 @@ def fit_scene_model(
     scene_model, configs = build_scene_model(cfg, images, checkpoints)
     settings = cfg.scene_model
     callback = render_compare_callback(cfg)
-    data = RayDataModule(
-        images,
+    images.train_batches = RayLoader(
         settings.rays_per_batch,
         settings.batches_per_epoch,
         settings.image_size,
@@ -114,11 +113,11 @@ def fit_scene_model(
     callbacks = [callback, SceneModelQuality(settings.quality_size, settings.quality_images)]
     if scene_model.trains:  # max_epochs=0: saved untrained
         metrics, last = fit_and_test(
-            cfg, step_dir, "scene_model", module, data, settings.max_epochs, callbacks
+            cfg, step_dir, "scene_model", module, images, settings.max_epochs, callbacks
         )
         return metrics | collect_metrics(module.trainer, ("bench/render_compare",)), last
     trainer = build_trainer(cfg, step_dir, 0, callbacks, step="scene_model")
-    metrics = validate_and_test(trainer, module, data)
+    metrics = validate_and_test(trainer, module, images)
     metrics |= collect_metrics(trainer, ("bench/",))
     log_hparams(trainer, cfg, metrics)
     return metrics, None
