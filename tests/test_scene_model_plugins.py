@@ -122,7 +122,6 @@ def test_a_scene_model_in_its_own_module_and_config_trains_and_refines(
             ("scene_model.model.num_voxels=4",),
             "scene_model.model.num_voxels must be an integer >= 8",
         ),
-        (("scene_model.fit_trim=1.0",), "scene_model.fit_trim must be a number in [0, 1)"),
         (("scene_model.model.margin_m=-1",), "scene_model.model.margin_m must be auto, one number"),
     ],
 )

@@ -119,16 +119,7 @@ class SceneModelQuality(L.Callback):
     ) -> None:
         self._measure(pl_module, batch)
 
-    def on_test_batch_end(
-        self,
-        trainer: L.Trainer,
-        pl_module: L.LightningModule,
-        outputs: Any,
-        batch: dict[str, Tensor],
-        batch_idx: int,
-        dataloader_idx: int = 0,
-    ) -> None:
-        self._measure(pl_module, batch)
+    on_test_batch_end = on_validation_batch_end
 
     def _log(self, trainer: L.Trainer, pl_module: L.LightningModule, split: str) -> None:
         if not self._figures:
