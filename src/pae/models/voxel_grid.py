@@ -14,6 +14,7 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from omegaconf import DictConfig, ListConfig
@@ -23,7 +24,7 @@ from pae.config_checks import boolean, integer, is_int, number, setting
 from pae.data.camera import camera_rays
 from pae.errors import ConfigError
 from pae.models.scene_model import SceneModel, SceneModelInputs, SceneRendering
-from pae.models.voxel_render import CompiledComposite
+from pae.models.voxel_render import CompiledComposite, GridGeometry, RaySegments
 
 _EPS = 1e-9
 
@@ -116,10 +117,10 @@ class VoxelGrid(nn.Module):
         contracted = torch.where(norm <= 1, unit, (2 - 1 / norm) * unit / norm)
         return contracted / 2
 
-    def ray_bounds(self, origins: Tensor, directions: Tensor, near_m: float) -> Tensor:
-        """Rays [R, 3] -> [R, 9]: origin, direction, and the depths where sampling starts
-        (``near_m`` or where the ray enters the bounds), where it leaves the bounds, and
-        where it ends (contracted grids: ``far_m`` beyond the bounds; else where it leaves)."""
+    def ray_bounds(self, origins: Tensor, directions: Tensor, near_m: float) -> RaySegments:
+        """Rays [R, 3] -> their segments: the depths where sampling starts (``near_m`` or
+        where the ray enters the bounds), where it leaves the bounds, and where it ends
+        (contracted grids: ``far_m`` beyond the bounds; else where it leaves)."""
         safe = torch.where(directions.abs() < _EPS, torch.full_like(directions, _EPS), directions)
         t_lo, t_hi = (self.lo - origins) / safe, (self.hi - origins) / safe
         enter = torch.minimum(t_lo, t_hi).amax(-1)
@@ -128,16 +129,16 @@ class VoxelGrid(nn.Module):
         near = torch.maximum(enter, near_m / norm)
         leave = torch.maximum(leave, near)
         far = leave + self.far_m / norm if self.contract else leave
-        return torch.cat([origins, directions, near[:, None], leave[:, None], far[:, None]], 1)
+        return RaySegments(origins, directions, near, leave, far)
 
-    def sample_depths(self, rays: Tensor, offsets: Tensor) -> tuple[Tensor, Tensor]:
-        """Depths [R, S] of the samples along rays [R, 9] (see ``ray_bounds``) at ``offsets``
+    def sample_depths(self, rays: RaySegments, offsets: Tensor) -> tuple[Tensor, Tensor]:
+        """Depths [R, S] of the samples along ``rays`` (see ``ray_bounds``) at ``offsets``
         [R, S] in [0, 1) within their strata, and their lengths [R, S] (m); rays that miss
         the bounds get zero-length samples."""
-        directions, near, leave, far = rays[:, 3:6], rays[:, 6], rays[:, 7], rays[:, 8]
+        near, leave, far = rays.near, rays.leave, rays.far
         samples = offsets.shape[1]
-        norm = directions.norm(dim=-1)
-        steps = torch.arange(samples, device=rays.device, dtype=rays.dtype)
+        norm = rays.directions.norm(dim=-1)
+        steps = torch.arange(samples, device=offsets.device, dtype=offsets.dtype)
         unit = (steps + offsets) / samples  # [R, S] in (0, 1)
         if not self.contract:
             depth = near[:, None] + (leave - near)[:, None] * unit
@@ -170,13 +171,19 @@ class VoxelGrid(nn.Module):
         float32 tensors), which stops each ray once its light is spent; otherwise
         ``grid_sample`` over every sample (any device)."""
         rays = self.ray_bounds(origins, directions, near_m)
-        shape = (len(rays), samples)
-        offsets = torch.rand(shape, device=rays.device) if jitter else rays.new_full(shape, 0.5)
+        shape = (len(origins), samples)
+        if jitter:
+            offsets = torch.rand(shape, device=origins.device)
+        else:
+            offsets = origins.new_full(shape, 0.5)
         background = torch.sigmoid(self.background)
         if compiled and self.grid.device.type == "cpu" and self.grid.dtype == torch.float32:
-            size = [n - 1 for n in self.shape]
-            geometry = torch.tensor(
-                [*self.lo.tolist(), *self.hi.tolist(), *size, 1 / self.voxel_m, self.contract]
+            geometry = GridGeometry(
+                self.lo.double().numpy(),
+                self.hi.double().numpy(),
+                np.array([n - 1 for n in self.shape], np.float64),
+                1 / self.voxel_m,
+                bool(self.contract),
             )
             return CompiledComposite.apply(
                 self.grid, background, rays, offsets, geometry, self.density_shift
