@@ -138,7 +138,12 @@ def test_a_grid_fitted_to_a_one_box_scene_renders_an_unseen_view() -> None:
     k = torch.tensor([camera.focal_px, camera.focal_px, camera.principal_point] * 1)
     k = torch.tensor([camera.focal_px, camera.focal_px, k[2], k[2]]).expand(len(train), 4)
     model = VoxelGridSceneModel(
-        [camera_bounds(train[:, :3], [2.2, 2.2, 1.3]).tolist()], num_voxels=30_000
+        [camera_bounds(train[:, :3], [2.2, 2.2, 1.3]).tolist()],
+        n_appearances=1,
+        num_voxels=30_000,
+        samples_per_ray=48,
+        contract=False,
+        near_m=0.05,
     )
     origins, directions = camera_rays(train, k, size, size)
     colours = target.permute(0, 2, 3, 1).reshape(len(train), -1, 3)
@@ -690,7 +695,9 @@ def _fit_module(**kwargs: object) -> object:
 
     bounds = [[[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]]
     return SceneModelModule(
-        VoxelGridSceneModel(bounds, n_appearances=4, num_voxels=1000, samples_per_ray=8),
+        VoxelGridSceneModel(
+            bounds, 4, num_voxels=1000, samples_per_ray=8, contract=False, near_m=0.05
+        ),
         torch.nn.Linear(1, 1),
         functools.partial(torch.optim.Adam, lr=0.1),
         scene_names=["scene00"],

@@ -220,9 +220,9 @@ class VoxelGridSceneModel(SceneModel):
 
     bounds: per scene [2, 3] (lo, hi) in metres; n_appearances: the train sequences over all
     scenes; num_voxels: per scene; samples_per_ray: stratified samples; near_m: the nearest
-    depth rendered. Built by the scene_model step from the train cameras (:func:`train_scale`:
-    its config's ``margin_m``, ``auto_scale`` and ``contract: auto``) and the train images'
-    appearance ids.
+    depth rendered (their defaults: conf/scene_model/voxel_grid.yaml). Built by the
+    scene_model step from the train cameras (:func:`train_scale`: its config's ``margin_m``,
+    ``auto_scale`` and ``contract: auto``) and the train images' appearance ids.
     """
 
     has_depth = True
@@ -233,11 +233,11 @@ class VoxelGridSceneModel(SceneModel):
     def __init__(
         self,
         bounds: Sequence[Sequence[Sequence[float]]],
-        n_appearances: int = 1,
-        num_voxels: int = 300_000,
-        samples_per_ray: int = 48,
-        contract: bool = False,
-        near_m: float = 0.05,
+        n_appearances: int,
+        num_voxels: int,
+        samples_per_ray: int,
+        contract: bool,
+        near_m: float,
         chunk_rays: int = 8192,
     ) -> None:
         super().__init__()
