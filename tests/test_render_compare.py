@@ -371,6 +371,9 @@ def _poisoned_data(root: Path) -> SyntheticDataModule:
     return data
 
 
+GRID = {"num_voxels": 512, "samples_per_ray": 8, "near_m": 0.05}
+
+
 def test_bounds_come_from_the_train_cameras_only(poisoned_root: Path) -> None:
     """The grid's bounds are the clean train rows' positions plus the margin, read from the
     label file here; a validation or test row read would move them by POISON_M."""
@@ -384,11 +387,11 @@ def test_bounds_come_from_the_train_cameras_only(poisoned_root: Path) -> None:
     inputs = SceneModelInputs(data, "sequence", lambda key: None)
     auto = {"margin_floor_m": 0.1, "margin_fraction": 0.5, "contract_above_m": 1e6}
     _, fixed = VoxelGridSceneModel.build(
-        {"margin_m": [1.0, 2.0, 0.5], "contract": "auto", "auto_scale": auto, "num_voxels": 512},
+        {"margin_m": [1.0, 2.0, 0.5], "contract": "auto", "auto_scale": auto, **GRID},
         inputs,
     )
     _, automatic = VoxelGridSceneModel.build(
-        {"margin_m": "auto", "contract": False, "auto_scale": auto, "num_voxels": 512}, inputs
+        {"margin_m": "auto", "contract": False, "auto_scale": auto, **GRID}, inputs
     )
     assert fixed["contract"] is False and "margin_m" not in fixed and "auto_scale" not in fixed
     assert fixed["n_appearances"] == len(
@@ -407,7 +410,7 @@ def test_bounds_come_from_the_train_cameras_only(poisoned_root: Path) -> None:
             torch.testing.assert_close(bounds[1], positions.max(0).values + margin)
     street = {**auto, "contract_above_m": 0.0}
     _, contracted = VoxelGridSceneModel.build(
-        {"margin_m": 1.0, "contract": "auto", "auto_scale": street, "num_voxels": 512}, inputs
+        {"margin_m": 1.0, "contract": "auto", "auto_scale": street, **GRID}, inputs
     )
     assert contracted["contract"] is True
 
