@@ -253,7 +253,7 @@ def test_a_resumed_scene_model_run_gives_the_figures_of_an_uninterrupted_one(
         "render_compare.oracle=false",
         "render_compare.refiner.rounds=1",
         "render_compare.refiner.candidates=4",
-        "render_compare.refiner.gradient_steps=2",
+        "render_compare.refiner.polish_steps=2",
     )
     whole = run(compose_train(*scene_model), tmp_path / "whole")
     with monkeypatch.context() as patch:

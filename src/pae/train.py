@@ -73,8 +73,6 @@ def main(cfg: DictConfig) -> float | None:
         if rank_zero_only.rank == 0:
             print(format_results_table(metrics, "val"))
             print(format_results_table(metrics))
-            if cfg.get("table_footnote"):
-                print(cfg.table_footnote)
             print(f"metrics: {run_dir / 'metrics.json'}")
         return objective(metrics)
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import sys
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -90,6 +90,9 @@ class PoseDataModule(L.LightningDataModule):
         self.datasets: dict[str, PoseDataset] = {}
         self.scene_names: list[str] = []
         self._fingerprint: dict[str, Any] | None = None
+        self.train_batches: Callable[[PoseDataModule], DataLoader] | None = None
+        """Another kind of train batch (a scene model's rays: ``pae.data.rays.RayLoader``):
+        called with this module, it gives the train loader; None: the train images."""
 
     def setup(self, stage: str | None = None) -> None:
         if self.datasets:
@@ -281,6 +284,8 @@ class PoseDataModule(L.LightningDataModule):
         )
 
     def train_dataloader(self) -> DataLoader:
+        if self.train_batches is not None:
+            return self.train_batches(self)
         dataset = self.datasets["train"]
         if self.balance_scenes and self.n_scenes > 1:
             counts = torch.bincount(dataset.scenes, minlength=self.n_scenes).float()

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Any
 
-import lightning as L
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -107,68 +106,26 @@ class RayBatches(Dataset):
         }
 
 
-class RayDataModule(L.LightningDataModule):
-    """Training batches of train-image rays (:class:`RayBatches`, drawn from ``seed``) from
-    the train images at ``image_size`` px shorter edge (:func:`fit_images`; None: as the data
-    holds them), each ray keyed on its image's appearance ``appearance_per`` (``sequence`` or
-    ``image``, :meth:`PoseDataModule.appearance_ids`); validation and test batches are the
-    wrapped PoseDataModule's images (queries for render-and-compare)."""
+@dataclass(frozen=True)
+class RayLoader:
+    """A scene model's train batches, as a PoseDataModule's ``train_batches``: ``batches``
+    batches of ``rays_per_batch`` random pixels (:class:`RayBatches`, drawn from ``seed`` and
+    the data module's trainer's epoch under way, so a resumed run draws what an uninterrupted
+    one would) of the train images at ``image_size`` px shorter edge (:func:`fit_images`;
+    None: as the data holds them), each ray keyed on its image's appearance ``appearance``
+    (``sequence`` or ``image``, :meth:`PoseDataModule.appearance_ids`)."""
 
-    def __init__(
-        self,
-        images: PoseDataModule,
-        rays_per_batch: int,
-        batches_per_epoch: int,
-        image_size: int | None = None,
-        appearance_per: str = "sequence",
-        seed: int = 0,
-    ) -> None:
-        super().__init__()
-        self.images = images
-        self.seed = seed
-        self.rays_per_batch = rays_per_batch
-        self.batches_per_epoch = batches_per_epoch
-        self.image_size = image_size
-        self.appearance_per = appearance_per
+    rays_per_batch: int
+    batches: int
+    image_size: int | None = None
+    appearance: str = "sequence"
+    seed: int = 0
 
-    def setup(self, stage: str | None = None) -> None:
-        self.images.setup(stage)
-
-    @property
-    def scene_names(self) -> list[str]:
-        return self.images.scene_names
-
-    @property
-    def n_scenes(self) -> int:
-        return self.images.n_scenes
-
-    @property
-    def datasets(self) -> dict[str, Any]:
-        return self.images.datasets
-
-    def intrinsics(self, split: str, crop: bool = True) -> Tensor:
-        return self.images.intrinsics(split, crop)
-
-    def preprocess(self, images: Tensor, train: bool) -> Tensor:
-        return self.images.preprocess(images, train)
-
-    def scenes_without_rows(self, split: str) -> list[str]:
-        return self.images.scenes_without_rows(split)
-
-    def train_poses(self) -> tuple[Tensor, Tensor]:
-        return self.images.train_poses()
-
-    def fingerprint(self) -> dict[str, Any]:
-        return self.images.fingerprint()
-
-    @property
-    def root(self) -> Path:
-        return self.images.root
-
-    def train_dataloader(self) -> DataLoader:
-        dataset = self.images.datasets["train"]
-        appearance, _ = self.images.appearance_ids("train", self.appearance_per)
-        intrinsics = self.images.intrinsics("train", crop=False)
+    def __call__(self, data: PoseDataModule) -> DataLoader:
+        """The loader of ray batches from ``data``'s train split."""
+        dataset = data.datasets["train"]
+        appearance, _ = data.appearance_ids("train", self.appearance)
+        intrinsics = data.intrinsics("train", crop=False)
         images, intrinsics = fit_images(dataset, intrinsics, self.image_size)
         rays = RayBatches(
             images,
@@ -177,23 +134,14 @@ class RayDataModule(L.LightningDataModule):
             dataset.scenes,
             appearance,
             self.rays_per_batch,
-            self.batches_per_epoch,
+            self.batches,
             self.seed,
-            self._epoch,
+            lambda: _epoch(data),
         )
         return DataLoader(rays, batch_size=None)
 
-    def _epoch(self) -> int:
-        """The training epoch under way (0 without a trainer)."""
-        return self.trainer.current_epoch if self.trainer is not None else 0
 
-    def val_dataloader(self) -> DataLoader:
-        return self.images.val_dataloader()
-
-    def test_dataloader(self) -> DataLoader:
-        return self.images.test_dataloader()
-
-    def on_after_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
-        if isinstance(batch, dict) and batch.get("image") is not None:
-            batch = {**batch, "image": self.images.preprocess(batch["image"], train=False)}
-        return batch
+def _epoch(data: PoseDataModule) -> int:
+    """The training epoch under way in ``data``'s trainer (0 without one)."""
+    trainer = data.trainer
+    return trainer.current_epoch if trainer is not None else 0
