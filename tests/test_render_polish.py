@@ -50,7 +50,7 @@ def _polish_inputs(n: int = 4) -> tuple:
     model, images, intrinsics, truth, start = _oracle_queries(n)
     refiner = RenderCompareRefiner(model, resolution=48, levels=1, final_reference_size=0)
     level = refiner.pyramid(images, intrinsics, torch.zeros(n, dtype=torch.long))[-1]
-    surface = refiner.surface(refiner.reference(start, level, 32), level)
+    surface = refiner.surface(refiner.reference(start, level, 32, 1.3), level)
     hypotheses = torch.stack([start, perturb(start, torch.full((n, 6), 0.02))], 1)
     scores = refiner.score_poses(hypotheses, level, surface)
     inputs = (
@@ -112,7 +112,7 @@ def test_the_counted_work_is_the_candidates_and_steps_the_settings_ask_for() -> 
     )
     refiner(images, intrinsics, start, scenes)
     level = refiner.pyramid(images, intrinsics, scenes)[-1]
-    valid = int(refiner.reference(start, level, 16).valid.sum())
+    valid = int(refiner.reference(start, level, 16, 1.3).valid.sum())
     assert refiner.work.score_points == valid * (1 + 2 * 2 * 3 + 1)
     assert refiner.work.polish_point_steps == valid * 2 * 4
     assert refiner.work.rendered_rays == 2 * 3 * 16 * 16

@@ -11,16 +11,18 @@ DEMO=outputs/demo
 BIN=${BIN:-.venv/bin}
 mkdir -p "$OUT"
 refiner=(
-  "candidates=64" "position_sigma_m=0.4" "orientation_sigma_deg=8.0" "shrink=0.8"
-  "blur_sigma_px=2.0" "reference_size=32" "reference_fov_scale=1.6" "min_overlap=0.2"
-  "highpass_sigma_px=4.0" "trim_sigma=2.0"
+  "blur_sigma_px=0.5" "blur_sigma_px=1.0" "final_reference_size=32" "final_reference_size=48"
+  "final_fov_scale=1.3" "reference_size=16" "levels=2" "levels=4" "hypotheses=1"
+  "hypotheses=8" "rounds=0" "rounds=10" "polish_steps=5" "polish_steps=20"
+  "min_overlap=0.2" "highpass_sigma_px=4.0" "trim_sigma=2.0"
 )
 # the callback's own settings (step_from_val replaces position_sigma_m and
-# orientation_sigma_deg by fractions of the teacher's val error, and scales the gradient steps)
+# orientation_sigma_deg by fractions of the teacher's val error)
 callback=("step_from_val.position=0.5" "step_from_val.orientation=0.8" "accept_margin=0.0")
 # several overrides of one setting are joined by "+"
 scene_model=(
-  "auto_scale.margin_floor_m=1.0" "auto_scale.margin_floor_m=3.0"
+  "model.auto_scale.margin_floor_m=1.0" "model.auto_scale.margin_floor_m=3.0"
+  "model.num_voxels=1000000" "max_epochs=12"
   "appearance=image+appearance_lr=0.01" "fit_trim=0.1"
 )
 # a run folder is named by its setting, "=" written "_" (Hydra reads "=" in a value as a key)

@@ -24,7 +24,7 @@ from pae.config_checks import boolean, integer, is_int, number, setting
 from pae.data.camera import camera_rays
 from pae.errors import ConfigError
 from pae.models.scene_model import SceneModel, SceneModelInputs, SceneRendering
-from pae.models.voxel_render import CompiledComposite, GridGeometry, RaySegments
+from pae.models.voxel_render import CompiledComposite, GridGeometry, RaySegments, channels_last
 
 _EPS = 1e-9
 
@@ -107,6 +107,7 @@ class VoxelGrid(nn.Module):
         # softplus(shift) · (one voxel) = -log(1 - init_alpha): a faint initial fog
         self.density_shift = math.log(math.expm1(-math.log1p(-init_alpha)))
         self.background = nn.Parameter(torch.zeros(3))
+        self._kernel_cells: tuple[tuple[int, int], np.ndarray] | None = None
 
     def normalised(self, points: Tensor) -> Tensor:
         """World points [..., 3] -> grid coordinates in [-1, 1] (contracted when set)."""
@@ -186,7 +187,13 @@ class VoxelGrid(nn.Module):
                 bool(self.contract),
             )
             return CompiledComposite.apply(
-                self.grid, background, rays, offsets, geometry, self.density_shift
+                self.grid,
+                self.kernel_cells(),
+                background,
+                rays,
+                offsets,
+                geometry,
+                self.density_shift,
             )
         depth, length = self.sample_depths(rays, offsets)
         points = origins[:, None] + depth[..., None] * directions[:, None]
@@ -202,6 +209,14 @@ class VoxelGrid(nn.Module):
         rgb = (weights[..., None] * colour).sum(1) + (1 - opacity)[:, None] * background
         surface = (weights * depth).sum(1) / opacity.clamp_min(1e-6)
         return rgb, surface, opacity
+
+    def kernel_cells(self) -> np.ndarray:
+        """The grid in the compiled kernels' layout [nz, ny, nx, 4]: copied once per change
+        of the grid (an optimiser step, a loaded state), not once per call or chunk."""
+        key = (self.grid._version, self.grid.data_ptr())
+        if self._kernel_cells is None or self._kernel_cells[0] != key:
+            self._kernel_cells = (key, channels_last(self.grid))
+        return self._kernel_cells[1]
 
     def total_variation(self) -> Tensor:
         """Mean squared difference of neighbouring voxels (density and colour channels)."""

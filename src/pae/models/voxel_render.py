@@ -134,20 +134,17 @@ def _point(rays: tuple, r: int, s: int, n: int, offsets: np.ndarray, geometry: t
         length = (high - low) * norm * inverse_voxel_m
     else:
         length = (leave - near) * norm / n * inverse_voxel_m
-    unit = np.empty(3)
-    largest = 0.0
-    for k in range(3):
-        p = origins[r, k] + t * directions[r, k]
-        unit[k] = (p - lo[k]) / (hi[k] - lo[k]) * 2 - 1
-        largest = max(largest, abs(unit[k]))
+    ux = (origins[r, 0] + t * directions[r, 0] - lo[0]) / (hi[0] - lo[0]) * 2 - 1
+    uy = (origins[r, 1] + t * directions[r, 1] - lo[1]) / (hi[1] - lo[1]) * 2 - 1
+    uz = (origins[r, 2] + t * directions[r, 2] - lo[2]) / (hi[2] - lo[2]) * 2 - 1
     if contract:
+        largest = max(abs(ux), abs(uy), abs(uz))
         scale = 0.5 if largest <= 1 else (2 - 1 / largest) / largest / 2
-        for k in range(3):
-            unit[k] *= scale
+        ux, uy, uz = ux * scale, uy * scale, uz * scale
     return (
-        (unit[0] + 1) / 2 * cells[0],
-        (unit[1] + 1) / 2 * cells[1],
-        (unit[2] + 1) / 2 * cells[2],
+        (ux + 1) / 2 * cells[0],
+        (uy + 1) / 2 * cells[1],
+        (uz + 1) / 2 * cells[2],
         length,
         t,
     )
@@ -250,25 +247,32 @@ def render_backward(
             grad_background[t, 2] += transmit * gb
 
 
+def channels_last(grid: Tensor) -> np.ndarray:
+    """A grid [1, 4, nz, ny, nx] in the kernels' layout [nz, ny, nx, 4] (a copy)."""
+    return grid.detach()[0].permute(1, 2, 3, 0).contiguous().numpy()
+
+
 class CompiledComposite(torch.autograd.Function):
-    """(grid [1, 4, nz, ny, nx], background [3] after its sigmoid, rays (``RaySegments`` of
-    tensors), offsets [R, S], geometry (``GridGeometry``), density_shift) -> rgb [R, 3],
-    surface [R], opacity [R]; differentiable in rgb w.r.t. the grid and the background."""
+    """(grid [1, 4, nz, ny, nx], the same grid in the kernels' layout (``channels_last``,
+    made once per change of the grid by the caller), background [3] after its sigmoid, rays
+    (``RaySegments`` of tensors), offsets [R, S], geometry (``GridGeometry``), density_shift)
+    -> rgb [R, 3], surface [R], opacity [R]; differentiable in rgb w.r.t. the grid and the
+    background."""
 
     @staticmethod
     def forward(  # type: ignore[override]
         ctx: torch.autograd.function.FunctionCtx,
         grid: Tensor,
+        cells: np.ndarray,
         background: Tensor,
         rays: RaySegments,
         offsets: Tensor,
         geometry: GridGeometry,
         density_shift: float,
     ) -> tuple[Tensor, Tensor, Tensor]:
-        cells = grid.detach()[0].permute(1, 2, 3, 0).contiguous().numpy()
         bg = background.detach().double().numpy()
         ray_array = RaySegments(*(part.detach().double().contiguous().numpy() for part in rays))
-        offset_array = offsets.detach().double().contiguous().numpy()
+        offset_array = offsets.detach().float().contiguous().numpy()
         shape = geometry
         r = offset_array.shape[0]
         rgb = np.empty((r, 3), np.float32)
@@ -301,4 +305,4 @@ class CompiledComposite(torch.autograd.Function):
         )
         grad_grid = torch.from_numpy(grad_cells.sum(0)).permute(3, 0, 1, 2)[None]
         grad_background = torch.from_numpy(grad_bg.sum(0)).to(grid.dtype)
-        return grad_grid.to(grid.dtype), grad_background, None, None, None, None
+        return grad_grid.to(grid.dtype), None, grad_background, None, None, None, None

@@ -79,10 +79,10 @@ class RenderCompareRefiner:
     each level), highpass_sigma_px (px at ``resolution``: the blur subtracted from the
     compared images, see :func:`band_pass`; 0: none). References: reference_size,
     reference_fov_scale (the start's rendering: width in px, field of view relative to the
-    query's), final_reference_size (the rendering at the best hypothesis before the finest
-    level; 0: none). Polish: polish_steps (Levenberg–Marquardt steps per level and
-    hypothesis), polish_damping (the first λ). Score: min_overlap (the share of reference
-    points a candidate must see, else ``NOT_SEEN_SCORE``), trim_sigma, trim_passes
+    query's), final_reference_size, final_fov_scale (the rendering at the best hypothesis
+    before the finest level; size 0: none). Polish: polish_steps (Levenberg–Marquardt steps
+    per level and hypothesis), polish_damping (the first λ). Score: min_overlap (the share of
+    reference points a candidate must see, else ``NOT_SEEN_SCORE``), trim_sigma, trim_passes
     (:func:`trimmed_zncc`; 0: plain ZNCC), score (``zncc``, or ``features`` with
     ``features``). seed: of the draws; chunk: queries refined at once; engine: ``ENGINES``.
     """
@@ -98,11 +98,12 @@ class RenderCompareRefiner:
         shrink: float = 0.6,
         resolution: int = 64,
         levels: int = 3,
-        blur_sigma_px: float = 1.0,
+        blur_sigma_px: float = 0.3,
         highpass_sigma_px: float = 0.0,
         reference_size: int = 24,
         reference_fov_scale: float = 1.3,
-        final_reference_size: int = 48,
+        final_reference_size: int = 40,
+        final_fov_scale: float = 1.05,
         polish_steps: int = 10,
         polish_damping: float = 1e-3,
         min_overlap: float = 0.4,
@@ -140,6 +141,11 @@ class RenderCompareRefiner:
                 "render_compare needs resolution, reference_size and final_reference_size "
                 "(unless 0) >= 8 px"
             )
+        if min(reference_fov_scale, final_fov_scale) <= 0:
+            raise ValueError(
+                "render_compare needs reference_fov_scale and final_fov_scale > 0, not "
+                f"{reference_fov_scale:g} and {final_fov_scale:g}"
+            )
         if highpass_sigma_px < 0 or blur_sigma_px < 0 or polish_damping <= 0:
             raise ValueError(
                 "render_compare needs blur_sigma_px >= 0, highpass_sigma_px >= 0 and "
@@ -164,6 +170,7 @@ class RenderCompareRefiner:
         self.reference_size = reference_size
         self.reference_fov_scale = reference_fov_scale
         self.final_reference_size = final_reference_size
+        self.final_fov_scale = final_fov_scale
         self.polish_steps = polish_steps
         self.polish_damping = polish_damping
         self.min_overlap = min_overlap
@@ -227,23 +234,25 @@ class RenderCompareRefiner:
             levels.append(Level(target, scaled, scenes, sigmas))
         return levels
 
-    def _reference_intrinsics(self, level: Level, width: int) -> tuple[Tensor, int, int]:
+    def _reference_intrinsics(
+        self, level: Level, width: int, fov_scale: float
+    ) -> tuple[Tensor, int, int]:
         """Intrinsics [B, 4] of ``width``-px reference renderings (a wider view centred like
         the query's), their width and height in px."""
         _, _, h, w = level.target.shape
         height = max(4, round(h * width / w))
-        scale = width / w / self.reference_fov_scale
+        scale = width / w / fov_scale
         fx, fy, _, _ = level.intrinsics.unbind(-1)
         centre_x = torch.full_like(fx, (width - 1) / 2)
         centre_y = torch.full_like(fy, (height - 1) / 2)
         return torch.stack([fx * scale, fy * scale, centre_x, centre_y], -1), width, height
 
     @torch.no_grad()
-    def reference(self, poses: Tensor, level: Level, width: int) -> Reference:
+    def reference(self, poses: Tensor, level: Level, width: int, fov_scale: float) -> Reference:
         """Render the scene model at poses [B, 7] with a ``width``-px reference camera: its
         surface points, its grey image (RGB for the features score) and where the model
         explains the image."""
-        intrinsics, width, height = self._reference_intrinsics(level, width)
+        intrinsics, width, height = self._reference_intrinsics(level, width, fov_scale)
         with self.work.timed("render"):
             rendering = self.scene_model.render(poses, level.scenes, intrinsics, width, height)
         self.work.rendered_rays += len(poses) * width * height
@@ -423,7 +432,11 @@ class RenderCompareRefiner:
         """Refine one chunk: search at the coarsest level, polish coarse to fine."""
         levels = self.pyramid(images, intrinsics, scenes)
         depth = self.scene_model.has_depth
-        reference = self.reference(initial, levels[-1], self.reference_size) if depth else None
+        reference = None
+        if depth:
+            reference = self.reference(
+                initial, levels[-1], self.reference_size, self.reference_fov_scale
+            )
 
         def surface_at(level: Level) -> Surface | None:
             return self.surface(reference, level) if reference is not None else None
@@ -434,7 +447,9 @@ class RenderCompareRefiner:
             last = index == len(levels) - 1
             if last and reference is not None and self.final_reference_size:
                 best, _ = hypotheses.best()
-                reference = self.reference(best, level, self.final_reference_size)
+                reference = self.reference(
+                    best, level, self.final_reference_size, self.final_fov_scale
+                )
             if index:
                 surface = surface_at(level)
                 hypotheses.scores = self.score_poses(hypotheses.poses, level, surface)
