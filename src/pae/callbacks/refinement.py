@@ -144,10 +144,12 @@ class TestTimeRefinement(L.Callback):
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         poses, scenes = trainer.datamodule.train_poses()
-        self.index = self._index(poses, scenes)
+        self.index = self.store(poses, scenes)
         self.position_index = PoseIndex(poses, scenes, distance="fixed", rot_weight=0.0)
 
-    def _index(self, poses: Tensor, scenes: Tensor) -> PoseIndex:
+    def store(self, poses: Tensor, scenes: Tensor) -> PoseIndex:
+        """The retrieval store of poses [N, 7] with scene ids [N], searched with the
+        configured distance."""
         return PoseIndex(poses, scenes, distance=self.distance, rot_weight=self.rot_weight)
 
     def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
@@ -158,8 +160,10 @@ class TestTimeRefinement(L.Callback):
     def on_test_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self.refine(trainer, pl_module, "test")
 
-    def _refiner(self, pl_module: L.LightningModule, index: PoseIndex) -> PositionRefiner:
-        return PositionRefiner(index, pl_module.pae, seed=self.seed, **self.options)
+    def refiner(self, pae: torch.nn.Module, index: PoseIndex) -> PositionRefiner:
+        """The configured refinement (``refined``; ``knn_mean`` from its neighbours) with
+        ``pae`` over the store ``index``."""
+        return PositionRefiner(index, pae, seed=self.seed, **self.options)
 
     def _refine_both(
         self, refiner: PositionRefiner, query: Latents, initial: Tensor, scene: Tensor
@@ -188,14 +192,14 @@ class TestTimeRefinement(L.Callback):
         gt, scene = outputs["pose"], outputs["scene"]
         stores = {"": self.index}
         if self.audit:
-            stores["_test_store"] = self._index(gt, scene).to(self.index.device)
+            stores["_test_store"] = self.store(gt, scene).to(self.index.device)
 
         predictions: dict[str, Tensor] = {}
         elapsed = {}
         for suffix, store in stores.items():
             start = time.perf_counter()
             refined, knn_mean = self._refine_both(
-                self._refiner(pl_module, store), query, estimate, estimate_scene
+                self.refiner(pl_module.pae, store), query, estimate, estimate_scene
             )
             elapsed[suffix] = time.perf_counter() - start
             predictions[f"refined{suffix}"], predictions[f"knn_mean{suffix}"] = refined, knn_mean
@@ -209,7 +213,7 @@ class TestTimeRefinement(L.Callback):
                 guess_latents = pl_module.pae(guess, scene)
             predictions["guess_initial"] = guess
             for suffix, store in stores.items():
-                refiner = self._refiner(pl_module, store)
+                refiner = self.refiner(pl_module.pae, store)
                 predictions[f"guess_refined{suffix}"] = refiner(guess_latents, guess, scene).poses
 
         names = pl_module.scene_names

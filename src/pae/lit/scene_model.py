@@ -40,6 +40,18 @@ def grey_zncc(rendered: Tensor, target: Tensor) -> Tensor:
     return zncc(a, b, torch.ones_like(a))
 
 
+def compare_queries(rgb: Tensor, intrinsics: Tensor, width: int | None) -> tuple[Tensor, Tensor]:
+    """Query images RGB [B, 3, h, w] in [0, 1] and their intrinsics [B, 4] (px) -> the same
+    area-resized to ``width`` px wide (render-and-compare's compare width, the height kept in
+    proportion) with the intrinsics of that size; ``width`` None: as they are."""
+    if width is None:
+        return rgb, intrinsics
+    h, w = rgb.shape[-2:]
+    size = compare_size(h, w, width)
+    small = nn.functional.interpolate(rgb, size=size, mode="area")
+    return small, scale_intrinsics(intrinsics, size[1] / w, size[0] / h)
+
+
 class SceneModelModule(PaeModule):
     """Trains ``scene_model`` (when it has parameters) on ray batches: the mean squared error
     of its renderings, as each ray's train image's appearance saw them, plus ``tv_weight``
@@ -200,15 +212,11 @@ class SceneModelModule(PaeModule):
         self.evaluation.update(split, "mean_pose", self.mean_poses[scene], gt, scene, index)
         rgb = ImageTransform.unnormalize_batch(batch["image"])
         self._measure_quality(rgb, batch, split)
-        h, w = rgb.shape[-2:]
         intrinsics = self._intrinsics(split, index).to(rgb.device)
-        if self.query_width is not None:
-            size = compare_size(h, w, self.query_width)
-            rgb = nn.functional.interpolate(rgb, size=size, mode="area")
-            intrinsics = scale_intrinsics(intrinsics, size[1] / w, size[0] / h)
+        query, intrinsics = compare_queries(rgb, intrinsics, self.query_width)
         self.eval_outputs.append(
             {
-                "image": rgb,
+                "image": query,
                 "intrinsics": intrinsics,
                 "estimate": answer.pose,
                 "scene_estimate": answer.scene,
