@@ -28,7 +28,13 @@ from pae.errors import (
     LabelError,
     RunDirInUseError,
 )
-from pae.method_rows import ORACLE_SUFFIX, TEST_STORE_SUFFIX, marked, table_methods
+from pae.method_rows import (
+    ORACLE_SUFFIX,
+    TEST_STORE_SUFFIX,
+    marked,
+    starts_from_truth,
+    table_methods,
+)
 from pae.seed_stats import seed_report
 from pae.sweep_jobs import MULTIRUN_FILE, sweep_jobs
 
@@ -164,7 +170,7 @@ def format_results_table(metrics: Mapping[str, float], split: str = "test") -> s
         }
     )
     columns = ["overall", *scenes]
-    width = max([15, *(len(m) + 3 for m in methods)])
+    width = max([15, *(len(marked(m)) + 1 for m in methods)])
     header = f"{'method':<{width}}" + "".join(f"{c:>18}" for c in columns)
     lines = [f"median position [m] / orientation [deg] on the {split} split", header]
     lines.append("-" * len(header))
@@ -184,6 +190,12 @@ def format_results_table(metrics: Mapping[str, float], split: str = "test") -> s
         lines.append(
             "† renders the true scene (the synthetic benchmark's own renderer): a bound, "
             "not a method"
+        )
+    if any(starts_from_truth(m) for m in methods):
+        lines.append(
+            "‡ starts from the true pose, a check, not a method: student_gt encodes it with "
+            "the PAE; guess_* add Gaussian noise to its position only, so their orientation "
+            "is the true one (0.00° unless refine.orientation averages it)"
         )
     missing = metrics.get(f"{split}/missing_scenes")
     if missing:
