@@ -62,3 +62,83 @@ def test_train_log_holds_every_line_once_and_the_final_tables(pipeline_cli_run: 
     assert console.count("on the test split") == 1 and console.count("GPU available") == 1
     metrics = json.loads((pipeline_cli_run / "metrics.json").read_text())
     assert f"{metrics['test/teacher/pos_median_m']:.3f} / " in log
+
+
+def _events(folder: Path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(folder), size_guidance={"images": 0, "tensors": 0})
+    events.Reload()
+    return events
+
+
+def _hparams(events) -> tuple[list[str], dict[str, str]]:
+    """The HParams metrics' tags and the run's settings (as strings) of one event folder."""
+    from tensorboard.plugins.hparams import plugin_data_pb2
+
+    tags, settings = [], {}
+    for blob in events.PluginTagToContent("hparams").values():
+        data = plugin_data_pb2.HParamsPluginData.FromString(blob)
+        if data.HasField("experiment"):
+            tags = [m.name.tag for m in data.experiment.metric_infos]
+        if data.HasField("session_start_info"):
+            for key, value in data.session_start_info.hparams.items():
+                settings[key] = value.string_value or str(value.number_value)
+    return tags, settings
+
+
+def _layout(events):
+    from tensorboard.plugins.custom_scalar import layout_pb2
+
+    [tag] = [t for t in events.Tags()["tensors"] if t.startswith("custom_scalars")]
+    blob = events.Tensors(tag)[-1].tensor_proto.string_val[0]
+    return layout_pb2.Layout.FromString(blob)
+
+
+def test_tensorboard_tells_the_runs_story(pipeline_cli_run: Path) -> None:
+    """HParams metrics are the val curves (no one-point copies), a Custom Scalars layout puts
+    the methods side by side, the learning rate is logged, best_refinement is chosen on val
+    and never worse than the teacher."""
+    import re
+
+    metrics = json.loads((pipeline_cli_run / "metrics.json").read_text())
+    for step in ("teacher", "student"):
+        events = _events(pipeline_cli_run / step)
+        scalars = events.Tags()["scalars"]
+        assert not [t for t in scalars if t.startswith(("hparams/", "test/", "bench/"))]
+        assert [t for t in scalars if t.startswith("lr-")], f"{step}: no learning rate"
+        tags, settings = _hparams(events)
+        assert tags[:2] == ["val/teacher/pos_median_m", "val/teacher/rot_median_deg"]
+        for tag in tags:  # each a curve over the epochs, none per scene
+            assert len(events.Scalars(tag)) >= 2 and tag.count("/") == 2, tag
+        assert settings["stage"] == "pipeline"
+    assert tags[2:4] == ["val/student/pos_median_m", "val/student/rot_median_deg"]
+    best = settings["best_refinement"]
+    honest = ("refined", "knn_mean", "closed_form_k10", "latent_knn", "pose_descent")
+    better = [
+        m for m in honest if metrics[f"val/{m}/pos_median_m"] < metrics["val/teacher/pos_median_m"]
+    ]
+    assert best == min(better, key=lambda m: metrics[f"val/{m}/pos_median_m"], default="none")
+    if best != "none":
+        assert tags[4:6] == [f"val/{best}/pos_median_m", f"val/{best}/rot_median_deg"]
+
+    charts = {
+        chart.title: [re.compile(r) for r in chart.multiline.tag]
+        for category in _layout(events).category
+        if category.title.startswith("methods side by side")
+        for chart in category.chart
+    }
+    position = charts["median position error [m]"]
+
+    def shown(tag: str) -> bool:
+        return any(r.search(tag) for r in position)
+
+    for method in ("teacher", "student", "refined", "knn_mean", "latent_knn"):
+        assert shown(f"val/{method}/pos_median_m"), method
+    for tag in (
+        "val/refined_test_store/pos_median_m",
+        "val/guess_refined/pos_median_m",
+        "val/refined/scene00/pos_median_m",
+        "val/student_gt/pos_median_m",
+    ):
+        assert not shown(tag), tag

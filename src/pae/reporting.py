@@ -70,12 +70,15 @@ def honest_refinements(metrics: Mapping[str, float], split: str = "test") -> lis
 
 
 def best_refinement(metrics: Mapping[str, float], split: str = "test") -> str | None:
-    """The honest refinement with the lowest median position error, if any: chosen on the
-    validation split where every candidate has a ``val/`` figure (then reported on
-    ``split``), else on ``split`` itself."""
+    """The honest refinement with the lowest median position error among those below the
+    teacher's, if any: chosen on the validation split where every candidate has a ``val/``
+    figure (then reported on ``split``), else on ``split`` itself. None where no refinement
+    beats the teacher there: refining would not be chosen."""
     methods = honest_refinements(metrics, split)
     chooser = "val" if all(f"val/{m}/pos_median_m" in metrics for m in methods) else split
-    return min(methods, key=lambda m: metrics[f"{chooser}/{m}/pos_median_m"], default=None)
+    teacher = metrics.get(f"{chooser}/teacher/pos_median_m", float("inf"))
+    better = [m for m in methods if metrics[f"{chooser}/{m}/pos_median_m"] < teacher]
+    return min(better, key=lambda m: metrics[f"{chooser}/{m}/pos_median_m"], default=None)
 
 
 def _pos_rot(metrics: Mapping[str, float], split: str, method: str) -> str:
