@@ -182,3 +182,18 @@ def test_mistakes_are_one_line_errors(
     lines = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
     assert len(lines) == 1 and message in lines[0], lines
     assert not (tmp_path / "o.csv").exists()
+
+
+def test_the_scene_model_step_logs_a_render_and_compare_gallery(finished_run: Path) -> None:
+    """Per scene: rows of query | render at the teacher's estimate | at the refined pose."""
+    import cv2
+    import numpy as np
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(finished_run / "scene_model"), size_guidance={"images": 0})
+    events.Reload()
+    for scene in ("scene00", "scene01"):
+        [image] = events.Images(f"test/render_compare/gallery/{scene}")
+        decoded = cv2.imdecode(np.frombuffer(image.encoded_image_string, np.uint8), 1)
+        assert decoded.shape[1] == 3 * (128 + 6)  # three panels of 128 px
+        assert decoded.shape[0] > 4 * 128  # four queries

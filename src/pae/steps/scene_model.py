@@ -12,6 +12,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
+from pae.callbacks.render_compare_gallery import RenderCompareGallery
 from pae.checkpoints import LoadedModel, load_decoder, load_pae, load_scene_model, load_teacher
 from pae.data.rays import RayDataModule
 from pae.errors import ConfigError
@@ -147,7 +148,7 @@ def fit_scene_model(
         quality_images=settings.quality_images,
         query_width=callback.query_width,
     )
-    callbacks = [callback]
+    callbacks = [callback, RenderCompareGallery(callback)]
     if settings.name == "voxel_grid":  # the one that trains; max_epochs=0: saved untrained
         metrics, last = fit_and_test(
             cfg, step_dir, "scene_model", module, data, settings.max_epochs, callbacks
@@ -176,7 +177,8 @@ def evaluate_scene_model(
         configs={"teacher_config": teacher.config, "scene_model_config": loaded.config},
         query_width=callback.query_width,
     )
-    trainer = build_trainer(cfg, run_dir / "render_compare", 0, [callback])
+    gallery = RenderCompareGallery(callback)
+    trainer = build_trainer(cfg, run_dir / "render_compare", 0, [callback, gallery])
     metrics = validate_and_test(trainer, module, data)
     metrics |= collect_metrics(trainer, ("bench/",))
     log_hparams(trainer, cfg, metrics)
