@@ -197,3 +197,4 @@ def test_the_scene_model_step_logs_a_render_and_compare_gallery(finished_run: Pa
         decoded = cv2.imdecode(np.frombuffer(image.encoded_image_string, np.uint8), 1)
         assert decoded.shape[1] == 3 * (128 + 6)  # three panels of 128 px
         assert decoded.shape[0] > 4 * 128  # four queries
+    assert "test/cumulative_errors" in events.Tags()["images"]

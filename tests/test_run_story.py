@@ -101,6 +101,11 @@ def test_tensorboard_tells_the_runs_story(pipeline_cli_run: Path) -> None:
     and never worse than the teacher."""
     import re
 
+    import cv2
+    import numpy as np
+
+    from pae.callbacks.trajectory import METHOD_RGB
+
     metrics = json.loads((pipeline_cli_run / "metrics.json").read_text())
     for step in ("teacher", "student"):
         events = _events(pipeline_cli_run / step)
@@ -112,6 +117,11 @@ def test_tensorboard_tells_the_runs_story(pipeline_cli_run: Path) -> None:
         for tag in tags:  # each a curve over the epochs, none per scene
             assert len(events.Scalars(tag)) >= 2 and tag.count("/") == 2, tag
         assert settings["stage"] == "pipeline"
+    assert {"val/cumulative_errors", "test/cumulative_errors"} <= set(events.Tags()["images"])
+    encoded = events.Images("test/cumulative_errors")[-1].encoded_image_string
+    curves = cv2.imdecode(np.frombuffer(encoded, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
+    colours = {tuple(c) for c in curves.reshape(-1, 3)}
+    assert set(METHOD_RGB[:5]) <= colours  # teacher, refined, knn_mean, two alternatives
     assert tags[2:4] == ["val/student/pos_median_m", "val/student/rot_median_deg"]
     best = settings["best_refinement"]
     honest = ("refined", "knn_mean", "closed_form_k10", "latent_knn", "pose_descent")

@@ -10,6 +10,7 @@ import torch
 from lightning.pytorch.loggers import TensorBoardLogger
 from torch import Tensor
 
+from pae.callbacks.error_curves import error_curves_figure
 from pae.callbacks.trajectory import trajectory_figure
 from pae.geometry import pose_errors
 from pae.metrics import first_occurrences, summarise_errors
@@ -234,6 +235,10 @@ class TestTimeRefinement(L.Callback):
         if self.trajectory_plot:
             shown = {"teacher": estimate} | {m: predictions[m] for m in self.trajectory_methods}
             self._plot(trainer, split, gt, shown, scene, names)
+        honest = {m: p for m, p in predictions.items() if m not in RESERVED_METHODS}
+        methods = {"teacher": estimate, "refined": predictions["refined"]}
+        methods |= {"knn_mean": predictions["knn_mean"]} | honest
+        self._plot_error_curves(trainer, split, methods, gt)
 
     def _store_distances(
         self,
@@ -272,6 +277,26 @@ class TestTimeRefinement(L.Callback):
         for logger in trainer.loggers:
             if isinstance(logger, TensorBoardLogger):
                 logger.experiment.add_text("refinement/protocols", PROTOCOLS_TEXT, 0)
+
+    @staticmethod
+    def _plot_error_curves(
+        trainer: L.Trainer, split: str, methods: dict[str, Tensor], gt: Tensor
+    ) -> None:
+        """Cumulative error curves of ``methods`` (name -> poses [N, 7]) against ``gt``
+        (image tag ``{split}/cumulative_errors``)."""
+        loggers = [lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)]
+        if not loggers:
+            return
+        errors = {m: pose_errors(p.float(), gt.float()) for m, p in methods.items()}
+        image = error_curves_figure(
+            f"{split} split, {len(gt)} queries",
+            {m: e[0] for m, e in errors.items()},
+            {m: e[1] for m, e in errors.items()},
+        )
+        for logger in loggers:
+            logger.experiment.add_image(
+                f"{split}/cumulative_errors", image, trainer.global_step, dataformats="HWC"
+            )
 
     @staticmethod
     def _plot(

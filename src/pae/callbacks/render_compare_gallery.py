@@ -1,8 +1,11 @@
 """What render-and-compare does, as TensorBoard images: per scene a few queries, each beside
 the scene model's rendering at the teacher's estimate and at the refined pose, labelled with
-their errors."""
+their errors; and the cumulative error curves of the teacher and render-and-compare."""
 
 from __future__ import annotations
+
+import csv
+from pathlib import Path
 
 import cv2
 import lightning as L
@@ -11,7 +14,8 @@ import torch
 from lightning.pytorch.loggers import TensorBoardLogger
 from torch import Tensor, nn
 
-from pae.callbacks.render_compare import HONEST, RenderCompareRefinement
+from pae.callbacks.error_curves import error_curves_figure
+from pae.callbacks.render_compare import HONEST, ORACLE, RenderCompareRefinement
 from pae.data.camera import scale_intrinsics
 from pae.geometry import pose_errors
 from pae.metrics import first_occurrences
@@ -56,7 +60,9 @@ class RenderCompareGallery(L.Callback):
 
     The refined poses are those of ``refinement`` (its refiner with the steps and gate it
     chose on val), refined again for these queries with the same random draws as in the
-    full split, so they are the poses its figures count."""
+    full split, so they are the poses its figures count. With them, ``{split}/cumulative_errors``:
+    the teacher's and each render-and-compare method's cumulative error curves over the
+    whole split (:meth:`curves`)."""
 
     def __init__(
         self,
@@ -125,6 +131,7 @@ class RenderCompareGallery(L.Callback):
         truth = picked["pose"].float()
         errors = [pose_errors(p.float(), truth) for p in (estimate, gated.poses)]
         labels = self._labels(picked["index"], errors, gated.accepted)
+        self.curves(trainer, loggers, split)
         names = pl_module.scene_names
         scenes = picked["scene"].cpu()
         for index in scenes.unique().tolist():
@@ -143,6 +150,41 @@ class RenderCompareGallery(L.Callback):
                     trainer.global_step,
                     dataformats="HWC",
                 )
+
+    @staticmethod
+    def curves(trainer: L.Trainer, loggers: list[TensorBoardLogger], split: str) -> None:
+        """Cumulative error curves of the teacher and of each render-and-compare method,
+        from the per-query files the refinement callback wrote (after its gate), as the
+        image ``{split}/cumulative_errors``."""
+        position: dict[str, Tensor] = {}
+        orientation: dict[str, Tensor] = {}
+        for name in (HONEST, ORACLE):
+            path = Path(trainer.log_dir or "") / f"queries_{split}_{name}.csv"
+            if not path.is_file():
+                continue
+            with path.open(newline="") as handle:
+                rows = list(csv.DictReader(handle))
+            if not rows:
+                continue
+
+            def column(key: str, rows: list[dict[str, str]] = rows) -> Tensor:
+                return torch.tensor([float(row[key]) for row in rows])
+
+            accepted = column("accepted") > 0
+            position.setdefault("teacher", column("start_pos_m"))
+            orientation.setdefault("teacher", column("start_rot_deg"))
+            position[name] = torch.where(accepted, column("refined_pos_m"), position["teacher"])
+            orientation[name] = torch.where(
+                accepted, column("refined_rot_deg"), orientation["teacher"]
+            )
+        if not position:
+            return
+        count = len(position["teacher"])
+        image = error_curves_figure(f"{split} split, {count} queries", position, orientation)
+        for logger in loggers:
+            logger.experiment.add_image(
+                f"{split}/cumulative_errors", image, trainer.global_step, dataformats="HWC"
+            )
 
     @staticmethod
     def _labels(
