@@ -9,7 +9,7 @@ from pathlib import Path
 
 EPILOG = """examples:
   pae-localize outputs/demo my_images/ --out poses.csv
-  pae-localize outputs/demo DATA/labels/all_test.csv --root DATA --refine render_compare \
+  pae-localize outputs/demo DATA/labels/all_test.csv --root DATA --refine render_compare \\
       --out poses.csv
 INPUT: image files, folders of images (searched recursively) or label files (their img_path
 read under --root, by default the run's data root; their poses only give the printed errors).
@@ -103,6 +103,11 @@ def localize(args: argparse.Namespace) -> None:
     if method == loc.TEACHER:
         poses = found.pose
     elif method == loc.RENDER_COMPARE:
+        if f"test/{loc.RENDER_COMPARE}/accept_margin" not in run.metrics:
+            emit(
+                f"pae-localize: warning: {run.folder / 'metrics.json'} records no "
+                "render_compare gate or steps: the configured ones are used"
+            )
         emit(f"pae-localize: render_compare of {len(found.pose)} images")
         poses = loc.render_compare(run, teacher.model.to(device), found, device)
     else:
