@@ -177,8 +177,8 @@ def query_intrinsics(
 
 class Estimates(NamedTuple):
     """The teacher's answer for every query: pose [N, 7] (unit quaternion), scene [N] it
-    assigns, latents [N, 2d] ([z_x, z_q]); with ``keep_images``, the query images [N, 3, h,
-    w] in [0, 1] at the render-and-compare width and their intrinsics [N, 4]."""
+    assigns, latents [N, 2d] ([z_x, z_q]); for render-and-compare, the query images [N, 3,
+    h, w] in [0, 1] at its compare width and their intrinsics [N, 4] (else None)."""
 
     pose: Tensor
     scene: Tensor
