@@ -52,8 +52,8 @@ def gallery_figure(
 
 
 class RenderCompareGallery(L.Callback):
-    """After every test (and, with ``on_val``, every validation run), per scene the first
-    ``queries`` queries of the evaluated split: the query | the scene model's rendering at
+    """After every test (and, with ``on_val``, every validation run), per scene ``queries``
+    queries evenly spaced over the evaluated split: the query | the scene model's rendering at
     the teacher's estimate | at the pose render-and-compare refined it to (the one the gate
     kept), each labelled with its position (m) and orientation (deg) error; TensorBoard
     image ``{split}/render_compare/gallery/<scene>``, panels ``panel_px`` px wide.
@@ -85,10 +85,14 @@ class RenderCompareGallery(L.Callback):
         self.draw(trainer, pl_module, "test")
 
     def picked(self, scene: Tensor) -> Tensor:
-        """Rows [K] of the first ``queries`` queries of each scene ids [N], scene by scene."""
-        order = torch.argsort(scene, stable=True)
-        ranks = torch.arange(len(scene)) - torch.searchsorted(scene[order], scene[order])
-        return order[ranks < self.queries]
+        """Rows [K] of ``queries`` queries of each scene ids [N], evenly spaced over the
+        scene's queries in split order, scene by scene."""
+        rows = []
+        for index in scene.unique().tolist():
+            members = (scene == index).nonzero().flatten()
+            spaced = torch.linspace(0, len(members) - 1, min(self.queries, len(members)))
+            rows.append(members[spaced.round().long().unique()])
+        return torch.cat(rows)
 
     @torch.no_grad()
     def draw(self, trainer: L.Trainer, pl_module: L.LightningModule, split: str) -> None:
