@@ -11,18 +11,25 @@ import numpy as np
 from torch import Tensor
 
 from pae.callbacks.trajectory import METHOD_RGB, _nice_step, _text
+from pae.metrics import summarise_errors
 
-MARGIN = {"left": 56, "right": 190, "top": 36, "bottom": 46}
+MARGIN = {"left": 56, "right": 240, "top": 36, "bottom": 46}
 """Pixels around each plot: tick labels left and below, the title above, the legend right."""
 
 
 def error_curve(
-    title: str, unit: str, errors: Mapping[str, Tensor], width: int = 560, height: int = 360
+    title: str,
+    unit: str,
+    errors: Mapping[str, Tensor],
+    medians: Mapping[str, float] | None = None,
+    width: int = 610,
+    height: int = 360,
 ) -> np.ndarray:
     """One plot of the cumulative share of queries (0-1) within each error (x, in ``unit``)
     for each method of ``errors`` (name -> errors [N]), up to the 95th percentile of the
     first method's errors -> RGB uint8 [height, width, 3]. The legend names each method
-    with its median; methods take METHOD_RGB in order."""
+    with its median (``medians``, e.g. the results table's average of per-scene medians;
+    default: over all queries); methods take METHOD_RGB in order."""
     values = {name: np.sort(e.detach().cpu().double().numpy()) for name, e in errors.items()}
     first = next(iter(values.values()))
     limit = float(np.quantile(first, 0.95)) if len(first) else 1.0
@@ -61,18 +68,40 @@ def error_curve(
         y = top + 14 + 22 * row
         cv2.line(image, (right + 10, y - 4), (right + 26, y - 4), colour, 2)
         median = float(np.median(sorted_errors)) if n else float("nan")
-        _text(image, f"{name} ({median:.{max(decimals, 2)}f})", (right + 32, y))
+        median = (medians or {}).get(name, median)
+        digits = 3 if unit == "m" else 2  # as the results tables
+        _text(image, f"{name} ({median:.{digits}f})", (right + 32, y))
     return image
 
 
 def error_curves_figure(
-    title: str, position: Mapping[str, Tensor], orientation: Mapping[str, Tensor]
+    title: str,
+    position: Mapping[str, Tensor],
+    orientation: Mapping[str, Tensor],
+    scene: Tensor,
+    scene_names: list[str],
 ) -> np.ndarray:
-    """The position (m) and orientation (deg) curves of the same methods, one above the
-    other, under ``title`` -> RGB uint8 [H, W, 3]."""
+    """The position (m) and orientation (deg) curves of the same methods (name -> errors
+    [N] of queries of scene ids ``scene`` [N]), one above the other, under ``title``, the
+    legend's medians as the results table's (per scene, averaged over scenes) -> RGB
+    uint8 [H, W, 3]."""
+    summaries = {
+        name: summarise_errors(position[name], orientation[name], scene, scene_names)
+        for name in position
+    }
     return np.concatenate(
         [
-            error_curve(f"{title}: position", "m", position),
-            error_curve(f"{title}: orientation", "deg", orientation),
+            error_curve(
+                f"{title}: position",
+                "m",
+                position,
+                {name: float(s["pos_median_m"]) for name, s in summaries.items()},
+            ),
+            error_curve(
+                f"{title}: orientation",
+                "deg",
+                orientation,
+                {name: float(s["rot_median_deg"]) for name, s in summaries.items()},
+            ),
         ]
     )

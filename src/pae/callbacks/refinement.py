@@ -238,7 +238,7 @@ class TestTimeRefinement(L.Callback):
         honest = {m: p for m, p in predictions.items() if m not in RESERVED_METHODS}
         methods = {"teacher": estimate, "refined": predictions["refined"]}
         methods |= {"knn_mean": predictions["knn_mean"]} | honest
-        self._plot_error_curves(trainer, split, methods, gt)
+        self._plot_error_curves(trainer, split, methods, gt, scene, names)
 
     def _store_distances(
         self,
@@ -280,10 +280,15 @@ class TestTimeRefinement(L.Callback):
 
     @staticmethod
     def _plot_error_curves(
-        trainer: L.Trainer, split: str, methods: dict[str, Tensor], gt: Tensor
+        trainer: L.Trainer,
+        split: str,
+        methods: dict[str, Tensor],
+        gt: Tensor,
+        scene: Tensor,
+        names: list[str],
     ) -> None:
-        """Cumulative error curves of ``methods`` (name -> poses [N, 7]) against ``gt``
-        (image tag ``{split}/cumulative_errors``)."""
+        """Cumulative error curves of ``methods`` (name -> poses [N, 7]) against ``gt`` [N,
+        7] of scenes ``scene`` [N] (image tag ``{split}/cumulative_errors``)."""
         loggers = [lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)]
         if not loggers:
             return
@@ -292,6 +297,8 @@ class TestTimeRefinement(L.Callback):
             f"{split} split, {len(gt)} queries",
             {m: e[0] for m, e in errors.items()},
             {m: e[1] for m, e in errors.items()},
+            scene,
+            names,
         )
         for logger in loggers:
             logger.experiment.add_image(

@@ -162,6 +162,7 @@ class RenderCompareGallery(L.Callback):
         image ``{split}/cumulative_errors``."""
         position: dict[str, Tensor] = {}
         orientation: dict[str, Tensor] = {}
+        scenes: list[str] = []
         for name in (HONEST, ORACLE):
             path = Path(trainer.log_dir or "") / f"queries_{split}_{name}.csv"
             if not path.is_file():
@@ -174,6 +175,7 @@ class RenderCompareGallery(L.Callback):
             def column(key: str, rows: list[dict[str, str]] = rows) -> Tensor:
                 return torch.tensor([float(row[key]) for row in rows])
 
+            scenes = [row["scene"] for row in rows]
             accepted = column("accepted") > 0
             position.setdefault("teacher", column("start_pos_m"))
             orientation.setdefault("teacher", column("start_rot_deg"))
@@ -183,8 +185,10 @@ class RenderCompareGallery(L.Callback):
             )
         if not position:
             return
-        count = len(position["teacher"])
-        image = error_curves_figure(f"{split} split, {count} queries", position, orientation)
+        names = sorted(set(scenes))
+        ids = torch.tensor([names.index(s) for s in scenes])
+        title = f"{split} split, {len(ids)} queries"
+        image = error_curves_figure(title, position, orientation, ids, names)
         for logger in loggers:
             logger.experiment.add_image(
                 f"{split}/cumulative_errors", image, trainer.global_step, dataformats="HWC"
