@@ -22,6 +22,7 @@ GROUPS = {
         "decoder",
         "rpr",
         "iapr",
+        "scene_model",
         "refine",
         "trainer",
         "logger",

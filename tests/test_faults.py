@@ -31,7 +31,7 @@ from pae.errors import CheckpointError, ConfigError, ImageError, LabelError, Lab
 from pae.reporting import format_results_table, sweep_report, sweep_table
 from pae.reporting import main as reporting_main
 from pae.train import run
-from tests.conftest import TINY, tiny_overrides
+from tests.conftest import TINY, tiny_data_overrides, tiny_overrides
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 
@@ -236,6 +236,39 @@ def test_resume_falls_back_and_continues_a_longer_schedule(
     assert "teacher.max_epochs=3" in (run_dir / ".hydra" / "overrides.yaml").read_text()
 
 
+def test_a_resumed_scene_model_run_gives_the_figures_of_an_uninterrupted_one(
+    teacher_run: Path, compose_train, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every random draw of the scene-model step (ray batches, the samples' jitter) comes
+    from (seed, epoch, batch): a run stopped after its first epoch and resumed reports every
+    figure of a run that was never stopped (timings aside)."""
+    scene_model = (
+        "stage=render_compare",
+        f"teacher_ckpt={teacher_run / 'checkpoints' / 'last.ckpt'}",
+        "scene_model.max_epochs=2",
+        "scene_model.batches_per_epoch=2",
+        "scene_model.rays_per_batch=512",
+        "scene_model.model.num_voxels=4000",
+        "scene_model.image_size=16",
+        "render_compare.oracle=false",
+        "render_compare.refiner.rounds=1",
+        "render_compare.refiner.candidates=4",
+        "render_compare.refiner.polish_steps=2",
+    )
+    whole = run(compose_train(*scene_model), tmp_path / "whole")
+    with monkeypatch.context() as patch:
+        interrupted_at(patch, 1)
+        with pytest.raises(RuntimeError, match="interrupted"):
+            run(compose_train(*scene_model), tmp_path / "resumed")
+    resumed = run(compose_train(*scene_model, "resume=true"), tmp_path / "resumed")
+
+    def figures(metrics: dict[str, float | int | str]) -> dict[str, float | int | str]:
+        return {key: value for key, value in metrics.items() if not key.startswith("bench/")}
+
+    assert "test/scene_model/psnr_db" in whole and "val/render_compare/pos_median_m" in whole
+    assert figures(resumed) == figures(whole)
+
+
 def test_resume_without_a_complete_checkpoint_says_so_and_clears_unfinished_files(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -285,6 +318,31 @@ def test_resume_that_cannot_work_stops_before_the_run_dir_is_touched(
     assert len(error_lines(result.stderr)) == 1 and message in result.stderr
     assert {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()} == before
     assert not (tmp_path / "missing").exists()
+
+
+def test_pae_eval_into_a_training_run_names_what_pae_eval_can_do(
+    teacher_run: Path, tiny_root: Path, tmp_path: Path
+) -> None:
+    """pae-eval takes no resume=true: its refusal of a run directory with checkpoints says
+    to choose another directory, and touches nothing there."""
+    run_dir = copy_run(teacher_run, tmp_path)
+    before = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
+    student = f"student_ckpt={run_dir / 'checkpoints' / 'last.ckpt'}"
+    result = pae_command(
+        "evaluate",
+        *tiny_data_overrides(tiny_root),
+        student,
+        f"hydra.run.dir={run_dir}",
+        cwd=tmp_path,
+    )
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    assert error_lines(result.stderr) == [
+        f"pae-eval: error: hydra.run.dir={run_dir} already holds the checkpoints of a run "
+        f"({run_dir / 'checkpoints'}): pae-eval would write its metrics.json and .hydra/ over "
+        "that run's; choose another directory (the checkpoints are read from student_ckpt, "
+        "scene_model_ckpt, ...)"
+    ]
+    assert {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()} == before
 
 
 @pytest.mark.parametrize(
@@ -421,6 +479,70 @@ def test_checkpoints_remember_their_data(
     cfg = compose_train(*student, f"data.root={other}", "allow_other_data=true")
     assert "test/student/pos_median_m" in run(cfg, tmp_path / "b")
     assert "test/student/pos_median_m" in run(compose_train(*student), tmp_path / "c")
+
+
+def test_checkpoints_remember_their_train_images(
+    teacher_run: Path,
+    compose_train,
+    tiny_root: Path,
+    tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Images rendered at the same poses with another seed are other data: the fingerprint
+    tells them apart, a checkpoint trained on the first refuses the second (naming both),
+    allow_other_data=true is said and recorded, and a checkpoint written before images were
+    fingerprinted loads with a warning line."""
+    from pae.checkpoints import DATA_FINGERPRINT_KEY
+
+    labels = [str(tiny_root / "labels" / f"all_{split}.csv") for split in ("train", "test")]
+    fingerprints = []
+    for seed in (0, 1):
+        root = tmp_path / f"seed{seed}"
+        synth = ["synth", str(root), "--poses", *labels, "--size", "32", "--seed", str(seed)]
+        assert pae_data(synth) == 0
+        data = instantiate(compose_train(f"data.root={root}").data)
+        data.setup()
+        fingerprints.append(data.fingerprint())
+    assert fingerprints[0]["train_poses_sha256"] == fingerprints[1]["train_poses_sha256"]
+    assert fingerprints[0]["train_images_sha256"] != fingerprints[1]["train_images_sha256"]
+
+    teacher_ckpt = teacher_run / "checkpoints" / "last.ckpt"
+    other = tmp_path / "seed1"
+    student = ("stage=student", f"teacher_ckpt={teacher_ckpt}", "student.max_epochs=0")
+    cfg = compose_train(*student, f"data.root={other}")
+    message = (
+        f"{teacher_ckpt}: trained on other train images than those of the data at {other} "
+        "(allow_other_data=true uses it anyway)"
+    )
+    with pytest.raises(CheckpointError, match=f"^{re.escape(message)}$"):
+        run(cfg, tmp_path / "refused")
+    cfg = compose_train(*student, f"data.root={other}", "allow_other_data=true")
+    with caplog.at_level("INFO"):
+        run(cfg, tmp_path / "allowed")
+    assert (
+        f"data: warning: allow_other_data=true: {teacher_ckpt} was trained on other train "
+        f"images than those of the data at {other}; used anyway"
+    ) in caplog.messages
+    written = json.loads((tmp_path / "allowed" / "metrics.json").read_text())
+    assert written["data/other_data_checkpoints"] == 1
+    assert "allow_other_data=true: 1 checkpoint(s) read were trained on other data" in (
+        format_results_table(written)
+    )
+
+    old = tmp_path / "old.ckpt"  # as pae wrote checkpoints before it hashed the images
+    checkpoint = read_checkpoint(teacher_ckpt)
+    del checkpoint[DATA_FINGERPRINT_KEY]["train_images_sha256"]
+    torch.save(checkpoint, old)
+    caplog.clear()
+    with caplog.at_level("INFO"):
+        metrics = run(
+            compose_train(*student[:1], f"teacher_ckpt={old}", student[2]), tmp_path / "c"
+        )
+    assert "test/student/pos_median_m" in metrics and "data/other_data_checkpoints" not in metrics
+    assert (
+        f"data: warning: {old} records no fingerprint of its train images (written before pae "
+        f"recorded one): its images are not checked against those of the data at {tiny_root}"
+    ) in caplog.messages
 
 
 def test_synth_into_a_used_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -821,6 +943,35 @@ def test_a_full_disk_is_one_line_naming_the_device_and_the_file(
     ]
 
 
+def test_a_full_disk_under_tensorboard_is_one_line_naming_the_event_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """TensorBoard writes its event file from a thread of its own: a full disk there is no
+    thread traceback but the run's one-line error, naming the event file."""
+    from tensorboard.summary.writer.record_writer import RecordWriter
+    from torch.utils.tensorboard import SummaryWriter
+
+    from pae.atomic import device_of
+    from pae.reporting import reporting_errors
+
+    with reporting_errors("pae-train"):  # installs the writer threads' hook, as every run does
+        writer = SummaryWriter(str(tmp_path))
+    writer.flush()
+    (events,) = tmp_path.glob("events.out.tfevents.*")
+
+    def disk_full(self: RecordWriter, data: bytes) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(RecordWriter, "write", disk_full)
+    writer.add_scalar("train/loss", 1.0)
+    writer.file_writer.event_writer._async_writer._worker.join()  # the thread met the full disk
+    with pytest.raises(SystemExit), reporting_errors("pae-train"):
+        writer.add_scalar("train/loss", 2.0)
+    assert capsys.readouterr().err.splitlines() == [
+        f"pae-train: error: no space left on {device_of(events)} while writing {events}"
+    ]
+
+
 def test_a_missing_scene_is_named_with_the_scenes_present(tiny_root: Path) -> None:
     from hydra import compose, initialize_config_dir
 
@@ -985,6 +1136,27 @@ def test_intrinsics_are_checked_by_check_and_loaders(
         message = rf"odd\.csv:5: focal length 1e-09 px is implausible for images {width} px wide"
         with pytest.raises(LabelError, match=message):
             PoseDataModule(str(tiny_root), str(odd), str(test), camera=camera).setup()
+
+
+def test_val_sequences_as_many_as_a_scene_has_is_said_in_a_warning(
+    tiny_root: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """data.val_sequences=6 on scenes of six train sequences cannot hold out whole sequences:
+    the fallback to a row holdout is said in a warning line that names a sequence instead."""
+    from pae.data.datamodule import PoseDataModule
+
+    labels = [str(tiny_root / "labels" / f"all_{split}.csv") for split in ("train", "test")]
+    with caplog.at_level("INFO"):
+        PoseDataModule(str(tiny_root), *labels, crop=28, shorter_edge=32, val_sequences=6).setup()
+    assert (
+        "data: warning: data.val_sequences=6 holds out the last 6 train sequences of each "
+        "scene, but scene00, scene01 have no more than 6 (scene00: seq-01 to seq-06): they "
+        "hold out their last 10 % of rows instead (data.val_sequences=[seq-06] names a sequence)"
+    ) in caplog.messages
+    caplog.clear()
+    with caplog.at_level("INFO"):
+        PoseDataModule(str(tiny_root), *labels, crop=28, shorter_edge=32, val_sequences=5).setup()
+    assert not [line for line in caplog.messages if "warning" in line]
 
 
 def test_a_missing_scene_in_an_evaluated_split_is_said_and_recorded(

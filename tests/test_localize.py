@@ -22,7 +22,7 @@ from tests.conftest import tiny_data_overrides, tiny_overrides
 RENDER_COMPARE = [
     "render_compare.refiner.rounds=2",
     "render_compare.refiner.candidates=4",
-    "render_compare.refiner.gradient_steps=5",
+    "render_compare.refiner.polish_steps=2",
     "render_compare.oracle=false",
     "render_compare.accept_margin=-4.0",  # keep every refinement: poses unlike the teacher's
 ]

@@ -22,15 +22,18 @@ _NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
 
 def no_space_error(err: BaseException) -> OSError | None:
     """The "no space left" (or quota) OSError behind ``err``: itself, or one it was raised
-    from or while handling (torch.save reports a full disk as "unexpected pos" from it)."""
+    from or while handling (torch.save reports a full disk as "unexpected pos" from it); the
+    first that names its file, if any does (a failed write, then a failed clean-up)."""
     seen: set[int] = set()
+    found: list[OSError] = []
     cause: BaseException | None = err
     while cause is not None and id(cause) not in seen:
         seen.add(id(cause))
         if isinstance(cause, OSError) and cause.errno in _NO_SPACE:
-            return cause
+            found.append(cause)
         cause = cause.__cause__ or cause.__context__
-    return None
+    named = [error for error in found if error.filename is not None]
+    return next(iter(named + found), None)
 
 
 def device_of(path: str | Path) -> str:

@@ -31,16 +31,17 @@ def main(cfg: DictConfig) -> float | None:
 
         from pae.checkpoint_evaluation import evaluate_checkpoints, evaluate_methods
         from pae.console import say
-        from pae.runs.inputs import record_dataset
+        from pae.runs.inputs import other_data_record, record_dataset, start_data_checks
 
         apply_renamed_keys(cfg, "pae-eval")
         validate_eval_config(cfg)
+        start_data_checks()
         L.seed_everything(cfg.seed, verbose=False)
         run_dir = Path(HydraConfig.get().runtime.output_dir)
         if rank_zero_only.rank == 0:
             save_corrected_config(cfg, run_dir)
         metrics = record_dataset(cfg, run_dir) | evaluate_checkpoints(cfg, run_dir)
-        metrics |= evaluate_methods(cfg, run_dir)
+        metrics |= evaluate_methods(cfg, run_dir) | other_data_record(cfg)
         if rank_zero_only.rank == 0:  # under DDP every process holds the same figures
             write_json_atomic(run_dir / "metrics.json", metrics)
         say(format_results_table(metrics, "val"))

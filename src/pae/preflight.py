@@ -80,14 +80,22 @@ def check_resume(cfg: DictConfig, run_dir: Path) -> None:
             raise ConfigError(f"resume=true: no readable checkpoint in {folder} ({skipped[0]})")
 
 
-def check_fresh(run_dir: Path, key: str) -> None:
-    """A new run must not overwrite the checkpoints of an earlier one in `run_dir`."""
+def check_fresh(run_dir: Path, key: str, program: str = "pae-train") -> None:
+    """A new run must not overwrite an earlier one with checkpoints in `run_dir`; the error
+    says what `program` can do instead (pae-eval takes no resume=true)."""
     folders = _checkpoint_folders(run_dir) if run_dir.is_dir() else []
-    if folders:
-        raise ConfigError(
-            f"{key}={run_dir} already holds the checkpoints of a run ({folders[0]}): "
-            "resume=true continues it; choose another directory to start a new run"
+    if not folders:
+        return
+    if program == "pae-eval":
+        remedy = (
+            "pae-eval would write its metrics.json and .hydra/ over that run's; choose another "
+            "directory (the checkpoints are read from student_ckpt, scene_model_ckpt, ...)"
         )
+    else:
+        remedy = "resume=true continues it; choose another directory to start a new run"
+    raise ConfigError(
+        f"{key}={run_dir} already holds the checkpoints of a run ({folders[0]}): {remedy}"
+    )
 
 
 class Preflight(Callback):
@@ -128,7 +136,7 @@ class Preflight(Callback):
                 check_writable_dir(folder, key)
                 lock_if_used(folder, key)
                 if not config.get("resume"):
-                    check_fresh(folder, key)
+                    check_fresh(folder, key, self.program)
                 if not sweep:  # sweep jobs check their own settings when they start
                     self._validate(config)  # first: it may correct data settings (validation)
                 if config.get("resume") and not sweep:

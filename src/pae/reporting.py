@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
+import threading
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager, suppress
 from pathlib import Path
@@ -162,7 +164,9 @@ def format_results_table(metrics: Mapping[str, float], split: str = "test") -> s
     """Paper-style table: median position / orientation error per method, overall and per scene.
 
     Rows of methods that retrieve among the evaluated split's own poses carry a ``*`` and a
-    footnote: they read the test labels. The geometry diagnostics follow the table.
+    footnote: they read the test labels. Footnotes also say which train scenes the split
+    lacks and, with allow_other_data=true, how many checkpoints were trained on other data.
+    The geometry diagnostics follow the table.
     """
     methods = table_methods(metrics, split)
     scenes = sorted(
@@ -204,6 +208,14 @@ def format_results_table(metrics: Mapping[str, float], split: str = "test") -> s
     if missing:
         lines.append(
             f"overall averages the scenes shown: {missing:g} train scene(s) have no {split} rows"
+        )
+    other_data = metrics.get("data/other_data_checkpoints")
+    if other_data is not None:
+        lines.append(
+            f"allow_other_data=true: {other_data:g} checkpoint(s) read were trained on other "
+            "data than these figures'"
+            if other_data
+            else "allow_other_data=true: every checkpoint read was trained on this data"
         )
     accuracy = metrics.get(f"{split}/teacher/scene_accuracy")
     if accuracy is not None:
@@ -251,6 +263,36 @@ def _hydra_job() -> tuple[Path, bool] | None:
     return Path(output_dir), hydra_cfg.mode == RunMode.MULTIRUN
 
 
+def _writer_file(thread: threading.Thread | None) -> str | None:
+    """The event file of a TensorBoard writer thread (its record writer's file); None for any
+    other thread."""
+    record_writer = getattr(thread, "_record_writer", None)
+    name = getattr(getattr(record_writer, "_writer", None), "filename", None)
+    return os.fsdecode(name) if isinstance(name, str | bytes) else None
+
+
+def _name_full_disks_in_writer_threads() -> None:
+    """Install (once per process) a thread exception hook for TensorBoard's event writer
+    threads: a full disk there is not printed as the thread's traceback; the error gets the
+    event file's name, and the thread hands it to the next write of the run, which
+    reporting_errors reports in one line naming the file. Other errors in threads go to the
+    hook installed before."""
+    previous = threading.excepthook
+    if getattr(previous, "names_full_disks", False):
+        return
+
+    def hook(args: threading.ExceptHookArgs) -> None:
+        name = _writer_file(args.thread)
+        full = no_space_error(args.exc_value) if args.exc_value is not None else None
+        if name is None or full is None:
+            previous(args)
+        elif full.filename is None:
+            full.filename = name
+
+    hook.names_full_disks = True  # type: ignore[attr-defined]
+    threading.excepthook = hook
+
+
 @contextmanager
 def reporting_errors(program: str) -> Iterator[None]:
     """Turn user errors (bad labels, images, checkpoints, config) into one line on stderr.
@@ -258,8 +300,10 @@ def reporting_errors(program: str) -> Iterator[None]:
     Outside Hydra and in single runs the process exits with status 1. Inside a Hydra job the
     error is also written to `<run dir>/error.txt` (any error, tracebacks too; a finished job
     removes an old one); a sweep job raises SweepJobFailed instead of exiting, so that the
-    other jobs of the sweep still run.
+    other jobs of the sweep still run. A full disk met by a TensorBoard writer thread is
+    reported the same way, naming the event file (_name_full_disks_in_writer_threads).
     """
+    _name_full_disks_in_writer_threads()
     job = _hydra_job()
     try:
         try:

@@ -25,18 +25,20 @@ from pae.validation import apply_renamed_keys, validate_train_config
 def run(cfg: DictConfig, run_dir: Path) -> dict[str, float | int | str]:
     """Check every setting, then say which dataset the run reads and run the stage's steps
     (``pae.steps``, each given the checkpoints it needs), each ending in a summary line;
-    metrics.json (with the dataset's `data/...` keys) is rewritten atomically after each
+    metrics.json (with the dataset's `data/...` keys, and with allow_other_data=true the count
+    of checkpoints read that were trained on other data) is rewritten atomically after each
     finished step (by the first process only under DDP)."""
     import lightning as L
     from lightning.pytorch.utilities import rank_zero_only
 
     from pae.console import duration, quiet_third_party, say
-    from pae.runs.inputs import record_dataset
+    from pae.runs.inputs import other_data_record, record_dataset, start_data_checks
 
     quiet_third_party()
     apply_renamed_keys(cfg, "pae-train")
     overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
     validate_train_config(cfg, overrides)
+    start_data_checks()
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     if rank_zero_only.rank == 0:
         save_corrected_config(cfg, run_dir)
@@ -49,7 +51,7 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, float | int | str]:
         step_metrics, last = step.run(cfg, step_dir, checkpoints)
         if step.produces:
             checkpoints[step.produces] = last
-        metrics |= step_metrics
+        metrics |= step_metrics | other_data_record(cfg)
         if rank_zero_only.rank == 0:
             write_json_atomic(run_dir / "metrics.json", metrics)
         figures = step_figures(step.name, step_metrics)
@@ -70,8 +72,6 @@ def main(cfg: DictConfig) -> float | None:
         metrics = run(cfg, run_dir)
         say(format_results_table(metrics, "val"))
         say(format_results_table(metrics))
-        if cfg.get("table_footnote"):
-            say(cfg.table_footnote)
         say(f"metrics: {run_dir / 'metrics.json'}")
         return objective(metrics)
 

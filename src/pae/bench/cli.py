@@ -242,6 +242,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--train-frames", type=int, default=800, help="per scene, student bench")
     parser.add_argument("--queries", type=int, default=500, help="refinement bench queries")
     parser.add_argument("--labels", type=Path, default=REFERENCE_LABELS)
+    parser.add_argument(
+        "--device",
+        default="cpu",
+        help="torch device of the render_compare benchmark (e.g. cuda: the tensor engine)",
+    )
     scale = parser.add_argument_group(
         "render_compare_scale", "the scene-model step's dataset (default: 7-Scenes' size)"
     )
@@ -304,7 +309,7 @@ def main(argv: list[str] | None = None) -> int:
     if "deploy" in chosen:
         figures |= bench_methods()
     if "render_compare" in chosen:
-        figures |= bench_render_compare()
+        figures |= bench_render_compare(device=args.device)
     if "render_compare_scale" in chosen:
         figures |= bench_render_compare_scale(
             args.scale_train,

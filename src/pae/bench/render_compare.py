@@ -11,9 +11,12 @@ from __future__ import annotations
 
 import math
 import time
+from pathlib import Path
 
 import torch
+from omegaconf import OmegaConf
 
+from pae import CONFIG_DIR
 from pae.geometry import matrix_to_quaternion
 from pae.models.voxel_grid import VoxelGridSceneModel
 from pae.pose_sampling import perturb
@@ -23,10 +26,20 @@ ROOM_HALF_M = (3.5, 3.0)
 """Half the room's width and depth (m); the room spans z in [0, 2.8] m."""
 
 
-def room_grid(scenes: int = 2, num_voxels: int = 300_000) -> VoxelGridSceneModel:
-    """The default grid over bounds [-4, 4] x [-4, 4] x [-0.5, 3.3] m per scene, dense (raw
+def room_grid(scenes: int = 2, num_voxels: int | None = None) -> VoxelGridSceneModel:
+    """The default grid (conf/scene_model/voxel_grid.yaml; ``num_voxels``: another size, per
+    scene) over bounds [-4, 4] x [-4, 4] x [-0.5, 3.3] m per scene, uncontracted, dense (raw
     density +8) outside the room and empty (-8) inside, colours random."""
-    model = VoxelGridSceneModel([[[-4.0, -4.0, -0.5], [4.0, 4.0, 3.3]]] * scenes, 1, num_voxels)
+    path = Path(CONFIG_DIR) / "scene_model" / "voxel_grid.yaml"
+    settings = OmegaConf.to_container(OmegaConf.load(path).model)
+    model = VoxelGridSceneModel(
+        [[[-4.0, -4.0, -0.5], [4.0, 4.0, 3.3]]] * scenes,
+        n_appearances=1,
+        num_voxels=num_voxels or settings["num_voxels"],
+        samples_per_ray=settings["samples_per_ray"],
+        contract=False,
+        near_m=settings["near_m"],
+    )
     generator = torch.Generator().manual_seed(0)
     with torch.no_grad():
         for grid in model.grids:
@@ -64,18 +77,48 @@ def _seconds(run) -> float:
     return time.perf_counter() - start
 
 
-def bench_render_compare(queries: int = 250, scenes: int = 2, crop: int = 56) -> dict[str, float]:
-    """`bench/render_compare/ms_per_query` (default settings, batched), the compiled scorer's
-    and the compiled renderer's speed-ups over their tensor versions (same inputs)."""
-    model = room_grid(scenes)
-    images, intrinsics, start, scene_ids = _queries(queries, scenes, crop, seed=0)
+def machine_gflops(size: int = 1024, repeats: int = 5) -> float:
+    """The machine's measured float32 throughput (GFLOP/s): the best of ``repeats``
+    ``size``-square matrix products on torch's threads, the roof the kernels are put
+    against."""
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    a @ b
+    best = min(_seconds(lambda: a @ b) for _ in range(repeats))
+    return 2 * size**3 / best / 1e9
+
+
+def bench_render_compare(
+    queries: int = 250, scenes: int = 2, crop: int = 56, device: str = "cpu"
+) -> dict[str, float]:
+    """The refiner at its default settings, batched as the callback runs it, on ``device``:
+    `bench/render_compare/ms_per_query` and its parts (the search's scores, the polish, the
+    reference renderings), the kernels' counted work (`mflop_per_query`) and its rate against
+    the machine's measured throughput (`roofline_fraction`); on CPU also the compiled
+    scorer's and renderer's speed-ups over their tensor versions (same inputs)."""
+    model = room_grid(scenes).to(device)
+    images, intrinsics, start, scene_ids = (
+        t.to(device) for t in _queries(queries, scenes, crop, seed=0)
+    )
+    RenderCompareRefiner(model)(images[:4], intrinsics[:4], start[:4], scene_ids[:4])  # compile
     refiner = RenderCompareRefiner(model)
-    refiner(images[:4], intrinsics[:4], start[:4], scene_ids[:4])  # compile, warm up
+    seconds = _seconds(lambda: refiner(images, intrinsics, start, scene_ids))
+    work = refiner.work
+    kernel_s = work.score_s + work.polish_s
+    prefix = "bench/render_compare"
     figures = {
-        "bench/render_compare/ms_per_query": 1000
-        * _seconds(lambda: refiner(images, intrinsics, start, scene_ids))
-        / queries
+        f"{prefix}/ms_per_query": 1000 * seconds / queries,
+        f"{prefix}/search_ms_per_query": 1000 * work.score_s / queries,
+        f"{prefix}/polish_ms_per_query": 1000 * work.polish_s / queries,
+        f"{prefix}/render_ms_per_query": 1000 * work.render_s / queries,
+        f"{prefix}/mflop_per_query": work.kernel_mflop / queries,
+        f"{prefix}/kernel_gflops": work.kernel_mflop / kernel_s / 1000,
     }
+    if device != "cpu":
+        return figures
+    figures[f"{prefix}/machine_gflops"] = machine_gflops()
+    figures[f"{prefix}/roofline_fraction"] = (
+        figures[f"{prefix}/kernel_gflops"] / figures[f"{prefix}/machine_gflops"]
+    )
     few = slice(0, 16)
     compiled, tensor = (
         _seconds(
@@ -85,7 +128,7 @@ def bench_render_compare(queries: int = 250, scenes: int = 2, crop: int = 56) ->
         )
         for engine in ("compiled", "torch")
     )
-    figures["bench/render_compare/compiled_score_speedup"] = tensor / compiled
+    figures[f"{prefix}/compiled_engine_speedup"] = tensor / compiled
     grid = model.grids[0]
     rays = torch.randn(20_000, 3)
     origins = torch.zeros(20_000, 3) + torch.tensor([0.0, 0.0, 1.4])
@@ -95,7 +138,7 @@ def bench_render_compare(queries: int = 250, scenes: int = 2, crop: int = 56) ->
             _seconds(lambda c=c: grid.composite(origins, rays, 48, 0.05, False, c))
             for c in (True, False)
         )
-    figures["bench/render_compare/compiled_render_speedup"] = slow / fast
+    figures[f"{prefix}/compiled_render_speedup"] = slow / fast
     figures["bench/deploy/render_compare/scene_model_bytes"] = sum(
         p.numel() * p.element_size() for p in model.parameters()
     )

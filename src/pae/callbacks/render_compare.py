@@ -100,15 +100,16 @@ class RenderCompareRefinement(L.Callback):
     and applies the last choice at test (margin 0 and no floor where no validation ran).
     Beside each method's figures: ``accept_margin``, ``accept_score``, ``accepted_share``, the
     median position error of the accepted queries (refined) and of the rejected ones (kept at
-    the start), and ``ungated_pos_median_m`` (every refinement accepted).
+    the start), ``ungated_pos_median_m`` (every refinement accepted) and
+    ``worse_than_start_share`` (queries that end farther from the truth than the teacher's
+    estimate: a wrong basin).
 
     ``step_from_val`` (``{"position": a, "orientation": b}``) sets the search's first steps
     from the teacher's typical error, so that the search covers it at every scene scale: on
     each validation run ``position_sigma_m`` = a × the teacher's median val position error
-    (m) and ``orientation_sigma_deg`` = b × its median val orientation error (deg), and the
-    gradient steps' translations grow by as much as the position step did over the
-    configured one (``gradient_position_scale``); applied at test (the refiner's own
-    settings where no validation ran; None: always those).
+    (m) and ``orientation_sigma_deg`` = b × its median val orientation error (deg), applied
+    at test (the refiner's own settings where no validation ran; None: always those). The
+    polish needs no scale: its Levenberg–Marquardt steps are invariant to the units.
 
     ``refiner`` holds RenderCompareRefiner's settings; ``feature_layers`` sets how many
     modules of the teacher backbone make the features of ``refiner.score=features``.
@@ -210,11 +211,9 @@ class RenderCompareRefinement(L.Callback):
         if self.step_from_val is None:
             return
         pos, rot = pose_errors(estimate.float(), truth.float())
-        position = float(self.step_from_val["position"] * pos.quantile(0.5))
         self.steps = {
-            "position_sigma_m": position,
+            "position_sigma_m": float(self.step_from_val["position"] * pos.quantile(0.5)),
             "orientation_sigma_deg": float(self.step_from_val["orientation"] * rot.quantile(0.5)),
-            "gradient_position_scale": position / float(self.setting("position_sigma_m")),
         }
 
     def refine(self, trainer: L.Trainer, pl_module: L.LightningModule, split: str) -> None:
@@ -260,6 +259,7 @@ class RenderCompareRefinement(L.Callback):
             figures |= gate_figures(
                 f"{split}/{name}", (margin, floor), gated.accepted, pos, refined_pos
             )
+            figures[f"{split}/{name}/worse_than_start_share"] = (pos > start_pos).float().mean()
             if getattr(trainer, "log_dir", None) is not None:
                 path = Path(trainer.log_dir) / f"queries_{split}_{name}.csv"
                 names = [pl_module.scene_names[s] for s in outputs["scene"].tolist()]

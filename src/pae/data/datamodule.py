@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import sys
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +17,8 @@ from torch.utils.data import DataLoader, WeightedRandomSampler
 
 from pae.data.camera import Intrinsics, centre_crop_origin, resized_size, scale_intrinsics
 from pae.data.dataset import PoseDataset, collate_batch
-from pae.data.holdout import HeldOut, held_out_rows
+from pae.data.fingerprint import images_sha256
+from pae.data.holdout import HeldOut, held_out_rows, scenes_short_of_sequences
 from pae.data.labels import LabelTable, focal_column_mismatch, focal_problems, read_labels
 from pae.data.transforms import ImageTransform, image_size
 from pae.errors import ConfigError, LabelError
@@ -88,6 +89,10 @@ class PoseDataModule(L.LightningDataModule):
         self.tables: dict[str, LabelTable] = {}
         self.datasets: dict[str, PoseDataset] = {}
         self.scene_names: list[str] = []
+        self._fingerprint: dict[str, Any] | None = None
+        self.train_batches: Callable[[PoseDataModule], DataLoader] | None = None
+        """Another kind of train batch (a scene model's rays: ``pae.data.rays.RayLoader``):
+        called with this module, it gives the train loader; None: the train images."""
 
     def setup(self, stage: str | None = None) -> None:
         if self.datasets:
@@ -153,6 +158,16 @@ class PoseDataModule(L.LightningDataModule):
             )
         self.tables["val"], self.tables["train"] = train.select(mask), train.select(~mask)
         rank_zero_info("validation split, held out of the train labels: " + "; ".join(held))
+        short = scenes_short_of_sequences(train, sequences)
+        if short:
+            scene, names = next(iter(short.items()))
+            instead = "nothing" if fraction is None else f"their last {100 * fraction:g} % of rows"
+            rank_zero_info(
+                f"data: warning: data.val_sequences={sequences} holds out the last {sequences} "
+                f"train sequences of each scene, but {', '.join(short)} have no more than "
+                f"{sequences} ({scene}: {names[0]} to {names[-1]}): they hold out {instead} "
+                f"instead (data.val_sequences=[{names[-1]}] names a sequence)"
+            )
 
     def _keep_scenes(self, table: LabelTable) -> LabelTable:
         if self.keep_scenes is None:
@@ -222,13 +237,19 @@ class PoseDataModule(L.LightningDataModule):
         return torch.tensor([index[key] for key in keys], dtype=torch.long), len(names)
 
     def fingerprint(self) -> dict[str, Any]:
-        """What identifies the training data: its scene names and a SHA-256 of its train poses
-        (float64 [N, 7], as read from the train label file). Checkpoints record it."""
-        poses = np.ascontiguousarray(self.tables["train"].poses, dtype=np.float64)
-        return {
-            "scenes": list(self.scene_names),
-            "train_poses_sha256": hashlib.sha256(poses.tobytes()).hexdigest(),
-        }
+        """What identifies the training data: its scene names, a SHA-256 of its train poses
+        (float64 [N, 7], as read from the train label file) and one of its train images
+        (:func:`pae.data.fingerprint.images_sha256`: paths, sizes, a sample of each file's
+        bytes), computed once. Checkpoints record it."""
+        if self._fingerprint is None:
+            train = self.tables["train"]
+            poses = np.ascontiguousarray(train.poses, dtype=np.float64)
+            self._fingerprint = {
+                "scenes": list(self.scene_names),
+                "train_poses_sha256": hashlib.sha256(poses.tobytes()).hexdigest(),
+                "train_images_sha256": images_sha256(train, self.root),
+            }
+        return dict(self._fingerprint)
 
     def describe(self) -> dict[str, Any]:
         """What this module reads: ``root``, ``scenes`` and, per split, its label file, the
@@ -263,6 +284,8 @@ class PoseDataModule(L.LightningDataModule):
         )
 
     def train_dataloader(self) -> DataLoader:
+        if self.train_batches is not None:
+            return self.train_batches(self)
         dataset = self.datasets["train"]
         if self.balance_scenes and self.n_scenes > 1:
             counts = torch.bincount(dataset.scenes, minlength=self.n_scenes).float()

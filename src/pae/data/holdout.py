@@ -75,3 +75,19 @@ def held_out_rows(
             table.source, None, f"data.val_sequences: no train rows of sequences {unknown}"
         )
     return mask, held
+
+
+def scenes_short_of_sequences(table: LabelTable, sequences: HeldOut) -> dict[str, list[str]]:
+    """With ``sequences`` an int n: the scenes with more than one train sequence but no more
+    than n -> their sequences (natural order). held_out_rows gives them the fallback of a
+    scene with one sequence (holding out all of theirs would leave no train rows), which the
+    data module says in a warning: ``val_sequences=6`` may have meant ``[seq-06]``."""
+    if not isinstance(sequences, int):
+        return {}
+    scene, seq = np.asarray(table.scene), np.asarray(table.seq)
+    short = {}
+    for name in table.scene_names:
+        names = sorted({s for s in seq[scene == name] if s}, key=natural_key)
+        if 1 < len(names) <= sequences:
+            short[name] = names
+    return short

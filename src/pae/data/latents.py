@@ -240,6 +240,10 @@ class TeacherLatentDataModule(L.LightningDataModule):
     def fingerprint(self) -> dict[str, Any]:
         return self.images.fingerprint()
 
+    @property
+    def root(self) -> Path:
+        return self.images.root
+
     def train_dataloader(self) -> DataLoader:
         assert self.latents is not None
         return DataLoader(

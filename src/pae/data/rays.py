@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
-import lightning as L
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
+from pae import streams
 from pae.data.camera import directions_through, scale_intrinsics
 from pae.data.datamodule import PoseDataModule
 from pae.geometry import quaternion_to_matrix
@@ -45,13 +47,17 @@ def fit_images(dataset: Any, intrinsics: Tensor, shorter_edge: int | None) -> tu
 
 
 class RayBatches(Dataset):
-    """``batches`` batches (items) of ``rays_per_batch`` random pixels of the train images, each
-    ``{"origins": [R, 3], "directions": [R, 3] (camera z = 1), "rgb": [R, 3] in [0, 1],
-    "scene": [R], "appearance": [R]}`` (drawn from torch's global generator, so seeded runs
-    repeat).
+    """Batches of ``rays_per_batch`` random pixels of the train images: item ``i`` is batch
+    ``n = epoch() × batches + i`` of the run (``epoch``: the epoch under way when the item is
+    read, e.g. the trainer's), drawn from a generator seeded with (``seed``, n) alone
+    (:mod:`pae.streams`), so a batch is the same whatever ran before it: a resumed run draws
+    what an uninterrupted one would, and under DDP each process its share. Each is ``{"origins":
+    [R, 3], "directions": [R, 3] (camera z = 1), "rgb": [R, 3] in [0, 1], "scene": [R],
+    "appearance": [R], "seed": int}``, ``seed`` the one for the draws rendering the batch
+    makes (its samples' jitter).
 
     images: uint8 [N, 3, H, W] as the dataset holds them; poses [N, 7]; intrinsics [N, 4] of
-    those images; scenes, appearance: ids [N].
+    those images; scenes, appearance: ids [N]; ``batches``: per epoch.
     """
 
     def __init__(
@@ -63,6 +69,8 @@ class RayBatches(Dataset):
         appearance: Tensor,
         rays_per_batch: int,
         batches: int,
+        seed: int = 0,
+        epoch: Callable[[], int] = lambda: 0,
     ) -> None:
         super().__init__()
         self.images = images
@@ -73,16 +81,20 @@ class RayBatches(Dataset):
         self.appearance = appearance
         self.rays_per_batch = rays_per_batch
         self.batches = batches
+        self.seed = seed
+        self.epoch = epoch
 
     def __len__(self) -> int:
         return self.batches
 
-    def __getitem__(self, index: int) -> dict[str, Tensor]:
-        """A random batch of rays (whatever ``index``)."""
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        """Batch ``index`` of the epoch under way."""
         n, _, h, w = self.images.shape
         r = self.rays_per_batch
-        row = torch.randint(n, (r,))
-        v, u = torch.randint(h, (r,)), torch.randint(w, (r,))
+        number = self.epoch() * self.batches + index
+        draws = streams.generator(self.seed, "rays", number)
+        row = torch.randint(n, (r,), generator=draws)
+        v, u = torch.randint(h, (r,), generator=draws), torch.randint(w, (r,), generator=draws)
         local = directions_through(u, v, self.intrinsics[row])
         return {
             "origins": self.positions[row],
@@ -90,65 +102,30 @@ class RayBatches(Dataset):
             "rgb": self.images[row, :, v, u].float() / 255.0,
             "scene": self.scenes[row],
             "appearance": self.appearance[row],
+            "seed": streams.derived_seed(self.seed, "render", number),
         }
 
 
-class RayDataModule(L.LightningDataModule):
-    """Training batches of train-image rays (:class:`RayBatches`) from the train images at
-    ``image_size`` px shorter edge (:func:`fit_images`; None: as the data holds them), each
-    ray keyed on its image's appearance ``appearance_per`` (``sequence`` or ``image``,
-    :meth:`PoseDataModule.appearance_ids`); validation and test batches are the wrapped
-    PoseDataModule's images (queries for render-and-compare)."""
+@dataclass(frozen=True)
+class RayLoader:
+    """A scene model's train batches, as a PoseDataModule's ``train_batches``: ``batches``
+    batches of ``rays_per_batch`` random pixels (:class:`RayBatches`, drawn from ``seed`` and
+    the data module's trainer's epoch under way, so a resumed run draws what an uninterrupted
+    one would) of the train images at ``image_size`` px shorter edge (:func:`fit_images`;
+    None: as the data holds them), each ray keyed on its image's appearance ``appearance``
+    (``sequence`` or ``image``, :meth:`PoseDataModule.appearance_ids`)."""
 
-    def __init__(
-        self,
-        images: PoseDataModule,
-        rays_per_batch: int,
-        batches_per_epoch: int,
-        image_size: int | None = None,
-        appearance_per: str = "sequence",
-    ) -> None:
-        super().__init__()
-        self.images = images
-        self.rays_per_batch = rays_per_batch
-        self.batches_per_epoch = batches_per_epoch
-        self.image_size = image_size
-        self.appearance_per = appearance_per
+    rays_per_batch: int
+    batches: int
+    image_size: int | None = None
+    appearance: str = "sequence"
+    seed: int = 0
 
-    def setup(self, stage: str | None = None) -> None:
-        self.images.setup(stage)
-
-    @property
-    def scene_names(self) -> list[str]:
-        return self.images.scene_names
-
-    @property
-    def n_scenes(self) -> int:
-        return self.images.n_scenes
-
-    @property
-    def datasets(self) -> dict[str, Any]:
-        return self.images.datasets
-
-    def intrinsics(self, split: str, crop: bool = True) -> Tensor:
-        return self.images.intrinsics(split, crop)
-
-    def preprocess(self, images: Tensor, train: bool) -> Tensor:
-        return self.images.preprocess(images, train)
-
-    def scenes_without_rows(self, split: str) -> list[str]:
-        return self.images.scenes_without_rows(split)
-
-    def train_poses(self) -> tuple[Tensor, Tensor]:
-        return self.images.train_poses()
-
-    def fingerprint(self) -> dict[str, Any]:
-        return self.images.fingerprint()
-
-    def train_dataloader(self) -> DataLoader:
-        dataset = self.images.datasets["train"]
-        appearance, _ = self.images.appearance_ids("train", self.appearance_per)
-        intrinsics = self.images.intrinsics("train", crop=False)
+    def __call__(self, data: PoseDataModule) -> DataLoader:
+        """The loader of ray batches from ``data``'s train split."""
+        dataset = data.datasets["train"]
+        appearance, _ = data.appearance_ids("train", self.appearance)
+        intrinsics = data.intrinsics("train", crop=False)
         images, intrinsics = fit_images(dataset, intrinsics, self.image_size)
         rays = RayBatches(
             images,
@@ -157,17 +134,14 @@ class RayDataModule(L.LightningDataModule):
             dataset.scenes,
             appearance,
             self.rays_per_batch,
-            self.batches_per_epoch,
+            self.batches,
+            self.seed,
+            lambda: _epoch(data),
         )
         return DataLoader(rays, batch_size=None)
 
-    def val_dataloader(self) -> DataLoader:
-        return self.images.val_dataloader()
 
-    def test_dataloader(self) -> DataLoader:
-        return self.images.test_dataloader()
-
-    def on_after_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
-        if isinstance(batch, dict) and batch.get("image") is not None:
-            batch = {**batch, "image": self.images.preprocess(batch["image"], train=False)}
-        return batch
+def _epoch(data: PoseDataModule) -> int:
+    """The training epoch under way in ``data``'s trainer (0 without one)."""
+    trainer = data.trainer
+    return trainer.current_epoch if trainer is not None else 0

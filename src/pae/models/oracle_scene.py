@@ -2,24 +2,41 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
 from torch import Tensor
 
 from pae.data.camera import camera_rays
 from pae.data.synthetic import SyntheticScene, shade_rays
-from pae.models.scene_model import SceneModel, SceneRendering
+from pae.errors import ConfigError
+from pae.models.scene_model import SceneModel, SceneModelInputs, SceneRendering
 
 
 class OracleSceneModel(SceneModel):
     """Exact renderings (linear colour, no camera response) and depths of the true scenes,
-    one per scene id: it knows the scene, so what it reaches is a bound, not a method."""
+    one per scene id: it knows the scene, so what it reaches is a bound, not a method.
+    Built from data that knows its true scenes (the synthetic benchmark); nothing to train."""
 
     has_depth = True
+    from_run = ("scenes",)
 
     def __init__(self, scenes: list[SyntheticScene]) -> None:
         super().__init__()
         self.scenes = list(scenes)
+
+    @classmethod
+    def build(
+        cls, config: dict[str, Any], inputs: SceneModelInputs
+    ) -> tuple[SceneModel, dict[str, Any] | None]:
+        scenes = getattr(inputs.data, "oracle_scenes", None)
+        if scenes is None:
+            raise ConfigError(
+                "scene_model=oracle renders the synthetic benchmark's true scenes; this data "
+                "has none (use scene_model=voxel_grid)"
+            )
+        return cls(scenes(), **config), None
 
     @torch.no_grad()
     def render(

@@ -11,15 +11,20 @@ evenly in inverse depth out to ``far_factor`` times the bounds' size.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
+import numpy as np
 import torch
 import torch.nn.functional as F
+from omegaconf import DictConfig, ListConfig
 from torch import Tensor, nn
 
+from pae.config_checks import boolean, integer, is_int, number, setting
 from pae.data.camera import camera_rays
-from pae.models.scene_model import SceneModel, SceneRendering
-from pae.models.voxel_render import CompiledComposite
+from pae.errors import ConfigError
+from pae.models.scene_model import SceneModel, SceneModelInputs, SceneRendering
+from pae.models.voxel_render import CompiledComposite, GridGeometry, RaySegments
 
 _EPS = 1e-9
 
@@ -37,6 +42,41 @@ def camera_bounds(positions: Tensor, margin_m: float | Sequence[float]) -> Tenso
     margin = torch.as_tensor(margin_m, dtype=torch.float64).expand(3)
     positions = positions.double()
     return torch.stack([positions.min(0).values - margin, positions.max(0).values + margin])
+
+
+def camera_extent_m(positions: Tensor) -> float:
+    """The largest side (m) of the box holding the middle 96 % of camera positions [N, 3]
+    along each axis: the camera region's size, robust to a few stray frames."""
+    if len(positions) < 2:
+        return 0.0
+    q = torch.tensor([0.02, 0.98], dtype=torch.float64)
+    spread = positions.double().quantile(q, dim=0)
+    return float((spread[1] - spread[0]).max())
+
+
+def train_scale(
+    poses: Tensor, scenes: Tensor, n_scenes: int, config: Mapping[str, Any]
+) -> dict[str, Any]:
+    """The grid's bounds and contraction from the train cameras alone (poses [N, 7] of scene
+    ids [N]; never the scene's geometry): per scene the camera positions' bounds plus
+    ``margin_m``, and ``contract``. ``margin_m: auto`` is ``max(auto_scale.margin_floor_m,
+    auto_scale.margin_fraction × extent)`` per scene (extent: :func:`camera_extent_m`);
+    ``contract: auto`` contracts space when some scene's extent exceeds
+    ``auto_scale.contract_above_m`` (a street, not a room). Returns ``config`` with ``bounds``
+    and ``contract`` set, and ``margin_m`` and ``auto_scale`` gone."""
+    positions = [poses[scenes == s, :3] for s in range(n_scenes)]
+    extents = [camera_extent_m(p) for p in positions]
+    config = dict(config)
+    margin, auto = config.pop("margin_m"), config.pop("auto_scale")
+    if margin == "auto":
+        margins = [max(auto["margin_floor_m"], auto["margin_fraction"] * e) for e in extents]
+    else:
+        margins = [margin] * len(positions)
+    if config.get("contract") == "auto":
+        config["contract"] = max(extents, default=0.0) > auto["contract_above_m"]
+    pairs = zip(positions, margins, strict=True)
+    config["bounds"] = [camera_bounds(p, m).tolist() for p, m in pairs]
+    return config
 
 
 class VoxelGrid(nn.Module):
@@ -77,10 +117,10 @@ class VoxelGrid(nn.Module):
         contracted = torch.where(norm <= 1, unit, (2 - 1 / norm) * unit / norm)
         return contracted / 2
 
-    def ray_bounds(self, origins: Tensor, directions: Tensor, near_m: float) -> Tensor:
-        """Rays [R, 3] -> [R, 9]: origin, direction, and the depths where sampling starts
-        (``near_m`` or where the ray enters the bounds), where it leaves the bounds, and
-        where it ends (contracted grids: ``far_m`` beyond the bounds; else where it leaves)."""
+    def ray_bounds(self, origins: Tensor, directions: Tensor, near_m: float) -> RaySegments:
+        """Rays [R, 3] -> their segments: the depths where sampling starts (``near_m`` or
+        where the ray enters the bounds), where it leaves the bounds, and where it ends
+        (contracted grids: ``far_m`` beyond the bounds; else where it leaves)."""
         safe = torch.where(directions.abs() < _EPS, torch.full_like(directions, _EPS), directions)
         t_lo, t_hi = (self.lo - origins) / safe, (self.hi - origins) / safe
         enter = torch.minimum(t_lo, t_hi).amax(-1)
@@ -89,16 +129,16 @@ class VoxelGrid(nn.Module):
         near = torch.maximum(enter, near_m / norm)
         leave = torch.maximum(leave, near)
         far = leave + self.far_m / norm if self.contract else leave
-        return torch.cat([origins, directions, near[:, None], leave[:, None], far[:, None]], 1)
+        return RaySegments(origins, directions, near, leave, far)
 
-    def sample_depths(self, rays: Tensor, offsets: Tensor) -> tuple[Tensor, Tensor]:
-        """Depths [R, S] of the samples along rays [R, 9] (see ``ray_bounds``) at ``offsets``
+    def sample_depths(self, rays: RaySegments, offsets: Tensor) -> tuple[Tensor, Tensor]:
+        """Depths [R, S] of the samples along ``rays`` (see ``ray_bounds``) at ``offsets``
         [R, S] in [0, 1) within their strata, and their lengths [R, S] (m); rays that miss
         the bounds get zero-length samples."""
-        directions, near, leave, far = rays[:, 3:6], rays[:, 6], rays[:, 7], rays[:, 8]
+        near, leave, far = rays.near, rays.leave, rays.far
         samples = offsets.shape[1]
-        norm = directions.norm(dim=-1)
-        steps = torch.arange(samples, device=rays.device, dtype=rays.dtype)
+        norm = rays.directions.norm(dim=-1)
+        steps = torch.arange(samples, device=offsets.device, dtype=offsets.dtype)
         unit = (steps + offsets) / samples  # [R, S] in (0, 1)
         if not self.contract:
             depth = near[:, None] + (leave - near)[:, None] * unit
@@ -131,13 +171,19 @@ class VoxelGrid(nn.Module):
         float32 tensors), which stops each ray once its light is spent; otherwise
         ``grid_sample`` over every sample (any device)."""
         rays = self.ray_bounds(origins, directions, near_m)
-        shape = (len(rays), samples)
-        offsets = torch.rand(shape, device=rays.device) if jitter else rays.new_full(shape, 0.5)
+        shape = (len(origins), samples)
+        if jitter:
+            offsets = torch.rand(shape, device=origins.device)
+        else:
+            offsets = origins.new_full(shape, 0.5)
         background = torch.sigmoid(self.background)
         if compiled and self.grid.device.type == "cpu" and self.grid.dtype == torch.float32:
-            size = [n - 1 for n in self.shape]
-            geometry = torch.tensor(
-                [*self.lo.tolist(), *self.hi.tolist(), *size, 1 / self.voxel_m, self.contract]
+            geometry = GridGeometry(
+                self.lo.double().numpy(),
+                self.hi.double().numpy(),
+                np.array([n - 1 for n in self.shape], np.float64),
+                1 / self.voxel_m,
+                bool(self.contract),
             )
             return CompiledComposite.apply(
                 self.grid, background, rays, offsets, geometry, self.density_shift
@@ -174,19 +220,24 @@ class VoxelGridSceneModel(SceneModel):
 
     bounds: per scene [2, 3] (lo, hi) in metres; n_appearances: the train sequences over all
     scenes; num_voxels: per scene; samples_per_ray: stratified samples; near_m: the nearest
-    depth rendered.
+    depth rendered (their defaults: conf/scene_model/voxel_grid.yaml). Built by the
+    scene_model step from the train cameras (:func:`train_scale`: its config's ``margin_m``,
+    ``auto_scale`` and ``contract: auto``) and the train images' appearance ids.
     """
 
     has_depth = True
+    trains = True
+    from_run = ("bounds", "n_appearances")
+    build_keys = ("margin_m", "auto_scale", "contract")
 
     def __init__(
         self,
         bounds: Sequence[Sequence[Sequence[float]]],
-        n_appearances: int = 1,
-        num_voxels: int = 300_000,
-        samples_per_ray: int = 48,
-        contract: bool = False,
-        near_m: float = 0.05,
+        n_appearances: int,
+        num_voxels: int,
+        samples_per_ray: int,
+        contract: bool,
+        near_m: float,
         chunk_rays: int = 8192,
     ) -> None:
         super().__init__()
@@ -196,6 +247,38 @@ class VoxelGridSceneModel(SceneModel):
         self.samples_per_ray = samples_per_ray
         self.near_m = near_m
         self.chunk_rays = chunk_rays
+
+    @classmethod
+    def check_config(cls, cfg: DictConfig, key: str) -> None:
+        """num_voxels >= 8, samples_per_ray >= 1, contract true, false or auto, margin_m auto,
+        one number >= 0 or three, auto_scale's numbers >= 0."""
+        integer(cfg, f"{key}.num_voxels", 8)
+        integer(cfg, f"{key}.samples_per_ray", 1)
+        number(cfg, f"{key}.near_m", 0, strict=False)
+        if setting(cfg, f"{key}.contract") != "auto":
+            boolean(cfg, f"{key}.contract")
+        for name in ("margin_floor_m", "margin_fraction", "contract_above_m"):
+            number(cfg, f"{key}.auto_scale.{name}", 0, strict=False)
+        margin = setting(cfg, f"{key}.margin_m")
+        values = list(margin) if isinstance(margin, ListConfig) else [margin]
+        if margin != "auto" and (
+            len(values) not in (1, 3)
+            or not all((is_int(v) or isinstance(v, float)) and v >= 0 for v in values)
+        ):
+            raise ConfigError(
+                f"{key}.margin_m must be auto, one number >= 0 or three, got {margin!r}"
+            )
+
+    @classmethod
+    def build(
+        cls, config: dict[str, Any], inputs: SceneModelInputs
+    ) -> tuple[SceneModel, dict[str, Any] | None]:
+        """Bounds from the train cameras, one appearance code per train sequence or image."""
+        data = inputs.data
+        poses, scenes = data.train_poses()
+        config = train_scale(poses, scenes, data.n_scenes, config)
+        _, config["n_appearances"] = data.appearance_ids("train", inputs.appearance)
+        return cls(**config), config
 
     def render_rays(
         self, origins: Tensor, directions: Tensor, scenes: Tensor, jitter: bool = False

@@ -15,6 +15,7 @@ the kernels, as :meth:`VoxelGrid.sample_depths` and :meth:`VoxelGrid.normalised`
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -22,6 +23,32 @@ import torch
 from torch import Tensor
 
 from pae.compiled import jit
+
+
+class RaySegments(NamedTuple):
+    """Rays and where they are sampled: origins [R, 3], directions [R, 3] (world frame), and
+    the depths (in units of the directions) where sampling starts (``near``: ``near_m`` or
+    where the ray enters the bounds), where it leaves the bounds (``leave``) and where it
+    ends (``far``: contracted grids sample beyond the bounds; else ``leave``), each [R].
+    Tensors for the grid's tensor path, float64 arrays for the compiled one."""
+
+    origins: Tensor | np.ndarray
+    directions: Tensor | np.ndarray
+    near: Tensor | np.ndarray
+    leave: Tensor | np.ndarray
+    far: Tensor | np.ndarray
+
+
+class GridGeometry(NamedTuple):
+    """Where a grid lies: its bounds ``lo`` and ``hi`` [3] (m), ``cells`` [3] (voxels per axis
+    minus one, x y z), ``inverse_voxel_m`` (1 / voxel length, m) and ``contract``."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+    cells: np.ndarray
+    inverse_voxel_m: float
+    contract: bool
+
 
 STOP_TRANSMITTANCE = 1e-4
 """A ray's march stops once less than this share of its light remains."""
@@ -88,17 +115,15 @@ def _depth(u: float, near: float, leave: float, far: float, contract: bool) -> f
 
 
 @jit(nogil=True, inline="always", fastmath=True)
-def _point(
-    rays: np.ndarray, r: int, s: int, n: int, offsets: np.ndarray, geometry: np.ndarray
-) -> tuple:
-    """Grid coordinates, length (voxels) and depth of sample ``s`` of ray ``r``.
-
-    rays [R, 9]: origin, direction, near, leave, far; offsets [R, S] in [0, 1);
-    geometry [10]: lo (3), hi (3), grid size - 1 (3), 1 / voxel length (m), contract flag."""
-    near, leave, far = rays[r, 6], rays[r, 7], rays[r, 8]
-    contract = geometry[10] > 0
+def _point(rays: tuple, r: int, s: int, n: int, offsets: np.ndarray, geometry: tuple) -> tuple:
+    """Grid coordinates, length (voxels) and depth of sample ``s`` of ray ``r`` (offsets
+    [R, S] in [0, 1) within the samples' strata); ``rays`` and ``geometry``: the fields of
+    ``RaySegments`` and ``GridGeometry``, unpacked once by the kernel."""
+    origins, directions, nears, leaves, fars = rays
+    lo, hi, cells, inverse_voxel_m, contract = geometry
+    near, leave, far = nears[r], leaves[r], fars[r]
     t = _depth((s + offsets[r, s]) / n, near, leave, far, contract)
-    norm = math.sqrt(rays[r, 3] ** 2 + rays[r, 4] ** 2 + rays[r, 5] ** 2)
+    norm = math.sqrt(directions[r, 0] ** 2 + directions[r, 1] ** 2 + directions[r, 2] ** 2)
     if contract:
         before = near if s == 0 else _depth((s - 1 + offsets[r, s - 1]) / n, near, leave, far, True)
         after = (
@@ -106,23 +131,23 @@ def _point(
         )
         low = near if s == 0 else (before + t) / 2
         high = far if s == n - 1 else (t + after) / 2
-        length = (high - low) * norm * geometry[9]
+        length = (high - low) * norm * inverse_voxel_m
     else:
-        length = (leave - near) * norm / n * geometry[9]
+        length = (leave - near) * norm / n * inverse_voxel_m
     unit = np.empty(3)
     largest = 0.0
     for k in range(3):
-        p = rays[r, k] + t * rays[r, 3 + k]
-        unit[k] = (p - geometry[k]) / (geometry[3 + k] - geometry[k]) * 2 - 1
+        p = origins[r, k] + t * directions[r, k]
+        unit[k] = (p - lo[k]) / (hi[k] - lo[k]) * 2 - 1
         largest = max(largest, abs(unit[k]))
     if contract:
         scale = 0.5 if largest <= 1 else (2 - 1 / largest) / largest / 2
         for k in range(3):
             unit[k] *= scale
     return (
-        (unit[0] + 1) / 2 * geometry[6],
-        (unit[1] + 1) / 2 * geometry[7],
-        (unit[2] + 1) / 2 * geometry[8],
+        (unit[0] + 1) / 2 * cells[0],
+        (unit[1] + 1) / 2 * cells[1],
+        (unit[2] + 1) / 2 * cells[2],
         length,
         t,
     )
@@ -131,9 +156,9 @@ def _point(
 @jit(parallel=True, nogil=True, fastmath=True)
 def render_forward(
     grid: np.ndarray,
-    rays: np.ndarray,
+    rays: RaySegments,
     offsets: np.ndarray,
-    geometry: np.ndarray,
+    geometry: GridGeometry,
     density_shift: float,
     background: np.ndarray,
     rgb: np.ndarray,
@@ -141,16 +166,18 @@ def render_forward(
     opacity: np.ndarray,
     used: np.ndarray,
 ) -> None:
-    """Composite rays [R, 9] (see ``_point``) with offsets [R, S] -> rgb [R, 3], surface [R]
-    (mean depth of the light), opacity [R], used [R] (samples marched)."""
+    """Composite rays with offsets [R, S] -> rgb [R, 3], surface [R] (mean depth of the
+    light), opacity [R], used [R] (samples marched)."""
     shape = (grid.shape[0], grid.shape[1], grid.shape[2])
     n = offsets.shape[1]
-    for r in numba.prange(rays.shape[0]):
+    segments = (rays.origins, rays.directions, rays.near, rays.leave, rays.far)
+    where = (geometry.lo, geometry.hi, geometry.cells, geometry.inverse_voxel_m, geometry.contract)
+    for r in numba.prange(offsets.shape[0]):
         transmit = 1.0
         red = green = blue = depth = 0.0
         s = 0
         while s < n and transmit >= STOP_TRANSMITTANCE:
-            x, y, z, length, t = _point(rays, r, s, n, offsets, geometry)
+            x, y, z, length, t = _point(segments, r, s, n, offsets, where)
             i0, j0, k0, fz, fy, fx = _corners(shape, x, y, z)
             sigma = _softplus(_sample(grid, i0, j0, k0, fz, fy, fx, 0) + density_shift)
             alpha = 1.0 - math.exp(-sigma * length)
@@ -173,9 +200,9 @@ def render_forward(
 @jit(parallel=True, nogil=True, fastmath=True)
 def render_backward(
     grid: np.ndarray,
-    rays: np.ndarray,
+    rays: RaySegments,
     offsets: np.ndarray,
-    geometry: np.ndarray,
+    geometry: GridGeometry,
     density_shift: float,
     background: np.ndarray,
     rgb: np.ndarray,
@@ -189,7 +216,9 @@ def render_backward(
     (grad_background [T, 3])."""
     shape = (grid.shape[0], grid.shape[1], grid.shape[2])
     chunks = grad_grid.shape[0]
-    n_rays, n = rays.shape[0], offsets.shape[1]
+    n_rays, n = offsets.shape
+    segments = (rays.origins, rays.directions, rays.near, rays.leave, rays.far)
+    where = (geometry.lo, geometry.hi, geometry.cells, geometry.inverse_voxel_m, geometry.contract)
     for t in numba.prange(chunks):
         grad = grad_grid[t]
         for r in range(t * n_rays // chunks, (t + 1) * n_rays // chunks):
@@ -198,7 +227,7 @@ def render_backward(
             transmit = 1.0
             done = 0.0
             for s in range(used[r]):
-                px, py, pz, length, _ = _point(rays, r, s, n, offsets, geometry)
+                px, py, pz, length, _ = _point(segments, r, s, n, offsets, where)
                 i0, j0, k0, fz, fy, fx = _corners(shape, px, py, pz)
                 x = _sample(grid, i0, j0, k0, fz, fy, fx, 0) + density_shift
                 sigma = _softplus(x)
@@ -222,27 +251,26 @@ def render_backward(
 
 
 class CompiledComposite(torch.autograd.Function):
-    """(grid [1, 4, nz, ny, nx], background [3] after its sigmoid, rays [R, 9] (origin,
-    direction, near, leave, far), offsets [R, S], geometry [11] (see ``_point``),
-    density_shift) -> rgb [R, 3], surface [R], opacity [R]; differentiable in rgb w.r.t. the
-    grid and the background."""
+    """(grid [1, 4, nz, ny, nx], background [3] after its sigmoid, rays (``RaySegments`` of
+    tensors), offsets [R, S], geometry (``GridGeometry``), density_shift) -> rgb [R, 3],
+    surface [R], opacity [R]; differentiable in rgb w.r.t. the grid and the background."""
 
     @staticmethod
     def forward(  # type: ignore[override]
         ctx: torch.autograd.function.FunctionCtx,
         grid: Tensor,
         background: Tensor,
-        rays: Tensor,
+        rays: RaySegments,
         offsets: Tensor,
-        geometry: Tensor,
+        geometry: GridGeometry,
         density_shift: float,
     ) -> tuple[Tensor, Tensor, Tensor]:
         cells = grid.detach()[0].permute(1, 2, 3, 0).contiguous().numpy()
         bg = background.detach().double().numpy()
-        ray_array = rays.detach().double().contiguous().numpy()
+        ray_array = RaySegments(*(part.detach().double().contiguous().numpy() for part in rays))
         offset_array = offsets.detach().double().contiguous().numpy()
-        shape = geometry.detach().double().numpy()
-        r = ray_array.shape[0]
+        shape = geometry
+        r = offset_array.shape[0]
         rgb = np.empty((r, 3), np.float32)
         surface, opacity = np.empty(r, np.float32), np.empty(r, np.float32)
         used = np.empty(r, np.int64)

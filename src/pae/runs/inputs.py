@@ -62,22 +62,60 @@ def load_frozen(
     return path, loaded, data
 
 
+IDENTITY = (
+    ("scenes", "scenes"),
+    ("train_poses_sha256", "train poses"),
+    ("train_images_sha256", "train images"),
+)
+"""The entries of a data fingerprint (PoseDataModule.fingerprint) and what each names."""
+_OTHER_DATA: dict[str, str] = {}
+"""With allow_other_data=true: the checkpoints this run read that were trained on other data
+-> what differs (other_data_record)."""
+_UNCHECKED: set[str] = set()
+"""Checkpoints already said to record no train images."""
+
+
+def start_data_checks() -> None:
+    """Forget the checkpoints an earlier run in this process read (a run starts with this)."""
+    _OTHER_DATA.clear()
+    _UNCHECKED.clear()
+
+
+def other_data_record(cfg: DictConfig) -> dict[str, int]:
+    """With allow_other_data=true, ``data/other_data_checkpoints``: how many checkpoints the
+    run read were trained on other data than its own (0: none); no key otherwise."""
+    if not cfg.get("allow_other_data"):
+        return {}
+    return {"data/other_data_checkpoints": len(_OTHER_DATA)}
+
+
 def check_fingerprint(
-    cfg: DictConfig, path: str | Path, trained: dict[str, Any], data: dict[str, Any]
+    cfg: DictConfig, path: str | Path, trained: dict[str, Any], data: Any
 ) -> None:
-    """A checkpoint trained on other data (scene names, or train poses when it records them)
-    is an error unless allow_other_data=true."""
-    if cfg.get("allow_other_data"):
-        return
-    if trained["scenes"] != data["scenes"]:
-        raise CheckpointError(
-            f"{path}: trained on scenes {trained['scenes']}, but the data has scenes "
-            f"{data['scenes']} (allow_other_data=true uses it anyway)"
-        )
-    if trained.get("train_poses_sha256", data["train_poses_sha256"]) != data["train_poses_sha256"]:
-        raise CheckpointError(
-            f"{path}: trained on other train poses than those of {data['scenes']} in this "
-            "data's train labels (allow_other_data=true uses it anyway)"
+    """A checkpoint trained on other data than ``data`` (a data module: its scene names, train
+    poses and train images, those the checkpoint records) is an error naming the checkpoint and
+    the data root, unless allow_other_data=true: then a warning line says so and
+    other_data_record counts it. A checkpoint that records no train images (written before
+    pae did) is used with a warning line."""
+    current, root = data.fingerprint(), data.root.resolve()
+    differs = [name for key, name in IDENTITY if trained.get(key, current[key]) != current[key]]
+    if differs:
+        if differs[0] == "scenes":
+            what = f"scenes {trained['scenes']}, but the data at {root} has {current['scenes']}"
+        else:
+            what = f"other {' and '.join(differs)} than those of the data at {root}"
+        if not cfg.get("allow_other_data"):
+            raise CheckpointError(
+                f"{path}: trained on {what} (allow_other_data=true uses it anyway)"
+            )
+        if str(path) not in _OTHER_DATA:
+            _OTHER_DATA[str(path)] = what
+            say(f"data: warning: allow_other_data=true: {path} was trained on {what}; used anyway")
+    if "train_images_sha256" not in trained and str(path) not in _UNCHECKED:
+        _UNCHECKED.add(str(path))
+        say(
+            f"data: warning: {path} records no fingerprint of its train images (written before pae "
+            f"recorded one): its images are not checked against those of the data at {root}"
         )
 
 
@@ -91,4 +129,4 @@ def check_data(
             f"{data.scene_names}"
         )
     trained = loaded.data_fingerprint or {"scenes": loaded.scene_names}
-    check_fingerprint(cfg, path, trained, data.fingerprint())
+    check_fingerprint(cfg, path, trained, data)

@@ -91,7 +91,7 @@ def _resume_path(cfg: DictConfig, step_dir: Path, data: L.LightningDataModule) -
         return None
     trained = read_checkpoint(path).get(DATA_FINGERPRINT_KEY)
     if trained is not None:
-        check_fingerprint(cfg, path, trained, data.fingerprint())
+        check_fingerprint(cfg, path, trained, data)
     if skipped:
         rank_zero_info(f"resume: {skipped[0]}; resuming from {path.name} instead")
     return str(path)

@@ -41,7 +41,9 @@ class Step:
     resumable: the settings a resumed run may change for it (prefixes of dotted keys);
     models: the model configs it instantiates (dotted keys, each with a ``_target_``), each
     with the constructor arguments the fit function fills in itself (``n_scenes``): preflight
-    checks their keys against the class's constructor.
+    checks their keys against the class's constructor. A model class may need checkpoints
+    of its own (a class attribute ``needs``, e.g. a scene model's): they must be given or
+    produced before the step like ``needs``, and reach ``fit`` through ``optional``.
     """
 
     name: str
@@ -116,15 +118,17 @@ STEPS: dict[str, Step] = {
             ("teacher_ckpt",),
         ),
         _step("iapr", "iapr", "pae.steps.iapr:fit_iapr", {"iapr.model": ()}, ("student_ckpt",)),
-        # its model config depends on scene_model.name (validation's scene-model checks); with
-        # scene_model=pae_decoder it reads the student and decoder checkpoints too
+        # the model's class may read more checkpoints (its `needs`: scene_model=pae_decoder
+        # reads the student and decoder), passed when given
         Step(
             "scene_model",
             "scene_model",
             "pae.steps.scene_model:fit_scene_model",
             ("teacher_ckpt",),
-            resumable=("scene_model.max_epochs", "render_compare."),
-            optional=("student_ckpt", "decoder_ckpt"),
+            "scene_model_ckpt",
+            ("scene_model.max_epochs", "render_compare."),
+            {"scene_model.model": ()},
+            ("student_ckpt", "decoder_ckpt"),
         ),
     )
 }
@@ -161,13 +165,17 @@ def steps_of(names: Any) -> list[Step]:
     return [STEPS[name] for name in names]
 
 
-def missing_checkpoints(names: Any, given: dict[str, Any]) -> list[tuple[str, str]]:
-    """(step, checkpoint key) for every checkpoint a step of ``names`` needs that is neither
-    in ``given`` (not None) nor produced by an earlier step of the run."""
+def missing_checkpoints(
+    names: Any, given: dict[str, Any], model_needs: dict[str, tuple[str, ...]] | None = None
+) -> list[tuple[str, str]]:
+    """(step, checkpoint key) for every checkpoint a step of ``names`` needs (its ``needs``
+    and ``model_needs[step name]``, what its models' classes need) that is neither in
+    ``given`` (not None) nor produced by an earlier step of the run."""
     available = {key for key, value in given.items() if value is not None}
     missing = []
     for step in steps_of(names):
-        missing += [(step.name, key) for key in step.needs if key not in available]
+        needs = (*step.needs, *(model_needs or {}).get(step.name, ()))
+        missing += [(step.name, key) for key in needs if key not in available]
         if step.produces:
             available.add(step.produces)
     return missing

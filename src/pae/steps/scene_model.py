@@ -4,21 +4,21 @@ pae-eval's test of a scene-model checkpoint."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import torch
-from hydra.utils import instantiate
+from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf
-from torch import Tensor
 
 from pae.callbacks.render_compare_gallery import RenderCompareGallery
+from pae.callbacks.scene_quality import SceneModelQuality
 from pae.checkpoints import LoadedModel, load_decoder, load_pae, load_scene_model, load_teacher
-from pae.data.rays import RayDataModule
+from pae.data.rays import RayLoader
 from pae.errors import ConfigError
 from pae.lit.scene_model import SceneModelModule
-from pae.models.scene_model import PaeDecoderSceneModel, SceneModel
-from pae.models.voxel_grid import camera_bounds
+from pae.models.scene_model import SceneModel, SceneModelInputs
 from pae.runs import Metrics
 from pae.runs.hparams import log_hparams
 from pae.runs.inputs import build_data, check_data, required
@@ -30,41 +30,6 @@ from pae.runs.trainer import (
     validate_and_test,
 )
 
-SCENE_MODELS = ("voxel_grid", "pae_decoder", "oracle")
-
-
-def camera_extent_m(positions: Tensor) -> float:
-    """The largest side (m) of the box holding the middle 96 % of camera positions [N, 3]
-    along each axis: the camera region's size, robust to a few stray frames."""
-    if len(positions) < 2:
-        return 0.0
-    q = torch.tensor([0.02, 0.98], dtype=torch.float64)
-    spread = positions.double().quantile(q, dim=0)
-    return float((spread[1] - spread[0]).max())
-
-
-def train_scale(data: Any, model: dict[str, Any], auto: Any) -> dict[str, Any]:
-    """The voxel grid's bounds and contraction from the train cameras alone (never the
-    scene's geometry): per scene the camera positions' bounds plus ``margin_m``, and
-    ``contract``. ``margin_m: auto`` is ``max(auto.margin_floor_m, auto.margin_fraction ×
-    extent)`` per scene (extent: :func:`camera_extent_m`); ``contract: auto`` contracts
-    space when some scene's extent exceeds ``auto.contract_above_m`` (a street, not a room).
-    Returns the model's config with ``bounds`` and ``contract`` set, and ``margin_m`` gone."""
-    poses, scenes = data.train_poses()
-    positions = [poses[scenes == s, :3] for s in range(data.n_scenes)]
-    extents = [camera_extent_m(p) for p in positions]
-    config = dict(model)
-    margin = config.pop("margin_m")
-    if margin == "auto":
-        margins = [max(auto.margin_floor_m, auto.margin_fraction * e) for e in extents]
-    else:
-        margins = [margin] * len(positions)
-    if config.get("contract") == "auto":
-        config["contract"] = max(extents, default=0.0) > auto.contract_above_m
-    pairs = zip(positions, margins, strict=True)
-    config["bounds"] = [camera_bounds(p, m).tolist() for p, m in pairs]
-    return config
-
 
 def render_compare_callback(cfg: DictConfig) -> Any:
     """The callback of the `render_compare` group (refiner settings checked on creation)."""
@@ -75,37 +40,35 @@ def render_compare_callback(cfg: DictConfig) -> Any:
         raise ConfigError(f"render_compare: {message[:300]}") from None
 
 
-def build_scene_model(
-    cfg: DictConfig, data: Any, ckpt: dict[str, str | Path | None]
-) -> tuple[SceneModel, dict[str, Any]]:
-    """The configured scene model and the config a checkpoint stores to rebuild it."""
-    settings = cfg.scene_model
-    name = settings.name
-    if name == "voxel_grid":
-        _, count = data.appearance_ids("train", settings.appearance)
-        config = OmegaConf.to_container(settings.model, resolve=True)
-        config = train_scale(data, config, settings.auto_scale)
-        config["n_appearances"] = count
-        return instantiate(config), {"scene_model_config": config}
-    if name == "pae_decoder":
-        student = required(ckpt["student"], "student_ckpt", "scene_model=pae_decoder")
-        decoder_path = required(ckpt["decoder"], "decoder_ckpt", "scene_model=pae_decoder")
-        pae, decoder = load_pae(student, "student_ckpt"), load_decoder(decoder_path, "decoder_ckpt")
-        for path, loaded in ((student, pae), (decoder_path, decoder)):
-            check_data(cfg, path, loaded, data)
-        return PaeDecoderSceneModel(pae.model, decoder.model), {}
-    if name == "oracle":
-        from pae.callbacks.render_compare import oracle_scenes
-        from pae.models.oracle_scene import OracleSceneModel
+LOADERS: dict[str, Callable[..., LoadedModel]] = {
+    "teacher_ckpt": load_teacher,
+    "student_ckpt": load_pae,
+    "decoder_ckpt": load_decoder,
+}
+"""Checkpoint key -> what a scene model's ``build`` gets for it (the teacher, the student's
+PAE, the decoder)."""
 
-        scenes = oracle_scenes(data)
-        if scenes is None:
-            raise ConfigError(
-                "scene_model=oracle renders the synthetic benchmark's true scenes; this data "
-                "has none (use scene_model=voxel_grid)"
-            )
-        return OracleSceneModel(scenes), {}
-    raise ConfigError(f"unknown scene_model.name {name!r}; choose one of {list(SCENE_MODELS)}")
+
+def build_scene_model(
+    cfg: DictConfig, data: Any, checkpoints: dict[str, str | Path | None]
+) -> tuple[SceneModel, dict[str, Any]]:
+    """The scene model of ``scene_model.model`` (its ``_target_`` class's ``build``, given the
+    data and the checkpoints it ``needs``) and what a checkpoint stores to rebuild it."""
+    config = OmegaConf.to_container(cfg.scene_model.model, resolve=True)
+    target = config.pop("_target_")
+    cls = get_class(target)
+
+    def load(key: str) -> LoadedModel:
+        path = checkpoints.get(key)
+        if path is None:
+            raise ConfigError(f"scene_model.model._target_={target} needs {key}=PATH")
+        loaded = LOADERS[key](path, key)
+        check_data(cfg, path, loaded, data)
+        return loaded
+
+    inputs = SceneModelInputs(data, cfg.scene_model.appearance, load)
+    model, stored = cls.build(config, inputs)
+    return model, ({} if stored is None else {"scene_model_config": {"_target_": target, **stored}})
 
 
 def fit_scene_model(
@@ -115,24 +78,27 @@ def fit_scene_model(
     student_ckpt: str | Path | None = None,
     decoder_ckpt: str | Path | None = None,
 ) -> tuple[Metrics, Path | None]:
-    """Fit the configured scene model (voxel_grid, whose checkpoint is written with
-    max_epochs=0 too; pae_decoder and oracle have nothing to fit), then test
-    render-and-compare from the teacher's estimates -> (metrics, the last checkpoint or
-    None)."""
-    ckpt = {"teacher": teacher_ckpt, "student": student_ckpt, "decoder": decoder_ckpt}
-    teacher_path = required(ckpt["teacher"], "teacher_ckpt", "render_compare")
+    """Fit the configured scene model (one whose class ``trains``: its checkpoint is written
+    with max_epochs=0 too; others are only built), then test render-and-compare from the
+    teacher's estimates -> (metrics, the last checkpoint or None)."""
+    checkpoints = {
+        "teacher_ckpt": teacher_ckpt,
+        "student_ckpt": student_ckpt,
+        "decoder_ckpt": decoder_ckpt,
+    }
+    teacher_path = required(teacher_ckpt, "teacher_ckpt", "render_compare")
     teacher = load_teacher(teacher_path, "teacher_ckpt")
     images = build_data(cfg, augment=False)
     check_data(cfg, teacher_path, teacher, images)
-    scene_model, configs = build_scene_model(cfg, images, ckpt)
+    scene_model, configs = build_scene_model(cfg, images, checkpoints)
     settings = cfg.scene_model
     callback = render_compare_callback(cfg)
-    data = RayDataModule(
-        images,
+    images.train_batches = RayLoader(
         settings.rays_per_batch,
         settings.batches_per_epoch,
         settings.image_size,
         settings.appearance,
+        cfg.seed,
     )
     module = SceneModelModule(
         scene_model,
@@ -144,18 +110,17 @@ def fit_scene_model(
         fit_trim=settings.fit_trim,
         fit_trim_from_epoch=settings.fit_trim_from_epoch,
         appearance_lr=settings.appearance_lr,
-        quality_size=settings.quality_size,
-        quality_images=settings.quality_images,
         query_width=callback.query_width,
     )
-    callbacks = [callback, RenderCompareGallery(callback)]
-    if settings.name == "voxel_grid":  # the one that trains; max_epochs=0: saved untrained
+    quality = SceneModelQuality(settings.quality_size, settings.quality_images)
+    callbacks = [callback, RenderCompareGallery(callback), quality]
+    if scene_model.trains:  # max_epochs=0: saved untrained
         metrics, last = fit_and_test(
-            cfg, step_dir, "scene_model", module, data, settings.max_epochs, callbacks
+            cfg, step_dir, "scene_model", module, images, settings.max_epochs, callbacks
         )
         return metrics | collect_metrics(module.trainer, ("bench/render_compare",)), last
     trainer = build_trainer(cfg, step_dir, 0, callbacks, step="scene_model")
-    metrics = validate_and_test(trainer, module, data)
+    metrics = validate_and_test(trainer, module, images)
     metrics |= collect_metrics(trainer, ("bench/",))
     log_hparams(trainer, cfg, metrics)
     return metrics, None
@@ -177,8 +142,8 @@ def evaluate_scene_model(
         configs={"teacher_config": teacher.config, "scene_model_config": loaded.config},
         query_width=callback.query_width,
     )
-    gallery = RenderCompareGallery(callback)
-    trainer = build_trainer(cfg, run_dir / "render_compare", 0, [callback, gallery])
+    callbacks = [callback, RenderCompareGallery(callback), SceneModelQuality()]
+    trainer = build_trainer(cfg, run_dir / "render_compare", 0, callbacks)
     metrics = validate_and_test(trainer, module, data)
     metrics |= collect_metrics(trainer, ("bench/",))
     log_hparams(trainer, cfg, metrics)
