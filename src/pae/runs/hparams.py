@@ -119,11 +119,14 @@ def log_hparams(trainer: L.Trainer, cfg: DictConfig, metrics: Metrics) -> None:
     curves of hparams_metric_tags, no copies of them), the Custom Scalars layout
     (custom_scalars_layout) and a TEXT table ``results`` with every figure; other loggers
     get the flattened config."""
+    from lightning.pytorch.utilities import rank_zero_only
     from torch.utils.tensorboard.summary import hparams
 
     for logger in trainer.loggers:
         if not isinstance(logger, TensorBoardLogger):
             logger.log_hyperparams(flat_config(cfg))
+            continue
+        if rank_zero_only.rank != 0:  # the first process writes the event files
             continue
         columns = hparams_columns(cfg)
         if honest_refinements(metrics, CURVE_SPLIT):
