@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 from torch import Tensor
 
-from pae.callbacks.trajectory import METHOD_RGB, _nice_step, _text
+from pae.callbacks.trajectory import METHOD_RGB, draw_text, nice_step
 from pae.metrics import summarise_errors
 
 MARGIN = {"left": 56, "right": 240, "top": 36, "bottom": 46}
@@ -44,19 +44,20 @@ def error_curve(
         v = bottom - share * (bottom - top)
         return np.round(np.stack([u, v], -1)).astype(np.int32)
 
-    step = _nice_step(limit)
+    step = nice_step(limit)
     decimals = max(0, -math.floor(math.log10(step)))
     for index in range(math.floor(limit / step) + 1):
         u = int(to_pixels(np.array([index * step]), np.array([0.0]))[0, 0])
         cv2.line(image, (u, bottom), (u, bottom + 5), (0, 0, 0), 1)
         label = f"{index * step:.{decimals}f}"
-        _text(image, label, (u - 4 * len(label), bottom + 20))
+        draw_text(image, label, (u - 4 * len(label), bottom + 20))
     for share in (0.0, 0.25, 0.5, 0.75, 1.0):
         v = int(to_pixels(np.array([0.0]), np.array([share]))[0, 1])
         cv2.line(image, (left - 5, v), (left, v), (0, 0, 0), 1)
-        _text(image, f"{share:.2f}", (left - 44, v + 4))
-    _text(image, f"error [{unit}]; legend: median", ((left + right) // 2 - 80, height - 10), 0.5)
-    _text(image, title, (left, 22), 0.55)
+        draw_text(image, f"{share:.2f}", (left - 44, v + 4))
+    label_at = ((left + right) // 2 - 80, height - 10)
+    draw_text(image, f"error [{unit}]; legend: median", label_at, 0.5)
+    draw_text(image, title, (left, 22), 0.55)
     for row, (name, sorted_errors) in enumerate(values.items()):
         colour = METHOD_RGB[row % len(METHOD_RGB)]
         n = len(sorted_errors)
@@ -70,7 +71,7 @@ def error_curve(
         median = float(np.median(sorted_errors)) if n else float("nan")
         median = (medians or {}).get(name, median)
         digits = 3 if unit == "m" else 2  # as the results tables
-        _text(image, f"{name} ({median:.{digits}f})", (right + 32, y))
+        draw_text(image, f"{name} ({median:.{digits}f})", (right + 32, y))
     return image
 
 
