@@ -132,8 +132,9 @@ def _hparams_experiment(events):
 
 def test_tensorboard_tells_the_story(pipeline_run: Path) -> None:
     """Rendered from the event files: a trajectory figure per scene, the results as TEXT,
-    HParams with the headline figures first and no per-scene keys, no one-point scalar
-    charts of final figures, reconstructions from the step that trains a decoder."""
+    HParams over the val curves with the headline figures first and no per-scene keys, no
+    one-point scalar charts of final figures, reconstructions from the step that trains a
+    decoder."""
     import cv2
 
     from pae.callbacks.trajectory import GROUND_TRUTH_RGB, METHOD_RGB
@@ -153,21 +154,16 @@ def test_tensorboard_tells_the_story(pipeline_run: Path) -> None:
     scalars = tags["scalars"]
     assert "val/refined/pos_median_m" in scalars and "train/loss" in scalars
     assert not [t for t in scalars if t.startswith(("test/", "bench/"))], "one-point charts"
-    hparams = [t for t in scalars if t.startswith("hparams/")]
-    assert not [t for t in hparams if "/scene0" in t], "per-scene keys in HParams"
+    assert not [t for t in scalars if t.startswith("hparams/")], "copies of the curves"
     experiment = _hparams_experiment(events)
     metrics = [m.name.tag for m in experiment.metric_infos]
-    assert set(metrics) == set(hparams)
-    assert metrics[:8] == [
-        f"hparams/test/{method}/{figure}"
-        for method in ("teacher", "student", "best_refinement", "refined_test_store")
+    assert set(metrics) <= set(scalars), "HParams metrics are the val curves"
+    assert not [t for t in metrics if "/scene0" in t], "per-scene keys in HParams"
+    assert metrics[:4] == [
+        f"val/{method}/{figure}"
+        for method in ("teacher", "student")
         for figure in ("pos_median_m", "rot_median_deg")
     ]
-    run_metrics = json.loads((pipeline_run / "metrics.json").read_text())
-    best = events.Scalars("hparams/test/best_refinement/pos_median_m")[-1].value
-    honest = ("refined", "knn_mean", "closed_form_k10", "latent_knn", "pose_descent")
-    chosen = min(honest, key=lambda m: run_metrics[f"val/{m}/pos_median_m"])  # chosen on val
-    assert best == pytest.approx(run_metrics[f"test/{chosen}/pos_median_m"], rel=1e-6)
     columns = [h.name for h in experiment.hparam_infos]
     assert columns[:3] == ["stage", "experiment", "data"] and "best_refinement" in columns
     assert "teacher.max_epochs" in columns and "seed" in columns and len(columns) < 30

@@ -107,3 +107,6 @@ def test_the_best_refinement_is_chosen_on_validation_and_reported_on_test() -> N
     assert best_refinement(metrics) == "render_compare"
     without_val = {k: v for k, v in metrics.items() if k.startswith("test/")}
     assert best_refinement(without_val) == "refined"
+    # never a method worse than the teacher where it is chosen
+    assert best_refinement(metrics | {"val/teacher/pos_median_m": 0.5}) == "render_compare"
+    assert best_refinement(metrics | {"val/teacher/pos_median_m": 0.3}) is None

@@ -17,23 +17,43 @@ HARMLESS_WARNINGS = (
 """(message pattern, category) of the warnings a run never shows."""
 ADVERTISEMENTS = ("💡 Tip:",)
 """How the lines begin that Lightning logs to advertise its services."""
+REDUNDANT = (
+    # each step's own summary line says it is done, and after how long
+    "`Trainer.fit` stopped:",
+    "Loading `train_dataloader` to estimate number of stepping batches",
+)
+"""How the lines begin that Lightning logs and a run's own lines already say."""
 
 
-class _DropAdvertisements(logging.Filter):
+class _EachLineOnce(logging.Filter):
+    """Drops Lightning's advertisements and REDUNDANT lines, and every line already logged
+    since the run started (the GPU/TPU banner and the held-out split of each step)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: set[str] = set()
+
     def filter(self, record: logging.LogRecord) -> bool:
-        return not str(record.msg).startswith(ADVERTISEMENTS)
+        message = record.getMessage()
+        if message.startswith(ADVERTISEMENTS + REDUNDANT) or message in self.seen:
+            return False
+        self.seen.add(message)
+        return True
 
 
 def quiet_third_party() -> None:
-    """Silence HARMLESS_WARNINGS and Lightning's ADVERTISEMENTS, and print each Lightning log
-    line once: under Hydra, which logs to the console and to the run's log file, Lightning's
-    own console handler would print every line a second time, so it is removed."""
+    """Silence HARMLESS_WARNINGS, Lightning's ADVERTISEMENTS and REDUNDANT lines, and log
+    each line once from now on: a line repeated by every step (Lightning's GPU/TPU banner)
+    is logged the first time only; and, under Hydra, which logs to the console and to the
+    run's log file, Lightning's own console handler, which would print every line a second
+    time, is removed."""
     for message, category in HARMLESS_WARNINGS:
         warnings.filterwarnings("ignore", message=message, category=category)
     for name in ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero"):
         logger = logging.getLogger(name)
-        if not any(isinstance(f, _DropAdvertisements) for f in logger.filters):
-            logger.addFilter(_DropAdvertisements())
+        for old in [f for f in logger.filters if isinstance(f, _EachLineOnce)]:
+            logger.removeFilter(old)
+        logger.addFilter(_EachLineOnce())
     lightning = logging.getLogger("lightning")
     if logging.getLogger().handlers and lightning.propagate:
         for handler in list(lightning.handlers):

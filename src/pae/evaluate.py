@@ -30,6 +30,7 @@ def main(cfg: DictConfig) -> float | None:
         from lightning.pytorch.utilities import rank_zero_only
 
         from pae.checkpoint_evaluation import evaluate_checkpoints, evaluate_methods
+        from pae.console import say
         from pae.runs.inputs import other_data_record, record_dataset, start_data_checks
 
         apply_renamed_keys(cfg, "pae-eval")
@@ -43,9 +44,9 @@ def main(cfg: DictConfig) -> float | None:
         metrics |= evaluate_methods(cfg, run_dir) | other_data_record(cfg)
         if rank_zero_only.rank == 0:  # under DDP every process holds the same figures
             write_json_atomic(run_dir / "metrics.json", metrics)
-            print(format_results_table(metrics, "val"))
-            print(format_results_table(metrics))
-            print(f"metrics: {run_dir / 'metrics.json'}")
+        say(format_results_table(metrics, "val"))
+        say(format_results_table(metrics))
+        say(f"metrics: {run_dir / 'metrics.json'}")
         return metrics.get("val/refined/pos_median_m")  # a sweeper's objective: never test
 
 

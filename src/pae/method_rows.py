@@ -42,11 +42,25 @@ ORACLE_SUFFIX = "_oracle"
 """Methods whose name ends so know what no method may (the true scene): bounds."""
 
 
+GROUND_TRUTH_METHODS = ("student_gt", "guess_initial", "guess_refined")
+"""Methods (and their ``_test_store`` audits) that start from the true pose: checks of the
+PAE and of refinement, not localisation methods."""
+
+
+def starts_from_truth(method: str) -> bool:
+    """Whether ``method`` starts from the true pose (``GROUND_TRUTH_METHODS``)."""
+    return method.removesuffix(TEST_STORE_SUFFIX) in GROUND_TRUTH_METHODS
+
+
 def marked(method: str) -> str:
-    """A table row's label: ``*`` after audits, ``†`` after bounds."""
+    """A table row's label: ``*`` after audits, ``†`` after bounds, ``‡`` after checks that
+    start from the true pose."""
+    label = method
     if method.endswith(TEST_STORE_SUFFIX):
-        return f"{method} *"
-    return f"{method} †" if method.endswith(ORACLE_SUFFIX) else method
+        label += " *"
+    elif method.endswith(ORACLE_SUFFIX):
+        label += " †"
+    return label + " ‡" if starts_from_truth(method) else label
 
 
 def table_methods(metrics: Mapping[str, float], split: str = "test") -> list[str]:

@@ -65,15 +65,14 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, float | int | str]:
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="train")
 def main(cfg: DictConfig) -> float | None:
-    from lightning.pytorch.utilities import rank_zero_only
-
     with reporting_errors("pae-train"):
+        from pae.console import say
+
         run_dir = Path(HydraConfig.get().runtime.output_dir)
         metrics = run(cfg, run_dir)
-        if rank_zero_only.rank == 0:
-            print(format_results_table(metrics, "val"))
-            print(format_results_table(metrics))
-            print(f"metrics: {run_dir / 'metrics.json'}")
+        say(format_results_table(metrics, "val"))
+        say(format_results_table(metrics))
+        say(f"metrics: {run_dir / 'metrics.json'}")
         return objective(metrics)
 
 

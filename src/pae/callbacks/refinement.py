@@ -10,6 +10,7 @@ import torch
 from lightning.pytorch.loggers import TensorBoardLogger
 from torch import Tensor
 
+from pae.callbacks.error_curves import error_curves_figure
 from pae.callbacks.trajectory import trajectory_figure
 from pae.geometry import pose_errors
 from pae.metrics import first_occurrences, summarise_errors
@@ -144,10 +145,12 @@ class TestTimeRefinement(L.Callback):
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         poses, scenes = trainer.datamodule.train_poses()
-        self.index = self._index(poses, scenes)
+        self.index = self.store(poses, scenes)
         self.position_index = PoseIndex(poses, scenes, distance="fixed", rot_weight=0.0)
 
-    def _index(self, poses: Tensor, scenes: Tensor) -> PoseIndex:
+    def store(self, poses: Tensor, scenes: Tensor) -> PoseIndex:
+        """The retrieval store of poses [N, 7] with scene ids [N], searched with the
+        configured distance."""
         return PoseIndex(poses, scenes, distance=self.distance, rot_weight=self.rot_weight)
 
     def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
@@ -158,8 +161,10 @@ class TestTimeRefinement(L.Callback):
     def on_test_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self.refine(trainer, pl_module, "test")
 
-    def _refiner(self, pl_module: L.LightningModule, index: PoseIndex) -> PositionRefiner:
-        return PositionRefiner(index, pl_module.pae, seed=self.seed, **self.options)
+    def refiner(self, pae: torch.nn.Module, index: PoseIndex) -> PositionRefiner:
+        """The configured refinement (``refined``; ``knn_mean`` from its neighbours) with
+        ``pae`` over the store ``index``."""
+        return PositionRefiner(index, pae, seed=self.seed, **self.options)
 
     def _refine_both(
         self, refiner: PositionRefiner, query: Latents, initial: Tensor, scene: Tensor
@@ -188,14 +193,14 @@ class TestTimeRefinement(L.Callback):
         gt, scene = outputs["pose"], outputs["scene"]
         stores = {"": self.index}
         if self.audit:
-            stores["_test_store"] = self._index(gt, scene).to(self.index.device)
+            stores["_test_store"] = self.store(gt, scene).to(self.index.device)
 
         predictions: dict[str, Tensor] = {}
         elapsed = {}
         for suffix, store in stores.items():
             start = time.perf_counter()
             refined, knn_mean = self._refine_both(
-                self._refiner(pl_module, store), query, estimate, estimate_scene
+                self.refiner(pl_module.pae, store), query, estimate, estimate_scene
             )
             elapsed[suffix] = time.perf_counter() - start
             predictions[f"refined{suffix}"], predictions[f"knn_mean{suffix}"] = refined, knn_mean
@@ -209,7 +214,7 @@ class TestTimeRefinement(L.Callback):
                 guess_latents = pl_module.pae(guess, scene)
             predictions["guess_initial"] = guess
             for suffix, store in stores.items():
-                refiner = self._refiner(pl_module, store)
+                refiner = self.refiner(pl_module.pae, store)
                 predictions[f"guess_refined{suffix}"] = refiner(guess_latents, guess, scene).poses
 
         names = pl_module.scene_names
@@ -230,6 +235,10 @@ class TestTimeRefinement(L.Callback):
         if self.trajectory_plot:
             shown = {"teacher": estimate} | {m: predictions[m] for m in self.trajectory_methods}
             self._plot(trainer, split, gt, shown, scene, names)
+        honest = {m: p for m, p in predictions.items() if m not in RESERVED_METHODS}
+        methods = {"teacher": estimate, "refined": predictions["refined"]}
+        methods |= {"knn_mean": predictions["knn_mean"]} | honest
+        self._plot_error_curves(trainer, split, methods, gt, scene, names)
 
     def _store_distances(
         self,
@@ -268,6 +277,33 @@ class TestTimeRefinement(L.Callback):
         for logger in trainer.loggers:
             if isinstance(logger, TensorBoardLogger):
                 logger.experiment.add_text("refinement/protocols", PROTOCOLS_TEXT, 0)
+
+    @staticmethod
+    def _plot_error_curves(
+        trainer: L.Trainer,
+        split: str,
+        methods: dict[str, Tensor],
+        gt: Tensor,
+        scene: Tensor,
+        names: list[str],
+    ) -> None:
+        """Cumulative error curves of ``methods`` (name -> poses [N, 7]) against ``gt`` [N,
+        7] of scenes ``scene`` [N] (image tag ``{split}/cumulative_errors``)."""
+        loggers = [lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)]
+        if not loggers:
+            return
+        errors = {m: pose_errors(p.float(), gt.float()) for m, p in methods.items()}
+        image = error_curves_figure(
+            f"{split} split, {len(gt)} queries",
+            {m: e[0] for m, e in errors.items()},
+            {m: e[1] for m, e in errors.items()},
+            scene,
+            names,
+        )
+        for logger in loggers:
+            logger.experiment.add_image(
+                f"{split}/cumulative_errors", image, trainer.global_step, dataformats="HWC"
+            )
 
     @staticmethod
     def _plot(

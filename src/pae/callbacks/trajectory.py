@@ -27,14 +27,15 @@ MARGIN = {"left": 70, "right": 230, "top": 36, "bottom": 52}
 """Pixels around the plot: tick labels left and below, the title above, the legend right."""
 
 
-def _nice_step(span: float, ticks: int = 5) -> float:
+def nice_step(span: float, ticks: int = 5) -> float:
     """A tick spacing of 1, 2 or 5 × 10^k metres giving about `ticks` ticks over `span`."""
     raw = max(span, 1e-9) / ticks
     power = 10 ** math.floor(math.log10(raw))
     return min((m * power for m in (1, 2, 5, 10)), key=lambda s: abs(s - raw))
 
 
-def _text(image: np.ndarray, text: str, at: tuple[int, int], scale: float = 0.45) -> None:
+def draw_text(image: np.ndarray, text: str, at: tuple[int, int], scale: float = 0.45) -> None:
+    """Black text on ``image`` [H, W, 3] with its baseline's left end at ``at`` (u, v px)."""
     cv2.putText(image, text, at, FONT, scale, (0, 0, 0), 1, cv2.LINE_AA)
 
 
@@ -87,7 +88,7 @@ def trajectory_figure(
     visible_low = centre - np.array([plot_w, plot_h]) / 2 / scale
     visible_high = centre + np.array([plot_w, plot_h]) / 2 / scale
     for dim in (0, 1):
-        step = _nice_step(visible_high[dim] - visible_low[dim])
+        step = nice_step(visible_high[dim] - visible_low[dim])
         decimals = max(0, -math.floor(math.log10(step)))
         first = math.ceil(visible_low[dim] / step)
         for index in range(first, math.floor(visible_high[dim] / step) + 1):
@@ -99,13 +100,13 @@ def trajectory_figure(
             label = f"{value:.{decimals}f}"
             if dim == 0:
                 cv2.line(image, (int(u), bottom), (int(u), bottom + 5), (0, 0, 0), 1)
-                _text(image, label, (int(u) - 4 * len(label), bottom + 20))
+                draw_text(image, label, (int(u) - 4 * len(label), bottom + 20))
             else:
                 cv2.line(image, (left - 5, int(v)), (left, int(v)), (0, 0, 0), 1)
-                _text(image, label, (left - 10 - 8 * len(label), int(v) + 4))
-    _text(image, f"{AXIS_NAMES[axes[0]]} [m]", ((left + right) // 2 - 15, height - 12), 0.5)
-    _text(image, f"{AXIS_NAMES[axes[1]]} [m]", (8, top - 12), 0.5)
-    _text(image, title, (left, 22), 0.55)
+                draw_text(image, label, (left - 10 - 8 * len(label), int(v) + 4))
+    draw_text(image, f"{AXIS_NAMES[axes[0]]} [m]", ((left + right) // 2 - 15, height - 12), 0.5)
+    draw_text(image, f"{AXIS_NAMES[axes[1]]} [m]", (8, top - 12), 0.5)
+    draw_text(image, title, (left, 22), 0.55)
 
     legend = [("ground truth", GROUND_TRUTH_RGB, gt)]
     legend += [
@@ -118,5 +119,5 @@ def trajectory_figure(
         _stamp(image, np.array([[right + 18, y - 4]]), colour)
         error = np.median(np.linalg.norm(points - gt, axis=1)) if row else None
         label = name if error is None else f"{name} (median {error:.2f} m)"
-        _text(image, label, (right + 28, y))
+        draw_text(image, label, (right + 28, y))
     return image

@@ -20,6 +20,18 @@ from pae.streams import seeded_global
 SCENE_MODEL_METHODS = ["teacher", "mean_pose"]
 
 
+def compare_queries(rgb: Tensor, intrinsics: Tensor, width: int | None) -> tuple[Tensor, Tensor]:
+    """Query images RGB [B, 3, h, w] in [0, 1] and their intrinsics [B, 4] (px) -> the same
+    area-resized to ``width`` px wide (render-and-compare's compare width, the height kept in
+    proportion) with the intrinsics of that size; ``width`` None: as they are."""
+    if width is None:
+        return rgb, intrinsics
+    h, w = rgb.shape[-2:]
+    size = compare_size(h, w, width)
+    small = nn.functional.interpolate(rgb, size=size, mode="area")
+    return small, scale_intrinsics(intrinsics, size[1] / w, size[0] / h)
+
+
 class SceneModelModule(PaeModule):
     """Trains ``scene_model`` (when it has parameters) on ray batches (pae.data.rays: each
     with the seed its rendering draws from): the mean squared error
@@ -114,15 +126,11 @@ class SceneModelModule(PaeModule):
         self.evaluation.update(split, "teacher", answer.raw_pose, gt, scene, index)
         self.evaluation.update(split, "mean_pose", self.mean_poses[scene], gt, scene, index)
         rgb = ImageTransform.unnormalize_batch(batch["image"])
-        h, w = rgb.shape[-2:]
         intrinsics = self._intrinsics(split, index).to(rgb.device)
-        if self.query_width is not None:
-            size = compare_size(h, w, self.query_width)
-            rgb = nn.functional.interpolate(rgb, size=size, mode="area")
-            intrinsics = scale_intrinsics(intrinsics, size[1] / w, size[0] / h)
+        query, intrinsics = compare_queries(rgb, intrinsics, self.query_width)
         self.eval_outputs.append(
             {
-                "image": rgb,
+                "image": query,
                 "intrinsics": intrinsics,
                 "estimate": answer.pose,
                 "scene_estimate": answer.scene,

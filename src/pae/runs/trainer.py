@@ -12,6 +12,7 @@ from typing import Any
 
 import lightning as L
 from hydra.utils import instantiate
+from lightning.pytorch.callbacks import LearningRateMonitor
 from lightning.pytorch.loggers import Logger
 from lightning.pytorch.utilities import rank_zero_info
 from omegaconf import DictConfig, OmegaConf
@@ -48,14 +49,16 @@ def build_trainer(
     """Trainer from cfg.trainer with the run's loggers, checkpointing into step_dir/checkpoints;
     the epoch progress lines name `step`."""
     configured = []
+    loggers = _loggers(cfg, step_dir)
     for name, c in (cfg.get("callbacks") or {}).items():
         extra: dict[str, Any] = {}
         if name == "model_checkpoint":
             extra = {"dirpath": str(step_dir / "checkpoints")}
         elif name == "epoch_progress":
             extra = {"step": step}
-        configured.append(instantiate(c, **extra))
-    loggers = _loggers(cfg, step_dir)
+        callback = instantiate(c, **extra)
+        if loggers or not isinstance(callback, LearningRateMonitor):  # it needs a logger
+            configured.append(callback)
     return instantiate(
         cfg.trainer,
         max_epochs=max_epochs,

@@ -12,6 +12,7 @@ import torch
 from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from pae.callbacks.render_compare_gallery import RenderCompareGallery
 from pae.callbacks.scene_quality import SceneModelQuality
 from pae.checkpoints import LoadedModel, load_decoder, load_pae, load_scene_model, load_teacher
 from pae.data.rays import RayLoader
@@ -111,7 +112,8 @@ def fit_scene_model(
         appearance_lr=settings.appearance_lr,
         query_width=callback.query_width,
     )
-    callbacks = [callback, SceneModelQuality(settings.quality_size, settings.quality_images)]
+    quality = SceneModelQuality(settings.quality_size, settings.quality_images)
+    callbacks = [callback, RenderCompareGallery(callback), quality]
     if scene_model.trains:  # max_epochs=0: saved untrained
         metrics, last = fit_and_test(
             cfg, step_dir, "scene_model", module, images, settings.max_epochs, callbacks
@@ -140,7 +142,7 @@ def evaluate_scene_model(
         configs={"teacher_config": teacher.config, "scene_model_config": loaded.config},
         query_width=callback.query_width,
     )
-    callbacks = [callback, SceneModelQuality()]
+    callbacks = [callback, RenderCompareGallery(callback), SceneModelQuality()]
     trainer = build_trainer(cfg, run_dir / "render_compare", 0, callbacks)
     metrics = validate_and_test(trainer, module, data)
     metrics |= collect_metrics(trainer, ("bench/",))

@@ -1,0 +1,213 @@
+"""What render-and-compare does, as TensorBoard images: per scene a few queries, each beside
+the scene model's rendering at the teacher's estimate and at the refined pose, labelled with
+their errors; and the cumulative error curves of the teacher and render-and-compare."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import cv2
+import lightning as L
+import numpy as np
+import torch
+from lightning.pytorch.loggers import TensorBoardLogger
+from torch import Tensor, nn
+
+from pae.callbacks.error_curves import error_curves_figure
+from pae.callbacks.render_compare import HONEST, ORACLE, RenderCompareRefinement
+from pae.data.camera import scale_intrinsics
+from pae.geometry import pose_errors
+from pae.metrics import first_occurrences
+from pae.refine.render_compare import ACCEPT_ALL, gate
+
+FONT = cv2.FONT_HERSHEY_SIMPLEX
+LABEL_PX = 30
+"""Height (px) of the two text lines above each panel."""
+
+
+def gallery_figure(
+    title: str, panels: Tensor, labels: list[list[str]], panel_px: int
+) -> np.ndarray:
+    """Rows of RGB panels [R, C, 3, h, w] in [0, 1], each scaled to ``panel_px`` px wide and
+    captioned with its two lines of ``labels`` [R][C] ('first line|second line'), under a
+    ``title`` -> uint8 image [H, W, 3]."""
+    rows, columns, _, h, w = panels.shape
+    height = round(panel_px * h / w)
+    scaled = nn.functional.interpolate(
+        panels.flatten(0, 1), size=(height, panel_px), mode="nearest"
+    )
+    cells = (scaled.clamp(0, 1) * 255).byte().permute(0, 2, 3, 1).cpu().numpy()
+    cell_h, cell_w = height + LABEL_PX, panel_px + 6
+    image = np.full((24 + rows * cell_h, columns * cell_w, 3), 255, np.uint8)
+    cv2.putText(image, title, (4, 16), FONT, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    for r in range(rows):
+        for c in range(columns):
+            top, left = 24 + r * cell_h, c * cell_w + 3
+            image[top + LABEL_PX : top + cell_h, left : left + panel_px] = cells[r * columns + c]
+            for line, text in enumerate(labels[r][c].split("|")):
+                at = (left, top + 11 + 12 * line)
+                cv2.putText(image, text, at, FONT, 0.36, (0, 0, 0), 1, cv2.LINE_AA)
+    return image
+
+
+class RenderCompareGallery(L.Callback):
+    """After every test (and, with ``on_val``, every validation run), per scene ``queries``
+    queries evenly spaced over the evaluated split: the query | the scene model's rendering at
+    the teacher's estimate | at the pose render-and-compare refined it to (the one the gate
+    kept), each labelled with its position (m) and orientation (deg) error; TensorBoard
+    image ``{split}/render_compare/gallery/<scene>``, panels ``panel_px`` px wide.
+
+    The refined poses are those of ``refinement`` (its refiner with the steps and gate it
+    chose on val), refined again for these queries with the same random draws as in the
+    full split, so they are the poses its figures count. With them, ``{split}/cumulative_errors``:
+    the teacher's and each render-and-compare method's cumulative error curves over the
+    whole split (:meth:`curves`)."""
+
+    def __init__(
+        self,
+        refinement: RenderCompareRefinement,
+        queries: int = 4,
+        panel_px: int = 128,
+        on_val: bool = False,
+    ) -> None:
+        super().__init__()
+        self.refinement = refinement
+        self.queries = queries
+        self.panel_px = panel_px
+        self.on_val = on_val
+
+    def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if self.on_val:
+            self.draw(trainer, pl_module, "val")
+
+    def on_test_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.draw(trainer, pl_module, "test")
+
+    def picked(self, scene: Tensor) -> Tensor:
+        """Rows [K] of ``queries`` queries of each scene ids [N], evenly spaced over the
+        scene's queries in split order, scene by scene."""
+        rows = []
+        for index in scene.unique().tolist():
+            members = (scene == index).nonzero().flatten()
+            spaced = torch.linspace(0, len(members) - 1, min(self.queries, len(members)))
+            rows.append(members[spaced.round().long().unique()])
+        return torch.cat(rows)
+
+    @torch.no_grad()
+    def draw(self, trainer: L.Trainer, pl_module: L.LightningModule, split: str) -> None:
+        """Refine the picked queries, render both poses and log one figure per scene."""
+        loggers = [lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)]
+        if not loggers or not pl_module.eval_outputs or trainer.world_size > 1:
+            return
+        outputs = {
+            key: torch.cat([batch[key] for batch in pl_module.eval_outputs])
+            for key in pl_module.eval_outputs[0]
+        }
+        keep = first_occurrences(outputs["index"])
+        outputs = {key: value[keep] for key, value in outputs.items()}
+        rows = self.picked(outputs["scene"].cpu())
+        model = pl_module.scene_model
+        refiner = self.refinement.refiner(model, pl_module.teacher)
+        draws = refiner.draws(len(keep))[rows]
+        picked = {key: value[rows.to(value.device)] for key, value in outputs.items()}
+        estimate = picked["estimate"].float()
+        result = refiner(
+            picked["image"],
+            picked["intrinsics"],
+            estimate,
+            picked["scene_estimate"],
+            draws=draws,
+        )
+        margin, floor = getattr(self.refinement, "gates", {}).get(HONEST, (0.0, ACCEPT_ALL))
+        gated = gate(result, estimate, margin, floor)
+        images = picked["image"]
+        h, w = images.shape[-2:]
+        scale = self.panel_px / w
+        size = (round(h * scale), self.panel_px)
+        intrinsics = scale_intrinsics(picked["intrinsics"], scale, scale)
+        renders = [
+            model.render(poses, picked["scene_estimate"], intrinsics, size[1], size[0]).rgb
+            for poses in (estimate, gated.poses)
+        ]
+        query = nn.functional.interpolate(images, size=size, mode="nearest")
+        panels = torch.stack([query, *(r.to(query) for r in renders)], 1)  # [K, 3, 3, h, w]
+        truth = picked["pose"].float()
+        errors = [pose_errors(p.float(), truth) for p in (estimate, gated.poses)]
+        labels = self._labels(picked["index"], errors, gated.accepted)
+        self.curves(trainer, loggers, split)
+        names = pl_module.scene_names
+        scenes = picked["scene"].cpu()
+        for index in scenes.unique().tolist():
+            mask = scenes == index
+            title = f"{names[index]} ({split}): query | at the teacher's | at the refined pose"
+            figure = gallery_figure(
+                title,
+                panels[mask],
+                [labels[i] for i in mask.nonzero().flatten().tolist()],
+                self.panel_px,
+            )
+            for logger in loggers:
+                logger.experiment.add_image(
+                    f"{split}/render_compare/gallery/{names[index]}",
+                    figure,
+                    trainer.global_step,
+                    dataformats="HWC",
+                )
+
+    @staticmethod
+    def curves(trainer: L.Trainer, loggers: list[TensorBoardLogger], split: str) -> None:
+        """Cumulative error curves of the teacher and of each render-and-compare method,
+        from the per-query files the refinement callback wrote (after its gate), as the
+        image ``{split}/cumulative_errors``."""
+        position: dict[str, Tensor] = {}
+        orientation: dict[str, Tensor] = {}
+        scenes: list[str] = []
+        for name in (HONEST, ORACLE):
+            path = Path(trainer.log_dir or "") / f"queries_{split}_{name}.csv"
+            if not path.is_file():
+                continue
+            with path.open(newline="") as handle:
+                rows = list(csv.DictReader(handle))
+            if not rows:
+                continue
+
+            def column(key: str, rows: list[dict[str, str]] = rows) -> Tensor:
+                return torch.tensor([float(row[key]) for row in rows])
+
+            scenes = [row["scene"] for row in rows]
+            accepted = column("accepted") > 0
+            position.setdefault("teacher", column("start_pos_m"))
+            orientation.setdefault("teacher", column("start_rot_deg"))
+            position[name] = torch.where(accepted, column("refined_pos_m"), position["teacher"])
+            orientation[name] = torch.where(
+                accepted, column("refined_rot_deg"), orientation["teacher"]
+            )
+        if not position:
+            return
+        names = sorted(set(scenes))
+        ids = torch.tensor([names.index(s) for s in scenes])
+        title = f"{split} split, {len(ids)} queries"
+        image = error_curves_figure(title, position, orientation, ids, names)
+        for logger in loggers:
+            logger.experiment.add_image(
+                f"{split}/cumulative_errors", image, trainer.global_step, dataformats="HWC"
+            )
+
+    @staticmethod
+    def _labels(
+        index: Tensor, errors: list[tuple[Tensor, Tensor]], accepted: Tensor
+    ) -> list[list[str]]:
+        """Each picked query's captions: its row, the teacher's errors, the refined pose's."""
+        (start_pos, start_rot), (pos, rot) = errors
+        verdict = ["kept", "rejected"]
+        return [
+            [
+                f"query|row {int(i)}",
+                f"teacher|{float(sp):.2f} m {float(sr):.1f} deg",
+                f"refined: {verdict[0 if a else 1]}|{float(p):.2f} m {float(r):.1f} deg",
+            ]
+            for i, sp, sr, p, r, a in zip(
+                index.tolist(), start_pos, start_rot, pos, rot, accepted.tolist(), strict=True
+            )
+        ]

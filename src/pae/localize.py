@@ -1,0 +1,123 @@
+"""`pae-localize RUN_DIR INPUT... --out poses.csv`: the poses of images from a finished run's
+checkpoints, in the label-file format (pae.localization)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+EPILOG = """examples:
+  pae-localize outputs/demo my_images/ --out poses.csv
+  pae-localize outputs/demo DATA/labels/all_test.csv --root DATA --refine render_compare \\
+      --out poses.csv
+INPUT: image files, folders of images (searched recursively) or label files (their img_path
+read under --root, by default the run's data root; their poses only give the printed errors).
+The teacher's estimates by default; --refine render_compare refines them against the run's
+scene model (with the gate and steps the run chose on val), --refine refined (knn_mean,
+student, or an entry of the run's refine.alternatives) with its student."""
+
+
+def parser() -> argparse.ArgumentParser:
+    """The command line of pae-localize."""
+    parse = argparse.ArgumentParser(
+        prog="pae-localize",
+        description="Poses of images from a finished pae-train run's checkpoints.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parse.add_argument("run_dir", type=Path, help="a finished run directory (e.g. outputs/demo)")
+    parse.add_argument("inputs", nargs="+", help="image files, folders or label files")
+    parse.add_argument("--out", type=Path, required=True, help="the label file to write")
+    parse.add_argument("--refine", default="teacher", help="the method (default: teacher)")
+    parse.add_argument("--root", type=Path, help="dataset root of a label file's img_path")
+    parse.add_argument("--focal", type=float, help="focal length (px) of the images on disk")
+    parse.add_argument("--batch-size", type=int, default=64, help="images per teacher pass")
+    parse.add_argument("--device", default="cpu", help="torch device (default: cpu)")
+    return parse
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Localise the inputs with the run's checkpoints and write ``--out`` atomically."""
+    args = parser().parse_args(argv)
+    from pae.console import quiet_third_party
+    from pae.reporting import reporting_errors
+
+    quiet_third_party()
+    with reporting_errors("pae-localize"):
+        localize(args)
+    return 0
+
+
+def localize(args: argparse.Namespace) -> None:
+    """What main runs once the arguments are parsed."""
+    import torch
+
+    from pae import localization as loc
+    from pae.checkpoints import load_teacher
+    from pae.console import Progress
+    from pae.data.labels import write_labels
+    from pae.errors import ConfigError
+
+    run = loc.read_run(args.run_dir)
+    methods = loc.methods_of(run)
+    method = args.refine
+    if method not in methods:
+        raise ConfigError(f"--refine {method}: unknown method; choose one of {methods}")
+    if args.focal is not None and args.focal <= 0:
+        raise ConfigError(f"--focal must be > 0 px, got {args.focal}")
+    if args.batch_size < 1:
+        raise ConfigError(f"--batch-size must be >= 1, got {args.batch_size}")
+    step = {loc.RENDER_COMPARE: "scene_model", loc.TEACHER: None}.get(method, "student")
+    if step is not None:
+        teacher_path = run.checkpoint(step, method)
+    elif "teacher" in run.steps:
+        teacher_path = run.checkpoint("teacher", method)
+    else:  # a later step's checkpoint holds a copy of its teacher
+        teacher_path = run.checkpoint(run.steps[0], method)
+    queries = loc.gather_queries(args.inputs, args.root or run.data_root)
+    teacher = load_teacher(teacher_path)
+    data = loc.data_module(run)
+    intrinsics = None
+    width = None
+    if method == loc.RENDER_COMPARE:
+        width = loc.compare_width(loc.render_compare_settings(run)[0])
+
+        def intrinsics(size: tuple[int, int], focal: object) -> torch.Tensor:
+            return loc.query_intrinsics(
+                data.camera, size, data.shorter_edge, data.crop, focal, args.focal
+            )
+
+    device = torch.device(args.device)
+    emit = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
+    found = loc.estimate(
+        teacher.model,
+        queries,
+        data,
+        intrinsics,
+        width,
+        args.batch_size,
+        device,
+        Progress(f"pae-localize: {method}", "images", emit),
+    )
+    if method == loc.TEACHER:
+        poses = found.pose
+    elif method == loc.RENDER_COMPARE:
+        if f"test/{loc.RENDER_COMPARE}/accept_margin" not in run.metrics:
+            emit(
+                f"pae-localize: warning: {run.folder / 'metrics.json'} records no "
+                "render_compare gate or steps: the configured ones are used"
+            )
+        emit(f"pae-localize: render_compare of {len(found.pose)} images")
+        poses = loc.render_compare(run, teacher.model.to(device), found, device)
+    else:
+        poses = loc.student_poses(run, method, teacher.model.cpu(), found)
+    table = loc.output_table(queries, poses, found.scene, teacher.scene_names)
+    write_labels(args.out, table)
+    if queries.labelled:
+        print(loc.summary_line(method, poses, queries, teacher.scene_names))
+    print(f"poses: {args.out} ({len(table)} images, {method})")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

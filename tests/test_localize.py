@@ -1,0 +1,200 @@
+"""pae-localize on a tiny teacher -> student -> scene-model run: the poses it writes for the
+run's own test label file give the run's test figures."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from pae import CONFIG_DIR
+from pae.data.labels import read_labels
+from pae.geometry import pose_errors
+from pae.localize import main
+from pae.metrics import summarise_errors
+from tests.conftest import tiny_data_overrides, tiny_overrides
+
+RENDER_COMPARE = [
+    "render_compare.refiner.rounds=2",
+    "render_compare.refiner.candidates=4",
+    "render_compare.refiner.polish_steps=2",
+    "render_compare.oracle=false",
+    "render_compare.accept_margin=-4.0",  # keep every refinement: poses unlike the teacher's
+]
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory: pytest.TempPathFactory, tiny_root: Path) -> Path:
+    """A teacher, student and scene-model run over the tiny dataset, with its saved config."""
+    from pae.train import run
+
+    run_dir = tmp_path_factory.mktemp("localize") / "run"
+    overrides = [
+        *tiny_overrides(tiny_root),
+        "student.max_epochs=1",
+        "scene_model.max_epochs=2",  # enough for a surface the refiner sees
+        "scene_model.batches_per_epoch=15",
+        "scene_model.rays_per_batch=2048",
+        "scene_model.model.num_voxels=8000",
+        "scene_model.image_size=16",
+        *RENDER_COMPARE,
+        "stage=pipeline",
+        "stage.steps=[teacher,student,scene_model]",
+    ]
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("train", overrides=overrides)
+    (run_dir / ".hydra").mkdir(parents=True)
+    OmegaConf.save(cfg, run_dir / ".hydra" / "config.yaml")  # what Hydra saves
+    run(cfg, run_dir)
+    return run_dir
+
+
+def _medians(path: Path, labels: Path, scenes: list[str]) -> tuple[float, float]:
+    """Overall median errors (m, deg) of a written label file against the labels."""
+    written, truth = read_labels(path), read_labels(labels)
+    assert written.img_path == truth.img_path
+    pos, rot = pose_errors(
+        torch.as_tensor(written.poses, dtype=torch.float32),
+        torch.as_tensor(truth.poses, dtype=torch.float32),
+    )
+    summary = summarise_errors(pos, rot, torch.as_tensor(truth.scene_ids(scenes)), scenes)
+    return float(summary["pos_median_m"]), float(summary["rot_median_deg"])
+
+
+@pytest.mark.parametrize("method", ["teacher", "render_compare", "refined"])
+def test_localized_test_split_gives_the_runs_figures(
+    finished_run: Path, tiny_root: Path, tmp_path: Path, method: str, capsys
+) -> None:
+    labels = tiny_root / "labels" / "all_test.csv"
+    out = tmp_path / "poses.csv"
+    argv = [str(finished_run), str(labels), "--out", str(out), "--refine", method]
+    assert main(argv) == 0
+    printed = capsys.readouterr()
+    metrics = json.loads((finished_run / "metrics.json").read_text())
+    pos, rot = _medians(out, labels, ["scene00", "scene01"])
+    assert pos == pytest.approx(metrics[f"test/{method}/pos_median_m"], rel=1e-4, abs=1e-5)
+    assert rot == pytest.approx(metrics[f"test/{method}/rot_median_deg"], rel=1e-4, abs=1e-4)
+    if method != "teacher":  # not the teacher's poses passed through
+        assert pos != pytest.approx(metrics["test/teacher/pos_median_m"], rel=1e-4)
+    assert f"{method}: median {pos:.3f} m" in printed.out
+    assert f"pae-localize: {method}: 24/24 images (100 %)" in printed.err
+    written = read_labels(out)
+    q = torch.as_tensor(written.poses[:, 3:])
+    assert (q[:, 0] >= 0).all() and torch.allclose(q.norm(dim=1), torch.ones(len(q)).double())
+
+
+def test_pae_eval_of_the_runs_checkpoints_gives_the_same_figures(
+    finished_run: Path, tiny_root: Path, tmp_path: Path
+) -> None:
+    """What pae-localize is compared with above: pae-eval's figures of the run's checkpoints."""
+    from pae.checkpoint_evaluation import evaluate_checkpoints
+
+    overrides = [
+        *tiny_data_overrides(tiny_root),
+        *RENDER_COMPARE,
+        f"student_ckpt={finished_run / 'student' / 'checkpoints' / 'last.ckpt'}",
+        f"scene_model_ckpt={finished_run / 'scene_model' / 'checkpoints' / 'last.ckpt'}",
+        "logger={}",
+    ]
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("eval", overrides=overrides)
+    evaluated = evaluate_checkpoints(cfg, tmp_path)
+    metrics = json.loads((finished_run / "metrics.json").read_text())
+    for method in ("teacher", "render_compare", "refined"):
+        for figure in ("pos_median_m", "rot_median_deg"):
+            key = f"test/{method}/{figure}"
+            assert evaluated[key] == pytest.approx(metrics[key], rel=1e-5), key
+
+
+def test_images_and_folders_get_the_teachers_scene_and_pose(
+    finished_run: Path, tiny_root: Path, tmp_path: Path
+) -> None:
+    labels = read_labels(tiny_root / "labels" / "all_test.csv")
+    folder = tiny_root / Path(labels.img_path[0]).parent
+    single = tiny_root / labels.img_path[-1]
+    out = tmp_path / "poses.csv"
+    assert main([str(finished_run), str(folder), str(single), "--out", str(out)]) == 0
+    written = read_labels(out)
+    from_folder = sorted(p for p in folder.iterdir() if p.suffix == ".png")
+    assert written.img_path == [str(p) for p in from_folder] + [str(single)]
+    assert set(written.split) == {"query"} and set(written.scene) <= {"scene00", "scene01"}
+    by_label = tmp_path / "by_label.csv"
+    main([str(finished_run), str(tiny_root / "labels" / "all_test.csv"), "--out", str(by_label)])
+    expected = dict(zip(labels.img_path, read_labels(by_label).poses.tolist(), strict=True))
+    got, want = written.poses[-1].tolist(), expected[labels.img_path[-1]]
+    assert all(math.isclose(a, b, abs_tol=1e-6) for a, b in zip(got, want, strict=True))
+
+
+def test_render_compare_takes_the_gate_and_steps_the_run_applied_at_test(
+    finished_run: Path,
+) -> None:
+    from pae.localization import read_run, render_compare_settings
+
+    run = read_run(finished_run)
+    recorded = {
+        "test/render_compare/accept_margin": 0.25,
+        "test/render_compare/accept_score": 0.5,
+        "test/render_compare/position_sigma_m": 0.125,
+        "test/render_compare/rounds": 3.0,
+    }
+    settings, margin, floor = render_compare_settings(run._replace(metrics=recorded))
+    assert (margin, floor) == (0.25, 0.5)
+    assert settings["position_sigma_m"] == 0.125 and settings["rounds"] == 3
+    assert isinstance(settings["rounds"], int) and settings["candidates"] == 4
+    settings, margin, floor = render_compare_settings(run._replace(metrics={}))
+    assert (margin, floor) == (-4.0, -4.0)  # as configured: accept every refinement
+
+
+@pytest.mark.parametrize(
+    ("case", "message"),
+    [
+        ("unreadable", "broken.png: missing or unreadable image"),
+        ("no_step", "no scene_model checkpoint"),
+        ("method", "--refine nope: unknown method; choose one of ['teacher', 'render_compare'"),
+        ("not_a_run", "not a pae-train run directory (no .hydra/config.yaml)"),
+    ],
+)
+def test_mistakes_are_one_line_errors(
+    finished_run: Path, tmp_path: Path, capsys, case: str, message: str
+) -> None:
+    import shutil
+
+    image = tmp_path / "broken.png"
+    image.write_bytes(b"not a png")
+    run_dir, refine = finished_run, "teacher"
+    if case == "no_step":
+        run_dir = tmp_path / "teacher_only"
+        shutil.copytree(finished_run, run_dir, ignore=shutil.ignore_patterns("scene_model"))
+        refine = "render_compare"
+    elif case == "method":
+        refine = "nope"
+    elif case == "not_a_run":
+        run_dir = tmp_path
+    argv = [str(run_dir), str(image), "--out", str(tmp_path / "o.csv"), "--refine", refine]
+    with pytest.raises(SystemExit) as stopped:
+        main(argv)
+    assert stopped.value.code == 1
+    lines = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
+    assert len(lines) == 1 and message in lines[0], lines
+    assert not (tmp_path / "o.csv").exists()
+
+
+def test_the_scene_model_step_logs_a_render_and_compare_gallery(finished_run: Path) -> None:
+    """Per scene: rows of query | render at the teacher's estimate | at the refined pose."""
+    import cv2
+    import numpy as np
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(finished_run / "scene_model"), size_guidance={"images": 0})
+    events.Reload()
+    for scene in ("scene00", "scene01"):
+        [image] = events.Images(f"test/render_compare/gallery/{scene}")
+        decoded = cv2.imdecode(np.frombuffer(image.encoded_image_string, np.uint8), 1)
+        assert decoded.shape[1] == 3 * (128 + 6)  # three panels of 128 px
+        assert decoded.shape[0] > 4 * 128  # four queries
+    assert "test/cumulative_errors" in events.Tags()["images"]
