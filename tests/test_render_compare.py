@@ -785,28 +785,3 @@ def test_the_band_pass_score_ignores_smooth_shading_that_plain_zncc_does_not() -
     torch.testing.assert_close(band_pass(texture, 1.0, 0.0), band_pass(texture, 1.0, -1.0))
     with pytest.raises(ValueError, match="highpass_sigma_px"):
         RenderCompareRefiner(OracleSceneModel([]), highpass_sigma_px=-1.0)
-
-
-def test_error_curves_give_the_share_within_each_threshold() -> None:
-    from pae.callbacks.render_compare import log_error_curves
-
-    class Writer:
-        def __init__(self) -> None:
-            self.scalars: dict[tuple[str, int], float] = {}
-
-        def add_scalar(self, tag: str, value: float, step: int) -> None:
-            self.scalars[tag, step] = value
-
-    pos = torch.tensor([0.005, 0.04, 0.10, 0.5, 3.0])
-    rot = torch.tensor([0.05, 0.5, 2.0, 9.0, 90.0])
-    writer = Writer()
-    log_error_curves(writer, "test", {"teacher": (pos, rot)}, points=200)
-    position = {s: v for (t, s), v in writer.scalars.items() if "position_within_cm" in t}
-    orientation = {s: v for (t, s), v in writer.scalars.items() if "orientation" in t}
-    assert position[10] == pytest.approx(0.6) and position[1] == pytest.approx(0.2)
-    assert position[200] == pytest.approx(0.8)
-    assert orientation[20] == pytest.approx(0.6) and orientation[300] == pytest.approx(0.8)
-    assert {t for t, _ in writer.scalars} == {
-        "test/cumulative/position_within_cm/teacher",
-        "test/cumulative/orientation_within_tenth_deg/teacher",
-    }

@@ -5,14 +5,12 @@ from __future__ import annotations
 import csv
 import inspect
 import logging
-import math
 import time
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 import torch
-from lightning.pytorch.loggers import TensorBoardLogger
 from torch import Tensor
 
 from pae.atomic import atomic_write
@@ -244,7 +242,6 @@ class RenderCompareRefinement(L.Callback):
         figures: dict[str, Tensor] = {
             f"{split}/{HONEST}/{key}": torch.tensor(value) for key, value in self.steps.items()
         }
-        curves = {"teacher": pose_errors(outputs["estimate"].float(), outputs["pose"].float())}
         for name, model in models.items():
             start = time.perf_counter()
             result = self.refiner(model, pl_module.teacher)(
@@ -268,37 +265,10 @@ class RenderCompareRefinement(L.Callback):
                 names = [pl_module.scene_names[s] for s in outputs["scene"].tolist()]
                 starts, refined = (start_pos, start_rot), (refined_pos, refined_rot)
                 write_queries(path, outputs["index"], names, starts, refined, result, gated)
-            curves[name] = (pos, rot)
             if split == "test":
                 ms = torch.tensor(1000 * seconds / len(pos))
                 figures[f"bench/{name}/ms_per_query"] = ms
         pl_module.log_dict(figures)
-        for logger in trainer.loggers:
-            if isinstance(logger, TensorBoardLogger):
-                log_error_curves(logger.experiment, split, curves)
-
-
-CURVE_STEPS = {"position_cm": (1, 200), "orientation_tenth_deg": (1, 300)}
-"""The cumulative error curves' steps: thresholds of 1 to 200 cm and 0.1° to 30°."""
-
-
-def log_error_curves(
-    writer: Any, split: str, errors: dict[str, tuple[Tensor, Tensor]], points: int = 60
-) -> None:
-    """The share of queries within each error threshold, per method, as TensorBoard scalars
-    whose step is the threshold (``{split}/cumulative/position_within_cm/{method}``, and
-    orientation in tenths of a degree): the standard localisation curve, one chart per
-    quantity with every method's line. errors: per method, position (m) and orientation
-    (deg) errors [N]; ``points`` thresholds spaced evenly in log."""
-    for quantity, (low, high) in CURVE_STEPS.items():
-        steps = torch.logspace(math.log10(low), math.log10(high), points).round().unique()
-        scale = 100.0 if quantity == "position_cm" else 10.0
-        for method, (pos, rot) in errors.items():
-            values = (pos if quantity == "position_cm" else rot).float() * scale
-            shares = (values[None] <= steps[:, None]).float().mean(1)
-            tag = f"{split}/cumulative/{quantity.replace('_', '_within_', 1)}/{method}"
-            for step, share in zip(steps.tolist(), shares.tolist(), strict=True):
-                writer.add_scalar(tag, share, int(step))
 
 
 QUERY_COLUMNS = (
