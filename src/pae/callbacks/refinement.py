@@ -11,6 +11,7 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from torch import Tensor
 
 from pae.callbacks.error_curves import error_curves_figure
+from pae.callbacks.tensorboard import log_figure, tensorboard_loggers
 from pae.callbacks.trajectory import trajectory_figure
 from pae.geometry import pose_errors
 from pae.lit.eval_outputs import EVAL, collect_outputs
@@ -282,7 +283,7 @@ class TestTimeRefinement(L.Callback):
     ) -> None:
         """Cumulative error curves of ``methods`` (name -> poses [N, 7]) against ``gt`` [N,
         7] of scenes ``scene`` [N] (image tag ``{split}/cumulative_errors``)."""
-        loggers = [lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)]
+        loggers = tensorboard_loggers(trainer)
         if not loggers:
             return
         errors = {m: pose_errors(p.float(), gt.float()) for m, p in methods.items()}
@@ -293,10 +294,7 @@ class TestTimeRefinement(L.Callback):
             scene,
             names,
         )
-        for logger in loggers:
-            logger.experiment.add_image(
-                f"{split}/cumulative_errors", image, trainer.global_step, dataformats="HWC"
-            )
+        log_figure(loggers, f"{split}/cumulative_errors", image, trainer.global_step)
 
     @staticmethod
     def _plot(
@@ -309,7 +307,7 @@ class TestTimeRefinement(L.Callback):
     ) -> None:
         """A trajectory figure per scene (image tag ``{split}/trajectory/{scene}``): ground
         truth and each method of ``estimates`` (method -> poses [B, 7])."""
-        loggers = [lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)]
+        loggers = tensorboard_loggers(trainer)
         if not loggers:
             return
         for index in scene.unique().tolist():
@@ -318,10 +316,4 @@ class TestTimeRefinement(L.Callback):
             image = trajectory_figure(
                 title, gt[mask], {m: poses[mask] for m, poses in estimates.items()}
             )
-            for logger in loggers:
-                logger.experiment.add_image(
-                    f"{split}/trajectory/{names[index]}",
-                    image,
-                    trainer.global_step,
-                    dataformats="HWC",
-                )
+            log_figure(loggers, f"{split}/trajectory/{names[index]}", image, trainer.global_step)

@@ -16,6 +16,7 @@ from torch import Tensor, nn
 
 from pae.callbacks.error_curves import error_curves_figure
 from pae.callbacks.render_compare import HONEST, ORACLE, RenderCompareCallback
+from pae.callbacks.tensorboard import log_figure, tensorboard_loggers
 from pae.data.camera import scale_intrinsics
 from pae.geometry import pose_errors
 from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
@@ -97,7 +98,7 @@ class RenderCompareGallery(L.Callback):
     @torch.no_grad()
     def draw(self, trainer: L.Trainer, pl_module: SceneModelEvaluation, split: str) -> None:
         """Refine the picked queries, render both poses and log one figure per scene."""
-        loggers = [lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)]
+        loggers = tensorboard_loggers(trainer)
         if not loggers or trainer.world_size > 1:
             return
         outputs = collect_outputs(trainer, pl_module, gather=False)
@@ -144,13 +145,8 @@ class RenderCompareGallery(L.Callback):
                 [labels[i] for i in mask.nonzero().flatten().tolist()],
                 self.panel_px,
             )
-            for logger in loggers:
-                logger.experiment.add_image(
-                    f"{split}/render_compare/gallery/{names[index]}",
-                    figure,
-                    trainer.global_step,
-                    dataformats="HWC",
-                )
+            tag = f"{split}/render_compare/gallery/{names[index]}"
+            log_figure(loggers, tag, figure, trainer.global_step)
 
     @staticmethod
     def curves(trainer: L.Trainer, loggers: list[TensorBoardLogger], split: str) -> None:
@@ -186,10 +182,7 @@ class RenderCompareGallery(L.Callback):
         ids = torch.tensor([names.index(s) for s in scenes])
         title = f"{split} split, {len(ids)} queries"
         image = error_curves_figure(title, position, orientation, ids, names)
-        for logger in loggers:
-            logger.experiment.add_image(
-                f"{split}/cumulative_errors", image, trainer.global_step, dataformats="HWC"
-            )
+        log_figure(loggers, f"{split}/cumulative_errors", image, trainer.global_step)
 
     @staticmethod
     def _labels(
