@@ -909,7 +909,7 @@ def test_a_full_disk_is_one_line_naming_the_device_and_the_file(
 ) -> None:
     from pae.atomic import device_of
     from pae.checkpoints import AtomicCheckpointIO
-    from pae.reporting import reporting_errors
+    from pae.error_reporting import reporting_errors
 
     class FullDisk:
         """A file that takes 100 bytes, then finds no space left (as torch.save sees it)."""
@@ -952,7 +952,7 @@ def test_a_full_disk_under_tensorboard_is_one_line_naming_the_event_file(
     from torch.utils.tensorboard import SummaryWriter
 
     from pae.atomic import device_of
-    from pae.reporting import reporting_errors
+    from pae.error_reporting import reporting_errors
 
     with reporting_errors("pae-train"):  # installs the writer threads' hook, as every run does
         writer = SummaryWriter(str(tmp_path))

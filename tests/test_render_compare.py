@@ -599,7 +599,7 @@ def test_the_callback_refines_without_reading_the_true_poses(
         return pose_errors(pred, gt)
 
     monkeypatch.setattr(callback_module, "pose_errors", record)
-    callback = callback_module.RenderCompareRefinement(
+    callback = callback_module.RenderCompareCallback(
         {"rounds": 3, "candidates": 8, "resolution": 16, "reference_size": 12}, oracle=False
     )
     trainer = SimpleNamespace(world_size=1, datamodule=SimpleNamespace(), log_dir=str(tmp_path))
@@ -677,13 +677,13 @@ def test_the_paper_decoder_is_a_scene_model_without_depth() -> None:
 
 
 def test_the_search_steps_follow_the_teachers_val_error() -> None:
-    from pae.callbacks.render_compare import RenderCompareRefinement
+    from pae.callbacks.render_compare import RenderCompareCallback
 
     truth = torch.zeros(4, 7)
     truth[:, 3] = 1.0
     estimate = truth.clone()
     estimate[:, 0] = torch.tensor([1.0, 2.0, 3.0, 4.0])  # median position error 2.5 m
-    callback = RenderCompareRefinement(
+    callback = RenderCompareCallback(
         {"rounds": 2}, oracle=False, step_from_val={"position": 0.4, "orientation": 0.5}
     )
     assert callback.refiner(OracleSceneModel([]), None).sigma == pytest.approx(
@@ -694,7 +694,7 @@ def test_the_search_steps_follow_the_teachers_val_error() -> None:
     refiner = callback.refiner(OracleSceneModel([]), None)
     assert refiner.sigma[0] == pytest.approx(1.0)
     with pytest.raises(ValueError, match="step_from_val"):
-        RenderCompareRefinement(step_from_val={"position": 0.4})
+        RenderCompareCallback(step_from_val={"position": 0.4})
 
 
 def test_per_image_appearance_gives_each_train_row_its_own_code(tiny_root: Path) -> None:

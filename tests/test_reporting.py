@@ -4,8 +4,9 @@ from pathlib import Path
 import pytest
 
 from pae.atomic import write_json_atomic
+from pae.error_reporting import reporting_errors
 from pae.errors import ConfigError, ImageError
-from pae.reporting import format_results_table, reporting_errors
+from pae.reporting import format_results_table
 
 
 def test_user_errors_become_one_line_and_exit_1(capsys: pytest.CaptureFixture[str]) -> None:

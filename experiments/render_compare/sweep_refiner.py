@@ -24,11 +24,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from pae.callbacks import render_compare as callback
 from pae.geometry import pose_errors
-from pae.metrics import first_occurrences, summarise_errors
+from pae.lit.eval_outputs import EVAL, collect_outputs
+from pae.metrics import summarise_errors
 
 
 def parse(setting: str) -> dict[str, Any]:
@@ -53,16 +52,11 @@ def sweep(settings: list[str]) -> Any:
     """A replacement for the callback's refine that compares ``settings`` on val."""
 
     def refine(self: Any, trainer: Any, pl_module: Any, split: str) -> None:
-        if split != "val" or not pl_module.eval_outputs:
+        outputs = collect_outputs(trainer, pl_module, gather=False)
+        if split != "val" or outputs is None:
             return
-        outputs = {
-            key: torch.cat([batch[key] for batch in pl_module.eval_outputs])
-            for key in pl_module.eval_outputs[0]
-        }
-        keep = first_occurrences(outputs["index"])
-        outputs = {key: value[keep] for key, value in outputs.items()}
-        self.choose_steps(outputs["estimate"], outputs["pose"])
-        truth, estimate = outputs["pose"].float(), outputs["estimate"].float()
+        self.choose_steps(outputs[EVAL.estimate], outputs[EVAL.pose])
+        truth, estimate = outputs[EVAL.pose].float(), outputs[EVAL.estimate].float()
         start_pos, _ = pose_errors(estimate, truth)
         print(
             "| setting | val median m / ° | mean m | within 5 cm, 5° | within 10 cm, 10° "
@@ -72,14 +66,14 @@ def sweep(settings: list[str]) -> Any:
             refiner = callback.RenderCompareRefiner(
                 pl_module.scene_model, **(self.settings | self.steps | parse(setting))
             )
-            arguments = (outputs["image"], outputs["intrinsics"], estimate)
-            refiner(*(a[:2] for a in arguments), outputs["scene_estimate"][:2])  # compile
+            arguments = (outputs[EVAL.image], outputs[EVAL.intrinsics], estimate)
+            refiner(*(a[:2] for a in arguments), outputs[EVAL.scene_estimate][:2])  # compile
             start = time.perf_counter()
-            result = refiner(*arguments, outputs["scene_estimate"])
+            result = refiner(*arguments, outputs[EVAL.scene_estimate])
             ms = 1000 * (time.perf_counter() - start) / len(estimate)
             gated = callback.gate(result, estimate, 0.0)
             pos, rot = pose_errors(gated.poses.float(), truth)
-            s = summarise_errors(pos, rot, outputs["scene"], pl_module.scene_names)
+            s = summarise_errors(pos, rot, outputs[EVAL.scene], pl_module.scene_names)
             print(
                 f"| {setting} | {s['pos_median_m']:.4f} / {s['rot_median_deg']:.2f} "
                 f"| {s['pos_mean_m']:.3f} | {100 * s['within_5cm_5deg']:.1f} % "
@@ -96,7 +90,7 @@ def main() -> int:
         print(__doc__)
         return 2
     checkpoint, settings = Path(sys.argv[1]), sys.argv[2:]
-    callback.RenderCompareRefinement.refine = sweep(settings)
+    callback.RenderCompareCallback.refine = sweep(settings)
     from pae.evaluate import main as evaluate
 
     with tempfile.TemporaryDirectory() as folder:

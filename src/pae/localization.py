@@ -24,6 +24,7 @@ from pae.data.labels import LabelTable, read_labels
 from pae.data.transforms import ImageTransform
 from pae.errors import CheckpointError, ConfigError, ImageError
 from pae.geometry import canonicalize_quaternion, normalize_pose, pose_errors
+from pae.lit.eval_outputs import EVAL
 from pae.lit.scene_model import compare_queries
 from pae.metrics import summarise_errors
 from pae.models.base import Latents
@@ -214,8 +215,8 @@ def estimate(
         images = transform(dataset.__getitems__(rows)["image"].to(device))
         answer = teacher.estimate(images, torch.zeros(len(rows), dtype=torch.long, device=device))
         part = {
-            "pose": answer.pose.cpu(),
-            "scene": answer.scene.cpu(),
+            EVAL.estimate: answer.pose.cpu(),
+            EVAL.scene_estimate: answer.scene.cpu(),
             "latents": answer.latents.joint().cpu(),
         }
         if intrinsics is not None:
@@ -223,16 +224,16 @@ def estimate(
             rgb = ImageTransform.unnormalize_batch(images)
             vectors = intrinsics(dataset.image_size, focal).expand(len(rows), 4).to(device)
             small, vectors = compare_queries(rgb, vectors, compare_width)
-            part |= {"images": small.cpu(), "intrinsics": vectors.cpu()}
+            part |= {EVAL.image: small.cpu(), EVAL.intrinsics: vectors.cpu()}
         parts.append(part)
         progress(rows[-1] + 1, total)
     joined = {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
     return Estimates(
-        joined["pose"],
-        joined["scene"],
+        joined[EVAL.estimate],
+        joined[EVAL.scene_estimate],
         joined["latents"],
-        joined.get("images"),
-        joined.get("intrinsics"),
+        joined.get(EVAL.image),
+        joined.get(EVAL.intrinsics),
     )
 
 

@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     """Localise the inputs with the run's checkpoints and write ``--out`` atomically."""
     args = parser().parse_args(argv)
     from pae.console import quiet_third_party
-    from pae.reporting import reporting_errors
+    from pae.error_reporting import reporting_errors
 
     quiet_third_party()
     with reporting_errors("pae-localize"):

@@ -13,8 +13,8 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
+from pae.error_reporting import reporting_errors
 from pae.errors import ConfigError
-from pae.reporting import reporting_errors
 from pae.run_lock import lock_if_used, lock_run_dir, release_run_dir
 from pae.steps import RESUMABLE_CHANGES
 from pae.validation import apply_renamed_keys, validate_eval_config, validate_train_config

@@ -16,8 +16,9 @@ from omegaconf import DictConfig
 
 from pae import CONFIG_DIR
 from pae.atomic import write_json_atomic
+from pae.error_reporting import reporting_errors
 from pae.provenance import save_corrected_config
-from pae.reporting import format_results_table, reporting_errors, step_figures
+from pae.reporting import format_results_table, step_figures
 from pae.steps import CHECKPOINTS, steps_of
 from pae.validation import apply_renamed_keys, validate_train_config
 

@@ -91,7 +91,7 @@ def fused_flops_per_query(
     query: Tensor, neighbours: Tensor, iterations: int, generator: torch.Generator
 ) -> float:
     """FLOPs (2 per multiply-add) the fused loop actually does per query, counted by the
-    loop itself (``pae.refine.fused._fit_rows``' ``macs``), with ``refine_affine``'s defaults
+    loop itself (``pae.refine.fused_kernels.fit_rows``' ``macs``), with ``refine_affine``'s defaults
     (lr 1e-3, weight decay 0.01, the L2 objective) on these inputs."""
     macs = np.zeros(len(query), dtype=np.int64)
     fit_mlp_weights(

@@ -12,6 +12,13 @@ import torch
 from pae.errors import DivergenceError
 
 
+def batch_loss(outputs: Any) -> torch.Tensor | None:
+    """The loss of a training step's ``outputs`` (a tensor or a mapping with ``loss``), None
+    where it has none (a skipped step)."""
+    loss = outputs.get("loss") if isinstance(outputs, Mapping) else outputs
+    return loss if isinstance(loss, torch.Tensor) else None
+
+
 class StopOnNonFiniteLoss(L.Callback):
     """After every training step, a NaN or infinite loss raises DivergenceError: one line
     naming the step, the loss, the epoch and the learning rate. `step` names the training
@@ -30,8 +37,8 @@ class StopOnNonFiniteLoss(L.Callback):
         batch: Any,
         batch_idx: int,
     ) -> None:
-        loss = outputs.get("loss") if isinstance(outputs, Mapping) else outputs
-        if not isinstance(loss, torch.Tensor):
+        loss = batch_loss(outputs)
+        if loss is None:
             return
         diverged = not bool(torch.isfinite(loss.detach()).all())
         if not trainer.strategy.reduce_boolean_decision(diverged, all=False):

@@ -4,12 +4,12 @@ epoch, and within an epoch at most every `every_s` seconds."""
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
 from typing import Any
 
 import lightning as L
 import torch
 
+from pae.callbacks.finite_loss import batch_loss
 from pae.console import duration, say
 from pae.reporting import step_figures
 
@@ -64,8 +64,8 @@ class EpochProgress(L.Callback):
         batch: Any,
         batch_idx: int,
     ) -> None:
-        loss = outputs.get("loss") if isinstance(outputs, Mapping) else outputs
-        if isinstance(loss, torch.Tensor):
+        loss = batch_loss(outputs)
+        if loss is not None:
             loss = loss.detach().float()
             self._loss_sum = loss if self._loss_sum is None else self._loss_sum + loss
             self._batches += 1

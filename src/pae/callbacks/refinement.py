@@ -11,9 +11,11 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from torch import Tensor
 
 from pae.callbacks.error_curves import error_curves_figure
+from pae.callbacks.tensorboard import log_figure, tensorboard_loggers
 from pae.callbacks.trajectory import trajectory_figure
 from pae.geometry import pose_errors
-from pae.metrics import first_occurrences, summarise_errors
+from pae.lit.eval_outputs import EVAL, collect_outputs
+from pae.metrics import summarise_errors
 from pae.models.base import Latents
 from pae.refine import (
     ACTIVATIONS,
@@ -175,22 +177,14 @@ class TestTimeRefinement(L.Callback):
 
     def refine(self, trainer: L.Trainer, pl_module: L.LightningModule, split: str) -> None:
         """Refine all queries of the finished evaluation epoch in one batched call per method."""
-        if not pl_module.eval_outputs:
+        outputs = collect_outputs(trainer, pl_module)  # every rank refines all queries
+        if outputs is None:
             return
         assert self.index is not None
-        outputs = {
-            key: torch.cat([batch[key] for batch in pl_module.eval_outputs])
-            for key in pl_module.eval_outputs[0]
-        }
-        if trainer.world_size > 1:  # every rank refines all queries of the split
-            outputs = {k: pl_module.all_gather(v).flatten(0, 1) for k, v in outputs.items()}
-        # each test sample once (a distributed sampler pads with repeats), in dataset order
-        keep = first_occurrences(outputs["index"])
-        outputs = {key: value[keep] for key, value in outputs.items()}
         d = outputs["z"].shape[-1] // 2
         query = Latents(outputs["z"][:, :d], outputs["z"][:, d:])
-        estimate, estimate_scene = outputs["estimate"], outputs["scene_estimate"]
-        gt, scene = outputs["pose"], outputs["scene"]
+        estimate, estimate_scene = outputs[EVAL.estimate], outputs[EVAL.scene_estimate]
+        gt, scene = outputs[EVAL.pose], outputs[EVAL.scene]
         stores = {"": self.index}
         if self.audit:
             stores["_test_store"] = self.store(gt, scene).to(self.index.device)
@@ -289,7 +283,7 @@ class TestTimeRefinement(L.Callback):
     ) -> None:
         """Cumulative error curves of ``methods`` (name -> poses [N, 7]) against ``gt`` [N,
         7] of scenes ``scene`` [N] (image tag ``{split}/cumulative_errors``)."""
-        loggers = [lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)]
+        loggers = tensorboard_loggers(trainer)
         if not loggers:
             return
         errors = {m: pose_errors(p.float(), gt.float()) for m, p in methods.items()}
@@ -300,10 +294,7 @@ class TestTimeRefinement(L.Callback):
             scene,
             names,
         )
-        for logger in loggers:
-            logger.experiment.add_image(
-                f"{split}/cumulative_errors", image, trainer.global_step, dataformats="HWC"
-            )
+        log_figure(loggers, f"{split}/cumulative_errors", image, trainer.global_step)
 
     @staticmethod
     def _plot(
@@ -316,7 +307,7 @@ class TestTimeRefinement(L.Callback):
     ) -> None:
         """A trajectory figure per scene (image tag ``{split}/trajectory/{scene}``): ground
         truth and each method of ``estimates`` (method -> poses [B, 7])."""
-        loggers = [lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)]
+        loggers = tensorboard_loggers(trainer)
         if not loggers:
             return
         for index in scene.unique().tolist():
@@ -325,10 +316,4 @@ class TestTimeRefinement(L.Callback):
             image = trajectory_figure(
                 title, gt[mask], {m: poses[mask] for m, poses in estimates.items()}
             )
-            for logger in loggers:
-                logger.experiment.add_image(
-                    f"{split}/trajectory/{names[index]}",
-                    image,
-                    trainer.global_step,
-                    dataformats="HWC",
-                )
+            log_figure(loggers, f"{split}/trajectory/{names[index]}", image, trainer.global_step)

@@ -16,7 +16,8 @@ from torch import Tensor
 from pae.atomic import atomic_write
 from pae.data.transforms import ImageTransform
 from pae.geometry import pose_errors
-from pae.metrics import first_occurrences, summarise_errors
+from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
+from pae.metrics import summarise_errors
 from pae.models.oracle_scene import OracleSceneModel
 from pae.models.scene_model import SceneModel
 from pae.refine.render_compare import (
@@ -78,9 +79,10 @@ def teacher_features(teacher: torch.nn.Module, layers: int) -> Any:
     return extract
 
 
-class RenderCompareRefinement(L.Callback):
-    """Refines every evaluated query of a SceneModelModule (or an evaluator with a scene
-    model) by render-and-compare, from the teacher's estimate, in one batched call per
+class RenderCompareCallback(L.Callback):
+    """Refines every evaluated query of a module with a scene model
+    (:class:`pae.lit.eval_outputs.SceneModelEvaluation`, e.g. SceneModelModule) by
+    render-and-compare, from the teacher's estimate, in one batched call per
     method, after every ``every_n_val_epochs``-th validation and every test:
 
     - ``{split}/render_compare/...``: against the module's scene model, learned from the
@@ -189,12 +191,12 @@ class RenderCompareRefinement(L.Callback):
         )
         return self.gates.get(name, default)
 
-    def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+    def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: SceneModelEvaluation) -> None:
         self._val_runs += 1
         if (self._val_runs - 1) % self.every_n_val_epochs == 0:
             self.refine(trainer, pl_module, "val")
 
-    def on_test_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+    def on_test_epoch_end(self, trainer: L.Trainer, pl_module: SceneModelEvaluation) -> None:
         self.refine(trainer, pl_module, "test")
 
     def refiner(self, scene_model: SceneModel, teacher: torch.nn.Module) -> RenderCompareRefiner:
@@ -216,20 +218,13 @@ class RenderCompareRefinement(L.Callback):
             "orientation_sigma_deg": float(self.step_from_val["orientation"] * rot.quantile(0.5)),
         }
 
-    def refine(self, trainer: L.Trainer, pl_module: L.LightningModule, split: str) -> None:
+    def refine(self, trainer: L.Trainer, pl_module: SceneModelEvaluation, split: str) -> None:
         """Refine all queries of the finished evaluation epoch and log the figures."""
-        if not pl_module.eval_outputs:
+        outputs = collect_outputs(trainer, pl_module)
+        if outputs is None:
             return
-        outputs = {
-            key: torch.cat([batch[key] for batch in pl_module.eval_outputs])
-            for key in pl_module.eval_outputs[0]
-        }
-        if trainer.world_size > 1:
-            outputs = {k: pl_module.all_gather(v).flatten(0, 1) for k, v in outputs.items()}
-        keep = first_occurrences(outputs["index"])
-        outputs = {key: value[keep] for key, value in outputs.items()}
         data = trainer.datamodule
-        intrinsics = outputs["intrinsics"]
+        intrinsics = outputs[EVAL.intrinsics]
         models = {HONEST: pl_module.scene_model}
         if isinstance(pl_module.scene_model, OracleSceneModel):
             models = {ORACLE: pl_module.scene_model}
@@ -238,23 +233,26 @@ class RenderCompareRefinement(L.Callback):
             if scenes is not None:
                 models[ORACLE] = OracleSceneModel(scenes)
         if split == "val":
-            self.choose_steps(outputs["estimate"], outputs["pose"])
+            self.choose_steps(outputs[EVAL.estimate], outputs[EVAL.pose])
         figures: dict[str, Tensor] = {
             f"{split}/{HONEST}/{key}": torch.tensor(value) for key, value in self.steps.items()
         }
         for name, model in models.items():
             start = time.perf_counter()
             result = self.refiner(model, pl_module.teacher)(
-                outputs["image"], intrinsics, outputs["estimate"], outputs["scene_estimate"]
+                outputs[EVAL.image],
+                intrinsics,
+                outputs[EVAL.estimate],
+                outputs[EVAL.scene_estimate],
             )
             seconds = time.perf_counter() - start
-            truth, estimate = outputs["pose"].float(), outputs["estimate"].float()
+            truth, estimate = outputs[EVAL.pose].float(), outputs[EVAL.estimate].float()
             refined_pos, refined_rot = pose_errors(result.poses.float(), truth)
             start_pos, start_rot = pose_errors(estimate, truth)
             margin, floor = self.gate_setting(name, split, result, (refined_pos, start_pos))
             gated = gate(result, estimate, margin, floor)
             pos, rot = pose_errors(gated.poses.float(), truth)
-            summary = summarise_errors(pos, rot, outputs["scene"], pl_module.scene_names)
+            summary = summarise_errors(pos, rot, outputs[EVAL.scene], pl_module.scene_names)
             figures |= {f"{split}/{name}/{key}": value for key, value in summary.items()}
             figures |= gate_figures(
                 f"{split}/{name}", (margin, floor), gated.accepted, pos, refined_pos
@@ -262,9 +260,9 @@ class RenderCompareRefinement(L.Callback):
             figures[f"{split}/{name}/worse_than_start_share"] = (pos > start_pos).float().mean()
             if getattr(trainer, "log_dir", None) is not None:
                 path = Path(trainer.log_dir) / f"queries_{split}_{name}.csv"
-                names = [pl_module.scene_names[s] for s in outputs["scene"].tolist()]
+                names = [pl_module.scene_names[s] for s in outputs[EVAL.scene].tolist()]
                 starts, refined = (start_pos, start_rot), (refined_pos, refined_rot)
-                write_queries(path, outputs["index"], names, starts, refined, result, gated)
+                write_queries(path, outputs[EVAL.index], names, starts, refined, result, gated)
             if split == "test":
                 ms = torch.tensor(1000 * seconds / len(pos))
                 figures[f"bench/{name}/ms_per_query"] = ms

@@ -15,10 +15,11 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from torch import Tensor, nn
 
 from pae.callbacks.error_curves import error_curves_figure
-from pae.callbacks.render_compare import HONEST, ORACLE, RenderCompareRefinement
+from pae.callbacks.render_compare import HONEST, ORACLE, RenderCompareCallback
+from pae.callbacks.tensorboard import log_figure, tensorboard_loggers
 from pae.data.camera import scale_intrinsics
 from pae.geometry import pose_errors
-from pae.metrics import first_occurrences
+from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
 from pae.refine.render_compare import ACCEPT_ALL, gate
 
 FONT = cv2.FONT_HERSHEY_SIMPLEX
@@ -66,7 +67,7 @@ class RenderCompareGallery(L.Callback):
 
     def __init__(
         self,
-        refinement: RenderCompareRefinement,
+        refinement: RenderCompareCallback,
         queries: int = 4,
         panel_px: int = 128,
         on_val: bool = False,
@@ -77,11 +78,11 @@ class RenderCompareGallery(L.Callback):
         self.panel_px = panel_px
         self.on_val = on_val
 
-    def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+    def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: SceneModelEvaluation) -> None:
         if self.on_val:
             self.draw(trainer, pl_module, "val")
 
-    def on_test_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+    def on_test_epoch_end(self, trainer: L.Trainer, pl_module: SceneModelEvaluation) -> None:
         self.draw(trainer, pl_module, "test")
 
     def picked(self, scene: Tensor) -> Tensor:
@@ -95,49 +96,46 @@ class RenderCompareGallery(L.Callback):
         return torch.cat(rows)
 
     @torch.no_grad()
-    def draw(self, trainer: L.Trainer, pl_module: L.LightningModule, split: str) -> None:
+    def draw(self, trainer: L.Trainer, pl_module: SceneModelEvaluation, split: str) -> None:
         """Refine the picked queries, render both poses and log one figure per scene."""
-        loggers = [lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)]
-        if not loggers or not pl_module.eval_outputs or trainer.world_size > 1:
+        loggers = tensorboard_loggers(trainer)
+        if not loggers or trainer.world_size > 1:
             return
-        outputs = {
-            key: torch.cat([batch[key] for batch in pl_module.eval_outputs])
-            for key in pl_module.eval_outputs[0]
-        }
-        keep = first_occurrences(outputs["index"])
-        outputs = {key: value[keep] for key, value in outputs.items()}
-        rows = self.picked(outputs["scene"].cpu())
+        outputs = collect_outputs(trainer, pl_module, gather=False)
+        if outputs is None:
+            return
+        rows = self.picked(outputs[EVAL.scene].cpu())
         model = pl_module.scene_model
         refiner = self.refinement.refiner(model, pl_module.teacher)
-        draws = refiner.draws(len(keep))[rows]
+        draws = refiner.draws(len(outputs[EVAL.index]))[rows]
         picked = {key: value[rows.to(value.device)] for key, value in outputs.items()}
-        estimate = picked["estimate"].float()
+        estimate = picked[EVAL.estimate].float()
         result = refiner(
-            picked["image"],
-            picked["intrinsics"],
+            picked[EVAL.image],
+            picked[EVAL.intrinsics],
             estimate,
-            picked["scene_estimate"],
+            picked[EVAL.scene_estimate],
             draws=draws,
         )
         margin, floor = getattr(self.refinement, "gates", {}).get(HONEST, (0.0, ACCEPT_ALL))
         gated = gate(result, estimate, margin, floor)
-        images = picked["image"]
+        images = picked[EVAL.image]
         h, w = images.shape[-2:]
         scale = self.panel_px / w
         size = (round(h * scale), self.panel_px)
-        intrinsics = scale_intrinsics(picked["intrinsics"], scale, scale)
+        intrinsics = scale_intrinsics(picked[EVAL.intrinsics], scale, scale)
         renders = [
-            model.render(poses, picked["scene_estimate"], intrinsics, size[1], size[0]).rgb
+            model.render(poses, picked[EVAL.scene_estimate], intrinsics, size[1], size[0]).rgb
             for poses in (estimate, gated.poses)
         ]
         query = nn.functional.interpolate(images, size=size, mode="nearest")
         panels = torch.stack([query, *(r.to(query) for r in renders)], 1)  # [K, 3, 3, h, w]
-        truth = picked["pose"].float()
+        truth = picked[EVAL.pose].float()
         errors = [pose_errors(p.float(), truth) for p in (estimate, gated.poses)]
-        labels = self._labels(picked["index"], errors, gated.accepted)
+        labels = self._labels(picked[EVAL.index], errors, gated.accepted)
         self.curves(trainer, loggers, split)
         names = pl_module.scene_names
-        scenes = picked["scene"].cpu()
+        scenes = picked[EVAL.scene].cpu()
         for index in scenes.unique().tolist():
             mask = scenes == index
             title = f"{names[index]} ({split}): query | at the teacher's | at the refined pose"
@@ -147,13 +145,8 @@ class RenderCompareGallery(L.Callback):
                 [labels[i] for i in mask.nonzero().flatten().tolist()],
                 self.panel_px,
             )
-            for logger in loggers:
-                logger.experiment.add_image(
-                    f"{split}/render_compare/gallery/{names[index]}",
-                    figure,
-                    trainer.global_step,
-                    dataformats="HWC",
-                )
+            tag = f"{split}/render_compare/gallery/{names[index]}"
+            log_figure(loggers, tag, figure, trainer.global_step)
 
     @staticmethod
     def curves(trainer: L.Trainer, loggers: list[TensorBoardLogger], split: str) -> None:
@@ -189,10 +182,7 @@ class RenderCompareGallery(L.Callback):
         ids = torch.tensor([names.index(s) for s in scenes])
         title = f"{split} split, {len(ids)} queries"
         image = error_curves_figure(title, position, orientation, ids, names)
-        for logger in loggers:
-            logger.experiment.add_image(
-                f"{split}/cumulative_errors", image, trainer.global_step, dataformats="HWC"
-            )
+        log_figure(loggers, f"{split}/cumulative_errors", image, trainer.global_step)
 
     @staticmethod
     def _labels(

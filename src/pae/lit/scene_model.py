@@ -1,5 +1,5 @@
 """LightningModule of a scene model (render-and-compare): trained on train-image rays,
-evaluated with a frozen teacher whose estimates the RenderCompareRefinement callback refines."""
+evaluated with a frozen teacher whose estimates the RenderCompareCallback refines."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from torch import Tensor, nn
 from pae.data.camera import scale_intrinsics
 from pae.data.transforms import ImageTransform
 from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
+from pae.lit.eval_outputs import EVAL
 from pae.lit.evaluation import PoseEvaluation
 from pae.models.base import PoseRegressor
 from pae.models.scene_model import SceneModel
@@ -40,7 +41,8 @@ class SceneModelModule(PaeModule):
     the share of each batch's rays with the largest errors left out of the mean (what the
     grid cannot explain: occluders, glare); ``appearance_lr``: the appearance codes' learning
     rate (None: the optimiser's). Evaluates with the frozen ``teacher``: logs ``teacher`` and
-    ``mean_pose`` and keeps every query for the refinement callback (``eval_outputs``: its
+    ``mean_pose`` and keeps every query for the refinement callback (``eval_outputs``, keyed by
+    ``pae.lit.eval_outputs.EVAL``: its
     image area-resized to ``query_width`` px wide, the refiner's compare width, with the
     intrinsics of that size; None: as evaluated). The model's quality at the split's poses
     is a callback's (``pae.callbacks.scene_quality``).
@@ -130,12 +132,12 @@ class SceneModelModule(PaeModule):
         query, intrinsics = compare_queries(rgb, intrinsics, self.query_width)
         self.eval_outputs.append(
             {
-                "image": query,
-                "intrinsics": intrinsics,
-                "estimate": answer.pose,
-                "scene_estimate": answer.scene,
-                "pose": gt,
-                "scene": scene,
-                "index": index,
+                EVAL.image: query,
+                EVAL.intrinsics: intrinsics,
+                EVAL.estimate: answer.pose,
+                EVAL.scene_estimate: answer.scene,
+                EVAL.pose: gt,
+                EVAL.scene: scene,
+                EVAL.index: index,
             }
         )

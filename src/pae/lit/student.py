@@ -10,6 +10,7 @@ from torch import Tensor, nn
 
 from pae.geometry import normalize_pose
 from pae.lit.base import EvaluationModule, OptimizerFactory, PaeModule, SchedulerFactory
+from pae.lit.eval_outputs import EVAL
 from pae.lit.evaluation import PoseEvaluation
 from pae.losses import LATENT_LOSSES, LearnedPoseLoss, latent_distance
 from pae.models.base import Latents, PoseRegressor
@@ -70,11 +71,11 @@ class StudentEvaluator(EvaluationModule):
         self.eval_outputs.append(
             {
                 "z": answer.latents.joint(),
-                "estimate": answer.pose,
-                "pose": gt,
-                "scene": scene,
-                "scene_estimate": answer.scene,
-                "index": index,
+                EVAL.estimate: answer.pose,
+                EVAL.pose: gt,
+                EVAL.scene: scene,
+                EVAL.scene_estimate: answer.scene,
+                EVAL.index: index,
             }
         )
 

@@ -26,9 +26,9 @@ from pae.checkpoints import (
     read_checkpoint,
 )
 from pae.console import say
+from pae.error_reporting import first_line
 from pae.errors import ConfigError, DivergenceError
 from pae.lit.evaluation import EVAL_SPLITS
-from pae.reporting import first_line
 from pae.runs import Metrics
 from pae.runs.hparams import log_hparams
 from pae.runs.inputs import check_fingerprint

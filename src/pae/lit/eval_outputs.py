@@ -1,0 +1,73 @@
+"""The seam between an evaluating module and the callbacks that refine its queries: the
+keys of each evaluation batch it keeps (``eval_outputs``), what a render-and-compare
+callback needs of the module (:class:`SceneModelEvaluation`) and the epoch's queries joined
+once each (:func:`collect_outputs`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import lightning as L
+import torch
+from torch import Tensor
+
+from pae.metrics import first_occurrences
+from pae.models.scene_model import SceneModel
+
+
+@dataclass(frozen=True)
+class EvalKeys:
+    """The keys of one evaluation batch of ``eval_outputs``: the query ``image`` [B, 3, h, w]
+    (RGB in [0, 1], at the compare width), its ``intrinsics`` [B, 4] (px, at that size), the
+    teacher's pose ``estimate`` [B, 7] and ``scene_estimate`` [B], the true ``pose`` [B, 7]
+    and ``scene`` [B], and the query's row ``index`` [B] in the split."""
+
+    image: str = "image"
+    intrinsics: str = "intrinsics"
+    estimate: str = "estimate"
+    scene_estimate: str = "scene_estimate"
+    pose: str = "pose"
+    scene: str = "scene"
+    index: str = "index"
+
+
+EVAL = EvalKeys()
+
+
+class EvalOutputs(Protocol):
+    """A module that keeps its evaluation batches (dicts of tensors keyed by ``EVAL``'s
+    names, and any of its own) for a callback to read at the epoch's end."""
+
+    eval_outputs: list[dict[str, Tensor]]
+
+    def all_gather(self, data: Any) -> Any: ...
+
+
+class SceneModelEvaluation(EvalOutputs, Protocol):
+    """What the render-and-compare callbacks need of the evaluated module
+    (``pae.lit.scene_model.SceneModelModule`` is one): its queries, the scene model to
+    render, the frozen teacher (whose backbone gives the compare features), the scene names
+    and a place to log figures."""
+
+    scene_model: SceneModel
+    teacher: torch.nn.Module
+    scene_names: list[str]
+
+    def log_dict(self, dictionary: Any, *args: Any, **kwargs: Any) -> None: ...
+
+
+def collect_outputs(
+    trainer: L.Trainer, module: EvalOutputs, gather: bool = True
+) -> dict[str, Tensor] | None:
+    """The finished evaluation epoch's batches of ``module`` joined, each query once, in
+    split order (a distributed sampler pads with repeats); with ``gather``, every rank's
+    (so each rank sees all queries of the split). None where it kept none."""
+    if not module.eval_outputs:
+        return None
+    batches = module.eval_outputs
+    outputs = {key: torch.cat([batch[key] for batch in batches]) for key in batches[0]}
+    if gather and trainer.world_size > 1:
+        outputs = {k: module.all_gather(v).flatten(0, 1) for k, v in outputs.items()}
+    keep = first_occurrences(outputs[EVAL.index])
+    return {key: value[keep] for key, value in outputs.items()}
