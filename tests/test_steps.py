@@ -126,3 +126,17 @@ def test_a_key_added_to_a_steps_settings_is_refused_with_its_nearest_name(
         check_added_keys(cfg, ["+student.latent_los=l2"])
     check_added_keys(cfg, ["+trainer.enable_progress_bar=false", "teacher.max_epochs=3"])
     check_added_keys(cfg, ["+teacher.model.width=3"])  # the constructor check's business
+
+
+def test_a_misspelt_refiner_key_stops_the_run_before_any_work(
+    compose_train, tmp_path: Path
+) -> None:
+    """`+render_compare.refiner.polish_step=1` (for polish_steps) is refused by the train
+    config's checks, naming the nearest setting, before any step trains."""
+    from pae.validation import validate_train_config
+
+    override = "+render_compare.refiner.polish_step=1"
+    cfg = compose_train("stage=full", override, run_dir=tmp_path)
+    message = r"render_compare\.refiner\.polish_step: .*did you mean .*polish_steps\?"
+    with pytest.raises(ConfigError, match=message):
+        validate_train_config(cfg, [override])

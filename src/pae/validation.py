@@ -310,6 +310,31 @@ def check_added_keys(cfg: DictConfig, overrides: list[str]) -> None:
         raise ConfigError(f"{key}: not a setting of {'.'.join(parts[:-1])} (added with +){hint}")
 
 
+def _refiner_keys(cfg: DictConfig) -> None:
+    """Every ``render_compare.refiner`` key is a setting of RenderCompareRefiner (a misspelt
+    or added one is refused before any work, naming the nearest setting)."""
+    import difflib
+    import inspect
+
+    from pae.refine.render_compare import RenderCompareRefiner
+
+    refiner = setting(cfg, "render_compare.refiner")
+    if not isinstance(refiner, DictConfig):
+        return
+    supplied = ("scene_model", "features")
+    known = [
+        name for name in inspect.signature(RenderCompareRefiner).parameters if name not in supplied
+    ]
+    for name in refiner:
+        if name not in known:
+            near = difflib.get_close_matches(str(name), known, n=1)
+            hint = f"; did you mean render_compare.refiner.{near[0]}?" if near else ""
+            raise ConfigError(
+                f"render_compare.refiner.{name}: not a setting of the refiner "
+                f"(pae.refine.render_compare.RenderCompareRefiner){hint}"
+            )
+
+
 def validate_train_config(cfg: DictConfig, overrides: list[str] | None = None) -> None:
     """All of pae-train's settings (conf/train.yaml), and the keys ``overrides`` (the command
     line's) add; raises ConfigError naming the key."""
@@ -370,8 +395,8 @@ def _model_needs(cfg: DictConfig, steps: list[str]) -> dict[str, tuple[str, ...]
 
 def _validate_scene_model(cfg: DictConfig) -> None:
     """scene_model.* (the step's settings; its model's ranges are its class's
-    ``check_config``) and render_compare.refiner.*: ranges; the refiner's options are checked
-    when the step builds it."""
+    ``check_config``) and render_compare.refiner.*: its keys (the refiner's arguments) and
+    ranges; the refiner's own checks run again when the step builds it."""
     if setting(cfg, "scene_model") is None:
         return
     for key in ("batches_per_epoch", "rays_per_batch", "quality_size", "quality_images"):
@@ -386,6 +411,7 @@ def _validate_scene_model(cfg: DictConfig) -> None:
     if setting(cfg, "scene_model.image_size") is not None:
         integer(cfg, "scene_model.image_size", 4)
     if setting(cfg, "render_compare") is not None:
+        _refiner_keys(cfg)
         for key in ("rounds", "polish_steps", "final_reference_size"):
             integer(cfg, f"render_compare.refiner.{key}", 0)
         for key in ("candidates", "hypotheses", "levels", "chunk"):
@@ -419,4 +445,6 @@ def validate_eval_config(cfg: DictConfig) -> None:
             raise ConfigError(f"method_ckpts[{position}]={path}: no such file")
     if "iapr_iterations" in cfg:
         integer(cfg, "iapr_iterations", 1)
+    if setting(cfg, "render_compare") is not None:
+        _refiner_keys(cfg)
     validate_data(cfg, train=False)
