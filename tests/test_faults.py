@@ -345,6 +345,29 @@ def test_pae_eval_into_a_training_run_names_what_pae_eval_can_do(
     assert {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()} == before
 
 
+def test_pae_eval_refuses_a_checkpoint_of_the_wrong_kind_before_reading_data(
+    teacher_run: Path, tiny_root: Path, tmp_path: Path
+) -> None:
+    """A teacher's checkpoint given as scene_model_ckpt is refused in one line before any
+    evaluation runs (nothing is written: no table, no metrics.json)."""
+    teacher = teacher_run / "checkpoints" / "last.ckpt"
+    result = pae_command(
+        "evaluate",
+        *tiny_data_overrides(tiny_root),
+        f"teacher_ckpt={teacher}",
+        f"scene_model_ckpt={teacher}",
+        f"hydra.run.dir={tmp_path / 'eval'}",
+        cwd=tmp_path,
+    )
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    assert error_lines(result.stderr) == [
+        f"pae-eval: error: scene_model_ckpt={teacher}: a stage=teacher checkpoint, but "
+        "scene_model_ckpt takes a stage=render_compare checkpoint"
+    ]
+    assert "median position" not in result.stdout + result.stderr
+    assert not (tmp_path / "eval" / "metrics.json").exists()
+
+
 @pytest.mark.parametrize(
     ("override", "message"),
     [

@@ -189,6 +189,15 @@ def _check_kind(checkpoint: dict[str, Any], path: Path, key: str) -> None:
     )
 
 
+def check_checkpoint_kinds(paths: dict[str, Any]) -> None:
+    """Each checkpoint setting given (a key of ``KEY_KINDS`` -> its path, or None) names a
+    checkpoint of the kind that setting takes, read and checked as loading it would: before
+    any data is read, a one-line error naming the setting and the file."""
+    for key, path in paths.items():
+        if path is not None and key in KEY_KINDS:
+            _check_kind(read_checkpoint(path), Path(path), key)
+
+
 def _load_model(path: str | Path, name: str, kind: str, key: str | None) -> LoadedModel:
     """Rebuild submodule `name` of a checkpoint from its `{name}_config` hyper-parameter;
     with `key`, the checkpoint must be of the kind that setting takes."""

@@ -31,11 +31,15 @@ def main(cfg: DictConfig) -> float | None:
         from lightning.pytorch.utilities import rank_zero_only
 
         from pae.checkpoint_evaluation import evaluate_checkpoints, evaluate_methods
+        from pae.checkpoints import check_checkpoint_kinds
         from pae.console import say
         from pae.runs.inputs import other_data_record, record_dataset, start_data_checks
 
         apply_renamed_keys(cfg, "pae-eval")
         validate_eval_config(cfg)
+        check_checkpoint_kinds(
+            {key: cfg.get(key) for key in ("student_ckpt", "teacher_ckpt", "scene_model_ckpt")}
+        )
         start_data_checks()
         L.seed_everything(cfg.seed, verbose=False)
         run_dir = Path(HydraConfig.get().runtime.output_dir)
