@@ -115,8 +115,9 @@ def _polish_one(
     turn: np.ndarray,
 ) -> float:
     """The steps of :func:`polish_tensor` for one hypothesis: rotation [3, 3] and position
-    [3] updated in place; returns its score. work [P, 7], seen [P], system [8, 8], rhs,
-    step [8], moved_rotation, turn [3, 3], moved_position [3]: work space."""
+    [3] updated in place; returns its score. Work space: work [P, 6] (per seen point its
+    sample, the gradient along u and v, the camera-frame point), seen [P], system [8, 8],
+    rhs, step [8], moved_rotation, turn [3, 3], moved_position [3]."""
     n_points = points.shape[0]
     h, w = target.shape
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
@@ -146,7 +147,7 @@ def _polish_one(
             work[p, 0] = a
             work[p, 1] = bilinear(grad_u, u, v)
             work[p, 2] = bilinear(grad_v, u, v)
-            work[p, 3], work[p, 4], work[p, 5], work[p, 6] = x, y, z, 0.0
+            work[p, 3], work[p, 4], work[p, 5] = x, y, z
             weight = valid[p]
             c = values[p]
             total += weight
@@ -240,7 +241,7 @@ def _polish(
     n_queries, n_hypotheses = scores.shape
     n_points = points.shape[1]
     for b in numba.prange(n_queries):
-        work = np.empty((n_points, 7), np.float64)
+        work = np.empty((n_points, 6), np.float64)
         seen = np.empty(n_points, np.bool_)
         system = np.empty((N_PARAMS, N_PARAMS), np.float64)
         rhs = np.empty(N_PARAMS, np.float64)
