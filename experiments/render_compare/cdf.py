@@ -25,6 +25,8 @@ PANEL_W, PANEL_H, MARGIN = 420, 300, 50
 
 def read_queries(path: Path) -> dict[str, list[float]]:
     """start and final position (m) and orientation (deg) errors of every query of a file."""
+    if not path.is_file():
+        raise SystemExit(f"{path}: no such file (a run writes queries_{{split}}_{{method}}.csv)")
     with path.open(newline="") as handle:
         rows = list(csv.DictReader(handle))
     if not rows:

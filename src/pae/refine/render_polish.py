@@ -26,6 +26,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from pae.refine.render_images import trimmed_zncc
 from pae.refine.render_score import MIN_DEPTH_M, NOT_SEEN_SCORE
 
 FLOPS_PER_POINT_STEP = 230
@@ -140,17 +141,7 @@ def score_tensor(
     weights = valid * seen
     reference = valid.clamp_min(0).sum(-1)
     total = weights.sum(-1)
-    kept = weights
-    for _ in range(trim_passes if trim_sigma > 0 else 0):
-        count, mean_a, mean_c, cov, var_a, var_c = _moments(a, values, kept)
-        gain = cov / var_c.clamp_min(1e-12)
-        offset = mean_a - gain * mean_c
-        spread = ((var_a - gain * cov).clamp_min(0) / count.clamp_min(1e-12)).sqrt()
-        residual = (a - gain[:, None] * values - offset[:, None]).abs()
-        kept = weights * (residual <= trim_sigma * spread[:, None])
-    count, _, _, cov, var_a, var_c = _moments(a, values, kept)
-    score = cov / (var_a * var_c).clamp_min(1e-12).sqrt()
-    score = torch.where(count > 0, score, torch.zeros_like(score))
+    score = trimmed_zncc(a, values, weights, trim_sigma, trim_passes)
     unseen = (reference <= 0) | (total < min_overlap * reference)
     return torch.where(unseen, torch.full_like(score, NOT_SEEN_SCORE), score)
 
