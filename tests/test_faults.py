@@ -368,6 +368,22 @@ def test_pae_eval_refuses_a_checkpoint_of_the_wrong_kind_before_reading_data(
     assert not (tmp_path / "eval" / "metrics.json").exists()
 
 
+def test_pae_train_refuses_a_checkpoint_of_the_wrong_kind_before_reading_data(
+    teacher_run: Path, compose_train, tmp_path: Path
+) -> None:
+    """A teacher's checkpoint given as student_ckpt (stage=decoder) is refused in one line by
+    the train config's checks, before any data is read or anything written."""
+    teacher = teacher_run / "checkpoints" / "last.ckpt"
+    cfg = compose_train("stage=decoder", f"student_ckpt={teacher}", run_dir=tmp_path)
+    message = (
+        f"student_ckpt={teacher}: a stage=teacher checkpoint, but student_ckpt takes a "
+        "stage=student checkpoint"
+    )
+    with pytest.raises(CheckpointError, match=re.escape(message)):
+        run(cfg, tmp_path)
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize(
     ("override", "message"),
     [
@@ -1208,7 +1224,10 @@ def test_a_missing_scene_in_an_evaluated_split_is_said_and_recorded(
     [
         ("scene_model.appearance=frame", "unknown scene_model.appearance 'frame'"),
         ("scene_model.fit_trim=1.0", r"scene_model.fit_trim must be a number in \[0, 1\)"),
-        ("render_compare.refiner.highpass_sigma_px=-1", "highpass_sigma_px must be a number >= 0"),
+        (
+            "render_compare.refiner.highpass_sigma_px=-1",
+            "needs blur_sigma_px >= 0, highpass_sigma_px >= 0",
+        ),
     ],
 )
 def test_scene_model_and_score_settings_are_checked_before_any_work(

@@ -187,7 +187,9 @@ def _oracle_queries(n: int = 6) -> tuple[OracleSceneModel, torch.Tensor, torch.T
 
 def test_refinement_against_the_true_scene_moves_estimates_towards_the_truth() -> None:
     model, images, intrinsics, truth, start = _oracle_queries()
-    refiner = RenderCompareRefiner(model, rounds=8, candidates=16, resolution=24, reference_size=16)
+    refiner = RenderCompareRefiner.configured(
+        model, rounds=8, candidates=16, resolution=24, reference_size=16
+    )
     result = refiner(images, intrinsics, start, torch.zeros(len(truth), dtype=torch.long))
     before, _ = pose_errors(start, truth)
     after, _ = pose_errors(result.poses, truth)
@@ -196,7 +198,7 @@ def test_refinement_against_the_true_scene_moves_estimates_towards_the_truth() -
 
 def test_batched_search_equals_a_per_query_search_for_a_fixed_seed() -> None:
     model, images, intrinsics, _, start = _oracle_queries(5)
-    refiner = RenderCompareRefiner(
+    refiner = RenderCompareRefiner.configured(
         model, rounds=4, candidates=8, resolution=16, reference_size=12, chunk=3, seed=7
     )
     scenes = torch.zeros(len(start), dtype=torch.long)
@@ -213,7 +215,7 @@ def test_compiled_and_tensor_scores_agree() -> None:
     model, images, intrinsics, _, start = _oracle_queries(4)
     scenes = torch.zeros(len(start), dtype=torch.long)
     results = [
-        RenderCompareRefiner(
+        RenderCompareRefiner.configured(
             model, rounds=3, candidates=8, resolution=16, reference_size=12, engine=engine
         )(images, intrinsics, start, scenes)
         for engine in ("compiled", "torch")
@@ -229,13 +231,13 @@ def test_compiled_and_tensor_trimmed_scores_agree() -> None:
     scenes = torch.zeros(len(start), dtype=torch.long)
     settings = {"rounds": 3, "candidates": 8, "resolution": 16, "reference_size": 12}
     results = [
-        RenderCompareRefiner(model, trim_sigma=2.0, engine=engine, **settings)(
+        RenderCompareRefiner.configured(model, trim_sigma=2.0, engine=engine, **settings)(
             images, intrinsics, start, scenes
         )
         for engine in ("compiled", "torch")
     ]
     torch.testing.assert_close(results[0].score, results[1].score, atol=2e-3, rtol=0)
-    plain = RenderCompareRefiner(model, engine="compiled", **settings)(
+    plain = RenderCompareRefiner.configured(model, engine="compiled", **settings)(
         images, intrinsics, start, scenes
     )
     assert not torch.allclose(plain.initial_score, results[0].initial_score)
@@ -300,7 +302,7 @@ def test_the_auto_floor_rejects_refinements_the_scene_model_does_not_explain() -
 
 
 def test_the_search_draws_the_same_numbers_chunk_by_chunk() -> None:
-    refiner = RenderCompareRefiner(OracleSceneModel([]), rounds=3, candidates=5, seed=3)
+    refiner = RenderCompareRefiner.configured(OracleSceneModel([]), rounds=3, candidates=5, seed=3)
     stream = refiner.draw_stream()
     pieces = torch.cat([stream(n) for n in (1, 4, 2)])
     torch.testing.assert_close(pieces, refiner.draws(7), atol=0, rtol=0)
@@ -644,10 +646,10 @@ def test_the_polish_runs_inside_an_evaluation_loop_and_aligns_further() -> None:
     scenes = torch.zeros(len(start), dtype=torch.long)
     settings = {"rounds": 3, "candidates": 8, "resolution": 24, "reference_size": 16}
     with torch.inference_mode():
-        plain = RenderCompareRefiner(model, polish_steps=0, **settings)(
+        plain = RenderCompareRefiner.configured(model, polish_steps=0, **settings)(
             images, intrinsics, start, scenes
         )
-        polished = RenderCompareRefiner(model, polish_steps=8, **settings)(
+        polished = RenderCompareRefiner.configured(model, polish_steps=8, **settings)(
             images, intrinsics, start, scenes
         )
     searched, _ = pose_errors(plain.poses, truth)
@@ -670,7 +672,7 @@ def test_the_paper_decoder_is_a_scene_model_without_depth() -> None:
     assert rendering.rgb.shape == (3, 3, 24, 24) and rendering.depth is None
     with torch.no_grad():
         images = rendering.rgb.detach()
-        result = RenderCompareRefiner(model, rounds=2, candidates=4, resolution=24)(
+        result = RenderCompareRefiner.configured(model, rounds=2, candidates=4, resolution=24)(
             images, intrinsics, poses, torch.zeros(3, dtype=torch.long)
         )
     assert torch.isfinite(result.poses).all() and torch.isfinite(result.score).all()
@@ -784,4 +786,4 @@ def test_the_band_pass_score_ignores_smooth_shading_that_plain_zncc_does_not() -
     assert score(texture, lit, 4.0) > 0.8
     torch.testing.assert_close(band_pass(texture, 1.0, 0.0), band_pass(texture, 1.0, -1.0))
     with pytest.raises(ValueError, match="highpass_sigma_px"):
-        RenderCompareRefiner(OracleSceneModel([]), highpass_sigma_px=-1.0)
+        RenderCompareRefiner.configured(OracleSceneModel([]), highpass_sigma_px=-1.0)

@@ -76,9 +76,7 @@ def test_a_learned_grid_halves_the_start_error_on_unseen_views(tmp_path: Path) -
     generator = torch.Generator().manual_seed(0)
     steps = torch.cat([s * torch.randn(len(truth), 3, generator=generator) for s in START_SIGMA], 1)
     start = perturb(truth, steps)
-    settings = OmegaConf.load(conf / "render_compare" / "default.yaml").refiner
-    settings = OmegaConf.to_container(settings) | {"seed": 0}
-    refiner = RenderCompareRefiner(model.eval(), **settings)
+    refiner = RenderCompareRefiner.configured(model.eval())  # the shipped defaults
     result = refiner(images, data.intrinsics("test"), start, test.scenes)
     before, _ = pose_errors(start, truth)
     after, _ = pose_errors(result.poses, truth)

@@ -48,7 +48,9 @@ def test_pyramid_widths_halve_from_the_finest_never_above_the_query() -> None:
 def _polish_inputs(n: int = 4) -> tuple:
     """The polish's inputs at the finest level for oracle queries moved off their truth."""
     model, images, intrinsics, truth, start = _oracle_queries(n)
-    refiner = RenderCompareRefiner(model, resolution=48, levels=1, final_reference_size=0)
+    refiner = RenderCompareRefiner.configured(
+        model, resolution=48, levels=1, final_reference_size=0
+    )
     level = refiner.pyramid(images, intrinsics, torch.zeros(n, dtype=torch.long))[-1]
     surface = refiner.surface(refiner.reference(start, level, 32, 1.3), level)
     hypotheses = torch.stack([start, perturb(start, torch.full((n, 6), 0.02))], 1)
@@ -107,7 +109,7 @@ def test_the_counted_work_is_the_candidates_and_steps_the_settings_ask_for() -> 
     model, images, intrinsics, _, start = _oracle_queries(3)
     scenes = torch.zeros(3, dtype=torch.long)
     settings = {"resolution": 24, "levels": 1, "final_reference_size": 0, "reference_size": 16}
-    refiner = RenderCompareRefiner(
+    refiner = RenderCompareRefiner.configured(
         model, rounds=2, candidates=3, hypotheses=2, polish_steps=4, **settings
     )
     refiner(images, intrinsics, start, scenes)

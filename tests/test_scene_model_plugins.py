@@ -115,7 +115,7 @@ def test_a_scene_model_in_its_own_module_and_config_trains_and_refines(
         ),
         (
             ("scene_model=flat", "+scene_model.model.n_scenes=3"),
-            "scene_model.model.n_scenes: set by flat_scene_plugin.FlatSceneModel.build",
+            "scene_model.model.n_scenes: filled in from the run for flat_scene_plugin.Flat",
         ),
         (("+scene_model.model.typo=1",), "scene_model.model.typo: not an argument of"),
         (

@@ -63,9 +63,7 @@ def sweep(settings: list[str]) -> Any:
             "| worse than the teacher | ms per query |\n|---|---|---|---|---|---|---|"
         )
         for setting in settings:
-            refiner = callback.RenderCompareRefiner(
-                pl_module.scene_model, **(self.settings | self.steps | parse(setting))
-            )
+            refiner = self.build_refiner(pl_module.scene_model, **(self.steps | parse(setting)))
             arguments = (outputs[EVAL.image], outputs[EVAL.intrinsics], estimate)
             refiner(*(a[:2] for a in arguments), outputs[EVAL.scene_estimate][:2])  # compile
             start = time.perf_counter()

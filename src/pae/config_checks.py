@@ -90,14 +90,41 @@ def matches_annotation(value: Any, annotation: Any) -> bool:
     return isinstance(value, str)
 
 
+def accepted_arguments(target: Any) -> tuple[list[str], bool]:
+    """The keyword arguments a class (or function) accepts, and whether it takes any: a
+    class whose ``**kwargs`` go to its base class's constructor accepts that one's too."""
+    parameters = inspect.signature(target).parameters.values()
+    names = [p.name for p in parameters if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+    if not any(p.kind == p.VAR_KEYWORD for p in parameters):
+        return names, False
+    if inspect.isclass(target):
+        for base in target.__mro__[1:]:
+            if base is not object and "__init__" in vars(base):
+                inherited, any_keyword = accepted_arguments(base)
+                return [*names, *(n for n in inherited if n not in names)], any_keyword
+    return names, True
+
+
+def _hint(key: str, name: str, named: list[str]) -> str:
+    """The nearest of a constructor's arguments to a misspelt ``name`` (of the config at
+    ``key``), else all of them (where they are few enough for one line)."""
+    import difflib
+
+    near = difflib.get_close_matches(str(name), named, n=1)
+    if near:
+        return f"; did you mean {key}.{near[0]}?"
+    return f" (it takes {', '.join(named)})" if len(named) <= 12 else ""
+
+
 def check_constructor(cfg: DictConfig, key: str, supplied: tuple[str, ...] = ()) -> None:
     """The model config at ``key`` (with ``_target_``) fits its class's constructor: every key
     is an argument of it, every argument without a default is given (or in ``supplied``, the
     ones its step fills in), values annotated as a plain int, float, bool or str are one; the
     same for nested model configs (a backbone). A ConfigError naming the key otherwise.
 
-    A class that builds itself from a run (a scene model's ``build``) declares what its build
-    adds: ``from_run`` (constructor arguments it fills in: never configured), ``build_keys``
+    A class built from a run (a scene model's ``build``, the refiner its callback makes)
+    declares what the run adds: ``from_run`` (constructor arguments filled in: never
+    configured), ``build_keys``
     (config keys it reads or resolves before the constructor sees them: not checked against
     the constructor) and ``check_config(cfg, key)`` (the ranges its signature cannot state).
     """
@@ -118,7 +145,7 @@ def check_constructor(cfg: DictConfig, key: str, supplied: tuple[str, ...] = ())
         for name, p in parameters.items()
         if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
     ]
-    any_keyword = any(p.kind == p.VAR_KEYWORD for p in parameters.values())
+    accepted, any_keyword = accepted_arguments(target)
     types = constructor_types(target)
     from_run = tuple(getattr(target, "from_run", ()))
     build_keys = tuple(getattr(target, "build_keys", ()))
@@ -126,11 +153,12 @@ def check_constructor(cfg: DictConfig, key: str, supplied: tuple[str, ...] = ())
         if name in INSTANTIATE_KEYS or name in build_keys:
             continue
         if name in from_run:
-            raise ConfigError(f"{key}.{name}: set by {target_name}.build from the run, not here")
-        if name not in named and not any_keyword:
             raise ConfigError(
-                f"{key}.{name}: not an argument of {target_name} (it takes {', '.join(named)})"
+                f"{key}.{name}: filled in from the run for {target_name}, not set here"
             )
+        if name not in accepted and not any_keyword:
+            hint = _hint(key, name, accepted)
+            raise ConfigError(f"{key}.{name}: not an argument of {target_name}{hint}")
         value = setting(cfg, f"{key}.{name}")
         annotation = types.get(name)
         if annotation in ANNOTATED_TYPES and not matches_annotation(value, annotation):

@@ -4,7 +4,6 @@ student's test-time refinements, read exactly as the run evaluated its test spli
 
 from __future__ import annotations
 
-import inspect
 import json
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -29,7 +28,13 @@ from pae.lit.scene_model import compare_queries
 from pae.metrics import summarise_errors
 from pae.models.base import Latents
 from pae.provenance import DATA_RECORD
-from pae.refine.render_compare import ACCEPT_ALL, RenderCompareRefiner, gate
+from pae.refine.render_compare import (
+    ACCEPT_ALL,
+    BUILD_KEYS,
+    RenderCompareRefiner,
+    gate,
+    refiner_defaults,
+)
 
 TEACHER = "teacher"
 RENDER_COMPARE = "render_compare"
@@ -243,12 +248,14 @@ def render_compare_settings(run: Run) -> tuple[dict[str, Any], float, float]:
     acceptance gate it applied at test (margin, score floor; as configured where
     unrecorded: ``auto`` then is margin 0, no floor)."""
     config = run.config.render_compare
-    settings = OmegaConf.to_container(config.refiner, resolve=True)
-    parameters = inspect.signature(RenderCompareRefiner).parameters
-    for name, parameter in parameters.items():
+    configured = OmegaConf.to_container(config.refiner, resolve=True)
+    assert isinstance(configured, dict)
+    settings = refiner_defaults() | {
+        name: value for name, value in configured.items() if name not in BUILD_KEYS
+    }
+    for name, default in settings.items():
         key = f"test/{RENDER_COMPARE}/{name}"
         if key in run.metrics:
-            default = settings.get(name, parameter.default)
             kind = int if isinstance(default, int) and not isinstance(default, bool) else float
             settings[name] = kind(run.metrics[key])
 
@@ -264,8 +271,7 @@ def render_compare_settings(run: Run) -> tuple[dict[str, Any], float, float]:
 
 def compare_width(settings: dict[str, Any]) -> int:
     """The width (px) at which the refiner compares queries."""
-    default = inspect.signature(RenderCompareRefiner).parameters["resolution"].default
-    return int(settings.get("resolution", default))
+    return int(settings.get("resolution", refiner_defaults()["resolution"]))
 
 
 def render_compare(
@@ -280,7 +286,9 @@ def render_compare(
     features = None
     if settings.get("score") == "features":
         features = teacher_features(teacher, run.config.render_compare.feature_layers)
-    refiner = RenderCompareRefiner(loaded.model.to(device), features=features, **settings)
+    refiner = RenderCompareRefiner.configured(
+        loaded.model.to(device), features=features, **settings
+    )
     assert found.images is not None and found.intrinsics is not None
     estimate = found.pose.to(device)
     result = refiner(

@@ -122,8 +122,29 @@ def _check_root(cfg: DictConfig) -> None:
             if not path.is_file():
                 raise ConfigError(f"data.root={root}: no label file {path}{hint}")
     else:
+        raw = raw_download(root)
         for key in ("train_labels", "test_labels", "val_labels"):
+            value = setting(cfg, f"data.{key}")
+            if raw and value is not None and not Path(str(value)).is_file():
+                raise ConfigError(
+                    f"data.{key}={value}: no such file; {root} holds a raw {raw[0]} download: "
+                    f"`pae-data convert {raw[1]} {root} {root}/labels` writes its label files"
+                )
             existing_file(cfg, f"data.{key}")
+
+
+def raw_download(root: Path) -> tuple[str, str] | None:
+    """The dataset whose raw layout ``root`` holds (a scene folder with its train split
+    file, ``pae.data.raw``), if any: (its name, its ``pae-data convert`` argument)."""
+    from pae.data.raw import CAMBRIDGE_SPLIT_FILES, SEVEN_SCENES_SPLIT_FILES
+
+    for name, argument, split_files in (
+        ("7-Scenes", "7scenes", SEVEN_SCENES_SPLIT_FILES),
+        ("Cambridge Landmarks", "cambridge", CAMBRIDGE_SPLIT_FILES),
+    ):
+        if next(root.glob(f"*/{split_files['train']}"), None) is not None:
+            return name, argument
+    return None
 
 
 def _per_scene(table: Any) -> int | None:
@@ -310,29 +331,71 @@ def check_added_keys(cfg: DictConfig, overrides: list[str]) -> None:
         raise ConfigError(f"{key}: not a setting of {'.'.join(parts[:-1])} (added with +){hint}")
 
 
-def _refiner_keys(cfg: DictConfig) -> None:
-    """Every ``render_compare.refiner`` key is a setting of RenderCompareRefiner (a misspelt
-    or added one is refused before any work, naming the nearest setting)."""
-    import difflib
-    import inspect
+GROUP_CONSTRUCTORS: dict[str, tuple[str, ...]] = {
+    "data": ("augment",),
+    "trainer": ("max_epochs", "logger", "callbacks", "default_root_dir", "plugins"),
+    "refine": (),
+    "render_compare": (),
+}
+"""Groups built from their ``_target_`` besides the steps' models -> the constructor
+arguments their builder fills in; each entry of ``callbacks`` and ``logger`` is checked too
+(a logger's ``save_dir`` filled in). Nested ``_target_`` configs (the render-and-compare
+refiner) are checked with their parent."""
 
-    from pae.refine.render_compare import RenderCompareRefiner
 
-    refiner = setting(cfg, "render_compare.refiner")
-    if not isinstance(refiner, DictConfig):
+def validate_groups(cfg: DictConfig) -> None:
+    """Every key of the groups built from a ``_target_`` (``GROUP_CONSTRUCTORS``, callbacks,
+    loggers) is an argument of its class, before any work: a misspelt or added key is a
+    ConfigError naming it."""
+    checks = dict(GROUP_CONSTRUCTORS)
+    for group, supplied in (("callbacks", ()), ("logger", ("save_dir",))):
+        node = setting(cfg, group)
+        if isinstance(node, DictConfig):
+            checks |= {f"{group}.{name}": supplied for name in node}
+    for key, supplied in checks.items():
+        node = setting(cfg, key)
+        if isinstance(node, DictConfig) and "_target_" in node:
+            check_constructor(cfg, key, supplied)
+
+
+FILLED_BY_PAE = ("hydra", "logger", "callbacks")
+"""Groups whose mandatory values (``???``: a logger's ``save_dir``, a checkpoint callback's
+``dirpath``) pae fills in for each step."""
+
+
+def check_missing(cfg: DictConfig) -> None:
+    """No mandatory value (``???``) that the user must give is left unset (``FILLED_BY_PAE``
+    aside): a ConfigError naming the first, in pae's one-line form."""
+
+    def first_missing(node: Any, prefix: str) -> str | None:
+        for name in node if isinstance(node, DictConfig) else range(len(node)):
+            key = f"{prefix}{name}"
+            if key in FILLED_BY_PAE:
+                continue
+            if OmegaConf.is_missing(node, name):
+                return key
+            if OmegaConf.is_interpolation(node, name):
+                continue
+            child = node[name]
+            if isinstance(child, DictConfig | ListConfig):
+                found = first_missing(child, f"{key}.")
+                if found:
+                    return found
+        return None
+
+    key = first_missing(cfg, "")
+    if key is not None:
+        raise ConfigError(f"{key} is required and not set: add {key}=... to the command line")
+
+
+def validate_render_compare(cfg: DictConfig) -> None:
+    """render_compare.*: its values and ranges as its classes check them (the callback and
+    the refiner it builds; their keys: ``validate_groups``), by building the callback."""
+    if setting(cfg, "render_compare") is None:
         return
-    supplied = ("scene_model", "features")
-    known = [
-        name for name in inspect.signature(RenderCompareRefiner).parameters if name not in supplied
-    ]
-    for name in refiner:
-        if name not in known:
-            near = difflib.get_close_matches(str(name), known, n=1)
-            hint = f"; did you mean render_compare.refiner.{near[0]}?" if near else ""
-            raise ConfigError(
-                f"render_compare.refiner.{name}: not a setting of the refiner "
-                f"(pae.refine.render_compare.RenderCompareRefiner){hint}"
-            )
+    from pae.runs.trainer import render_compare_callback
+
+    render_compare_callback(cfg)
 
 
 def validate_train_config(cfg: DictConfig, overrides: list[str] | None = None) -> None:
@@ -340,6 +403,7 @@ def validate_train_config(cfg: DictConfig, overrides: list[str] | None = None) -
     line's) add; raises ConfigError naming the key."""
     from pae.losses import LATENT_LOSSES
 
+    check_missing(cfg)
     check_added_keys(cfg, overrides or [])
     steps = list(cfg.stage.steps)
     try:
@@ -347,6 +411,7 @@ def validate_train_config(cfg: DictConfig, overrides: list[str] | None = None) -
     except ValueError as err:
         raise ConfigError(str(err)) from None
     validate_models(cfg)
+    validate_groups(cfg)
     _validate_common(cfg)
     boolean(cfg, "resume")
     for group in GROUPS:
@@ -376,6 +441,9 @@ def validate_train_config(cfg: DictConfig, overrides: list[str] | None = None) -
     missing = missing_checkpoints(steps, given, _model_needs(cfg, steps))
     if missing:
         raise ConfigError(f"stage={cfg.stage.name} needs {missing[0][1]}=PATH")
+    from pae.checkpoints import check_checkpoint_kinds
+
+    check_checkpoint_kinds(given)
     validate_data(cfg, train=True)
 
 
@@ -395,8 +463,7 @@ def _model_needs(cfg: DictConfig, steps: list[str]) -> dict[str, tuple[str, ...]
 
 def _validate_scene_model(cfg: DictConfig) -> None:
     """scene_model.* (the step's settings; its model's ranges are its class's
-    ``check_config``) and render_compare.refiner.*: its keys (the refiner's arguments) and
-    ranges; the refiner's own checks run again when the step builds it."""
+    ``check_config``) and render_compare.*."""
     if setting(cfg, "scene_model") is None:
         return
     for key in ("batches_per_epoch", "rays_per_batch", "quality_size", "quality_images"):
@@ -410,25 +477,13 @@ def _validate_scene_model(cfg: DictConfig) -> None:
         raise ConfigError(f"scene_model.fit_trim must be a number in [0, 1), got {fit_trim!r}")
     if setting(cfg, "scene_model.image_size") is not None:
         integer(cfg, "scene_model.image_size", 4)
-    if setting(cfg, "render_compare") is not None:
-        _refiner_keys(cfg)
-        for key in ("rounds", "polish_steps", "final_reference_size"):
-            integer(cfg, f"render_compare.refiner.{key}", 0)
-        for key in ("candidates", "hypotheses", "levels", "chunk"):
-            integer(cfg, f"render_compare.refiner.{key}", 1)
-        for key in ("resolution", "reference_size"):
-            integer(cfg, f"render_compare.refiner.{key}", 8)
-        choice(cfg, "render_compare.refiner.score", ("zncc", "features"))
-        number(cfg, "render_compare.refiner.trim_sigma", 0, strict=False, optional=True)
-        number(cfg, "render_compare.refiner.highpass_sigma_px", 0, strict=False, optional=True)
-        for key in ("accept_margin", "accept_score"):
-            value = setting(cfg, f"render_compare.{key}")
-            if value != "auto" and not (is_int(value) or isinstance(value, float)):
-                raise ConfigError(f"render_compare.{key} must be auto or a number, got {value!r}")
+    validate_render_compare(cfg)
 
 
 def validate_eval_config(cfg: DictConfig) -> None:
     """All of pae-eval's settings (conf/eval.yaml); raises ConfigError naming the key."""
+    check_missing(cfg)
+    validate_groups(cfg)
     _validate_common(cfg)
     if setting(cfg, "student_ckpt") is None and setting(cfg, "scene_model_ckpt") is None:
         raise ConfigError(
@@ -445,6 +500,5 @@ def validate_eval_config(cfg: DictConfig) -> None:
             raise ConfigError(f"method_ckpts[{position}]={path}: no such file")
     if "iapr_iterations" in cfg:
         integer(cfg, "iapr_iterations", 1)
-    if setting(cfg, "render_compare") is not None:
-        _refiner_keys(cfg)
+    validate_render_compare(cfg)
     validate_data(cfg, train=False)

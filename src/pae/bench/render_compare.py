@@ -99,8 +99,10 @@ def bench_render_compare(
     images, intrinsics, start, scene_ids = (
         t.to(device) for t in _queries(queries, scenes, crop, seed=0)
     )
-    RenderCompareRefiner(model)(images[:4], intrinsics[:4], start[:4], scene_ids[:4])  # compile
-    refiner = RenderCompareRefiner(model)
+    RenderCompareRefiner.configured(model)(
+        images[:4], intrinsics[:4], start[:4], scene_ids[:4]
+    )  # compile
+    refiner = RenderCompareRefiner.configured(model)
     seconds = _seconds(lambda: refiner(images, intrinsics, start, scene_ids))
     work = refiner.work
     kernel_s = work.score_s + work.polish_s
@@ -122,7 +124,7 @@ def bench_render_compare(
     few = slice(0, 16)
     compiled, tensor = (
         _seconds(
-            lambda engine=engine: RenderCompareRefiner(model, engine=engine)(
+            lambda engine=engine: RenderCompareRefiner.configured(model, engine=engine)(
                 images[few], intrinsics[few], start[few], scene_ids[few]
             )
         )

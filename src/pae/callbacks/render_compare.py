@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import csv
-import inspect
+import functools
 import logging
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,7 @@ from pae.refine.render_compare import (
     RenderCompareRefiner,
     RenderCompareResult,
     gate,
+    refiner_defaults,
 )
 
 HONEST = "render_compare"
@@ -113,13 +115,16 @@ class RenderCompareCallback(L.Callback):
     at test (the refiner's own settings where no validation ran; None: always those). The
     polish needs no scale: its Levenberg–Marquardt steps are invariant to the units.
 
-    ``refiner`` holds RenderCompareRefiner's settings; ``feature_layers`` sets how many
-    modules of the teacher backbone make the features of ``refiner.score=features``.
+    ``refiner`` builds the refiner from the scene model and ``features=``: the partial that
+    Hydra makes of ``render_compare.refiner`` (its ``_target_`` with ``_partial_``), or a
+    mapping of settings that replace the defaults (:func:`refiner_defaults`);
+    ``feature_layers`` sets how many modules of the teacher backbone make the features of
+    ``refiner.score=features``.
     """
 
     def __init__(
         self,
-        refiner: dict[str, Any] | None = None,
+        refiner: functools.partial[RenderCompareRefiner] | Mapping[str, Any] | None = None,
         oracle: bool = True,
         every_n_val_epochs: int = 1,
         feature_layers: int = 2,
@@ -128,7 +133,11 @@ class RenderCompareCallback(L.Callback):
         step_from_val: dict[str, float] | None = None,
     ) -> None:
         super().__init__()
-        self.settings = dict(refiner or {})
+        if not isinstance(refiner, functools.partial):
+            refiner = functools.partial(
+                RenderCompareRefiner, **(refiner_defaults() | dict(refiner or {}))
+            )
+        self.build_refiner = refiner
         self.oracle = oracle
         self.every_n_val_epochs = max(1, every_n_val_epochs)
         self.feature_layers = feature_layers
@@ -154,12 +163,11 @@ class RenderCompareCallback(L.Callback):
             )
         self.steps: dict[str, float] = {}
         self._val_runs = 0
-        RenderCompareRefiner(SceneModel(), features=lambda x: x, **self.settings)  # check keys
+        refiner(SceneModel(), features=lambda x: x)  # its keys and ranges, before any work
 
     def setting(self, name: str) -> Any:
-        """The refiner's setting ``name``: as configured, else RenderCompareRefiner's default."""
-        default = inspect.signature(RenderCompareRefiner).parameters[name].default
-        return self.settings.get(name, default)
+        """The refiner's setting ``name`` as configured."""
+        return self.build_refiner.keywords[name]
 
     @property
     def query_width(self) -> int:
@@ -203,9 +211,9 @@ class RenderCompareCallback(L.Callback):
         """The configured refiner against ``scene_model`` (features from ``teacher``), with the
         steps chosen on the last validation run (``step_from_val``)."""
         features = None
-        if self.settings.get("score") == "features":
+        if self.setting("score") == "features":
             features = teacher_features(teacher, self.feature_layers)
-        return RenderCompareRefiner(scene_model, features=features, **(self.settings | self.steps))
+        return self.build_refiner(scene_model, features=features, **self.steps)
 
     def choose_steps(self, estimate: Tensor, truth: Tensor) -> None:
         """``step_from_val``: the search's first steps from the teacher's median errors of

@@ -29,13 +29,18 @@ same steps (tested equal).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
+from pathlib import Path
+from typing import Any, ClassVar
 
 import torch
 import torch.nn.functional as F
+from omegaconf import OmegaConf
 from torch import Tensor
 
+from pae import CONFIG_DIR
 from pae.data.camera import camera_rays, project, scale_intrinsics
 from pae.geometry import matrix_to_quaternion, normalize_quaternion, quaternion_to_matrix
 from pae.models.scene_model import SceneModel
@@ -56,6 +61,7 @@ __all__ = [
     "RenderCompareRefiner",
     "RenderCompareResult",
     "gate",
+    "refiner_defaults",
 ]
 """The refiner's public names (the gate and the result live in ``pae.refine.render_gate``)."""
 
@@ -66,6 +72,24 @@ tensors and the ZNCC score, tensor operations otherwise; compiled: always (ZNCC 
 torch: always tensor operations (any device)."""
 FeatureExtractor = Callable[[Tensor], Tensor]
 """RGB images [B, 3, H, W] in [0, 1] -> feature maps [B, C, h, w]."""
+
+
+REFINER_CONFIG = Path(CONFIG_DIR) / "render_compare" / "default.yaml"
+"""The render_compare group's default: its ``refiner`` node holds every setting's default."""
+BUILD_KEYS = ("_target_", "_partial_")
+
+
+@functools.cache
+def _defaults() -> dict[str, Any]:
+    node = OmegaConf.merge({"seed": 0}, OmegaConf.load(REFINER_CONFIG))
+    settings = OmegaConf.to_container(node.refiner, resolve=True)
+    assert isinstance(settings, dict)
+    return {key: value for key, value in settings.items() if key not in BUILD_KEYS}
+
+
+def refiner_defaults() -> dict[str, Any]:
+    """RenderCompareRefiner's default settings, read from ``REFINER_CONFIG`` (seed 0)."""
+    return dict(_defaults())
 
 
 class RenderCompareRefiner:
@@ -85,35 +109,41 @@ class RenderCompareRefiner:
     reference points a candidate must see, else ``NOT_SEEN_SCORE``), trim_sigma, trim_passes
     (:func:`trimmed_zncc`; 0: plain ZNCC), score (``zncc``, or ``features`` with
     ``features``). seed: of the draws; chunk: queries refined at once; engine: ``ENGINES``.
+    Every setting's default is in ``REFINER_CONFIG`` (:meth:`configured`).
     """
+
+    from_run: ClassVar[tuple[str, ...]] = ("scene_model", "features")
+    """Arguments its caller supplies (the run's scene model, the teacher's features), never
+    configured (``pae.config_checks.check_constructor``)."""
 
     def __init__(
         self,
         scene_model: SceneModel,
-        rounds: int = 4,
-        candidates: int = 12,
-        hypotheses: int = 4,
-        position_sigma_m: float = 0.25,
-        orientation_sigma_deg: float = 4.0,
-        shrink: float = 0.6,
-        resolution: int = 64,
-        levels: int = 3,
-        blur_sigma_px: float = 0.3,
-        highpass_sigma_px: float = 0.0,
-        reference_size: int = 16,
-        reference_fov_scale: float = 1.3,
-        final_reference_size: int = 32,
-        final_fov_scale: float = 1.05,
-        polish_steps: int = 5,
-        polish_damping: float = 1e-3,
-        min_overlap: float = 0.2,
-        trim_sigma: float = 0.0,
-        trim_passes: int = 2,
-        score: str = "zncc",
+        *,
+        rounds: int,
+        candidates: int,
+        hypotheses: int,
+        position_sigma_m: float,
+        orientation_sigma_deg: float,
+        shrink: float,
+        resolution: int,
+        levels: int,
+        blur_sigma_px: float,
+        highpass_sigma_px: float,
+        reference_size: int,
+        reference_fov_scale: float,
+        final_reference_size: int,
+        final_fov_scale: float,
+        polish_steps: int,
+        polish_damping: float,
+        min_overlap: float,
+        trim_sigma: float,
+        trim_passes: int,
+        score: str,
+        seed: int,
+        chunk: int,
+        engine: str,
         features: FeatureExtractor | None = None,
-        seed: int = 0,
-        chunk: int = 64,
-        engine: str = "auto",
     ) -> None:
         if score not in SCORES:
             raise ValueError(f"unknown render_compare.score {score!r}; choose one of {SCORES}")
@@ -182,6 +212,12 @@ class RenderCompareRefiner:
         self.chunk = chunk
         self.engine = engine
         self.work = RenderCompareWork()
+
+    @classmethod
+    def configured(cls, scene_model: SceneModel, **settings: Any) -> RenderCompareRefiner:
+        """The refiner with the settings of ``conf/render_compare/default.yaml`` (the one home
+        of its defaults, :func:`refiner_defaults`), ``settings`` replacing any of them."""
+        return cls(scene_model, **(refiner_defaults() | settings))
 
     def draw_stream(self) -> Callable[[int], Tensor]:
         """The search's standard-normal draws, made as they are needed: each call ``(n)``

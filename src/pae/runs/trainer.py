@@ -195,6 +195,18 @@ def optimisation(group: DictConfig) -> dict[str, Any]:
     }
 
 
+def render_compare_callback(cfg: DictConfig) -> L.Callback:
+    """The callback of the ``render_compare`` group (it builds its refiner once to check its
+    settings); a bad value is a one-line ConfigError."""
+    try:
+        return instantiate(cfg.render_compare, _convert_="all")
+    except Exception as err:  # a bad refiner option: the innermost message, one line
+        key = re.search(r"full_key: (\S+)", str(err))
+        raise ConfigError(
+            f"{key.group(1) if key else 'render_compare'}: {first_line(err)}"
+        ) from None
+
+
 def refinement_callbacks(cfg: DictConfig) -> list[L.Callback]:
     """The callback the `refine` group instantiates (none for refine=none, an empty group)."""
     if not cfg.get("refine"):

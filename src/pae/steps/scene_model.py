@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from hydra.utils import get_class, instantiate
+from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 
 from pae.callbacks.render_compare_gallery import RenderCompareGallery
@@ -27,18 +27,9 @@ from pae.runs.trainer import (
     collect_metrics,
     fit_and_test,
     optimisation,
+    render_compare_callback,
     validate_and_test,
 )
-
-
-def render_compare_callback(cfg: DictConfig) -> Any:
-    """The callback of the `render_compare` group (refiner settings checked on creation)."""
-    try:
-        return instantiate(cfg.render_compare, _convert_="all")
-    except Exception as err:  # an unknown or bad refiner option: one line
-        message = " ".join(str(err).split())
-        raise ConfigError(f"render_compare: {message[:300]}") from None
-
 
 LOADERS: dict[str, Callable[..., LoadedModel]] = {
     "teacher_ckpt": load_teacher,
