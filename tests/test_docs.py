@@ -87,12 +87,30 @@ OVERRIDES = {
         "data=cambridge data.root=/data/CambridgeLandmarks",
         {"data.scenes": ["KingsCollege"], "data.camera.fx": 1674.84375},
     ),
-    "seven_scenes_teacher": (
-        "stage=teacher data=seven_scenes data.root=/data/7Scenes 'data.scenes=[chess,fire]'",
+    "walkthrough_teacher": (
+        "stage=teacher data=seven_scenes data.root=/data/7Scenes 'data.scenes=[chess,fire]' "
+        "backbone=efficientnet_b0 backbone.pretrained=true trainer=gpu "
+        "hydra.run.dir=outputs/7scenes/teacher",
         {"data.scenes": ["chess", "fire"], "stage.steps": ["teacher"]},
     ),
-    "seven_scenes_all": (
-        "stage=teacher data=seven_scenes data.root=/data/7Scenes data.scenes=null",
+    "walkthrough_student": (
+        "stage=student data=seven_scenes data.root=/data/7Scenes 'data.scenes=[chess,fire]' "
+        "trainer=gpu teacher_ckpt=outputs/7scenes/teacher/checkpoints/last.ckpt "
+        "hydra.run.dir=outputs/7scenes/student",
+        {"stage.steps": ["student"]},
+    ),
+    "walkthrough_render_compare": (
+        "stage=render_compare data=seven_scenes data.root=/data/7Scenes "
+        "'data.scenes=[chess,fire]' trainer=gpu "
+        "teacher_ckpt=outputs/7scenes/teacher/checkpoints/last.ckpt "
+        "hydra.run.dir=outputs/7scenes/render_compare",
+        {
+            "stage.steps": ["scene_model"],
+            "scene_model.model._target_": ("pae.models.voxel_grid.VoxelGridSceneModel"),
+        },
+    ),
+    "all_scenes": (
+        "stage=teacher data=cambridge data.root=/data/CambridgeLandmarks data.scenes=null",
         {"data.scenes": None},
     ),
     "gpu": (
