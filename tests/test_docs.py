@@ -33,10 +33,11 @@ def _section(text: str, title: str) -> str:
     return text[start : end if end != -1 else None]
 
 
-def test_configuration_names_every_config_group() -> None:
-    named = _quoted(CONFIGURATION.read_text(encoding="utf-8"))
+@pytest.mark.parametrize("doc", [CONFIGURATION, USAGE], ids=lambda path: path.name)
+def test_docs_name_every_config_group(doc: Path) -> None:
+    named = _quoted(doc.read_text(encoding="utf-8"))
     missing = [group.name for group in _groups() if group.name not in named]
-    assert not missing, f"docs/configuration.md does not name the conf groups {missing}"
+    assert not missing, f"{doc.name} does not name the conf groups {missing}"
 
 
 def test_configuration_names_every_option_of_a_group() -> None:
