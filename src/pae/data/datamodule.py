@@ -31,8 +31,8 @@ class PoseDataModule(L.LightningDataModule):
     labels, neither trained on nor stored for retrieval (`train_poses`, the fingerprint):
     `val_sequences` whole train sequences per scene and, for scenes with too few sequences
     (or label files without them), the last `val_fraction` of their rows (pae.data.holdout).
-    `val_sequences` None: validation reads the test split (said once on stderr), the old
-    protocol, for comparisons with it only.
+    `val_sequences` None: validation reads the test split (said once on stderr), for
+    comparisons with runs that had no validation split only.
     Augmentation (random crop + colour jitter) runs batched on the device after transfer,
     for training batches only when `augment` is true; evaluation uses the centre crop.
     `balance_scenes` samples scenes equally often in multi-scene training.
