@@ -198,3 +198,21 @@ def test_the_scene_model_step_logs_a_render_and_compare_gallery(finished_run: Pa
         assert decoded.shape[1] == 3 * (128 + 6)  # three panels of 128 px
         assert decoded.shape[0] > 4 * 128  # four queries
     assert "test/cumulative_errors" in events.Tags()["images"]
+
+
+def test_the_scene_model_step_logs_trajectories_with_render_compare(finished_run: Path) -> None:
+    """Per scene a trajectory figure of the scene-model step: the teacher's estimates in the
+    first method colour and render_compare's in the second (the legend and the dots)."""
+    import cv2
+    import numpy as np
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from pae.callbacks.trajectory import METHOD_RGB
+
+    events = EventAccumulator(str(finished_run / "scene_model"), size_guidance={"images": 0})
+    events.Reload()
+    for scene in ("scene00", "scene01"):
+        [image] = events.Images(f"test/trajectory/{scene}")
+        rgb = cv2.imdecode(np.frombuffer(image.encoded_image_string, np.uint8), 1)[..., ::-1]
+        for colour in METHOD_RGB[:2]:
+            assert (rgb == np.array(colour, np.uint8)).all(-1).sum() > 20, colour

@@ -12,7 +12,7 @@ from torch import Tensor
 
 from pae.callbacks.error_curves import error_curves_figure
 from pae.callbacks.tensorboard import log_figure, tensorboard_loggers
-from pae.callbacks.trajectory import trajectory_figure
+from pae.callbacks.trajectory import log_trajectories
 from pae.geometry import pose_errors
 from pae.lit.eval_outputs import EVAL, collect_outputs
 from pae.metrics import summarise_errors
@@ -228,7 +228,7 @@ class TestTimeRefinement(L.Callback):
             self._describe_protocols(trainer)
         if self.trajectory_plot:
             shown = {"teacher": estimate} | {m: predictions[m] for m in self.trajectory_methods}
-            self._plot(trainer, split, gt, shown, scene, names)
+            log_trajectories(trainer, split, gt, shown, scene, names)
         honest = {m: p for m, p in predictions.items() if m not in RESERVED_METHODS}
         methods = {"teacher": estimate, "refined": predictions["refined"]}
         methods |= {"knn_mean": predictions["knn_mean"]} | honest
@@ -295,25 +295,3 @@ class TestTimeRefinement(L.Callback):
             names,
         )
         log_figure(loggers, f"{split}/cumulative_errors", image, trainer.global_step)
-
-    @staticmethod
-    def _plot(
-        trainer: L.Trainer,
-        split: str,
-        gt: Tensor,
-        estimates: dict[str, Tensor],
-        scene: Tensor,
-        names: list[str],
-    ) -> None:
-        """A trajectory figure per scene (image tag ``{split}/trajectory/{scene}``): ground
-        truth and each method of ``estimates`` (method -> poses [B, 7])."""
-        loggers = tensorboard_loggers(trainer)
-        if not loggers:
-            return
-        for index in scene.unique().tolist():
-            mask = scene == index
-            title = f"{names[index]}: {split} positions from above ({int(mask.sum())} frames)"
-            image = trajectory_figure(
-                title, gt[mask], {m: poses[mask] for m, poses in estimates.items()}
-            )
-            log_figure(loggers, f"{split}/trajectory/{names[index]}", image, trainer.global_step)

@@ -162,6 +162,9 @@ class RenderCompareCallback(L.Callback):
                 f"got {step_from_val!r}"
             )
         self.steps: dict[str, float] = {}
+        self.refined: dict[str, dict[str, Tensor]] = {}
+        """split -> method -> the poses [N, 7] the last run kept (after the gate), with
+        ``teacher`` (the starts), in the order of the split's collected outputs."""
         self._val_runs = 0
         refiner(SceneModel(), features=lambda x: x)  # its keys and ranges, before any work
 
@@ -245,6 +248,7 @@ class RenderCompareCallback(L.Callback):
         figures: dict[str, Tensor] = {
             f"{split}/{HONEST}/{key}": torch.tensor(value) for key, value in self.steps.items()
         }
+        self.refined[split] = {"teacher": outputs[EVAL.estimate].float()}
         for name, model in models.items():
             start = time.perf_counter()
             result = self.refiner(model, pl_module.teacher)(
@@ -259,6 +263,7 @@ class RenderCompareCallback(L.Callback):
             start_pos, start_rot = pose_errors(estimate, truth)
             margin, floor = self.gate_setting(name, split, result, (refined_pos, start_pos))
             gated = gate(result, estimate, margin, floor)
+            self.refined[split][name] = gated.poses.float()
             pos, rot = pose_errors(gated.poses.float(), truth)
             summary = summarise_errors(pos, rot, outputs[EVAL.scene], pl_module.scene_names)
             figures |= {f"{split}/{name}/{key}": value for key, value in summary.items()}

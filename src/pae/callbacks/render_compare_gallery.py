@@ -17,6 +17,7 @@ from torch import Tensor, nn
 from pae.callbacks.error_curves import error_curves_figure
 from pae.callbacks.render_compare import HONEST, ORACLE, RenderCompareCallback
 from pae.callbacks.tensorboard import log_figure, tensorboard_loggers
+from pae.callbacks.trajectory import log_trajectories
 from pae.data.camera import scale_intrinsics
 from pae.geometry import pose_errors
 from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
@@ -63,7 +64,9 @@ class RenderCompareGallery(L.Callback):
     chose on val), refined again for these queries with the same random draws as in the
     full split, so they are the poses its figures count. With them, ``{split}/cumulative_errors``:
     the teacher's and each render-and-compare method's cumulative error curves over the
-    whole split (:meth:`curves`)."""
+    whole split (:meth:`curves`), and per scene the trajectory figure
+    ``{split}/trajectory/<scene>``: the true positions, the teacher's and each
+    render-and-compare method's (``RenderCompareCallback.refined``)."""
 
     def __init__(
         self,
@@ -134,6 +137,12 @@ class RenderCompareGallery(L.Callback):
         errors = [pose_errors(p.float(), truth) for p in (estimate, gated.poses)]
         labels = self._labels(picked[EVAL.index], errors, gated.accepted)
         self.curves(trainer, loggers, split)
+        refined = self.refinement.refined.get(split)
+        if refined is not None:
+            truth_all = outputs[EVAL.pose].float()
+            log_trajectories(
+                trainer, split, truth_all, refined, outputs[EVAL.scene], pl_module.scene_names
+            )
         names = pl_module.scene_names
         scenes = picked[EVAL.scene].cpu()
         for index in scenes.unique().tolist():

@@ -7,8 +7,11 @@ import math
 from collections.abc import Mapping
 
 import cv2
+import lightning as L
 import numpy as np
 from torch import Tensor
+
+from pae.callbacks.tensorboard import log_figure, tensorboard_loggers
 
 GROUND_TRUTH_RGB = (0, 160, 0)
 METHOD_RGB = (
@@ -121,3 +124,26 @@ def trajectory_figure(
         label = name if error is None else f"{name} (median {error:.2f} m)"
         draw_text(image, label, (right + 28, y))
     return image
+
+
+def log_trajectories(
+    trainer: L.Trainer,
+    split: str,
+    truth: Tensor,
+    estimates: Mapping[str, Tensor],
+    scene: Tensor,
+    names: list[str],
+) -> None:
+    """A trajectory figure per scene of scene ids [N] (TensorBoard image
+    ``{split}/trajectory/<scene>``): the true poses [N, 7] and each method's (method -> poses
+    [N, 7]), in the order given."""
+    loggers = tensorboard_loggers(trainer)
+    if not loggers:
+        return
+    for index in scene.unique().tolist():
+        mask = scene == index
+        title = f"{names[index]}: {split} positions from above ({int(mask.sum())} frames)"
+        image = trajectory_figure(
+            title, truth[mask], {m: poses[mask] for m, poses in estimates.items()}
+        )
+        log_figure(loggers, f"{split}/trajectory/{names[index]}", image, trainer.global_step)
