@@ -24,7 +24,6 @@ from pae.data.synthetic import (
     make_sequences,
     motion_kernel,
     render_batch,
-    render_nuisance_batch,
     sequence_nuisances,
     world_to_camera,
     write_synthetic_dataset,
@@ -127,8 +126,9 @@ def test_occluders_appear_in_the_requested_share_and_only_where_they_stand(
     assert appearance == seq.appearance
     occluded = [i for i, box in enumerate(conditions.occluders) if box is not None]
     assert len(occluded) == round(0.3 * len(seq.poses))
-    images, shares = render_nuisance_batch(
-        scene, seq.poses, camera, appearance, conditions=conditions
+    shares = np.empty(len(seq.poses))
+    images = render_batch(
+        scene, seq.poses, camera, appearance, conditions=conditions, occluded=shares
     )
     plain = render_batch(scene, seq.poses, camera, appearance)
     assert np.all(shares[occluded] > 0.03) and np.all(shares[occluded] < 0.7)

@@ -43,11 +43,9 @@ def perturb_poses(
     def amounts(scale: float) -> Tensor:
         return (2 * scale * torch.rand(b, 1, generator=generator, dtype=dtype)).to(device)
 
-    position = poses[:, :3] + amounts(position_m) * directions()
-    half = amounts(orientation_deg) * (math.pi / 360.0)
-    turn = torch.cat([half.cos(), half.sin() * directions()], dim=-1)
-    rotation = canonicalize_quaternion(quaternion_multiply(poses[:, 3:], turn))
-    return torch.cat([position, rotation], dim=-1)
+    translation = amounts(position_m) * directions()
+    turn = amounts(orientation_deg) * (math.pi / 180.0) * directions()
+    return perturb(poses, torch.cat([translation, turn], dim=-1))
 
 
 def perturb_positions(

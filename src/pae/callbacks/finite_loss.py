@@ -3,6 +3,7 @@ checkpoint of the last whole epoch stays as it was."""
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from typing import Any
 
@@ -19,15 +20,9 @@ def batch_loss(outputs: Any) -> torch.Tensor | None:
     return loss if isinstance(loss, torch.Tensor) else None
 
 
-class StopOnNonFiniteLoss(L.Callback):
-    """After every training step, a NaN or infinite loss raises DivergenceError: one line
-    naming the step, the loss, the epoch and the learning rate. `step` names the training
-    step of the run (``teacher``, ``student``, ...), `lr_setting` the learning-rate setting
-    to lower (``teacher.optimizer.lr=0.002``). Under DDP every process stops together."""
-
-    def __init__(self, step: str, lr_setting: str) -> None:
-        self.step = step
-        self.lr_setting = lr_setting
+class TrainLossCallback(L.Callback, ABC):
+    """A callback that reads the loss of every training step: Lightning's batch-end hook
+    hands ``on_train_loss`` the step's loss (``batch_loss``)."""
 
     def on_train_batch_end(
         self,
@@ -37,7 +32,24 @@ class StopOnNonFiniteLoss(L.Callback):
         batch: Any,
         batch_idx: int,
     ) -> None:
-        loss = batch_loss(outputs)
+        self.on_train_loss(trainer, batch_loss(outputs), batch_idx)
+
+    @abstractmethod
+    def on_train_loss(self, trainer: L.Trainer, loss: torch.Tensor | None, batch_idx: int) -> None:
+        """The loss (a tensor, None for a skipped step) of the training batch ``batch_idx``."""
+
+
+class StopOnNonFiniteLoss(TrainLossCallback):
+    """After every training step, a NaN or infinite loss raises DivergenceError: one line
+    naming the step, the loss, the epoch and the learning rate. `step` names the training
+    step of the run (``teacher``, ``student``, ...), `lr_setting` the learning-rate setting
+    to lower (``teacher.optimizer.lr=0.002``). Under DDP every process stops together."""
+
+    def __init__(self, step: str, lr_setting: str) -> None:
+        self.step = step
+        self.lr_setting = lr_setting
+
+    def on_train_loss(self, trainer: L.Trainer, loss: torch.Tensor | None, batch_idx: int) -> None:
         if loss is None:
             return
         diverged = not bool(torch.isfinite(loss.detach()).all())

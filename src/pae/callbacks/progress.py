@@ -4,17 +4,16 @@ epoch, and within an epoch at most every `every_s` seconds."""
 from __future__ import annotations
 
 import time
-from typing import Any
 
 import lightning as L
 import torch
 
-from pae.callbacks.finite_loss import batch_loss
+from pae.callbacks.finite_loss import TrainLossCallback
 from pae.console import duration, say
 from pae.reporting import step_figures
 
 
-class EpochProgress(L.Callback):
+class EpochProgress(TrainLossCallback):
     """``teacher: epoch 3/40, loss 0.412, val teacher 0.52 m / 9.1°, 0:21 elapsed, ETA 4:33``
     after every training epoch, a line when training starts, and, in an epoch that runs
     longer than ``every_s`` seconds since the last line, ``teacher: epoch 3/40, batch
@@ -56,15 +55,7 @@ class EpochProgress(L.Callback):
     def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._loss_sum, self._batches, self._validated = None, 0, False
 
-    def on_train_batch_end(
-        self,
-        trainer: L.Trainer,
-        pl_module: L.LightningModule,
-        outputs: Any,
-        batch: Any,
-        batch_idx: int,
-    ) -> None:
-        loss = batch_loss(outputs)
+    def on_train_loss(self, trainer: L.Trainer, loss: torch.Tensor | None, batch_idx: int) -> None:
         if loss is not None:
             loss = loss.detach().float()
             self._loss_sum = loss if self._loss_sum is None else self._loss_sum + loss

@@ -15,7 +15,7 @@ from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 from torch import Tensor
 from torch.utils.data import DataLoader, WeightedRandomSampler
 
-from pae.data.camera import Intrinsics, centre_crop_origin, resized_size, scale_intrinsics
+from pae.data.camera import Intrinsics, resized_size
 from pae.data.dataset import PoseDataset, collate_batch
 from pae.data.fingerprint import images_sha256
 from pae.data.holdout import HeldOut, held_out_rows, scenes_short_of_sequences
@@ -206,19 +206,17 @@ class PoseDataModule(L.LightningDataModule):
                 "(fx, fy, cx, cy, width, height of the images as stored)"
             )
         dataset, table = self.datasets[split], self.tables[split]
-        vectors = torch.tensor([self.camera.vector()], dtype=torch.float64).repeat(len(table), 1)
-        if table.focal is not None:
-            vectors[:, :2] = torch.from_numpy(table.focal)[:, None]
         height, width = dataset.image_size or (self.camera.height, self.camera.width)
-        vectors = scale_intrinsics(
-            vectors, width / self.camera.width, height / self.camera.height
-        )  # the images on disk may be stored at another size than the camera's
-        new_width, new_height = resized_size(width, height, self.shorter_edge)
-        vectors = scale_intrinsics(vectors, new_width / width, new_height / height)
+        stored = self.camera.resized(width, height)  # the images on disk may be another size
         if crop:
-            left, top = centre_crop_origin(new_width, new_height, self.crop)
-            vectors[:, 2] -= left
-            vectors[:, 3] -= top
+            seen = stored.preprocessed(self.shorter_edge, self.crop)
+        else:
+            seen = stored.resized(*resized_size(width, height, self.shorter_edge))
+        vectors = torch.tensor([seen.vector()], dtype=torch.float64).repeat(len(table), 1)
+        if table.focal is not None:  # per-row focal lengths (px at the camera's size)
+            focal = torch.from_numpy(table.focal)
+            vectors[:, 0] = focal * (seen.fx / self.camera.fx)
+            vectors[:, 1] = focal * (seen.fy / self.camera.fy)
         return vectors.float()
 
     def appearance_ids(self, split: str = "train", per: str = "sequence") -> tuple[Tensor, int]:

@@ -49,9 +49,11 @@ CAMBRIDGE_HEADER_LINES = 3
 _SEQUENCE_NAME = re.compile(r"sequence\s*(\d+)", re.IGNORECASE)
 
 
-def _check_split(split: str) -> None:
+def _split_file(scene_dir: Path, split: str, files: dict[str, str]) -> Path:
+    """The file under ``scene_dir`` that lists the frames of ``split`` (named by ``files``)."""
     if split not in SPLITS:
         raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    return scene_dir / files[split]
 
 
 def _read_lines(path: Path) -> list[str]:
@@ -102,10 +104,9 @@ def read_cambridge_scene(scene_dir: str | os.PathLike[str], split: str) -> Label
     Only the sign of a whole quaternion is flipped where ``W < 0``; quaternions are not
     normalised (reading the written label file normalises them).
     """
-    _check_split(split)
     scene_dir = Path(scene_dir)
     scene = scene_dir.name
-    path = scene_dir / CAMBRIDGE_SPLIT_FILES[split]
+    path = _split_file(scene_dir, split, CAMBRIDGE_SPLIT_FILES)
     seqs: list[str] = []
     img_paths: list[str] = []
     poses: list[list[float]] = []
@@ -160,10 +161,9 @@ def read_seven_scenes_scene(scene_dir: str | os.PathLike[str], split: str) -> La
 
     from pae.geometry import matrix_to_quaternion
 
-    _check_split(split)
     scene_dir = Path(scene_dir)
     scene = scene_dir.name
-    split_path = scene_dir / SEVEN_SCENES_SPLIT_FILES[split]
+    split_path = _split_file(scene_dir, split, SEVEN_SCENES_SPLIT_FILES)
     seqs: list[str] = []
     img_paths: list[str] = []
     pose_files: list[Path] = []

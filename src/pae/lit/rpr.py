@@ -4,7 +4,7 @@ the query image and an image decoded from a train pose's PAE encoding."""
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor, nn
@@ -51,8 +51,11 @@ class PairedRPRModule(PaeModule, ABC):
     of that pose moved by `perturb_poses` as a teacher's estimate errs, so that the pairs'
     offsets resemble those met at test time. The RPR regresses the query's pose relative to
     the reference (``pae.geometry.relative_pose``). Subclasses give the reference images
-    (``reference_images``) and the evaluation.
+    (``reference_images``), the evaluation and the methods it reports (``METHODS``).
     """
+
+    METHODS: ClassVar[tuple[str, ...]]
+    """The methods the evaluation reports."""
 
     def __init__(
         self,
@@ -62,7 +65,6 @@ class PairedRPRModule(PaeModule, ABC):
         optimizer: OptimizerFactory,
         scene_names: list[str],
         configs: dict[str, Any],
-        methods: list[str],
         scheduler: SchedulerFactory | None = None,
         pair_k: int = 5,
         pair_offset: dict[str, float] | None = None,
@@ -74,7 +76,7 @@ class PairedRPRModule(PaeModule, ABC):
         self.loss = loss
         self.pair_k = pair_k
         self.pair_offset = dict(pair_offset) if pair_offset else None
-        self.evaluation = PoseEvaluation(methods, scene_names)
+        self.evaluation = PoseEvaluation(list(self.METHODS), scene_names)
         self.index: PoseIndex | None = None
         self.pair_count = pair_k + 1
 
@@ -136,32 +138,18 @@ class RPRModule(PairedRPRModule):
     (orientation: the teacher's).
     """
 
+    METHODS = ("teacher", "vrpr")
+
     def __init__(
         self,
         rpr: SiameseRPR,
         teacher: PoseRegressor,
         pae: PoseAutoEncoder,
         decoder: ImageDecoder,
-        loss: LearnedPoseLoss,
-        optimizer: OptimizerFactory,
-        scene_names: list[str],
-        configs: dict[str, Any],
-        scheduler: SchedulerFactory | None = None,
-        pair_k: int = 5,
-        pair_offset: dict[str, float] | None = None,
+        **settings: Any,
     ) -> None:
-        super().__init__(
-            rpr,
-            teacher,
-            loss,
-            optimizer,
-            scene_names,
-            configs,
-            ["teacher", "vrpr"],
-            scheduler,
-            pair_k,
-            pair_offset,
-        )
+        """``settings``: the rest of ``PairedRPRModule``'s arguments (loss, optimizer, ...)."""
+        super().__init__(rpr, teacher, **settings)
         self.pae = pae.eval().requires_grad_(False)
         self.decoder = decoder.eval().requires_grad_(False)
         self.method: VirtualRPR | None = None

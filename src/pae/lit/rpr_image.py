@@ -7,11 +7,7 @@ from typing import Any
 
 from torch import Tensor
 
-from pae.lit.base import OptimizerFactory, SchedulerFactory
 from pae.lit.rpr import PairedRPRModule
-from pae.losses import LearnedPoseLoss
-from pae.models.base import PoseRegressor
-from pae.models.rpr import SiameseRPR
 from pae.refine.relative import ImageRPR, TrainImages, with_position
 
 
@@ -32,34 +28,15 @@ class ImageRPRModule(PairedRPRModule):
       RPR is with the best stored reference, not a result).
     """
 
-    def __init__(
-        self,
-        rpr: SiameseRPR,
-        teacher: PoseRegressor,
-        loss: LearnedPoseLoss,
-        optimizer: OptimizerFactory,
-        scene_names: list[str],
-        configs: dict[str, Any],
-        scheduler: SchedulerFactory | None = None,
-        pair_k: int = 5,
-        pair_offset: dict[str, float] | None = None,
-    ) -> None:
-        methods = ["teacher", "rpr_image", "rpr_reference"]
-        methods += ["rpr_image_test_store", "rpr_reference_test_store"]
-        super().__init__(
-            rpr,
-            teacher,
-            loss,
-            optimizer,
-            scene_names,
-            configs,
-            methods,
-            scheduler,
-            pair_k,
-            pair_offset,
-        )
-        self.images: TrainImages | None = None
-        self.method: ImageRPR | None = None
+    METHODS = (
+        "teacher",
+        "rpr_image",
+        "rpr_reference",
+        "rpr_image_test_store",
+        "rpr_reference_test_store",
+    )
+    images: TrainImages | None = None
+    method: ImageRPR | None = None
 
     def use_data(self, datamodule: Any) -> None:
         """Take the train poses (the retrieval store) and train images from the data module."""

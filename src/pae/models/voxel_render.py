@@ -50,6 +50,20 @@ class GridGeometry(NamedTuple):
     contract: bool
 
 
+class March(NamedTuple):
+    """What the forward and backward kernels march: the grid [nz, ny, nx, 4] in their layout
+    (``channels_last``), the rays (``RaySegments`` of float64 arrays), their sample offsets
+    [R, S], the grid's ``GridGeometry``, the shift added to the raw density and the
+    background colour [3] (after its sigmoid)."""
+
+    grid: np.ndarray
+    rays: RaySegments
+    offsets: np.ndarray
+    geometry: GridGeometry
+    density_shift: float
+    background: np.ndarray
+
+
 STOP_TRANSMITTANCE = 1e-4
 """A ray's march stops once less than this share of its light remains."""
 SKIP_WEIGHT = 1e-6
@@ -152,19 +166,11 @@ def _point(rays: tuple, r: int, s: int, n: int, offsets: np.ndarray, geometry: t
 
 @jit(parallel=True, nogil=True, fastmath=True)
 def render_forward(
-    grid: np.ndarray,
-    rays: RaySegments,
-    offsets: np.ndarray,
-    geometry: GridGeometry,
-    density_shift: float,
-    background: np.ndarray,
-    rgb: np.ndarray,
-    surface: np.ndarray,
-    opacity: np.ndarray,
-    used: np.ndarray,
+    march: March, rgb: np.ndarray, surface: np.ndarray, opacity: np.ndarray, used: np.ndarray
 ) -> None:
-    """Composite rays with offsets [R, S] -> rgb [R, 3], surface [R] (mean depth of the
-    light), opacity [R], used [R] (samples marched)."""
+    """Composite the rays of ``march`` -> rgb [R, 3], surface [R] (mean depth of the light),
+    opacity [R], used [R] (samples marched)."""
+    grid, rays, offsets, geometry, density_shift, background = march
     shape = (grid.shape[0], grid.shape[1], grid.shape[2])
     n = offsets.shape[1]
     segments = (rays.origins, rays.directions, rays.near, rays.leave, rays.far)
@@ -196,21 +202,17 @@ def render_forward(
 
 @jit(parallel=True, nogil=True, fastmath=True)
 def render_backward(
-    grid: np.ndarray,
-    rays: RaySegments,
-    offsets: np.ndarray,
-    geometry: GridGeometry,
-    density_shift: float,
-    background: np.ndarray,
+    march: March,
     rgb: np.ndarray,
     used: np.ndarray,
     grad_rgb: np.ndarray,
     grad_grid: np.ndarray,
     grad_background: np.ndarray,
 ) -> None:
-    """Gradient of a loss with d loss / d rgb = grad_rgb [R, 3] w.r.t. the grid (added to
-    grad_grid [T, nz, ny, nx, 4], one copy per chunk of rays) and the background colour
-    (grad_background [T, 3])."""
+    """Gradient of a loss with d loss / d rgb = grad_rgb [R, 3] (of :func:`render_forward`'s
+    rgb and used) w.r.t. the grid of ``march`` (added to grad_grid [T, nz, ny, nx, 4], one
+    copy per chunk of rays) and the background colour (grad_background [T, 3])."""
+    grid, rays, offsets, geometry, density_shift, _ = march
     shape = (grid.shape[0], grid.shape[1], grid.shape[2])
     chunks = grad_grid.shape[0]
     n_rays, n = offsets.shape
@@ -273,16 +275,14 @@ class CompiledComposite(torch.autograd.Function):
         bg = background.detach().double().numpy()
         ray_array = RaySegments(*(part.detach().double().contiguous().numpy() for part in rays))
         offset_array = offsets.detach().float().contiguous().numpy()
-        shape = geometry
+        march = March(cells, ray_array, offset_array, geometry, density_shift, bg)
         r = offset_array.shape[0]
         rgb = np.empty((r, 3), np.float32)
         surface, opacity = np.empty(r, np.float32), np.empty(r, np.float32)
         used = np.empty(r, np.int64)
-        render_forward(
-            cells, ray_array, offset_array, shape, density_shift, bg, rgb, surface, opacity, used
-        )
+        render_forward(march, rgb, surface, opacity, used)
         ctx.save_for_backward(grid)
-        ctx.arrays = (cells, ray_array, offset_array, shape, bg, rgb, used, density_shift)
+        ctx.arrays = (march, rgb, used)
         outputs = torch.from_numpy(rgb), torch.from_numpy(surface), torch.from_numpy(opacity)
         ctx.mark_non_differentiable(outputs[1], outputs[2])
         return outputs
@@ -295,14 +295,12 @@ class CompiledComposite(torch.autograd.Function):
         grad_opacity: Tensor,
     ) -> tuple[Tensor | None, ...]:
         (grid,) = ctx.saved_tensors
-        cells, rays, offsets, shape, bg, rgb, used, density_shift = ctx.arrays
+        march, rgb, used = ctx.arrays
         chunks = max(1, numba.get_num_threads())
-        grad_cells = np.zeros((chunks, *cells.shape), np.float32)
+        grad_cells = np.zeros((chunks, *march.grid.shape), np.float32)
         grad_bg = np.zeros((chunks, 3), np.float64)
         g = grad_rgb.detach().float().contiguous().numpy()
-        render_backward(
-            cells, rays, offsets, shape, density_shift, bg, rgb, used, g, grad_cells, grad_bg
-        )
+        render_backward(march, rgb, used, g, grad_cells, grad_bg)
         grad_grid = torch.from_numpy(grad_cells.sum(0)).permute(3, 0, 1, 2)[None]
         grad_background = torch.from_numpy(grad_bg.sum(0)).to(grid.dtype)
         return grad_grid.to(grid.dtype), None, grad_background, None, None, None, None

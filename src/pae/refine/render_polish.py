@@ -82,11 +82,15 @@ def _bilinear_tensor(images: Tensor, u: Tensor, v: Tensor) -> Tensor:
 
 
 class _Projection:
-    """Surface points [N, P, 3] seen from cameras (rotations [N, 3, 3], positions [N, 3])."""
+    """Surface points [N, P, 3] (weights ``valid`` [N, P]) seen from cameras (rotations [N,
+    3, 3], positions [N, 3], intrinsics [N, 4]): camera-frame points ``local`` [N, P, 3],
+    pixels ``u``, ``v`` [N, P] and depths (1 where not ahead of the camera)."""
 
     def __init__(
         self, points: Tensor, valid: Tensor, rotation: Tensor, position: Tensor, intrinsics: Tensor
     ) -> None:
+        self.rotation = rotation
+        self.intrinsics = intrinsics
         self.local = torch.einsum("npj,nji->npi", points - position[:, None], rotation)
         x, y, z = self.local.unbind(-1)
         fx, fy, cx, cy = (k[:, None] for k in intrinsics.unbind(-1))
@@ -147,20 +151,12 @@ def score_tensor(
 
 
 def _normal_equations(
-    points: Tensor,
-    values: Tensor,
-    valid: Tensor,
-    rotation: Tensor,
-    position: Tensor,
-    intrinsics: Tensor,
-    target: Tensor,
-    grad_u: Tensor,
-    grad_v: Tensor,
+    view: _Projection, values: Tensor, target: Tensor, grad_u: Tensor, grad_v: Tensor
 ) -> tuple[Tensor, Tensor]:
-    """H [N, 8, 8] and g [N, 8] (float64) of the residual ``α·a + β − c`` at the cameras."""
+    """H [N, 8, 8] and g [N, 8] (float64) of the residual ``α·a + β − c`` at the cameras of
+    ``view``: values c [N, P], target a and its gradients [N, h, w]."""
     h, w = target.shape[-2:]
-    view = _Projection(points, valid, rotation, position, intrinsics)
-    weights = (valid * view.seen(h, w)).double()
+    weights = (view.valid * view.seen(h, w)).double()
     a = _bilinear_tensor(target, view.u, view.v).double()
     g_u = _bilinear_tensor(grad_u, view.u, view.v).double()
     g_v = _bilinear_tensor(grad_v, view.u, view.v).double()
@@ -172,9 +168,9 @@ def _normal_equations(
     local = view.local.double()
     x, y, _ = local.unbind(-1)
     z = view.depth.double()
-    fx, fy = (k[:, None].double() for k in intrinsics.unbind(-1)[:2])
+    fx, fy = (k[:, None].double() for k in view.intrinsics.unbind(-1)[:2])
     e = torch.stack([g_u * fx / z, g_v * fy / z, -(g_u * fx * x + g_v * fy * y) / z**2], -1)
-    d_position = -torch.einsum("nij,npj->npi", rotation.double(), e)
+    d_position = -torch.einsum("nij,npj->npi", view.rotation.double(), e)
     d_rotation = torch.linalg.cross(e, local)
     jacobian = torch.cat(
         [
@@ -215,17 +211,18 @@ def polish_tensor(
     b, k = scores.shape
     rows = torch.arange(b, device=points.device).repeat_interleave(k)
     grad_u, grad_v = image_gradients(target)
-    per_row = (points[rows], values[rows], valid[rows])
-    camera = (intrinsics[rows], target[rows])
+    points, values, valid = points[rows], values[rows], valid[rows]
+    intrinsics, target = intrinsics[rows], target[rows]
+    grad_u, grad_v = grad_u[rows], grad_v[rows]
+    trim = (min_overlap, trim_sigma, trim_passes)
     rotation = rotations.reshape(b * k, 3, 3).clone()
     position = positions.reshape(b * k, 3).clone()
     score = scores.reshape(b * k).clone()
     lam = torch.full_like(score, damping, dtype=torch.float64)
     eye = torch.eye(N_PARAMS, dtype=torch.float64, device=points.device)
     for _ in range(iterations):
-        hessian, gradient = _normal_equations(
-            *per_row, rotation, position, *camera, grad_u[rows], grad_v[rows]
-        )
+        view = _Projection(points, valid, rotation, position, intrinsics)
+        hessian, gradient = _normal_equations(view, values, target, grad_u, grad_v)
         diagonal = torch.diagonal(hessian, dim1=-2, dim2=-1)
         damped = hessian + (lam[:, None] * diagonal)[..., None] * eye + 1e-12 * eye
         factor, info = torch.linalg.cholesky_ex(damped)
@@ -235,7 +232,7 @@ def polish_tensor(
         moved_position = position + step[:, :3]
         moved_rotation = rotation @ rotation_vector_to_matrix(step[:, 3:6])
         moved = score_tensor(
-            *per_row, moved_rotation, moved_position, *camera, min_overlap, trim_sigma, trim_passes
+            points, values, valid, moved_rotation, moved_position, intrinsics, target, *trim
         )
         better = solved & (moved > score)
         rotation = torch.where(better[:, None, None], moved_rotation, rotation)

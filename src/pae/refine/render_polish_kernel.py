@@ -5,6 +5,7 @@ with its work buffers allocated once per query, never per hypothesis, step or po
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -20,13 +21,54 @@ from pae.refine.render_polish import (
     image_gradients,
 )
 from pae.refine.render_score import (
-    MIN_DEPTH_M,
     NOT_SEEN_SCORE,
+    add_moments,
     as_array,
     bilinear,
     project_and_sample,
+    project_point,
     sampled_score,
 )
+
+
+class _Query(NamedTuple):
+    """One query's inputs to the polish: surface points [P, 3] (world), their rendered values
+    and weights ``valid`` [P], intrinsics [4], the band-passed grey target [h, w] and its
+    gradients along u and v [h, w] (px⁻¹)."""
+
+    points: np.ndarray
+    values: np.ndarray
+    valid: np.ndarray
+    intrinsics: np.ndarray
+    target: np.ndarray
+    grad_u: np.ndarray
+    grad_v: np.ndarray
+
+
+class _Settings(NamedTuple):
+    """The polish's settings (:func:`polish_tensor`'s arguments of the same names)."""
+
+    iterations: int
+    damping: float
+    min_overlap: float
+    trim_sigma: float
+    trim_passes: int
+
+
+class _Workspace(NamedTuple):
+    """A query's work space, reused by each of its hypotheses: ``work`` [P, 6] (per seen
+    point its sample, the gradient along u and v, the camera-frame point), ``seen`` [P],
+    ``system`` [8, 8], ``rhs`` and ``step`` [8], ``moved_rotation`` and ``turn`` [3, 3],
+    ``moved_position`` [3]."""
+
+    work: np.ndarray
+    seen: np.ndarray
+    system: np.ndarray
+    rhs: np.ndarray
+    step: np.ndarray
+    moved_rotation: np.ndarray
+    moved_position: np.ndarray
+    turn: np.ndarray
 
 
 @jit(nogil=True, fastmath=True)
@@ -90,57 +132,34 @@ def _rotate_by(rotation: np.ndarray, omega: np.ndarray, turn: np.ndarray, out: n
 
 @jit(nogil=True, fastmath=True)
 def _polish_one(
-    points: np.ndarray,
-    values: np.ndarray,
-    valid: np.ndarray,
+    query: _Query,
     rotation: np.ndarray,
     position: np.ndarray,
     score: float,
-    intrinsics: np.ndarray,
-    target: np.ndarray,
-    grad_u: np.ndarray,
-    grad_v: np.ndarray,
-    iterations: int,
-    damping: float,
-    min_overlap: float,
-    trim_sigma: float,
-    trim_passes: int,
-    work: np.ndarray,
-    seen: np.ndarray,
-    system: np.ndarray,
-    rhs: np.ndarray,
-    step: np.ndarray,
-    moved_rotation: np.ndarray,
-    moved_position: np.ndarray,
-    turn: np.ndarray,
+    settings: _Settings,
+    space: _Workspace,
 ) -> float:
-    """The steps of :func:`polish_tensor` for one hypothesis: rotation [3, 3] and position
-    [3] updated in place; returns its score. Work space: work [P, 6] (per seen point its
-    sample, the gradient along u and v, the camera-frame point), seen [P], system [8, 8],
-    rhs, step [8], moved_rotation, turn [3, 3], moved_position [3]."""
+    """The steps of :func:`polish_tensor` for one hypothesis of ``query``: rotation [3, 3]
+    and position [3] updated in place; returns its score."""
+    points, values, valid, intrinsics, target, grad_u, grad_v = query
+    iterations, damping, min_overlap, trim_sigma, trim_passes = settings
+    work, seen, system, rhs, step, moved_rotation, moved_position, turn = space
     n_points = points.shape[0]
     h, w = target.shape
-    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    focal = (intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3])
+    fx, fy = focal[0], focal[1]
     lam = damping
     sampled = work[:, 0]
     for _ in range(iterations):
         r = rotation
-        total = sum_a = sum_c = sum_ac = sum_aa = 0.0
+        origin = (position[0], position[1], position[2])
+        moments = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         for p in range(n_points):
             seen[p] = False
             if valid[p] <= 0:
                 continue
-            dx = points[p, 0] - position[0]
-            dy = points[p, 1] - position[1]
-            dz = points[p, 2] - position[2]
-            z = r[0, 2] * dx + r[1, 2] * dy + r[2, 2] * dz
-            if z <= MIN_DEPTH_M:
-                continue
-            x = r[0, 0] * dx + r[1, 0] * dy + r[2, 0] * dz
-            y = r[0, 1] * dx + r[1, 1] * dy + r[2, 1] * dz
-            u = fx * x / z + cx
-            v = fy * y / z + cy
-            if u < 0 or v < 0 or u > w - 1 or v > h - 1:
+            inside, x, y, z, u, v = project_point(points, p, r, origin, focal, h, w)
+            if not inside:
                 continue
             seen[p] = True
             a = bilinear(target, u, v)
@@ -148,13 +167,8 @@ def _polish_one(
             work[p, 1] = bilinear(grad_u, u, v)
             work[p, 2] = bilinear(grad_v, u, v)
             work[p, 3], work[p, 4], work[p, 5] = x, y, z
-            weight = valid[p]
-            c = values[p]
-            total += weight
-            sum_a += weight * a
-            sum_c += weight * c
-            sum_ac += weight * a * c
-            sum_aa += weight * a * a
+            moments = add_moments(moments, valid[p], a, values[p])
+        total, sum_a, sum_c, sum_ac, sum_aa, _ = moments
         if total <= 0 or score <= NOT_SEEN_SCORE:
             break
         mean_a, mean_c = sum_a / total, sum_c / total
@@ -230,55 +244,32 @@ def _polish(
     target: np.ndarray,
     grad_u: np.ndarray,
     grad_v: np.ndarray,
-    iterations: int,
-    damping: float,
-    min_overlap: float,
-    trim_sigma: float,
-    trim_passes: int,
+    settings: _Settings,
 ) -> None:
     """:func:`_polish_one` on every hypothesis of every query, in place: rotations [B, K, 3,
     3], positions [B, K, 3], scores [B, K]; one query per task, its work space made once."""
     n_queries, n_hypotheses = scores.shape
     n_points = points.shape[1]
     for b in numba.prange(n_queries):
-        work = np.empty((n_points, 6), np.float64)
-        seen = np.empty(n_points, np.bool_)
-        system = np.empty((N_PARAMS, N_PARAMS), np.float64)
-        rhs = np.empty(N_PARAMS, np.float64)
-        step = np.empty(N_PARAMS, np.float64)
-        moved_rotation = np.empty((3, 3), np.float64)
-        turn = np.empty((3, 3), np.float64)
-        moved_position = np.empty(3, np.float64)
+        query = _Query(
+            points[b], values[b], valid[b], intrinsics[b], target[b], grad_u[b], grad_v[b]
+        )
+        space = _Workspace(
+            np.empty((n_points, 6), np.float64),
+            np.empty(n_points, np.bool_),
+            np.empty((N_PARAMS, N_PARAMS), np.float64),
+            np.empty(N_PARAMS, np.float64),
+            np.empty(N_PARAMS, np.float64),
+            np.empty((3, 3), np.float64),
+            np.empty(3, np.float64),
+            np.empty((3, 3), np.float64),
+        )
         rotation = np.empty((3, 3), np.float64)
         position = np.empty(3, np.float64)
         for k in range(n_hypotheses):
             rotation[:, :] = rotations[b, k]
             position[:] = positions[b, k]
-            scores[b, k] = _polish_one(
-                points[b],
-                values[b],
-                valid[b],
-                rotation,
-                position,
-                scores[b, k],
-                intrinsics[b],
-                target[b],
-                grad_u[b],
-                grad_v[b],
-                iterations,
-                damping,
-                min_overlap,
-                trim_sigma,
-                trim_passes,
-                work,
-                seen,
-                system,
-                rhs,
-                step,
-                moved_rotation,
-                moved_position,
-                turn,
-            )
+            scores[b, k] = _polish_one(query, rotation, position, scores[b, k], settings, space)
             rotations[b, k] = rotation
             positions[b, k] = position
 
@@ -314,11 +305,9 @@ def polish_compiled(
         as_array(target),
         as_array(grad_u),
         as_array(grad_v),
-        int(iterations),
-        float(damping),
-        float(min_overlap),
-        float(trim_sigma),
-        int(trim_passes),
+        _Settings(
+            int(iterations), float(damping), float(min_overlap), float(trim_sigma), int(trim_passes)
+        ),
     )
     device = points.device
     return (

@@ -7,9 +7,9 @@ trimmed of the points the rendering cannot explain): the score
 :meth:`RenderCompareRefiner._score_projected` computes with tensor operations (tested equal),
 in one pass per candidate instead of some twenty passes over every point.
 
-The per-point helpers (:func:`project_and_sample`, :func:`sampled_score`) are shared with the
-compiled polish (``pae.refine.render_polish``). Work buffers are allocated once per query,
-never per candidate or per point.
+The per-point helpers (:func:`project_point`, :func:`project_and_sample`,
+:func:`sampled_score`) are shared with the compiled polish (``pae.refine.render_polish_kernel``).
+Work buffers are allocated once per query, never per candidate or per point.
 """
 
 from __future__ import annotations
@@ -45,6 +45,37 @@ def bilinear(image: np.ndarray, u: float, v: float) -> float:
     return top * (1 - fv) + bottom * fv
 
 
+@jit(nogil=True, fastmath=True, inline="always")
+def project_point(
+    points: np.ndarray,
+    p: int,
+    rotation: np.ndarray,
+    position: tuple[float, float, float],
+    focal: tuple[float, float, float, float],
+    h: int,
+    w: int,
+) -> tuple[bool, float, float, float, float, float]:
+    """Point ``p`` of points [P, 3] (world) seen by the camera ``rotation`` [3, 3] (camera
+    to world) at ``position`` (x, y, z) with intrinsics ``focal`` (fx, fy, cx, cy) -> (seen,
+    x, y, z, u, v): its camera-frame coordinates (m), its pixel (u, v mean nothing unless
+    deeper than ``MIN_DEPTH_M``) and whether it lies deeper than that and inside an image
+    [h, w]. Scalars, not arrays, so that a loop over the points keeps them in registers."""
+    r = rotation
+    dx = points[p, 0] - position[0]
+    dy = points[p, 1] - position[1]
+    dz = points[p, 2] - position[2]
+    x = r[0, 0] * dx + r[1, 0] * dy + r[2, 0] * dz
+    y = r[0, 1] * dx + r[1, 1] * dy + r[2, 1] * dz
+    z = r[0, 2] * dx + r[1, 2] * dy + r[2, 2] * dz
+    u = v = z
+    seen = z > MIN_DEPTH_M
+    if seen:
+        u = focal[0] * x / z + focal[2]
+        v = focal[1] * y / z + focal[3]
+        seen = 0 <= u <= w - 1 and 0 <= v <= h - 1
+    return seen, x, y, z, u, v
+
+
 @jit(nogil=True, fastmath=True)
 def project_and_sample(
     points: np.ndarray,
@@ -61,26 +92,37 @@ def project_and_sample(
     [h, w] (and deeper than ``MIN_DEPTH_M``) write its bilinear sample to ``sampled`` [P] and
     set ``seen`` [P]. Returns the valid points' total weight (the overlap's denominator)."""
     h, w = target.shape
-    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
-    r = rotation
-    tx, ty, tz = position[0], position[1], position[2]
+    origin = (position[0], position[1], position[2])
+    focal = (intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3])
     reference = 0.0
     for p in range(points.shape[0]):
         seen[p] = False
         if valid[p] <= 0:
             continue
         reference += valid[p]
-        dx, dy, dz = points[p, 0] - tx, points[p, 1] - ty, points[p, 2] - tz
-        z = r[0, 2] * dx + r[1, 2] * dy + r[2, 2] * dz
-        if z <= MIN_DEPTH_M:
-            continue
-        u = fx * (r[0, 0] * dx + r[1, 0] * dy + r[2, 0] * dz) / z + cx
-        v = fy * (r[0, 1] * dx + r[1, 1] * dy + r[2, 1] * dz) / z + cy
-        if u < 0 or v < 0 or u > w - 1 or v > h - 1:
-            continue
-        sampled[p] = bilinear(target, u, v)
-        seen[p] = True
+        inside, _, _, _, u, v = project_point(points, p, rotation, origin, focal, h, w)
+        if inside:
+            sampled[p] = bilinear(target, u, v)
+            seen[p] = True
     return reference
+
+
+Moments = tuple[float, float, float, float, float, float]
+"""Weighted sums (total, Σa, Σc, Σac, Σaa, Σcc) of samples a and values c."""
+
+
+@jit(nogil=True, fastmath=True, inline="always")
+def add_moments(moments: Moments, weight: float, a: float, c: float) -> Moments:
+    """``moments`` with the sample ``a`` and value ``c`` of ``weight`` added."""
+    total, sum_a, sum_c, sum_ac, sum_aa, sum_cc = moments
+    return (
+        total + weight,
+        sum_a + weight * a,
+        sum_c + weight * c,
+        sum_ac + weight * a * c,
+        sum_aa + weight * a * a,
+        sum_cc + weight * c * c,
+    )
 
 
 @jit(nogil=True, fastmath=True)
@@ -92,24 +134,17 @@ def _fitted_moments(
     gain: float,
     offset: float,
     limit: float,
-) -> tuple[float, float, float, float, float, float]:
-    """Weighted sums (total, Σa, Σc, Σac, Σaa, Σcc) over the seen points [P] whose residual
-    ``|a − gain·c − offset|`` is within ``limit`` (a: sampled query, c: rendered values)."""
-    total = sum_a = sum_c = sum_ac = sum_aa = sum_cc = 0.0
+) -> Moments:
+    """The moments over the seen points [P] whose residual ``|a − gain·c − offset|`` is
+    within ``limit`` (a: sampled query, c: rendered values)."""
+    moments = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     for p in range(sampled.shape[0]):
         if not seen[p]:
             continue
         a, c = sampled[p], values[p]
-        if abs(a - gain * c - offset) > limit:
-            continue
-        weight = valid[p]
-        total += weight
-        sum_a += weight * a
-        sum_c += weight * c
-        sum_ac += weight * a * c
-        sum_aa += weight * a * a
-        sum_cc += weight * c * c
-    return total, sum_a, sum_c, sum_ac, sum_aa, sum_cc
+        if abs(a - gain * c - offset) <= limit:
+            moments = add_moments(moments, valid[p], a, c)
+    return moments
 
 
 @jit(nogil=True, fastmath=True)

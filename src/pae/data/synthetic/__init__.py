@@ -60,7 +60,6 @@ from pae.data.synthetic.raycast import (
     motion_kernel,
     render,
     render_batch,
-    render_nuisance_batch,
     shade_rays,
 )
 from pae.data.synthetic.scene import (
@@ -142,7 +141,6 @@ __all__ = [
     "render",
     "render_batch",
     "render_frames",
-    "render_nuisance_batch",
     "room_textures",
     "scene_name",
     "sequence_nuisances",

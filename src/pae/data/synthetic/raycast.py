@@ -309,32 +309,16 @@ def render_batch(
     rng: np.random.Generator | None = None,
     supersample: int = SUPERSAMPLE,
     conditions: FrameConditions | None = None,
+    occluded: np.ndarray | None = None,
 ) -> np.ndarray:
     """Images ``[B, H, W, 3]`` uint8 RGB of ``scene`` from camera-to-world ``poses`` ``[B, 7]``.
 
     ``rng`` draws the sensor noise (``appearance.noise_std``); ``None`` renders without noise.
-    ``conditions`` (``B`` frames) adds each frame's nuisances (see
-    :func:`render_nuisance_batch`).
-    """
-    return render_nuisance_batch(scene, poses, camera, appearance, rng, supersample, conditions)[0]
-
-
-def render_nuisance_batch(
-    scene: SyntheticScene,
-    poses: np.ndarray,
-    camera: PinholeCamera,
-    appearance: Appearance | None = None,
-    rng: np.random.Generator | None = None,
-    supersample: int = SUPERSAMPLE,
-    conditions: FrameConditions | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Images ``[B, H, W, 3]`` uint8 RGB as :func:`render_batch`, and the share ``[B]`` (in
-    ``[0, 1]``) of each image that its occluder covers.
-
-    Without ``conditions`` the images are :func:`render_batch`'s exactly and the shares 0.
-    With them each frame gets its own point light, an occluder ray cast with the scene, its
-    motion blur (applied to the linear colour, before the camera response) and its exposure
-    (a factor on the gain).
+    ``conditions`` (``B`` frames) gives each frame its own point light, an occluder ray cast
+    with the scene, its motion blur (applied to the linear colour, before the camera response)
+    and its exposure (a factor on the gain); without them the frames share the appearance's
+    light. ``occluded`` ``[B]``, when given, receives the share (in ``[0, 1]``) of each image
+    that its occluder covers (0 without ``conditions``).
     """
     appearance = appearance or Appearance()
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 7)
@@ -345,7 +329,8 @@ def render_nuisance_batch(
     size = camera.size
     frames_per_chunk = max(1, RAYS_PER_CHUNK // len(local))
     images = np.empty((len(poses), size, size, 3), dtype=np.uint8)
-    shares = np.zeros(len(poses))
+    shares = np.zeros(len(poses)) if occluded is None else occluded
+    shares[:] = 0.0
     tint = np.asarray(appearance.tint, dtype=np.float32) * np.float32(appearance.gain)
     for start in range(0, len(poses), frames_per_chunk):
         stop = min(start + frames_per_chunk, len(poses))
@@ -378,7 +363,7 @@ def render_nuisance_batch(
                 colour.shape, dtype=np.float32
             )
         images[start:stop] = np.clip(np.rint(colour * 255.0), 0, 255).astype(np.uint8)
-    return images, shares
+    return images
 
 
 def render(

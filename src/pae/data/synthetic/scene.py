@@ -229,6 +229,25 @@ def _smooth_field(
     return cv2.resize(grid, (cols, rows), interpolation=cv2.INTER_CUBIC)
 
 
+def _palette_field(
+    rng: np.random.Generator,
+    shape: tuple[int, int],
+    cells: tuple[int, int],
+    hue: float,
+    hue_sd: float,
+    saturation: tuple[float, float],
+    value: tuple[float, float],
+) -> np.ndarray:
+    """:func:`_smooth_field` ``[rows, cols, 3]`` of a ``cells`` grid of colours around ``hue``:
+    per cell (row-major) a hue ``hue + N(0, hue_sd)``, a saturation and a value uniform in
+    their ``(low, high)`` ranges, drawn in that order."""
+    colours = [
+        hsv_rgb(hue + rng.normal(0, hue_sd), rng.uniform(*saturation), rng.uniform(*value))
+        for _ in range(cells[0] * cells[1])
+    ]
+    return _smooth_field(shape, cells, np.array(colours))
+
+
 def _value_noise(rng: np.random.Generator, shape: tuple[int, int], scale: int) -> np.ndarray:
     """Zero-mean smooth noise ``[rows, cols, 1]`` with features of about ``scale`` texels."""
     rows, cols = shape
@@ -320,11 +339,7 @@ def _wall_texture(
     """Wall with a dominant ``hue``: colour gradients, a dado band, big shapes and detail."""
     shape = texel_shape(width_m, height_m)
     cells = (2, max(2, round(width_m / 1.5)))
-    colours = [
-        hsv_rgb(hue + rng.normal(0, 0.05), rng.uniform(0.3, 0.8), rng.uniform(0.35, 0.9))
-        for _ in range(cells[0] * cells[1])
-    ]
-    image = _smooth_field(shape, cells, np.array(colours))
+    image = _palette_field(rng, shape, cells, hue, 0.05, (0.3, 0.8), (0.35, 0.9))
     band_lo, band_hi = sorted(rng.uniform(0.3, 1.2, 2))
     band = slice(int(band_lo / TEXEL_SIZE_M), int(band_hi / TEXEL_SIZE_M) + 2)
     image[band] = 0.5 * image[band] + 0.5 * np.float32(
@@ -339,11 +354,7 @@ def _floor_texture(rng: np.random.Generator, width_m: float, depth_m: float) -> 
     """Tiled floor shaded by a gradient, with a few rugs."""
     rows, cols = texel_shape(width_m, depth_m)
     hue = rng.random()
-    colours = [
-        hsv_rgb(hue + rng.normal(0, 0.08), rng.uniform(0.2, 0.6), rng.uniform(0.4, 0.9))
-        for _ in range(9)
-    ]
-    image = _smooth_field((rows, cols), (3, 3), np.array(colours))
+    image = _palette_field(rng, (rows, cols), (3, 3), hue, 0.08, (0.2, 0.6), (0.4, 0.9))
     tile = int(rng.uniform(0.4, 0.7) / TEXEL_SIZE_M)
     jj, ii = np.meshgrid(np.arange(cols), np.arange(rows))
     checker = ((jj // tile + ii // tile) % 2).astype(np.float32)[:, :, None]
@@ -356,11 +367,7 @@ def _ceiling_texture(rng: np.random.Generator, width_m: float, depth_m: float) -
     """Pale ceiling with a grid of light panels and a few shapes."""
     rows, cols = texel_shape(width_m, depth_m)
     hue = rng.random()
-    colours = [
-        hsv_rgb(hue + rng.normal(0, 0.1), rng.uniform(0.05, 0.4), rng.uniform(0.6, 0.95))
-        for _ in range(4)
-    ]
-    image = _smooth_field((rows, cols), (2, 2), np.array(colours))
+    image = _palette_field(rng, (rows, cols), (2, 2), hue, 0.1, (0.05, 0.4), (0.6, 0.95))
     spacing = rng.uniform(1.2, 2.0) / TEXEL_SIZE_M
     panel = int(0.25 / TEXEL_SIZE_M)
     for r in np.arange(spacing / 2, rows, spacing):

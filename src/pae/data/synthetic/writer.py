@@ -20,7 +20,7 @@ import numpy as np
 from pae.data.labels import LabelTable, write_labels
 from pae.data.synthetic.camera import DEFAULT_SIZE, PinholeCamera
 from pae.data.synthetic.nuisances import Nuisances, sequence_nuisances
-from pae.data.synthetic.raycast import Appearance, FrameConditions, render_nuisance_batch
+from pae.data.synthetic.raycast import Appearance, FrameConditions, render_batch
 from pae.data.synthetic.scene import (
     DEFAULT_TEST_OFFSET_M,
     DEFAULT_TRAIN_LANE_M,
@@ -127,13 +127,14 @@ def render_frames(
     shares = np.zeros(len(poses))
     for start in range(0, len(poses), FRAMES_PER_WRITE):
         batch = slice(start, start + FRAMES_PER_WRITE)
-        images, shares[batch] = render_nuisance_batch(
+        images = render_batch(
             scene,
             poses[batch],
             camera,
             appearance,
             noise,
             conditions=None if conditions is None else conditions[batch],
+            occluded=shares[batch],
         )
         for path, image in zip(paths[batch], images, strict=True):
             _write_png(out / path, image)
