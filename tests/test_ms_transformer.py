@@ -360,11 +360,21 @@ def test_ms_transformer_pipeline_reports_scene_accuracy(
         "teacher.model.head_hidden=32",
         "teacher.max_epochs=1",
         "student.max_epochs=1",
+        "stage.steps=[teacher,student,scene_model]",
+        "scene_model.max_epochs=1",
+        "scene_model.batches_per_epoch=3",
+        "render_compare.refiner.rounds=1",
         run_dir=tmp_path,
     )
     run(cfg, tmp_path)
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert 0.0 <= metrics["test/teacher/scene_accuracy"] <= 1.0
+    # render-and-compare decides the scene of a multi-scene teacher's queries
+    for split in ("val", "test"):
+        assert 0.0 <= metrics[f"{split}/render_compare/scene_accuracy"] <= 1.0
+        assert 0.0 <= metrics[f"{split}/render_compare/scene_checked_share"] <= 1.0
+    floor = metrics["val/render_compare/scene_check_below"]
+    assert metrics["test/render_compare/scene_check_below"] == floor, "chosen on val"
     for method in ("teacher", "student", "refined"):
         assert metrics[f"test/{method}/scene00/pos_median_m"] >= 0
     teacher = load_teacher(tmp_path / "student" / "checkpoints" / "last.ckpt")

@@ -28,6 +28,14 @@ from pae.refine.render_compare import (
     gate,
     refiner_defaults,
 )
+from pae.refine.scene_decision import (
+    ALWAYS,
+    NEVER,
+    Refine,
+    choose_scene_check,
+    decide_scenes,
+    narrow,
+)
 
 HONEST = "render_compare"
 ORACLE = "render_compare_oracle"
@@ -115,6 +123,10 @@ class RenderCompareCallback(L.Callback):
     at test (the refiner's own settings where no validation ran; None: always those). The
     polish needs no scale: its Levenberg–Marquardt steps are invariant to the units.
 
+    With a teacher that predicts the scene (its poses for every scene in the outputs),
+    ``scene_check_below`` (a ZNCC, or ``auto``) moves poorly explained queries to the scene
+    that explains them best (:meth:`decide_scenes`), reported as ``scene_accuracy``.
+
     ``refiner`` builds the refiner from the scene model and ``features=``: the partial that
     Hydra makes of ``render_compare.refiner`` (its ``_target_`` with ``_partial_``), or a
     mapping of settings that replace the defaults (:func:`refiner_defaults`);
@@ -131,6 +143,7 @@ class RenderCompareCallback(L.Callback):
         accept_margin: float | str = "auto",
         accept_score: float | str = ACCEPT_ALL,
         step_from_val: dict[str, float] | None = None,
+        scene_check_below: float | str = "auto",
     ) -> None:
         super().__init__()
         if not isinstance(refiner, functools.partial):
@@ -162,6 +175,13 @@ class RenderCompareCallback(L.Callback):
                 f"got {step_from_val!r}"
             )
         self.steps: dict[str, float] = {}
+        if scene_check_below != "auto" and not isinstance(scene_check_below, int | float):
+            raise ValueError(
+                "render_compare.scene_check_below must be a number or auto, not "
+                f"{scene_check_below!r}"
+            )
+        self.scene_check_below = scene_check_below
+        self.scene_checks: dict[str, float] = {}
         self.refined: dict[str, dict[str, Tensor]] = {}
         """split -> method -> the poses [N, 7] the last run kept (after the gate), with
         ``teacher`` (the starts), in the order of the split's collected outputs."""
@@ -229,6 +249,38 @@ class RenderCompareCallback(L.Callback):
             "orientation_sigma_deg": float(self.step_from_val["orientation"] * rot.quantile(0.5)),
         }
 
+    def decide_scenes(
+        self,
+        name: str,
+        split: str,
+        refine: Refine,
+        outputs: dict[str, Tensor],
+        first: RenderCompareResult,
+    ) -> tuple[RenderCompareResult, dict[str, Tensor]]:
+        """For a teacher that predicts the scene: the queries scoring below
+        ``scene_check_below`` in their predicted scene are refined in the others too and
+        moved to the best-scoring one (:func:`decide_scenes`; ``auto``: the floor is chosen
+        on each validation run for scene accuracy and applied at test) -> the refinement in
+        the decided scenes and the figures ``scene_accuracy``, ``scene_check_below`` and
+        ``scene_checked_share``."""
+        predicted, truth = outputs[EVAL.scene_estimate], outputs[EVAL.scene]
+        arguments = (outputs[EVAL.image], outputs[EVAL.intrinsics], outputs[EVAL.scene_poses])
+        below = self.scene_check_below
+        if below == "auto" and split == "val":
+            every = decide_scenes(refine, *arguments, predicted, first, ALWAYS)
+            self.scene_checks[name] = choose_scene_check(first.score, predicted, every.scene, truth)
+            floor = self.scene_checks[name]
+            decision = narrow(every, first, predicted, first.score < floor)
+        else:
+            floor = float(self.scene_checks.get(name, NEVER) if below == "auto" else below)
+            decision = decide_scenes(refine, *arguments, predicted, first, floor)
+        figures = {
+            "scene_accuracy": (decision.scene == truth).float().mean(),
+            "scene_check_below": torch.tensor(floor),
+            "scene_checked_share": decision.checked.float().mean(),
+        }
+        return decision.result, figures
+
     def refine(self, trainer: L.Trainer, pl_module: SceneModelEvaluation, split: str) -> None:
         """Refine all queries of the finished evaluation epoch and log the figures."""
         outputs = collect_outputs(trainer, pl_module)
@@ -251,12 +303,16 @@ class RenderCompareCallback(L.Callback):
         self.refined[split] = {"teacher": outputs[EVAL.estimate].float()}
         for name, model in models.items():
             start = time.perf_counter()
-            result = self.refiner(model, pl_module.teacher)(
+            refine = self.refiner(model, pl_module.teacher)
+            result = refine(
                 outputs[EVAL.image],
                 intrinsics,
                 outputs[EVAL.estimate],
                 outputs[EVAL.scene_estimate],
             )
+            if EVAL.scene_poses in outputs:
+                result, decided = self.decide_scenes(name, split, refine, outputs, result)
+                figures |= {f"{split}/{name}/{key}": value for key, value in decided.items()}
             seconds = time.perf_counter() - start
             truth, estimate = outputs[EVAL.pose].float(), outputs[EVAL.estimate].float()
             refined_pos, refined_rot = pose_errors(result.poses.float(), truth)

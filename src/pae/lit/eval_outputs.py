@@ -21,7 +21,8 @@ class EvalKeys:
     """The keys of one evaluation batch of ``eval_outputs``: the query ``image`` [B, 3, h, w]
     (RGB in [0, 1], at the compare width), its ``intrinsics`` [B, 4] (px, at that size), the
     teacher's pose ``estimate`` [B, 7] and ``scene_estimate`` [B], the true ``pose`` [B, 7]
-    and ``scene`` [B], and the query's row ``index`` [B] in the split."""
+    and ``scene`` [B], and the query's row ``index`` [B] in the split; for teachers that
+    classify the scene, their pose for every scene ``scene_poses`` [B, S, 7]."""
 
     image: str = "image"
     intrinsics: str = "intrinsics"
@@ -30,6 +31,7 @@ class EvalKeys:
     pose: str = "pose"
     scene: str = "scene"
     index: str = "index"
+    scene_poses: str = "scene_poses"
 
 
 EVAL = EvalKeys()

@@ -130,14 +130,16 @@ class SceneModelModule(PaeModule):
         rgb = ImageTransform.unnormalize_batch(batch["image"])
         intrinsics = self._intrinsics(split, index).to(rgb.device)
         query, intrinsics = compare_queries(rgb, intrinsics, self.query_width)
-        self.eval_outputs.append(
-            {
-                EVAL.image: query,
-                EVAL.intrinsics: intrinsics,
-                EVAL.estimate: answer.pose,
-                EVAL.scene_estimate: answer.scene,
-                EVAL.pose: gt,
-                EVAL.scene: scene,
-                EVAL.index: index,
-            }
-        )
+        outputs = {
+            EVAL.image: query,
+            EVAL.intrinsics: intrinsics,
+            EVAL.estimate: answer.pose,
+            EVAL.scene_estimate: answer.scene,
+            EVAL.pose: gt,
+            EVAL.scene: scene,
+            EVAL.index: index,
+        }
+        scene_poses = self.teacher.scene_poses(batch["image"])
+        if scene_poses is not None:
+            outputs[EVAL.scene_poses] = scene_poses
+        self.eval_outputs.append(outputs)

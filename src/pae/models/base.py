@@ -61,3 +61,8 @@ class PoseRegressor(nn.Module):
         logits = latents.scene_logits
         scene = scene if logits is None else logits.argmax(-1)
         return TeacherEstimate(raw_pose, normalize_pose(raw_pose), latents, scene)
+
+    def scene_poses(self, images: Tensor) -> Tensor | None:
+        """images [B, 3, H, W] -> the pose [B, S, 7] (unit quaternions) it regresses for each
+        of its S scenes, for teachers that classify the scene; None for the others."""
+        return None

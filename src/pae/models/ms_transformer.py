@@ -13,6 +13,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
+from pae.geometry import normalize_pose
 from pae.models.backbones import Backbone
 from pae.models.base import Latents, PoseRegressor
 
@@ -256,3 +257,9 @@ class MSTransformer(PoseRegressor):
 
     def regress(self, latents: Latents) -> Tensor:
         return torch.cat([self.head_x(latents.x), self.head_q(latents.q)], dim=-1)
+
+    def scene_poses(self, images: Tensor) -> Tensor | None:
+        if self.scene_head is None:
+            return None
+        dec_x, dec_q, _ = self.decode(images)
+        return normalize_pose(torch.cat([self.head_x(dec_x), self.head_q(dec_q)], dim=-1))
