@@ -164,7 +164,7 @@ def test_a_misspelt_refiner_key_stops_the_run_before_any_work(
 def test_a_mandatory_value_left_unset_is_named_in_one_line(compose_train) -> None:
     """A ``???`` the user must give (a dataset's root) is named before any work; the ones pae
     fills in for each step (a logger's save_dir) are not the user's to give."""
-    from pae.validation import check_missing
+    from pae.config_checks import check_missing
 
     cfg = compose_train("stage=pipeline")
     check_missing(cfg)

@@ -1,6 +1,7 @@
-"""Checks of single configured values and of model configs against their classes'
-constructors, each failure a ConfigError naming its dotted key (``pae.validation`` runs them
-over a whole run's settings; a model class checks its own ranges with them)."""
+"""Checks of single configured values, of mandatory values left unset and of model configs
+against their classes' constructors, each failure a ConfigError naming its dotted key
+(``pae.validation`` runs them over a whole run's settings; a model class checks its own
+ranges with them)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import typing
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from pae.errors import ConfigError
 
@@ -172,3 +173,33 @@ def check_constructor(cfg: DictConfig, key: str, supplied: tuple[str, ...] = ())
     check_config = getattr(target, "check_config", None)
     if check_config is not None:
         check_config(cfg, key)
+
+
+FILLED_BY_PAE = ("hydra", "logger", "callbacks")
+"""Groups whose mandatory values (``???``: a logger's ``save_dir``, a checkpoint callback's
+``dirpath``) pae fills in for each step."""
+
+
+def check_missing(cfg: DictConfig) -> None:
+    """No mandatory value (``???``) that the user must give is left unset (``FILLED_BY_PAE``
+    aside): a ConfigError naming the first, in pae's one-line form."""
+
+    def first_missing(node: Any, prefix: str) -> str | None:
+        for name in node if isinstance(node, DictConfig) else range(len(node)):
+            key = f"{prefix}{name}"
+            if key in FILLED_BY_PAE:
+                continue
+            if OmegaConf.is_missing(node, name):
+                return key
+            if OmegaConf.is_interpolation(node, name):
+                continue
+            child = node[name]
+            if isinstance(child, DictConfig | ListConfig):
+                found = first_missing(child, f"{key}.")
+                if found:
+                    return found
+        return None
+
+    key = first_missing(cfg, "")
+    if key is not None:
+        raise ConfigError(f"{key} is required and not set: add {key}=... to the command line")

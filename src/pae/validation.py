@@ -14,6 +14,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 from pae.config_checks import (
     boolean,
     check_constructor,
+    check_missing,
     choice,
     existing_file,
     integer,
@@ -122,6 +123,8 @@ def _check_root(cfg: DictConfig) -> None:
             if not path.is_file():
                 raise ConfigError(f"data.root={root}: no label file {path}{hint}")
     else:
+        from pae.data.raw import raw_download
+
         raw = raw_download(root)
         for key in ("train_labels", "test_labels", "val_labels"):
             value = setting(cfg, f"data.{key}")
@@ -131,20 +134,6 @@ def _check_root(cfg: DictConfig) -> None:
                     f"`pae-data convert {raw[1]} {root} {root}/labels` writes its label files"
                 )
             existing_file(cfg, f"data.{key}")
-
-
-def raw_download(root: Path) -> tuple[str, str] | None:
-    """The dataset whose raw layout ``root`` holds (a scene folder with its train split
-    file, ``pae.data.raw``), if any: (its name, its ``pae-data convert`` argument)."""
-    from pae.data.raw import CAMBRIDGE_SPLIT_FILES, SEVEN_SCENES_SPLIT_FILES
-
-    for name, argument, split_files in (
-        ("7-Scenes", "7scenes", SEVEN_SCENES_SPLIT_FILES),
-        ("Cambridge Landmarks", "cambridge", CAMBRIDGE_SPLIT_FILES),
-    ):
-        if next(root.glob(f"*/{split_files['train']}"), None) is not None:
-            return name, argument
-    return None
 
 
 def _per_scene(table: Any) -> int | None:
@@ -356,36 +345,6 @@ def validate_groups(cfg: DictConfig) -> None:
         node = setting(cfg, key)
         if isinstance(node, DictConfig) and "_target_" in node:
             check_constructor(cfg, key, supplied)
-
-
-FILLED_BY_PAE = ("hydra", "logger", "callbacks")
-"""Groups whose mandatory values (``???``: a logger's ``save_dir``, a checkpoint callback's
-``dirpath``) pae fills in for each step."""
-
-
-def check_missing(cfg: DictConfig) -> None:
-    """No mandatory value (``???``) that the user must give is left unset (``FILLED_BY_PAE``
-    aside): a ConfigError naming the first, in pae's one-line form."""
-
-    def first_missing(node: Any, prefix: str) -> str | None:
-        for name in node if isinstance(node, DictConfig) else range(len(node)):
-            key = f"{prefix}{name}"
-            if key in FILLED_BY_PAE:
-                continue
-            if OmegaConf.is_missing(node, name):
-                return key
-            if OmegaConf.is_interpolation(node, name):
-                continue
-            child = node[name]
-            if isinstance(child, DictConfig | ListConfig):
-                found = first_missing(child, f"{key}.")
-                if found:
-                    return found
-        return None
-
-    key = first_missing(cfg, "")
-    if key is not None:
-        raise ConfigError(f"{key} is required and not set: add {key}=... to the command line")
 
 
 def validate_render_compare(cfg: DictConfig) -> None:

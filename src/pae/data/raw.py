@@ -251,3 +251,15 @@ def convert_raw(
         write_labels(out_dir / f"all_{split}.csv", combined)
         written[f"all_{split}.csv"] = len(combined)
     return written
+
+
+def raw_download(root: Path) -> tuple[str, str] | None:
+    """The dataset whose raw layout ``root`` holds (a scene folder with its train split
+    file, ``pae.data.raw``), if any: (its name, its ``pae-data convert`` argument)."""
+    for name, argument, split_files in (
+        ("7-Scenes", "7scenes", SEVEN_SCENES_SPLIT_FILES),
+        ("Cambridge Landmarks", "cambridge", CAMBRIDGE_SPLIT_FILES),
+    ):
+        if next(root.glob(f"*/{split_files['train']}"), None) is not None:
+            return name, argument
+    return None

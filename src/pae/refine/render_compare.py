@@ -29,18 +29,14 @@ same steps (tested equal).
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any, ClassVar
 
 import torch
 import torch.nn.functional as F
-from omegaconf import OmegaConf
 from torch import Tensor
 
-from pae import CONFIG_DIR
 from pae.data.camera import camera_rays, project, scale_intrinsics
 from pae.geometry import matrix_to_quaternion, normalize_quaternion, quaternion_to_matrix
 from pae.models.scene_model import SceneModel
@@ -51,11 +47,21 @@ from pae.refine.render_polish import polish_tensor
 from pae.refine.render_polish_kernel import polish_compiled
 from pae.refine.render_records import Hypotheses, Level, Reference, Surface
 from pae.refine.render_score import MIN_DEPTH_M, NOT_SEEN_SCORE, compiled_zncc_scores
+from pae.refine.render_settings import (
+    BUILD_KEYS,
+    ENGINES,
+    REFINER_CONFIG,
+    SCORES,
+    check_settings,
+    refiner_defaults,
+)
 from pae.refine.render_work import RenderCompareWork
 
 __all__ = [
     "ACCEPT_ALL",
+    "BUILD_KEYS",
     "ENGINES",
+    "REFINER_CONFIG",
     "SCORES",
     "GatedPoses",
     "RenderCompareRefiner",
@@ -63,33 +69,11 @@ __all__ = [
     "gate",
     "refiner_defaults",
 ]
-"""The refiner's public names (the gate and the result live in ``pae.refine.render_gate``)."""
+"""The refiner's public names (the gate and the result live in ``pae.refine.render_gate``,
+the settings' defaults and ranges in ``pae.refine.render_settings``)."""
 
-SCORES = ("zncc", "features")
-ENGINES = ("auto", "compiled", "torch")
-"""auto: compiled loops (``pae.refine.render_score``, ``pae.refine.render_polish``) for CPU
-tensors and the ZNCC score, tensor operations otherwise; compiled: always (ZNCC only);
-torch: always tensor operations (any device)."""
 FeatureExtractor = Callable[[Tensor], Tensor]
 """RGB images [B, 3, H, W] in [0, 1] -> feature maps [B, C, h, w]."""
-
-
-REFINER_CONFIG = Path(CONFIG_DIR) / "render_compare" / "default.yaml"
-"""The render_compare group's default: its ``refiner`` node holds every setting's default."""
-BUILD_KEYS = ("_target_", "_partial_")
-
-
-@functools.cache
-def _defaults() -> dict[str, Any]:
-    node = OmegaConf.merge({"seed": 0}, OmegaConf.load(REFINER_CONFIG))
-    settings = OmegaConf.to_container(node.refiner, resolve=True)
-    assert isinstance(settings, dict)
-    return {key: value for key, value in settings.items() if key not in BUILD_KEYS}
-
-
-def refiner_defaults() -> dict[str, Any]:
-    """RenderCompareRefiner's default settings, read from ``REFINER_CONFIG`` (seed 0)."""
-    return dict(_defaults())
 
 
 class RenderCompareRefiner:
@@ -145,48 +129,7 @@ class RenderCompareRefiner:
         engine: str,
         features: FeatureExtractor | None = None,
     ) -> None:
-        if score not in SCORES:
-            raise ValueError(f"unknown render_compare.score {score!r}; choose one of {SCORES}")
-        if engine not in ENGINES:
-            raise ValueError(f"unknown render_compare.engine {engine!r}; choose one of {ENGINES}")
-        if engine == "compiled" and score != "zncc":
-            raise ValueError("render_compare.engine=compiled scores zncc only; use auto or torch")
-        if score == "features" and polish_steps:
-            raise ValueError(
-                "render_compare.polish_steps align the zncc score only; set "
-                "render_compare.refiner.polish_steps=0 with score=features"
-            )
-        if score == "features" and features is None:
-            raise ValueError("render_compare.score=features needs a feature extractor")
-        if (
-            min(rounds, polish_steps, final_reference_size) < 0
-            or min(candidates, hypotheses, levels) < 1
-        ):
-            raise ValueError(
-                "render_compare needs rounds, polish_steps, final_reference_size >= 0 and "
-                "candidates, hypotheses, levels >= 1"
-            )
-        if min(resolution, reference_size) < 8 or 0 < final_reference_size < 8:
-            raise ValueError(
-                "render_compare needs resolution, reference_size and final_reference_size "
-                "(unless 0) >= 8 px"
-            )
-        if min(reference_fov_scale, final_fov_scale) <= 0:
-            raise ValueError(
-                "render_compare needs reference_fov_scale and final_fov_scale > 0, not "
-                f"{reference_fov_scale:g} and {final_fov_scale:g}"
-            )
-        if highpass_sigma_px < 0 or blur_sigma_px < 0 or polish_damping <= 0:
-            raise ValueError(
-                "render_compare needs blur_sigma_px >= 0, highpass_sigma_px >= 0 and "
-                f"polish_damping > 0, not {blur_sigma_px:g}, {highpass_sigma_px:g}, "
-                f"{polish_damping:g}"
-            )
-        if trim_sigma < 0 or trim_passes < 0:
-            raise ValueError(
-                f"render_compare needs trim_sigma >= 0 and trim_passes >= 0, not {trim_sigma} "
-                f"and {trim_passes}"
-            )
+        check_settings(**{name: value for name, value in locals().items() if name != "self"})
         self.scene_model = scene_model
         self.rounds = rounds
         self.candidates = candidates
