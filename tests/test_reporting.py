@@ -77,6 +77,14 @@ def test_results_table_marks_test_store_rows_and_prints_the_ratio() -> None:
     assert "teacher median error: 0.70" in table
 
 
+def test_results_table_gives_the_scene_accuracy_before_and_after_render_compare() -> None:
+    metrics = _metrics(0.5, 0.45) | {"test/teacher/scene_accuracy": 0.9}
+    assert "teacher scene accuracy: 90.0 %\n" in format_results_table(metrics) + "\n"
+    metrics["test/render_compare/scene_accuracy"] = 0.975
+    line = "teacher scene accuracy: 90.0 %; after render_compare: 97.5 %"
+    assert line in format_results_table(metrics)
+
+
 def test_compare_table_has_a_column_per_run(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

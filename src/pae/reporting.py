@@ -179,7 +179,11 @@ def format_results_table(metrics: Mapping[str, float], split: str = "test") -> s
         )
     accuracy = metrics.get(f"{split}/teacher/scene_accuracy")
     if accuracy is not None:
-        lines.append(f"teacher scene accuracy: {100 * accuracy:.1f} %")
+        decided = metrics.get(f"{split}/render_compare/scene_accuracy")
+        lines.append(
+            f"teacher scene accuracy: {100 * accuracy:.1f} %"
+            + ("" if decided is None else f"; after render_compare: {100 * decided:.1f} %")
+        )
     diagnostics = f"{split}/diagnostics/"
     distances = {
         key.removeprefix(diagnostics).removesuffix("_m"): value
