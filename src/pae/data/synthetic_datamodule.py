@@ -69,15 +69,16 @@ class SyntheticDataModule(PoseDataModule):
     overwritten). A given ``root`` is only read: without label files it is an error naming
     it, so a mistyped path never trains on freshly rendered data. The defaults are
     ``pae-data synth``'s (``pae.data.synthetic.DEFAULT_*``), the values of
-    ``conf/data/synthetic.yaml``.
+    ``conf/data/synthetic.yaml``. With a given ``root``, ``train_frames`` and
+    ``test_frames`` only describe it: None where its scenes hold different counts.
     """
 
     def __init__(
         self,
         root: str | None = None,
         scenes: int = synthetic.DEFAULT_SCENES,
-        train_frames: int = synthetic.DEFAULT_TRAIN_FRAMES,
-        test_frames: int = synthetic.DEFAULT_TEST_FRAMES,
+        train_frames: int | None = synthetic.DEFAULT_TRAIN_FRAMES,
+        test_frames: int | None = synthetic.DEFAULT_TEST_FRAMES,
         size: int = synthetic.DEFAULT_SIZE,
         render_seed: int = 0,
         test_offset_m: float = synthetic.DEFAULT_TEST_OFFSET_M,
