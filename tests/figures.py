@@ -14,7 +14,8 @@ MAX_ANGLE_DEG = 180.0
 """No orientation error in degrees exceeds this: a larger figure has the wrong units."""
 
 WORSE_THAN_MEAN_POSE = 3.0
-"""How many times the mean-pose baseline's position figure a trained method may err by."""
+"""How many times the mean-pose baseline's position figure a method may reach on the tiny
+dataset: runs there, trained or not, stay under 2×; metres reported in millimetres do not."""
 
 
 def assert_error_figure(metrics: Mapping[str, float], key: str, upper: float) -> float:
