@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
@@ -23,26 +24,39 @@ def test_mlp_flops_per_query_on_known_sizes() -> None:
     assert mlp_flops_per_query(1, 2, 0) == 2 * (2 * 64 + 64 * 32 + 32 * 16 + 16 * 1)
 
 
-def test_bench_refinement_figures_agree_with_each_other() -> None:
+REFINEMENT_TIMES = (
+    "batched",
+    "tensor_ops",
+    "per_query",
+    "public_loop",
+    "softmax_logits",
+    "closed_form",
+)
+
+
+def test_bench_refinement_reports_times_work_and_their_direction() -> None:
+    """Every figure is reported, finite and positive; the work counted is that of the sizes
+    asked for; the batched path beats the loops; the arithmetic it does stays below what
+    the measured matrix-product speed allows in its time (a figure in the wrong units would
+    not)."""
     figures = bench_refinement(n_queries=40, public_queries=10)
-    batched = figures["bench/refine/batched_ms_per_query"]
-    per_query = figures["bench/refine/per_query_ms_per_query"]
-    public = figures["bench/refine/public_loop_ms_per_query"]
-    assert figures["bench/refine/speedup"] == pytest.approx(public / batched)
-    assert figures["bench/refine/speedup_vs_per_query"] == pytest.approx(per_query / batched)
+    ratios = ("speedup", "speedup_vs_per_query", "roofline_fraction", "stored_weight_ratio")
+    expected = {f"bench/refine/{name}_ms_per_query" for name in REFINEMENT_TIMES}
+    expected |= {f"bench/refine/{name}" for name in ratios}
+    expected |= {f"bench/refine/{name}" for name in ("mflop_per_query", "mflop_done_per_query")}
+    assert set(figures) == expected | {"bench/refine/matmul_gflops"}
+    for key, value in figures.items():
+        assert math.isfinite(value) and value > 0, (key, value)
     assert figures["bench/refine/mflop_per_query"] == pytest.approx(6.36192)
-    seconds_at_roofline = 6.36192e6 / (figures["bench/refine/matmul_gflops"] * 1e9)
-    assert figures["bench/refine/stored_weight_ratio"] == pytest.approx(
-        seconds_at_roofline * 1e3 / batched
-    )
     # the arithmetic done: the closed-form first layer and the skipped units do far less
     done = figures["bench/refine/mflop_done_per_query"]
     assert 0.01 < done < 6.36192 / 3
-    assert figures["bench/refine/roofline_fraction"] == pytest.approx(
-        figures["bench/refine/stored_weight_ratio"] * done / 6.36192
-    )
-    # one batched call against 40 optimiser loops: batched is the faster under any load
-    assert per_query > batched
+    assert 0.1 < figures["bench/refine/matmul_gflops"] < 1e5
+    assert figures["bench/refine/roofline_fraction"] < 1
+    # one batched call against 40 optimiser loops or 10 public loops: faster under any load
+    assert figures["bench/refine/speedup"] > 1 and figures["bench/refine/speedup_vs_per_query"] > 1
+    batched = figures["bench/refine/batched_ms_per_query"]
+    assert figures["bench/refine/per_query_ms_per_query"] > batched
 
 
 def test_bench_index_on_label_files(tmp_path: Path) -> None:
@@ -69,10 +83,13 @@ def test_bench_index_on_label_files(tmp_path: Path) -> None:
 
 
 def test_bench_first_layer_gain_figures() -> None:
-    figures = bench_first_layer_gain(batch=8, repeats=2)
-    series = figures["bench/refine/first_layer_series_ms"]
-    direct = figures["bench/refine/first_layer_direct_ms"]
-    assert figures["bench/refine/first_layer_series_speedup"] == pytest.approx(direct / series)
+    """The closed-form series beats the plain chunked sum it replaces."""
+    figures = bench_first_layer_gain(batch=8, repeats=5)
+    names = ("first_layer_series_ms", "first_layer_direct_ms", "first_layer_series_speedup")
+    assert set(figures) == {f"bench/refine/{name}" for name in names}
+    for key, value in figures.items():
+        assert math.isfinite(value) and value > 0, (key, value)
+    assert figures["bench/refine/first_layer_series_speedup"] > 1
 
 
 def test_bench_sweep_splits_the_speedup_into_cache_and_parallel_shares(

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import tiny_data_overrides, tiny_overrides
+from tests.figures import WORSE_THAN_MEAN_POSE, assert_error_figure, label_reference
 
 pytestmark = pytest.mark.slow
 
@@ -46,7 +47,11 @@ def test_ddp_evaluation_counts_every_sample_once(tiny_root: Path, tmp_path: Path
         "stage=pipeline",
         "trainer=ddp_sim",
     )
-    assert trained["test/refined/pos_median_m"] >= 0
+    reference = label_reference(tiny_root, "test")  # every test sample counted once
+    for figure in ("pos_median_m", "rot_median_deg", "pos_mean_m", "rot_mean_deg"):
+        assert trained[f"test/mean_pose/{figure}"] == pytest.approx(reference[figure], rel=1e-5)
+    upper = WORSE_THAN_MEAN_POSE * reference["pos_median_m"]
+    assert_error_figure(trained, "test/refined/pos_median_m", upper)
     checkpoint = tmp_path / "pipeline" / "student" / "checkpoints" / "last.ckpt"
     data = _data_overrides(_odd_test_split(tiny_root, tmp_path / "odd"))
     one = _run("pae.evaluate", tmp_path / "one", f"student_ckpt={checkpoint}", *data)

@@ -32,6 +32,7 @@ from pae.reporting import format_results_table, sweep_report, sweep_table
 from pae.reporting import main as reporting_main
 from pae.train import run
 from tests.conftest import TINY, tiny_data_overrides, tiny_overrides
+from tests.figures import WORSE_THAN_MEAN_POSE, assert_error_figure, label_reference
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 
@@ -883,7 +884,7 @@ def test_pae_eval_takes_a_teacher_of_the_students_architecture_only(
 
     teacher_ckpt = teacher_run / "checkpoints" / "last.ckpt"
     student = ("stage=student", f"teacher_ckpt={teacher_ckpt}", "student.max_epochs=1")
-    run(compose_train(*student, "refine=none", run_dir=tmp_path / "s"), tmp_path / "s")
+    trained = run(compose_train(*student, "refine=none", run_dir=tmp_path / "s"), tmp_path / "s")
     student_ckpt = tmp_path / "s" / "checkpoints" / "last.ckpt"
     other = _ms_transformer_teacher(compose_train, tmp_path / "ms_transformer.ckpt")
 
@@ -914,7 +915,11 @@ def test_pae_eval_takes_a_teacher_of_the_students_architecture_only(
     ):
         evaluate(f"student_ckpt={teacher_ckpt}")
     same = evaluate(f"student_ckpt={student_ckpt}", f"teacher_ckpt={teacher_ckpt}")
-    assert same["test/student/pos_median_m"] >= 0, "a teacher of the same architecture is taken"
+    upper = WORSE_THAN_MEAN_POSE * label_reference(tiny_root, "test")["pos_median_m"]
+    assert_error_figure(same, "test/student/pos_median_m", upper)
+    for method in ("teacher", "student"):  # the teacher passed is the one the student learnt
+        key = f"test/{method}/pos_median_m"
+        assert same[key] == pytest.approx(trained[key], rel=1e-5), key
 
 
 def test_report_lists_every_job_of_a_sweep_that_has_no_result(tmp_path: Path) -> None:

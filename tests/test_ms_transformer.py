@@ -26,6 +26,7 @@ from pae.models.ms_transformer import REDUCTION_TAPS, MSTransformer
 from pae.models.pae import PoseAutoEncoder
 from pae.refine import PoseIndex, PositionRefiner
 from pae.train import run
+from tests.figures import WORSE_THAN_MEAN_POSE, assert_error_figure, label_reference
 
 SMALL = {
     "latent_dim": 32,
@@ -348,7 +349,7 @@ def test_public_pae_state_dict_gives_the_same_latents(L: int, n_scenes: int) -> 
 
 
 def test_ms_transformer_pipeline_reports_scene_accuracy(
-    compose_train: Callable[..., DictConfig], tmp_path: Path
+    compose_train: Callable[..., DictConfig], tiny_root: Path, tmp_path: Path
 ) -> None:
     cfg = compose_train(
         "stage=pipeline",
@@ -375,7 +376,8 @@ def test_ms_transformer_pipeline_reports_scene_accuracy(
         assert 0.0 <= metrics[f"{split}/render_compare/scene_checked_share"] <= 1.0
     floor = metrics["val/render_compare/scene_check_below"]
     assert metrics["test/render_compare/scene_check_below"] == floor, "chosen on val"
-    for method in ("teacher", "student", "refined"):
-        assert metrics[f"test/{method}/scene00/pos_median_m"] >= 0
+    upper = WORSE_THAN_MEAN_POSE * label_reference(tiny_root, "test")["scene00/pos_median_m"]
+    for method in ("teacher", "student", "refined", "render_compare"):
+        assert_error_figure(metrics, f"test/{method}/scene00/pos_median_m", upper)
     teacher = load_teacher(tmp_path / "student" / "checkpoints" / "last.ckpt")
     assert isinstance(teacher.model, MSTransformer) and teacher.model.latent_dim == 16
