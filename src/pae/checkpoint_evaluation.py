@@ -67,7 +67,9 @@ def evaluate_checkpoints(cfg: DictConfig, run_dir: Path) -> Metrics:
         metrics |= validate_and_test(trainer, module, data)
         log_hparams(trainer, cfg, metrics)
     if cfg.get("scene_model_ckpt"):
-        metrics |= evaluate_scene_model(cfg, run_dir, cfg.scene_model_ckpt, teacher, data)
+        metrics |= evaluate_scene_model(
+            cfg, run_dir / "render_compare", cfg.scene_model_ckpt, teacher, data
+        )
     return metrics
 
 

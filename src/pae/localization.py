@@ -274,6 +274,16 @@ def compare_width(settings: dict[str, Any]) -> int:
     return int(settings.get("resolution", refiner_defaults()["resolution"]))
 
 
+def scene_model_path(run: Run) -> Path:
+    """The scene model the run's render-and-compare used: ``scene_model_ckpt`` when given, else
+    the checkpoint of its scene_fit step, else of its scene_model step."""
+    given = run.config.get("scene_model_ckpt")
+    if given:
+        return Path(given)
+    step = "scene_fit" if "scene_fit" in run.steps else "scene_model"
+    return run.checkpoint(step, RENDER_COMPARE)
+
+
 def render_compare(
     run: Run, teacher: torch.nn.Module, found: Estimates, device: torch.device
 ) -> Tensor:
@@ -281,7 +291,7 @@ def render_compare(
     from the teacher's estimates, through the gate the run applied at test."""
     from pae.callbacks.render_compare import teacher_features
 
-    loaded = load_scene_model(run.checkpoint("scene_model", RENDER_COMPARE), "scene_model_ckpt")
+    loaded = load_scene_model(scene_model_path(run), "scene_model_ckpt")
     settings, margin, floor = render_compare_settings(run)
     features = None
     if settings.get("score") == "features":

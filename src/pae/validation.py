@@ -360,6 +360,8 @@ def validate_render_compare(cfg: DictConfig) -> None:
 def validate_train_config(cfg: DictConfig, overrides: list[str] | None = None) -> None:
     """All of pae-train's settings (conf/train.yaml), and the keys ``overrides`` (the command
     line's) add; raises ConfigError naming the key."""
+    from hydra.utils import get_object
+
     from pae.losses import LATENT_LOSSES
 
     check_missing(cfg)
@@ -396,8 +398,14 @@ def validate_train_config(cfg: DictConfig, overrides: list[str] | None = None) -
     for key in CHECKPOINTS:
         existing_file(cfg, key)
     _validate_scene_model(cfg)
+    needs = _model_needs(cfg, steps)
+    if _validate_novel_views(cfg) and "teacher" in steps:
+        needs["teacher"] = (*needs["teacher"], "scene_model_ckpt")
+    target = setting(cfg, "scene_model.model._target_")
+    if "scene_fit" in steps and not getattr(get_object(target), "trains", False):
+        raise ConfigError(f"scene_fit: scene_model.model._target_={target} does not train")
     given = {key: setting(cfg, key) for key in CHECKPOINTS}
-    missing = missing_checkpoints(steps, given, _model_needs(cfg, steps))
+    missing = missing_checkpoints(steps, given, needs)
     if missing:
         raise ConfigError(f"stage={cfg.stage.name} needs {missing[0][1]}=PATH")
     from pae.checkpoints import check_checkpoint_kinds
@@ -418,6 +426,34 @@ def _model_needs(cfg: DictConfig, steps: list[str]) -> dict[str, tuple[str, ...]
         )
         for step in steps_of(steps)
     }
+
+
+NOVEL_VIEW_KEYS = ("enabled", "ratio", "views", "between", "position_jitter_m")
+NOVEL_VIEW_KEYS += ("orientation_jitter_deg", "size", "cache")
+"""The settings of ``teacher.novel_views`` (pae.data.novel_views.NovelViewSettings's fields
+and ``enabled``)."""
+
+
+def _validate_novel_views(cfg: DictConfig) -> bool:
+    """``teacher.novel_views.*``: its keys and ranges -> whether novel views are on."""
+    views = setting(cfg, "teacher.novel_views")
+    if views is None:
+        return False
+    for name in views:
+        if name not in NOVEL_VIEW_KEYS:
+            raise ConfigError(
+                f"teacher.novel_views.{name}: not a setting of teacher.novel_views (it has "
+                f"{', '.join(NOVEL_VIEW_KEYS)})"
+            )
+    for name in ("enabled", "between", "cache"):
+        boolean(cfg, f"teacher.novel_views.{name}")
+    for name in ("ratio", "views"):
+        number(cfg, f"teacher.novel_views.{name}", 0, strict=True)
+    for name in ("position_jitter_m", "orientation_jitter_deg"):
+        number(cfg, f"teacher.novel_views.{name}", 0, strict=False)
+    if setting(cfg, "teacher.novel_views.size") is not None:
+        integer(cfg, "teacher.novel_views.size", 4)
+    return bool(views.enabled)
 
 
 def _validate_scene_model(cfg: DictConfig) -> None:

@@ -136,12 +136,12 @@ class RayLoader:
             self.rays_per_batch,
             self.batches,
             self.seed,
-            lambda: _epoch(data),
+            lambda: trainer_epoch(data),
         )
         return DataLoader(rays, batch_size=None)
 
 
-def _epoch(data: PoseDataModule) -> int:
+def trainer_epoch(data: PoseDataModule) -> int:
     """The training epoch under way in ``data``'s trainer (0 without one)."""
     trainer = data.trainer
     return trainer.current_epoch if trainer is not None else 0

@@ -44,14 +44,15 @@ class SceneModelModule(PaeModule):
     ``mean_pose`` and keeps every query for the refinement callback (``eval_outputs``, keyed by
     ``pae.lit.eval_outputs.EVAL``: its
     image area-resized to ``query_width`` px wide, the refiner's compare width, with the
-    intrinsics of that size; None: as evaluated). The model's quality at the split's poses
+    intrinsics of that size; None: as evaluated); without a teacher (a fit alone) it logs
+    ``mean_pose`` and keeps nothing. The model's quality at the split's poses
     is a callback's (``pae.callbacks.scene_quality``).
     """
 
     def __init__(
         self,
         scene_model: SceneModel,
-        teacher: PoseRegressor,
+        teacher: PoseRegressor | None,
         optimizer: OptimizerFactory,
         scene_names: list[str],
         configs: dict[str, Any],
@@ -65,21 +66,23 @@ class SceneModelModule(PaeModule):
         super().__init__(optimizer, scheduler)
         self.save_hyperparameters({**configs, "scene_names": list(scene_names)})
         self.scene_model = scene_model
-        self.teacher = teacher.eval().requires_grad_(False)
+        self.teacher = None if teacher is None else teacher.eval().requires_grad_(False)
         self.scene_names = list(scene_names)
         self.tv_weight = tv_weight
         self.fit_trim = fit_trim
         self.fit_trim_from_epoch = fit_trim_from_epoch
         self.appearance_lr = appearance_lr
         self.query_width = query_width
-        self.evaluation = PoseEvaluation(SCENE_MODEL_METHODS, scene_names)
+        methods = SCENE_MODEL_METHODS if teacher is not None else ["mean_pose"]
+        self.evaluation = PoseEvaluation(methods, scene_names)
         self.register_mean_pose_baseline(len(scene_names))
         self.eval_outputs: list[dict[str, Tensor]] = []
         self._split_intrinsics: dict[str, Tensor] = {}
 
     def train(self, mode: bool = True) -> SceneModelModule:
         super().train(mode)
-        self.teacher.eval()
+        if self.teacher is not None:
+            self.teacher.eval()
         return self
 
     def trainable_parameters(self) -> list[nn.Parameter] | list[dict[str, Any]]:
@@ -124,9 +127,11 @@ class SceneModelModule(PaeModule):
 
     def evaluate(self, batch: dict[str, Tensor], batch_idx: int, split: str) -> None:
         gt, scene, index = batch["pose"], batch["scene"], batch["index"]
+        self.evaluation.update(split, "mean_pose", self.mean_poses[scene], gt, scene, index)
+        if self.teacher is None:
+            return
         answer = self.teacher.estimate(batch["image"], scene)
         self.evaluation.update(split, "teacher", answer.raw_pose, gt, scene, index)
-        self.evaluation.update(split, "mean_pose", self.mean_poses[scene], gt, scene, index)
         rgb = ImageTransform.unnormalize_batch(batch["image"])
         intrinsics = self._intrinsics(split, index).to(rgb.device)
         query, intrinsics = compare_queries(rgb, intrinsics, self.query_width)

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-CHECKPOINTS = ("teacher_ckpt", "student_ckpt", "decoder_ckpt")
+CHECKPOINTS = ("teacher_ckpt", "student_ckpt", "decoder_ckpt", "scene_model_ckpt")
 """The run's checkpoint keys (conf/train.yaml): given on the command line or made by a step."""
 
 Fit = Callable[..., tuple[dict[str, float], Path]]
@@ -80,12 +80,24 @@ def _step(
 STEPS: dict[str, Step] = {
     step.name: step
     for step in (
+        # fits a scene model without a teacher: before the teacher when its novel views
+        # need one (stage=novel_views), tested by the scene_model step after it
         _step(
+            "scene_fit",
+            "scene_model",
+            "pae.steps.scene_fit:fit_scene",
+            {"scene_model.model": ()},
+            produces="scene_model_ckpt",
+        ),
+        # reads scene_model_ckpt with teacher.novel_views.enabled (pae.validation says so)
+        Step(
             "teacher",
             "teacher",
             "pae.steps.teacher:fit_teacher",
-            {"teacher.model": ("n_scenes",)},
             produces="teacher_ckpt",
+            resumable=("teacher.max_epochs",),
+            models={"teacher.model": ("n_scenes",)},
+            optional=("scene_model_ckpt",),
         ),
         _step(
             "student",
@@ -119,7 +131,8 @@ STEPS: dict[str, Step] = {
         ),
         _step("iapr", "iapr", "pae.steps.iapr:fit_iapr", {"iapr.model": ()}, ("student_ckpt",)),
         # the model's class may read more checkpoints (its `needs`: scene_model=pae_decoder
-        # reads the student and decoder), passed when given
+        # reads the student and decoder), passed when given; given scene_model_ckpt, it
+        # tests that model and fits none
         Step(
             "scene_model",
             "scene_model",
@@ -128,7 +141,7 @@ STEPS: dict[str, Step] = {
             "scene_model_ckpt",
             ("scene_model.max_epochs", "render_compare."),
             {"scene_model.model": ()},
-            ("student_ckpt", "decoder_ckpt"),
+            ("student_ckpt", "decoder_ckpt", "scene_model_ckpt"),
         ),
     )
 }

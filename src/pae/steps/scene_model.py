@@ -1,65 +1,31 @@
 """The scene_model step: fit a scene model from the train images, poses and intrinsics, then
-test render-and-compare refinement of a frozen teacher (`test/render_compare/...`); and
-pae-eval's test of a scene-model checkpoint."""
+test render-and-compare refinement of a frozen teacher (`test/render_compare/...`); given a
+fitted one (``scene_model_ckpt``: on the command line or from a scene_fit step), only the
+test. And pae-eval's test of a scene-model checkpoint."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import torch
-from hydra.utils import get_class
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from pae.callbacks.render_compare_gallery import RenderCompareGallery
 from pae.callbacks.scene_quality import SceneModelQuality
-from pae.checkpoints import LoadedModel, load_decoder, load_pae, load_scene_model, load_teacher
-from pae.data.rays import RayLoader
-from pae.errors import ConfigError
+from pae.checkpoints import LoadedModel, load_scene_model, load_teacher
 from pae.lit.scene_model import SceneModelModule
-from pae.models.scene_model import SceneModel, SceneModelInputs
 from pae.runs import Metrics
 from pae.runs.hparams import log_hparams
 from pae.runs.inputs import build_data, check_data, required
+from pae.runs.scene import build_scene_model, fitting_module
 from pae.runs.trainer import (
     build_trainer,
     collect_metrics,
     fit_and_test,
-    optimisation,
     render_compare_callback,
     validate_and_test,
 )
-
-LOADERS: dict[str, Callable[..., LoadedModel]] = {
-    "teacher_ckpt": load_teacher,
-    "student_ckpt": load_pae,
-    "decoder_ckpt": load_decoder,
-}
-"""Checkpoint key -> what a scene model's ``build`` gets for it (the teacher, the student's
-PAE, the decoder)."""
-
-
-def build_scene_model(
-    cfg: DictConfig, data: Any, checkpoints: dict[str, str | Path | None]
-) -> tuple[SceneModel, dict[str, Any]]:
-    """The scene model of ``scene_model.model`` (its ``_target_`` class's ``build``, given the
-    data and the checkpoints it ``needs``) and what a checkpoint stores to rebuild it."""
-    config = OmegaConf.to_container(cfg.scene_model.model, resolve=True)
-    target = config.pop("_target_")
-    cls = get_class(target)
-
-    def load(key: str) -> LoadedModel:
-        path = checkpoints.get(key)
-        if path is None:
-            raise ConfigError(f"scene_model.model._target_={target} needs {key}=PATH")
-        loaded = LOADERS[key](path, key)
-        check_data(cfg, path, loaded, data)
-        return loaded
-
-    inputs = SceneModelInputs(data, cfg.scene_model.appearance, load)
-    model, stored = cls.build(config, inputs)
-    return model, ({} if stored is None else {"scene_model_config": {"_target_": target, **stored}})
 
 
 def fit_scene_model(
@@ -68,10 +34,12 @@ def fit_scene_model(
     teacher_ckpt: str | Path | None,
     student_ckpt: str | Path | None = None,
     decoder_ckpt: str | Path | None = None,
+    scene_model_ckpt: str | Path | None = None,
 ) -> tuple[Metrics, Path | None]:
     """Fit the configured scene model (one whose class ``trains``: its checkpoint is written
     with max_epochs=0 too; others are only built), then test render-and-compare from the
-    teacher's estimates -> (metrics, the last checkpoint or None)."""
+    teacher's estimates -> (metrics, the last checkpoint or None); with ``scene_model_ckpt``
+    that model is tested and nothing is fitted (-> its checkpoint)."""
     checkpoints = {
         "teacher_ckpt": teacher_ckpt,
         "student_ckpt": student_ckpt,
@@ -81,29 +49,17 @@ def fit_scene_model(
     teacher = load_teacher(teacher_path, "teacher_ckpt")
     images = build_data(cfg, augment=False)
     check_data(cfg, teacher_path, teacher, images)
-    scene_model, configs = build_scene_model(cfg, images, checkpoints)
     settings = cfg.scene_model
-    callback = render_compare_callback(cfg)
-    images.train_batches = RayLoader(
-        settings.rays_per_batch,
-        settings.batches_per_epoch,
-        settings.image_size,
-        settings.appearance,
-        cfg.seed,
-    )
-    module = SceneModelModule(
-        scene_model,
-        teacher.model,
-        **optimisation(settings),
-        scene_names=images.scene_names,
-        configs={"teacher_config": teacher.config, **configs},
-        tv_weight=settings.tv_weight,
-        fit_trim=settings.fit_trim,
-        fit_trim_from_epoch=settings.fit_trim_from_epoch,
-        appearance_lr=settings.appearance_lr,
-        query_width=callback.query_width,
-    )
     quality = SceneModelQuality(settings.quality_size, settings.quality_images)
+    if scene_model_ckpt is not None:
+        metrics = evaluate_scene_model(
+            cfg, step_dir, scene_model_ckpt, teacher, images, quality, "scene_model"
+        )
+        return metrics, Path(scene_model_ckpt)
+    scene_model, configs = build_scene_model(cfg, images, checkpoints)
+    callback = render_compare_callback(cfg)
+    configs = {"teacher_config": teacher.config, **configs}
+    module = fitting_module(cfg, images, scene_model, teacher.model, configs, callback.query_width)
     callbacks = [callback, RenderCompareGallery(callback), quality]
     if scene_model.trains:  # max_epochs=0: saved untrained
         metrics, last = fit_and_test(
@@ -118,10 +74,18 @@ def fit_scene_model(
 
 
 def evaluate_scene_model(
-    cfg: DictConfig, run_dir: Path, path: str | Path, teacher: LoadedModel, data: Any
+    cfg: DictConfig,
+    out_dir: Path,
+    path: str | Path,
+    teacher: LoadedModel,
+    data: Any,
+    quality: SceneModelQuality | None = None,
+    step: str = "eval",
 ) -> Metrics:
     """Test render-and-compare (the `render_compare` group's settings) with the scene model
-    of checkpoint ``path`` from ``teacher``'s estimates on ``data`` (pae-eval)."""
+    of checkpoint ``path`` from ``teacher``'s estimates on ``data``, writing into ``out_dir``
+    (the scene_model step, pae-eval); ``quality``: the scene model's quality callback
+    (None: its defaults)."""
     loaded = load_scene_model(path, "scene_model_ckpt")
     check_data(cfg, path, loaded, data)
     callback = render_compare_callback(cfg)
@@ -133,8 +97,8 @@ def evaluate_scene_model(
         configs={"teacher_config": teacher.config, "scene_model_config": loaded.config},
         query_width=callback.query_width,
     )
-    callbacks = [callback, RenderCompareGallery(callback), SceneModelQuality()]
-    trainer = build_trainer(cfg, run_dir / "render_compare", 0, callbacks)
+    callbacks = [callback, RenderCompareGallery(callback), quality or SceneModelQuality()]
+    trainer = build_trainer(cfg, out_dir, 0, callbacks, step=step)
     metrics = validate_and_test(trainer, module, data)
     metrics |= collect_metrics(trainer, ("bench/",))
     log_hparams(trainer, cfg, metrics)

@@ -1,5 +1,6 @@
 """The teacher step: train and test a teacher APR, the absolute pose regressor whose latents
-the PAE learns."""
+the PAE learns; with ``teacher.novel_views.enabled``, on the train images mixed with views a
+scene model renders around the train cameras (pae.data.novel_views)."""
 
 from __future__ import annotations
 
@@ -9,9 +10,12 @@ from typing import Any
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from pae.checkpoints import load_scene_model
+from pae.data.datamodule import PoseDataModule
+from pae.data.novel_views import NovelViewLoader, NovelViewSettings
 from pae.lit.teacher import TeacherModule
 from pae.runs import Metrics
-from pae.runs.inputs import build_data
+from pae.runs.inputs import build_data, check_data, required
 from pae.runs.trainer import fit_and_test, optimisation
 
 
@@ -24,9 +28,30 @@ def _teacher_config(cfg: DictConfig, n_scenes: int) -> dict[str, Any]:
     return config
 
 
-def fit_teacher(cfg: DictConfig, step_dir: Path) -> tuple[Metrics, Path]:
-    """Train and test a teacher APR -> (metrics, path of its last checkpoint)."""
+def novel_view_loader(
+    cfg: DictConfig, data: PoseDataModule, scene_model_ckpt: str | Path | None
+) -> NovelViewLoader:
+    """The train batches of ``teacher.novel_views``: the scene model of ``scene_model_ckpt``
+    (checked to have been fitted to this data) rendering around the train cameras."""
+    path = required(scene_model_ckpt, "scene_model_ckpt", "teacher with teacher.novel_views")
+    loaded = load_scene_model(path, "scene_model_ckpt")
+    check_data(cfg, path, loaded, data)
+    settings = OmegaConf.to_container(cfg.teacher.novel_views, resolve=True)
+    settings.pop("enabled")
+    return NovelViewLoader(
+        loaded.model, NovelViewSettings(**settings), cfg.scene_model.appearance, cfg.seed
+    )
+
+
+def fit_teacher(
+    cfg: DictConfig, step_dir: Path, scene_model_ckpt: str | Path | None = None
+) -> tuple[Metrics, Path]:
+    """Train and test a teacher APR -> (metrics, path of its last checkpoint); with novel views
+    the seconds spent rendering them are ``bench/teacher/novel_views_render_s``."""
     data = build_data(cfg)
+    loader = None
+    if OmegaConf.select(cfg, "teacher.novel_views.enabled"):
+        loader = data.train_batches = novel_view_loader(cfg, data, scene_model_ckpt)
     teacher = instantiate(cfg.teacher.model, n_scenes=data.n_scenes)
     module = TeacherModule(
         teacher,
@@ -36,4 +61,7 @@ def fit_teacher(cfg: DictConfig, step_dir: Path) -> tuple[Metrics, Path]:
         teacher_config=_teacher_config(cfg, data.n_scenes),
         scene_loss_weight=cfg.teacher.scene_loss_weight,
     )
-    return fit_and_test(cfg, step_dir, "teacher", module, data, cfg.teacher.max_epochs)
+    metrics, last = fit_and_test(cfg, step_dir, "teacher", module, data, cfg.teacher.max_epochs)
+    if loader is not None and loader.pools:
+        metrics["bench/teacher/novel_views_render_s"] = loader.pools[-1].render_s
+    return metrics, last

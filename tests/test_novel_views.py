@@ -1,0 +1,238 @@
+"""Novel views for the teacher: poses sampled around the train cameras alone, rendered with
+their nearest train sequence's appearance, mixed into the train batches; the stage that fits
+the scene model before the teacher and tests render-and-compare with it after."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from torch import Tensor
+
+from pae import CONFIG_DIR
+from pae.data.novel_views import (
+    NovelViewBatches,
+    NovelViewPool,
+    NovelViewSettings,
+    other_sequence_neighbours,
+    render_views,
+    sample_novel_poses,
+)
+from pae.data.synthetic_datamodule import SyntheticDataModule
+from pae.errors import ConfigError
+from pae.geometry import orientation_error_deg
+from pae.models.scene_model import SceneModel, SceneRendering
+from pae.validation import NOVEL_VIEW_KEYS, validate_train_config
+from tests.conftest import TINY, tiny_data_overrides
+
+POISON_M = 1000.0
+"""How far the poisoned validation and test cameras are moved (m)."""
+
+
+@pytest.fixture(scope="module")
+def poisoned_root(tiny_root: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The tiny benchmark with its validation rows (the held-out train sequences) and its test
+    rows moved ``POISON_M`` away: a pose drawn near them shows that they were read."""
+    import shutil
+
+    from pae.data.holdout import held_out_rows
+    from pae.data.labels import read_labels, write_labels
+
+    root = tmp_path_factory.mktemp("novel_views_poisoned") / "data"
+    shutil.copytree(tiny_root, root)
+    for split in ("train", "test"):
+        path = root / "labels" / f"all_{split}.csv"
+        table = read_labels(path)
+        rows = np.ones(len(table), bool) if split == "test" else held_out_rows(table, 1, 0.1)[0]
+        poses = table.poses.copy()
+        poses[rows, :3] += POISON_M
+        write_labels(path, dataclasses.replace(table, poses=poses))
+    return root
+
+
+def _data(root: Path) -> SyntheticDataModule:
+    data = SyntheticDataModule(
+        root=str(root),
+        **TINY,
+        crop=28,
+        shorter_edge=TINY["size"],
+        cache_images=True,
+        batch_size=8,
+    )
+    data.setup()
+    return data
+
+
+class _Flat(SceneModel):
+    """A grey scene whose appearance ``a`` adds ``a / 10`` to every channel: a view's colour
+    tells which appearance it was rendered with."""
+
+    def render(
+        self, poses: Tensor, scenes: Tensor, intrinsics: Tensor, width: int, height: int
+    ) -> SceneRendering:
+        return SceneRendering(poses.new_full((len(poses), 3, height, width), 0.2))
+
+    def with_appearance(self, rgb: Tensor, appearance: Tensor) -> Tensor:
+        return rgb + appearance[:, None].float() / 10
+
+
+SETTINGS = NovelViewSettings(
+    ratio=0.5, views=1.0, position_jitter_m=0.2, orientation_jitter_deg=5.0
+)
+
+
+def test_sampled_poses_come_from_the_train_cameras_only(
+    tiny_root: Path, poisoned_root: Path
+) -> None:
+    """The views of data whose validation and test cameras lie POISON_M away are those of the
+    clean data, every one within its sampling's reach of a train camera."""
+    clean, poisoned = _data(tiny_root), _data(poisoned_root)
+    assert (poisoned.datasets["val"].poses[:, :3].abs() > POISON_M / 2).any()
+    cameras = NovelViewPool(poisoned, _Flat(), SETTINGS, "sequence", seed=3).cameras(0)
+    same = NovelViewPool(clean, _Flat(), SETTINGS, "sequence", seed=3).cameras(0)
+    torch.testing.assert_close(cameras.poses, same.poses)
+    train, scenes = poisoned.train_poses()
+    assert (train[:, :3].abs() < POISON_M / 2).all()
+    sequences, _ = poisoned.appearance_ids("train", "sequence")
+    partner = other_sequence_neighbours(train[:, :3], scenes, sequences)
+    gaps = (train[:, :3] - train[partner, :3]).norm(dim=-1)
+    # at most half-way from the nearer of a camera and its partner, then jittered
+    reach = gaps.max() / 2 + 2 * SETTINGS.position_jitter_m
+    nearest = torch.cdist(cameras.poses[:, :3], train[:, :3]).min(1).values
+    assert (nearest <= reach + 1e-5).all()
+    assert torch.equal(cameras.scenes, scenes[cameras.source])
+    for split in ("val", "test"):
+        held = poisoned.datasets[split].poses[:, :3]
+        assert torch.cdist(cameras.poses[:, :3], held).min() > POISON_M / 2
+
+
+def test_views_lie_between_a_camera_and_the_nearest_one_of_another_sequence() -> None:
+    """Two lanes 1 m apart: without jitter each view lies on the segment from its train camera
+    to the other lane's nearest camera, with their interpolated heading; without ``between``
+    it is its train camera."""
+    x = torch.arange(10, dtype=torch.float64)
+    lane = lambda y: torch.stack([x, torch.full_like(x, y), torch.zeros_like(x)], 1)  # noqa: E731
+    half = math.radians(30) / 2
+    yaw = torch.tensor([math.cos(half), 0, 0, math.sin(half)], dtype=torch.float64)
+    q = torch.cat([torch.tensor([[1.0, 0, 0, 0]]).double().expand(10, 4), yaw.expand(10, 4)])
+    poses = torch.cat([torch.cat([lane(0.0), lane(1.0)]), q], 1).float()
+    scenes, sequences = torch.zeros(20, dtype=torch.long), (torch.arange(20) >= 10).long()
+    draws = torch.Generator().manual_seed(0)
+    cameras = sample_novel_poses(poses, scenes, sequences, 200, 0.0, 0.0, True, draws)
+    start = poses[cameras.source]
+    torch.testing.assert_close(cameras.poses[:, 0], start[:, 0])  # the partner is abreast
+    share = (cameras.poses[:, 1] - start[:, 1]).abs()
+    assert ((share >= 0) & (share <= 1 + 1e-6)).all() and share.std() > 0.2
+    degrees = orientation_error_deg(cameras.poses[:, 3:], poses[:1, 3:].expand(200, 4))
+    offset = torch.where(start[:, 1] > 0.5, 1 - share, share)  # from the yaw-0 lane
+    torch.testing.assert_close(degrees, 30 * offset, atol=0.6, rtol=0)  # nlerp, not slerp
+    on_lane = torch.cdist(cameras.poses[:, :3], poses[:, :3]).argmin(1)
+    assert torch.equal(cameras.nearest, on_lane)
+    kept = sample_novel_poses(poses, scenes, sequences, 50, 0.0, 0.0, False, draws)
+    torch.testing.assert_close(kept.poses, poses[kept.source])
+
+
+def test_each_view_has_its_sources_intrinsics_and_its_nearest_cameras_appearance(
+    tiny_root: Path,
+) -> None:
+    data = _data(tiny_root)
+    pool = NovelViewPool(data, _Flat(), SETTINGS, "sequence", seed=0)
+    cameras = pool.cameras(0)
+    images = render_views(_Flat(), cameras, pool.intrinsics, pool.appearance, (32, 32), size=16)
+    assert images.shape == (len(cameras.poses), 3, 32, 32) and images.dtype == torch.uint8
+    expected = (0.2 + pool.appearance[cameras.nearest].float() / 10).clamp(0, 1) * 255
+    torch.testing.assert_close(images[:, 0, 5, 7].float(), expected.round(), atol=1, rtol=0)
+    assert len(set(pool.appearance[cameras.nearest].tolist())) > 1
+
+
+def test_batches_mix_every_train_image_with_views_drawn_by_seed_and_epoch(
+    tiny_root: Path,
+) -> None:
+    data = _data(tiny_root)
+
+    def epoch_of(settings: NovelViewSettings, epoch: int, seed: int = 0) -> list[dict]:
+        pool = NovelViewPool(data, _Flat(), settings, "sequence", seed)
+        batches = NovelViewBatches(data, pool, settings.ratio, seed, lambda: epoch)
+        return [batches[i] for i in range(len(batches))]
+
+    batches = epoch_of(SETTINGS, 0)
+    n = len(data.datasets["train"])
+    assert len(batches) == n // 8
+    for batch in batches:
+        assert len(batch["image"]) == len(batch["pose"]) == 8 + 4
+        assert (batch["index"][:8] >= 0).all() and (batch["index"][8:] == -1).all()
+        assert batch["image"].dtype == torch.uint8
+    again = epoch_of(SETTINGS, 0)
+    assert all(torch.equal(a["pose"], b["pose"]) for a, b in zip(batches, again, strict=True))
+    later = epoch_of(SETTINGS, 1)
+    assert not torch.equal(batches[0]["pose"], later[0]["pose"])
+    pool = NovelViewPool(data, _Flat(), SETTINGS, "sequence", 0)
+    torch.testing.assert_close(pool.cameras(0).poses, pool.cameras(5).poses)  # cached
+    fresh = NovelViewPool(data, _Flat(), dataclasses.replace(SETTINGS, cache=False), "sequence", 0)
+    assert not torch.equal(fresh.cameras(0).poses, fresh.cameras(1).poses)
+    assert pool.count == n
+
+
+def test_novel_view_settings_are_checked_before_any_work(compose_train, tmp_path: Path) -> None:
+    assert set(NOVEL_VIEW_KEYS) == {"enabled"} | {
+        f.name for f in dataclasses.fields(NovelViewSettings)
+    }
+    typo = compose_train("+teacher.novel_views.typo=1")
+    for overrides in (["+teacher.novel_views.typo=1"], []):  # the command line, or a file
+        with pytest.raises(ConfigError, match=r"teacher\.novel_views\.typo: not a setting"):
+            validate_train_config(typo, overrides)
+    for override, message in (
+        ("teacher.novel_views.ratio=0", r"teacher\.novel_views\.ratio must be a number > 0"),
+        ("teacher.novel_views.size=2", r"teacher\.novel_views\.size must be an integer >= 4"),
+        ("teacher.novel_views.cache=maybe", r"teacher\.novel_views\.cache must be true or"),
+        ("teacher.novel_views.enabled=true", r"stage=teacher needs scene_model_ckpt=PATH"),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            validate_train_config(compose_train(override))
+    on = compose_train("stage=novel_views", "teacher.novel_views.enabled=true")
+    validate_train_config(on)  # the scene_fit step makes the checkpoint the teacher reads
+    with pytest.raises(ConfigError, match=r"scene_fit: scene_model.model._target_=\S+ does not"):
+        validate_train_config(compose_train("stage=novel_views", "scene_model=oracle"))
+
+
+def test_the_novel_views_stage_fits_the_scene_model_once(tiny_root: Path, tmp_path: Path) -> None:
+    """stage=novel_views on the tiny benchmark: the scene model fitted without a teacher, the
+    teacher trained on the train images and its views, render-and-compare from that teacher
+    against the same scene model, which the scene_model step does not fit again."""
+    from pae.train import run
+
+    overrides = [
+        *tiny_data_overrides(tiny_root),
+        "data.batch_size=8",
+        "callbacks=minimal",
+        "+trainer.enable_progress_bar=false",
+        "stage=novel_views",
+        "teacher.max_epochs=1",
+        "teacher.novel_views.enabled=true",
+        "teacher.novel_views.size=16",
+        "student.max_epochs=1",
+        "scene_model.max_epochs=1",
+        "scene_model.batches_per_epoch=3",
+        "scene_model.rays_per_batch=1024",
+        "scene_model.model.num_voxels=8000",
+        "render_compare.refiner.rounds=2",
+        "render_compare.refiner.candidates=4",
+    ]
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("train", overrides=overrides)
+    metrics = run(cfg, tmp_path)
+    fitted = tmp_path / "scene_fit" / "checkpoints" / "last.ckpt"
+    assert fitted.is_file()
+    assert not (tmp_path / "scene_model" / "checkpoints").exists()
+    assert metrics["bench/teacher/novel_views_render_s"] > 0
+    assert "test/scene_model/psnr_db" in metrics and "bench/scene_fit/fit_s" in metrics
+    for method in ("teacher", "student", "render_compare"):
+        assert metrics[f"test/{method}/pos_median_m"] >= 0, method
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved["test/render_compare/pos_median_m"] == metrics["test/render_compare/pos_median_m"]
