@@ -71,3 +71,37 @@ def compose_train(tiny_root: Path) -> Callable[..., DictConfig]:
         return cfg
 
     return make
+
+
+POISON_M = 1000.0
+"""How far (m) the poisoned validation and test rows are moved."""
+MAGENTA = (255, 0, 255)
+"""The colour of every poisoned validation and test image."""
+
+
+@pytest.fixture(scope="session")
+def poisoned_root(tiny_root: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The tiny benchmark with its validation rows (the held-out train sequences) and test
+    rows moved ``POISON_M`` away and their images magenta: what reads them shows it."""
+    import dataclasses
+    import shutil
+
+    import numpy as np
+    from PIL import Image
+
+    from pae.data.holdout import held_out_rows
+    from pae.data.labels import read_labels, write_labels
+
+    root = tmp_path_factory.mktemp("poisoned") / "data"
+    shutil.copytree(tiny_root, root)
+    for split in ("train", "test"):
+        path = root / "labels" / f"all_{split}.csv"
+        table = read_labels(path)
+        rows = np.ones(len(table), bool) if split == "test" else held_out_rows(table, 1, 0.1)[0]
+        poses = table.poses.copy()
+        poses[rows, :3] += POISON_M
+        write_labels(path, dataclasses.replace(table, poses=poses))
+        for i in np.flatnonzero(rows).tolist():
+            image = Image.open(root / table.img_path[i])
+            Image.new("RGB", image.size, MAGENTA).save(root / table.img_path[i])
+    return root

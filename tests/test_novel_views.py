@@ -9,7 +9,6 @@ import json
 import math
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
@@ -29,31 +28,7 @@ from pae.errors import ConfigError
 from pae.geometry import orientation_error_deg
 from pae.models.scene_model import SceneModel, SceneRendering
 from pae.validation import NOVEL_VIEW_KEYS, validate_train_config
-from tests.conftest import TINY, tiny_data_overrides
-
-POISON_M = 1000.0
-"""How far the poisoned validation and test cameras are moved (m)."""
-
-
-@pytest.fixture(scope="module")
-def poisoned_root(tiny_root: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The tiny benchmark with its validation rows (the held-out train sequences) and its test
-    rows moved ``POISON_M`` away: a pose drawn near them shows that they were read."""
-    import shutil
-
-    from pae.data.holdout import held_out_rows
-    from pae.data.labels import read_labels, write_labels
-
-    root = tmp_path_factory.mktemp("novel_views_poisoned") / "data"
-    shutil.copytree(tiny_root, root)
-    for split in ("train", "test"):
-        path = root / "labels" / f"all_{split}.csv"
-        table = read_labels(path)
-        rows = np.ones(len(table), bool) if split == "test" else held_out_rows(table, 1, 0.1)[0]
-        poses = table.poses.copy()
-        poses[rows, :3] += POISON_M
-        write_labels(path, dataclasses.replace(table, poses=poses))
-    return root
+from tests.conftest import POISON_M, TINY, tiny_data_overrides
 
 
 def _data(root: Path) -> SyntheticDataModule:

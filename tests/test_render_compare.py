@@ -32,7 +32,7 @@ from pae.models.voxel_grid import VoxelGrid, VoxelGridSceneModel, camera_bounds
 from pae.pose_sampling import perturb
 from pae.refine.render_compare import RenderCompareRefiner, RenderCompareResult, gate
 from pae.refine.render_images import band_pass, trimmed_zncc, zncc
-from tests.conftest import TINY, tiny_data_overrides
+from tests.conftest import MAGENTA, POISON_M, TINY, tiny_data_overrides
 
 
 def _camera_pose(position: list[float], yaw: float = 0.3, pitch: float = -0.1) -> torch.Tensor:
@@ -324,38 +324,6 @@ def test_fit_images_are_resized_with_their_intrinsics(tiny_root: Path) -> None:
     same, unscaled = fit_images(dataset, intrinsics, None)
     assert torch.equal(same, dataset.__getitems__(list(range(len(dataset))))["image"])
     assert torch.equal(unscaled, intrinsics)
-
-
-POISON_M = 1000.0
-"""How far (m) the poisoned validation and test rows are moved."""
-MAGENTA = (255, 0, 255)
-"""The colour of every poisoned validation and test image."""
-
-
-@pytest.fixture(scope="module")
-def poisoned_root(tiny_root: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The tiny benchmark with its validation rows (the held-out train sequences) and test
-    rows moved ``POISON_M`` away and their images magenta: what reads them shows it."""
-    import shutil
-
-    from PIL import Image
-
-    from pae.data.holdout import held_out_rows
-    from pae.data.labels import read_labels, write_labels
-
-    root = tmp_path_factory.mktemp("poisoned") / "data"
-    shutil.copytree(tiny_root, root)
-    for split in ("train", "test"):
-        path = root / "labels" / f"all_{split}.csv"
-        table = read_labels(path)
-        rows = np.ones(len(table), bool) if split == "test" else held_out_rows(table, 1, 0.1)[0]
-        poses = table.poses.copy()
-        poses[rows, :3] += POISON_M
-        write_labels(path, dataclasses.replace(table, poses=poses))
-        for i in np.flatnonzero(rows).tolist():
-            image = Image.open(root / table.img_path[i])
-            Image.new("RGB", image.size, MAGENTA).save(root / table.img_path[i])
-    return root
 
 
 def _poisoned_data(root: Path) -> SyntheticDataModule:
