@@ -46,6 +46,27 @@ def test_colour_jitter_differs_per_image() -> None:
     assert per_image_mean.std() > 0.01
 
 
+def test_channel_gain_scales_each_channel_by_its_own_factor_within_range() -> None:
+    torch.manual_seed(0)
+    grey = torch.full((64, 3, 8, 8), 128, dtype=torch.uint8)
+    no_jitter = (0.0, 0.0, 0.0, 0.0)
+    out = ImageTransform(8, train=True, color_jitter=no_jitter, channel_gain=0.2)(grey)
+    gains = ImageTransform.unnormalize_batch(out).mean(dim=(2, 3)) / (128 / 255)  # [64, 3]
+    assert gains.min() >= 0.8 - 1e-4 and gains.max() <= 1.2 + 1e-4
+    assert (gains[:, 0] - gains[:, 1]).abs().max() > 0.05, "channels must differ (a tint)"
+    assert gains.std(0).min() > 0.05, "factors must differ between images"
+    plain = ImageTransform(8, train=True, color_jitter=no_jitter)(grey)
+    assert torch.allclose(ImageTransform.unnormalize_batch(plain), grey.float() / 255, atol=1e-5)
+
+
+def test_channel_gain_out_of_range_names_the_key(tmp_path) -> None:
+    from pae.data.datamodule import PoseDataModule
+    from pae.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"data.channel_gain: .*\[0, 1\), not 1.5"):
+        PoseDataModule(str(tmp_path), "train.csv", "test.csv", channel_gain=1.5)
+
+
 def test_crop_larger_than_image_is_a_clear_error() -> None:
     with pytest.raises(ImageError, match="smaller than the 64 px crop"):
         ImageTransform(64)(_batch())

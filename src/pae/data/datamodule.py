@@ -55,6 +55,7 @@ class PoseDataModule(L.LightningDataModule):
         shorter_edge: int = 256,
         crop: int = 224,
         color_jitter: tuple[float, float, float, float] = (0.5, 0.5, 0.5, 0.2),
+        channel_gain: float = 0.0,
         augment: bool = True,
         batch_size: int = 32,
         eval_batch_size: int = 128,
@@ -84,7 +85,12 @@ class PoseDataModule(L.LightningDataModule):
         self.augment = augment
         self.pose_loss_init = dict(pose_loss_init or {})
         self.keep_scenes = list(scenes) if scenes else None
-        self.train_transform = ImageTransform(crop, train=True, color_jitter=tuple(color_jitter))
+        try:
+            self.train_transform = ImageTransform(
+                crop, train=True, color_jitter=tuple(color_jitter), channel_gain=channel_gain
+            )
+        except ValueError as err:
+            raise ConfigError(f"data.channel_gain: {err}") from None
         self.eval_transform = ImageTransform(crop, train=False)
         self.tables: dict[str, LabelTable] = {}
         self.datasets: dict[str, PoseDataset] = {}
@@ -193,6 +199,11 @@ class PoseDataModule(L.LightningDataModule):
         """The train poses [N, 7] and scene ids [N] (the store for pose retrieval)."""
         dataset = self.datasets["train"]
         return dataset.poses, dataset.scenes
+
+    def store_poses(self) -> tuple[Tensor, Tensor]:
+        """The poses [N, 7] and scene ids [N] kNN refinement retrieves among: the train poses
+        (a student's data module may add rendered views')."""
+        return self.train_poses()
 
     def intrinsics(self, split: str, crop: bool = True) -> Tensor:
         """Intrinsics [N, 4] (fx, fy, cx, cy in px) of the split's images as the networks see

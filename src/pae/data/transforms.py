@@ -89,8 +89,10 @@ class ImageTransform(nn.Module):
     """uint8 [B, 3, H, W] -> normalised float [B, 3, crop, crop].
 
     train=True: random crop plus per-image colour jitter (brightness, contrast, saturation
-    factors drawn from [1 - j, 1 + j], hue shift from [-j_h, j_h] turns); train=False: centre
-    crop only (the paper's test pre-processing, also used to train PAEs).
+    factors drawn from [1 - j, 1 + j], hue shift from [-j_h, j_h] turns) and, with
+    ``channel_gain`` g > 0, a white-balance jitter (each colour channel times a factor drawn from
+    [1 - g, 1 + g], a tinted light or camera); train=False: centre crop only (the paper's test
+    pre-processing, also used to train PAEs).
     """
 
     def __init__(
@@ -98,11 +100,15 @@ class ImageTransform(nn.Module):
         crop: int,
         train: bool = False,
         color_jitter: tuple[float, float, float, float] = (0.5, 0.5, 0.5, 0.2),
+        channel_gain: float = 0.0,
     ) -> None:
         super().__init__()
+        if not 0.0 <= channel_gain < 1.0:
+            raise ValueError(f"channel_gain must lie in [0, 1), not {channel_gain}")
         self.crop = crop
         self.train_mode = train
         self.color_jitter = tuple(float(v) for v in color_jitter)
+        self.channel_gain = float(channel_gain)
 
     def _crop(self, images: Tensor) -> Tensor:
         b, _, h, w = images.shape
@@ -123,10 +129,13 @@ class ImageTransform(nn.Module):
         b = images.shape[0]
         brightness, contrast, saturation, hue = self.color_jitter
 
-        def factor(strength: float) -> Tensor:
+        def factor(strength: float, channels: int = 1) -> Tensor:
             low = max(0.0, 1 - strength)
-            return torch.empty(b, 1, 1, 1, device=images.device).uniform_(low, 1 + strength)
+            draw = torch.empty(b, channels, 1, 1, device=images.device)
+            return draw.uniform_(low, 1 + strength)
 
+        if self.channel_gain > 0:
+            images = images * factor(self.channel_gain, 3)
         images = (images * factor(brightness)).clamp(0, 1)
         mean_gray = _gray(images).mean(dim=(2, 3), keepdim=True)
         images = (mean_gray + factor(contrast) * (images - mean_gray)).clamp(0, 1)
