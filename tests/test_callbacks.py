@@ -56,7 +56,7 @@ class _Data:
     def __init__(self, poses: torch.Tensor) -> None:
         self.poses = poses
 
-    def train_poses(self) -> tuple[torch.Tensor, torch.Tensor]:
+    def store_poses(self) -> tuple[torch.Tensor, torch.Tensor]:
         return self.poses, torch.zeros(len(self.poses), dtype=torch.long)
 
 

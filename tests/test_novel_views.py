@@ -15,6 +15,7 @@ from hydra import compose, initialize_config_dir
 from torch import Tensor
 
 from pae import CONFIG_DIR
+from pae.data.latents import TeacherLatentDataModule
 from pae.data.novel_views import (
     NovelViewBatches,
     NovelViewPool,
@@ -26,6 +27,7 @@ from pae.data.novel_views import (
 from pae.data.synthetic_datamodule import SyntheticDataModule
 from pae.errors import ConfigError
 from pae.geometry import orientation_error_deg
+from pae.models.base import Latents
 from pae.models.scene_model import SceneModel, SceneRendering
 from pae.validation import NOVEL_VIEW_KEYS, validate_train_config
 from tests.conftest import POISON_M, TINY, tiny_data_overrides
@@ -154,6 +156,51 @@ def test_batches_mix_every_train_image_with_views_drawn_by_seed_and_epoch(
     assert pool.count == n
 
 
+class _MeanColour(torch.nn.Module):
+    """A teacher whose latents are an image's mean colour: a rendered view's latents tell
+    that the teacher saw that view."""
+
+    def forward(self, images: Tensor, scene: Tensor) -> tuple[Tensor, Latents]:
+        colour = images.mean(dim=(2, 3))
+        pose = torch.cat([colour, torch.ones(len(images), 1), colour.new_zeros(len(images), 3)], 1)
+        return pose, Latents(colour, -colour)
+
+
+def test_student_data_adds_the_views_latents_and_their_poses_to_the_store(
+    tiny_root: Path,
+) -> None:
+    data = _data(tiny_root)
+    pool = NovelViewPool(data, _Flat(), SETTINGS, "sequence", seed=0)
+    train, scenes = data.train_poses()
+
+    def module(train_on_views: bool, store_views: bool) -> TeacherLatentDataModule:
+        latents = TeacherLatentDataModule(
+            data,
+            _MeanColour(),
+            views=lambda: pool.views(0),
+            train_on_views=train_on_views,
+            store_views=store_views,
+        )
+        latents.setup("fit")
+        return latents
+
+    both = module(True, True)
+    views = pool.views(0)
+    n, m = len(train), len(views["pose"])
+    assert len(both.latents) == n + m and both.view_rows == m
+    torch.testing.assert_close(both.latents.tensors["pose"][n:], views["pose"])
+    rendered = data.preprocess(views["image"], train=False).mean(dim=(2, 3))
+    torch.testing.assert_close(both.latents.tensors["z_x"][n:], rendered)
+    store, store_scenes = both.store_poses()
+    torch.testing.assert_close(store, torch.cat([train, views["pose"]]))
+    assert torch.equal(store_scenes, torch.cat([scenes, views["scene"]]))
+    train_only = module(True, False)
+    assert len(train_only.latents) == n + m
+    torch.testing.assert_close(train_only.store_poses()[0], train)
+    store_only = module(False, True)
+    assert len(store_only.latents) == n and len(store_only.store_poses()[0]) == n + m
+
+
 def test_novel_view_settings_are_checked_before_any_work(compose_train, tmp_path: Path) -> None:
     assert set(NOVEL_VIEW_KEYS) == {"enabled"} | {
         f.name for f in dataclasses.fields(NovelViewSettings)
@@ -167,10 +214,22 @@ def test_novel_view_settings_are_checked_before_any_work(compose_train, tmp_path
         ("teacher.novel_views.size=2", r"teacher\.novel_views\.size must be an integer >= 4"),
         ("teacher.novel_views.cache=maybe", r"teacher\.novel_views\.cache must be true or"),
         ("teacher.novel_views.enabled=true", r"stage=teacher needs scene_model_ckpt=PATH"),
+        ("student.store_novel_views=1", r"student\.store_novel_views must be true or false"),
     ):
         with pytest.raises(ConfigError, match=message):
             validate_train_config(compose_train(override))
-    on = compose_train("stage=novel_views", "teacher.novel_views.enabled=true")
+    for overrides, message in (
+        (["student.novel_views=true"], r"stage=pipeline needs scene_model_ckpt=PATH"),
+        (
+            ["student.store_novel_views=true", "student.cache_latents=false"],
+            r"student\.novel_views and student\.store_novel_views need student\.cache_latents",
+        ),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            validate_train_config(compose_train("stage=pipeline", *overrides))
+    on = compose_train(
+        "stage=novel_views", "teacher.novel_views.enabled=true", "student.novel_views=true"
+    )
     validate_train_config(on)  # the scene_fit step makes the checkpoint the teacher reads
     with pytest.raises(ConfigError, match=r"scene_fit: scene_model.model._target_=\S+ does not"):
         validate_train_config(compose_train("stage=novel_views", "scene_model=oracle"))
@@ -192,6 +251,8 @@ def test_the_novel_views_stage_fits_the_scene_model_once(tiny_root: Path, tmp_pa
         "teacher.novel_views.enabled=true",
         "teacher.novel_views.size=16",
         "student.max_epochs=1",
+        "student.novel_views=true",
+        "student.store_novel_views=true",
         "scene_model.max_epochs=1",
         "scene_model.batches_per_epoch=3",
         "scene_model.rays_per_batch=1024",
@@ -206,6 +267,8 @@ def test_the_novel_views_stage_fits_the_scene_model_once(tiny_root: Path, tmp_pa
     assert fitted.is_file()
     assert not (tmp_path / "scene_model" / "checkpoints").exists()
     assert metrics["bench/teacher/novel_views_render_s"] > 0
+    train_rows = len(_data(tiny_root).datasets["train"])  # views: 1.0, one per train image
+    assert metrics["bench/student/novel_view_rows"] == train_rows
     assert "test/scene_model/psnr_db" in metrics and "bench/scene_fit/fit_s" in metrics
     for method in ("teacher", "student", "render_compare"):
         assert metrics[f"test/{method}/pos_median_m"] >= 0, method

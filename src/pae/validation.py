@@ -401,6 +401,15 @@ def validate_train_config(cfg: DictConfig, overrides: list[str] | None = None) -
     needs = _model_needs(cfg, steps)
     if _validate_novel_views(cfg) and "teacher" in steps:
         needs["teacher"] = (*needs["teacher"], "scene_model_ckpt")
+    student_views = [f"student.{key}" for key in ("novel_views", "store_novel_views")]
+    for key in student_views:
+        boolean(cfg, key)
+    if any(setting(cfg, key) for key in student_views) and "student" in steps:
+        if not setting(cfg, "student.cache_latents"):
+            raise ConfigError(
+                "student.novel_views and student.store_novel_views need student.cache_latents=true"
+            )
+        needs["student"] = (*needs["student"], "scene_model_ckpt")
     target = setting(cfg, "scene_model.model._target_")
     if "scene_fit" in steps and not getattr(get_object(target), "trains", False):
         raise ConfigError(f"scene_fit: scene_model.model._target_={target} does not train")

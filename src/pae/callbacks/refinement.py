@@ -146,7 +146,7 @@ class TestTimeRefinement(L.Callback):
             raise ValueError(f"unknown refine.trajectory_methods {unknown}; choose from {drawable}")
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        poses, scenes = trainer.datamodule.train_poses()
+        poses, scenes = trainer.datamodule.store_poses()
         self.index = self.store(poses, scenes)
         self.position_index = PoseIndex(poses, scenes, distance="fixed", rot_weight=0.0)
 

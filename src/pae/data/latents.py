@@ -12,7 +12,7 @@ import fcntl
 import hashlib
 import json
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -47,14 +47,18 @@ class TeacherLatents(Dataset):
 
 
 @torch.no_grad()
-def compute_teacher_latents(
-    teacher: PoseRegressor, images: PoseDataModule, device: torch.device | str = "cpu"
+def teacher_latents_of(
+    teacher: PoseRegressor,
+    images: PoseDataModule,
+    batches: Iterable[dict[str, Tensor]],
+    device: torch.device | str = "cpu",
 ) -> TeacherLatents:
-    """Run the frozen teacher once over the train split with the test pre-processing; a
-    multi-scene teacher gives the latents of each image's true scene."""
+    """Run the frozen teacher over ``batches`` (uint8 ``image`` [B, 3, H, W], ``pose`` [B, 7],
+    ``scene`` [B]) with ``images``' test pre-processing; a multi-scene teacher gives the
+    latents of each image's true scene."""
     teacher = teacher.to(device).eval()
     parts: dict[str, list[Tensor]] = {k: [] for k in LATENT_KEYS}
-    for batch in images.train_eval_dataloader():
+    for batch in batches:
         pixels = images.preprocess(batch["image"].to(device), train=False)
         pose, latents = teacher(pixels, batch["scene"].to(device))
         parts["pose"].append(batch["pose"])
@@ -63,6 +67,20 @@ def compute_teacher_latents(
         parts["z_q"].append(latents.q.cpu())
         parts["teacher_pose"].append(pose.cpu())
     return TeacherLatents({k: torch.cat(v) for k, v in parts.items()})
+
+
+def compute_teacher_latents(
+    teacher: PoseRegressor, images: PoseDataModule, device: torch.device | str = "cpu"
+) -> TeacherLatents:
+    """The teacher's latents of the train split (``teacher_latents_of``)."""
+    return teacher_latents_of(teacher, images, images.train_eval_dataloader(), device)
+
+
+def view_batches(views: dict[str, Tensor], size: int) -> Iterator[dict[str, Tensor]]:
+    """Rendered views (``image`` [M, 3, H, W], ``pose`` [M, 7], ``scene`` [M]) in batches of
+    ``size``."""
+    for rows in torch.arange(len(views["pose"])).split(size):
+        yield {key: views[key][rows] for key in ("image", "pose", "scene")}
 
 
 LATENT_KEYS = ("pose", "scene", "z_x", "z_q", "teacher_pose")
@@ -195,7 +213,10 @@ class TeacherLatentDataModule(L.LightningDataModule):
     """Training batches of cached teacher latents; validation and test batches are the
     wrapped PoseDataModule's images (the teacher still runs on queries). With `cache` and
     `teacher_ckpt` the latents come from (or go to) that on-disk cache; `cache_hit` says
-    which."""
+    which. `views` is called once the train split is read and gives rendered views
+    (``image`` uint8 [M, 3, H, W], ``pose`` [M, 7], ``scene`` [M]): with `train_on_views`
+    the teacher's latents of those views join the train rows (computed every run, never
+    cached), with `store_views` their poses join the retrieval store (`store_poses`)."""
 
     def __init__(
         self,
@@ -204,8 +225,13 @@ class TeacherLatentDataModule(L.LightningDataModule):
         batch_size: int | None = None,
         cache: LatentCache | None = None,
         teacher_ckpt: str | Path | None = None,
+        views: Callable[[], dict[str, Tensor]] | None = None,
+        train_on_views: bool = False,
+        store_views: bool = False,
     ) -> None:
         super().__init__()
+        if (train_on_views or store_views) and views is None:
+            raise ValueError("train_on_views and store_views need the views")
         if cache is not None and teacher_ckpt is None:
             raise ValueError("a latent cache needs the teacher checkpoint it keys on")
         self.images = images
@@ -213,7 +239,12 @@ class TeacherLatentDataModule(L.LightningDataModule):
         self.batch_size = batch_size or images.batch_size
         self.cache = cache
         self.teacher_ckpt = teacher_ckpt
+        self.views = views
+        self.train_on_views = train_on_views
+        self.store_views = store_views
         self.latents: TeacherLatents | None = None
+        self.view_rows = 0
+        self._view_store: tuple[Tensor, Tensor] | None = None
         self.cache_hit: bool | None = None
 
     def setup(self, stage: str | None = None) -> None:
@@ -226,16 +257,40 @@ class TeacherLatentDataModule(L.LightningDataModule):
 
             if self.cache is None:
                 self.latents = compute()
-                return
-            key = latent_cache_key(self.teacher_ckpt, self.images)
-            rows = len(self.images.tables["train"])
-            self.latents, self.cache_hit = self.cache.load_or_compute(key, rows, compute)
+            else:
+                key = latent_cache_key(self.teacher_ckpt, self.images)
+                rows = len(self.images.tables["train"])
+                self.latents, self.cache_hit = self.cache.load_or_compute(key, rows, compute)
+            if self.train_on_views or self.store_views:
+                views = self.views()
+                if self.store_views:
+                    self._view_store = (views["pose"], views["scene"])
+                if self.train_on_views:
+                    batches = view_batches(views, self.images.eval_batch_size)
+                    extra = teacher_latents_of(self.teacher, self.images, batches, device)
+                    self.view_rows = len(extra)
+                    tensors = self.latents.tensors
+                    self.latents = TeacherLatents(
+                        {k: torch.cat([tensors[k], extra.tensors[k]]) for k in LATENT_KEYS}
+                    )
 
     def scenes_without_rows(self, split: str) -> list[str]:
         return self.images.scenes_without_rows(split)
 
     def train_poses(self) -> tuple[Tensor, Tensor]:
         return self.images.train_poses()
+
+    def store_poses(self) -> tuple[Tensor, Tensor]:
+        """The train poses [N, 7] and scene ids [N], with `store_views` followed by the
+        rendered views' (their poses sampled from the train split alone)."""
+        poses, scenes = self.images.train_poses()
+        if self._view_store is None:
+            return poses, scenes
+        view_poses, view_scenes = self._view_store
+        return (
+            torch.cat([poses, view_poses.to(poses.dtype)]),
+            torch.cat([scenes, view_scenes.to(scenes.dtype)]),
+        )
 
     def fingerprint(self) -> dict[str, Any]:
         return self.images.fingerprint()

@@ -99,13 +99,16 @@ STEPS: dict[str, Step] = {
             models={"teacher.model": ("n_scenes",)},
             optional=("scene_model_ckpt",),
         ),
-        _step(
+        # reads scene_model_ckpt with student.novel_views or student.store_novel_views
+        Step(
             "student",
             "student",
             "pae.steps.student:fit_student",
-            {"pae": ("n_scenes",)},
             ("teacher_ckpt",),
-            produces="student_ckpt",
+            "student_ckpt",
+            ("student.max_epochs",),
+            {"pae": ("n_scenes",)},
+            ("scene_model_ckpt",),
         ),
         _step(
             "decoder",

@@ -1,24 +1,55 @@
 """The student step: distil a PAE from a frozen teacher checkpoint (on the teacher's latents,
-cached or computed per batch), then test it with the configured refinement."""
+cached or computed per batch), then test it with the configured refinement; with
+``student.novel_views``, on the teacher's latents of the views a scene model renders around
+the train cameras too (``teacher.novel_views``' sampling), and with
+``student.store_novel_views`` kNN refinement retrieves among those views' poses as well."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
+from torch import Tensor
 
-from pae.checkpoints import load_teacher
+from pae.checkpoints import load_scene_model, load_teacher
+from pae.data.datamodule import PoseDataModule
 from pae.data.latents import LatentCache, TeacherLatentDataModule
+from pae.data.novel_views import NovelViewPool, NovelViewSettings
 from pae.errors import ConfigError
 from pae.lit.student import StudentModule
 from pae.runs import Metrics
-from pae.runs.inputs import load_frozen
+from pae.runs.inputs import check_data, load_frozen, required
 from pae.runs.trainer import fit_and_test, optimisation, refinement_callbacks
 
 
+def novel_views(
+    cfg: DictConfig, data: PoseDataModule, scene_model_ckpt: str | Path | None
+) -> Callable[[], dict[str, Tensor]]:
+    """The views of ``student.novel_views``: the scene model of ``scene_model_ckpt`` (checked
+    to have been fitted to this data) rendering at the cameras ``teacher.novel_views``
+    samples (the pool of its first epoch), once ``data``'s train split is read."""
+    path = required(scene_model_ckpt, "scene_model_ckpt", "student with student.novel_views")
+    loaded = load_scene_model(path, "scene_model_ckpt")
+    check_data(cfg, path, loaded, data)
+    settings = OmegaConf.to_container(cfg.teacher.novel_views, resolve=True)
+    settings.pop("enabled")
+
+    def render() -> dict[str, Tensor]:
+        pool = NovelViewPool(
+            data, loaded.model, NovelViewSettings(**settings), cfg.scene_model.appearance, cfg.seed
+        )
+        return pool.views(0)
+
+    return render
+
+
 def fit_student(
-    cfg: DictConfig, step_dir: Path, teacher_ckpt: str | Path | None
+    cfg: DictConfig,
+    step_dir: Path,
+    teacher_ckpt: str | Path | None,
+    scene_model_ckpt: str | Path | None = None,
 ) -> tuple[Metrics, Path]:
     """Distil a PAE from a frozen teacher checkpoint, then test it (with refinement)."""
     teacher_ckpt, teacher, data = load_frozen(
@@ -51,11 +82,15 @@ def fit_student(
             refinement_callbacks(cfg),
         )
     folder = cfg.student.get("latent_cache_dir")
+    views = cfg.student.novel_views or cfg.student.store_novel_views
     train_data = TeacherLatentDataModule(
         data,
         teacher.model,
         cache=LatentCache(folder) if folder else None,
         teacher_ckpt=teacher_ckpt,
+        views=novel_views(cfg, data, scene_model_ckpt) if views else None,
+        store_views=cfg.student.store_novel_views,
+        train_on_views=cfg.student.novel_views,
     )
     metrics, last = fit_and_test(
         cfg,
@@ -68,4 +103,6 @@ def fit_student(
     )
     if train_data.cache_hit is not None:
         metrics["bench/student/latent_cache_hit"] = float(train_data.cache_hit)
+    if views:
+        metrics["bench/student/novel_view_rows"] = float(train_data.view_rows)
     return metrics, last
