@@ -28,8 +28,10 @@ def main(root: Path) -> None:
     for path in sorted(root.glob("*/metrics.json")):
         setting = re.sub(r"_s\d+$", "", path.parent.name)
         settings.setdefault(setting, []).append(json.loads(path.read_text()))
-    print("| setting | seeds | val scene acc. [%] | val position [m] | val / mean pose "
-          "| test scene acc. [%] | test position [m] | test / mean pose |")
+    print(
+        "| setting | seeds | val scene acc. [%] | val position [m] | val / mean pose "
+        "| test scene acc. [%] | test position [m] | test / mean pose |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for setting, runs in settings.items():
         cells = []
