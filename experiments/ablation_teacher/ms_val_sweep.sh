@@ -9,23 +9,23 @@ set -uo pipefail
 OUT=${1:-outputs/ms_sweep}
 BIN=${BIN:-.venv/bin}
 mkdir -p "$OUT"
-# name|overrides (each on top of experiment=demo_ms_transformer as it stands, which holds
-# the chosen channel_gain: the first setting spells out the gain-free one); seeds 0-2 for
-# the first six, seed 0 alone for the rest
+# name|overrides (each on top of experiment=demo_ms_transformer as it stands: 80 epochs,
+# channel_gain 0.15, the chosen settings); seeds 0-2 for the first six, seed 0 alone for the
+# rest
 settings=(
-  "no_gain|data.channel_gain=0.0"
-  "gain0.15|data.channel_gain=0.15"
-  "gain0.3|data.channel_gain=0.3"
-  "lr1e-3|data.channel_gain=0.0 teacher.optimizer.lr=1e-3"
+  "no_gain|teacher.max_epochs=40 data.channel_gain=0.0"
+  "gain0.15|teacher.max_epochs=40"
+  "gain0.3|teacher.max_epochs=40 data.channel_gain=0.3"
+  "lr1e-3|teacher.max_epochs=40 data.channel_gain=0.0 teacher.optimizer.lr=1e-3"
   "gain0.15_e60|teacher.max_epochs=60"
   "gain0.15_e80|teacher.max_epochs=80"
-  "e25|data.channel_gain=0.0 teacher.max_epochs=25"
-  "e25_scene_loss5|data.channel_gain=0.0 teacher.max_epochs=25 teacher.scene_loss_weight=5"
-  "e60|data.channel_gain=0.0 teacher.max_epochs=60"
-  "d128|data.channel_gain=0.0 teacher.model.latent_dim=128 teacher.model.feedforward=256"
-  "jitter0.5|data.channel_gain=0.0 data.color_jitter=[0.5,0.5,0.5,0.0]"
-  "hue0.05|data.channel_gain=0.0 data.color_jitter=[0.7,0.7,0.7,0.05]"
-  "lr4e-3|data.channel_gain=0.0 teacher.optimizer.lr=4e-3"
+  "e25|teacher.max_epochs=25 data.channel_gain=0.0"
+  "e25_scene_loss5|teacher.max_epochs=25 data.channel_gain=0.0 teacher.scene_loss_weight=5"
+  "e60|teacher.max_epochs=60 data.channel_gain=0.0"
+  "d128|teacher.max_epochs=40 data.channel_gain=0.0 teacher.model.latent_dim=128 teacher.model.feedforward=256"
+  "jitter0.5|teacher.max_epochs=40 data.channel_gain=0.0 data.color_jitter=[0.5,0.5,0.5,0.0]"
+  "hue0.05|teacher.max_epochs=40 data.channel_gain=0.0 data.color_jitter=[0.7,0.7,0.7,0.05]"
+  "lr4e-3|teacher.max_epochs=40 data.channel_gain=0.0 teacher.optimizer.lr=4e-3"
 )
 jobs=()
 for i in "${!settings[@]}"; do
