@@ -4,7 +4,12 @@ through others (imports at module level and inside functions alike)."""
 from __future__ import annotations
 
 import ast
+import os
+import subprocess
+import sys
 from pathlib import Path
+
+import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 
@@ -119,3 +124,20 @@ def test_steps_import_their_helpers_and_no_other_step() -> None:
     for helper in (module for module in graph if module.startswith("pae.runs")):
         found = reachable(graph, helper) & steps
         assert not found, f"{helper} imports {sorted(found)}"
+
+
+@pytest.mark.parametrize(
+    ("omp", "numba_threads", "expected"),
+    [("1", None, "1"), ("1", "2", "2"), (None, "1", "1")],
+)
+def test_numba_threads_follow_omp_num_threads(
+    omp: str | None, numba_threads: str | None, expected: str
+) -> None:
+    """numba's pool takes OMP_NUM_THREADS when NUMBA_NUM_THREADS is not set (a larger pool
+    leaves a worker spinning on the core torch needs); NUMBA_NUM_THREADS set wins."""
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS")}
+    env |= {"OMP_NUM_THREADS": omp} if omp else {}
+    env |= {"NUMBA_NUM_THREADS": numba_threads} if numba_threads else {}
+    code = "import pae, numba; print(numba.config.NUMBA_NUM_THREADS)"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert out.stdout.strip() == expected, out.stderr
