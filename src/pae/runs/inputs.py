@@ -9,12 +9,14 @@ from typing import Any
 
 from hydra.utils import instantiate
 from lightning.pytorch.utilities import rank_zero_only
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
-from pae.checkpoints import CheckpointError, LoadedModel
+from pae.checkpoints import CheckpointError, LoadedModel, load_scene_model
 from pae.console import say
 from pae.data.datamodule import PoseDataModule
+from pae.data.novel_views import NovelViewSettings
 from pae.errors import ConfigError
+from pae.models.scene_model import SceneModel
 from pae.provenance import dataset_line, flat_record, save_record
 
 
@@ -130,3 +132,16 @@ def check_data(
         )
     trained = loaded.data_fingerprint or {"scenes": loaded.scene_names}
     check_fingerprint(cfg, path, trained, data)
+
+
+def novel_view_source(
+    cfg: DictConfig, data: PoseDataModule, scene_model_ckpt: str | Path | None, stage: str
+) -> tuple[SceneModel, NovelViewSettings]:
+    """What renders a step's novel views: the scene model of ``scene_model_ckpt`` (needed by
+    ``stage``; checked to have been fitted to ``data``) and ``teacher.novel_views``' settings."""
+    path = required(scene_model_ckpt, "scene_model_ckpt", stage)
+    loaded = load_scene_model(path, "scene_model_ckpt")
+    check_data(cfg, path, loaded, data)
+    settings = OmegaConf.to_container(cfg.teacher.novel_views, resolve=True)
+    settings.pop("enabled")
+    return loaded.model, NovelViewSettings(**settings)

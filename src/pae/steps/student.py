@@ -13,14 +13,14 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
-from pae.checkpoints import load_scene_model, load_teacher
+from pae.checkpoints import load_teacher
 from pae.data.datamodule import PoseDataModule
 from pae.data.latents import LatentCache, TeacherLatentDataModule
-from pae.data.novel_views import NovelViewPool, NovelViewSettings
+from pae.data.novel_views import NovelViewPool
 from pae.errors import ConfigError
 from pae.lit.student import StudentModule
 from pae.runs import Metrics
-from pae.runs.inputs import check_data, load_frozen, required
+from pae.runs.inputs import load_frozen, novel_view_source
 from pae.runs.trainer import fit_and_test, optimisation, refinement_callbacks
 
 
@@ -30,16 +30,12 @@ def novel_views(
     """The views of ``student.novel_views``: the scene model of ``scene_model_ckpt`` (checked
     to have been fitted to this data) rendering at the cameras ``teacher.novel_views``
     samples (the pool of its first epoch), once ``data``'s train split is read."""
-    path = required(scene_model_ckpt, "scene_model_ckpt", "student with student.novel_views")
-    loaded = load_scene_model(path, "scene_model_ckpt")
-    check_data(cfg, path, loaded, data)
-    settings = OmegaConf.to_container(cfg.teacher.novel_views, resolve=True)
-    settings.pop("enabled")
+    model, settings = novel_view_source(
+        cfg, data, scene_model_ckpt, "student with student.novel_views"
+    )
 
     def render() -> dict[str, Tensor]:
-        pool = NovelViewPool(
-            data, loaded.model, NovelViewSettings(**settings), cfg.scene_model.appearance, cfg.seed
-        )
+        pool = NovelViewPool(data, model, settings, cfg.scene_model.appearance, cfg.seed)
         return pool.views(0)
 
     return render

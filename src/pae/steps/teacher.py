@@ -10,12 +10,11 @@ from typing import Any
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from pae.checkpoints import load_scene_model
 from pae.data.datamodule import PoseDataModule
-from pae.data.novel_views import NovelViewLoader, NovelViewSettings
+from pae.data.novel_views import NovelViewLoader
 from pae.lit.teacher import TeacherModule
 from pae.runs import Metrics
-from pae.runs.inputs import build_data, check_data, required
+from pae.runs.inputs import build_data, novel_view_source
 from pae.runs.trainer import fit_and_test, optimisation
 
 
@@ -33,14 +32,10 @@ def novel_view_loader(
 ) -> NovelViewLoader:
     """The train batches of ``teacher.novel_views``: the scene model of ``scene_model_ckpt``
     (checked to have been fitted to this data) rendering around the train cameras."""
-    path = required(scene_model_ckpt, "scene_model_ckpt", "teacher with teacher.novel_views")
-    loaded = load_scene_model(path, "scene_model_ckpt")
-    check_data(cfg, path, loaded, data)
-    settings = OmegaConf.to_container(cfg.teacher.novel_views, resolve=True)
-    settings.pop("enabled")
-    return NovelViewLoader(
-        loaded.model, NovelViewSettings(**settings), cfg.scene_model.appearance, cfg.seed
+    model, settings = novel_view_source(
+        cfg, data, scene_model_ckpt, "teacher with teacher.novel_views"
     )
+    return NovelViewLoader(model, settings, cfg.scene_model.appearance, cfg.seed)
 
 
 def fit_teacher(
