@@ -38,6 +38,17 @@ def tiny_data_overrides(root: Path) -> list[str]:
     ]
 
 
+TINY_SCENE_MODEL = [
+    "scene_model.max_epochs=1",
+    "scene_model.batches_per_epoch=3",
+    "scene_model.rays_per_batch=1024",
+    "scene_model.model.num_voxels=8000",
+    "render_compare.refiner.rounds=2",
+    "render_compare.refiner.candidates=4",
+]
+"""A scene model and refiner small enough for the tiny dataset: seconds, not a result."""
+
+
 def tiny_overrides(root: Path) -> list[str]:
     """Overrides that point the default config at the tiny dataset with 1-2 epoch runs."""
     return [

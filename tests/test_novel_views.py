@@ -29,8 +29,9 @@ from pae.errors import ConfigError
 from pae.geometry import orientation_error_deg
 from pae.models.base import Latents
 from pae.models.scene_model import SceneModel, SceneRendering
-from pae.validation import NOVEL_VIEW_KEYS, validate_train_config
-from tests.conftest import POISON_M, TINY, tiny_data_overrides
+from pae.novel_view_checks import NOVEL_VIEW_KEYS
+from pae.validation import validate_train_config
+from tests.conftest import POISON_M, TINY, TINY_SCENE_MODEL, tiny_data_overrides
 
 
 def _data(root: Path) -> SyntheticDataModule:
@@ -199,6 +200,14 @@ def test_student_data_adds_the_views_latents_and_their_poses_to_the_store(
     torch.testing.assert_close(train_only.store_poses()[0], train)
     store_only = module(False, True)
     assert len(store_only.latents) == n and len(store_only.store_poses()[0]) == n + m
+    poses_only = TeacherLatentDataModule(  # the store needs no rendered image
+        data,
+        _MeanColour(),
+        views=lambda: {"pose": views["pose"], "scene": views["scene"]},
+        store_views=True,
+    )
+    poses_only.setup("fit")
+    torch.testing.assert_close(poses_only.store_poses()[0], store)
 
 
 def test_novel_view_settings_are_checked_before_any_work(compose_train, tmp_path: Path) -> None:
@@ -253,12 +262,7 @@ def test_the_novel_views_stage_fits_the_scene_model_once(tiny_root: Path, tmp_pa
         "student.max_epochs=1",
         "student.novel_views=true",
         "student.store_novel_views=true",
-        "scene_model.max_epochs=1",
-        "scene_model.batches_per_epoch=3",
-        "scene_model.rays_per_batch=1024",
-        "scene_model.model.num_voxels=8000",
-        "render_compare.refiner.rounds=2",
-        "render_compare.refiner.candidates=4",
+        *TINY_SCENE_MODEL,
     ]
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
         cfg = compose("train", overrides=overrides)

@@ -32,7 +32,7 @@ from pae.models.voxel_grid import VoxelGrid, VoxelGridSceneModel, camera_bounds
 from pae.pose_sampling import perturb
 from pae.refine.render_compare import RenderCompareRefiner, RenderCompareResult, gate
 from pae.refine.render_images import band_pass, trimmed_zncc, zncc
-from tests.conftest import MAGENTA, POISON_M, TINY, tiny_data_overrides
+from tests.conftest import MAGENTA, POISON_M, TINY, TINY_SCENE_MODEL, tiny_data_overrides
 
 
 def _camera_pose(position: list[float], yaw: float = 0.3, pitch: float = -0.1) -> torch.Tensor:
@@ -453,13 +453,8 @@ def test_render_compare_step_logs_its_rows_and_marks_the_oracle(
         "callbacks=minimal",
         "+trainer.enable_progress_bar=false",
         "teacher.max_epochs=1",
-        "scene_model.max_epochs=1",
-        "scene_model.batches_per_epoch=3",
-        "scene_model.rays_per_batch=1024",
-        "scene_model.model.num_voxels=8000",
+        *TINY_SCENE_MODEL,
         "scene_model.image_size=16",  # fit to smaller images than the data's
-        "render_compare.refiner.rounds=2",
-        "render_compare.refiner.candidates=4",
         "stage.steps=[teacher,scene_model]",
     ]
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):

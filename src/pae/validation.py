@@ -25,6 +25,7 @@ from pae.config_checks import (
 )
 from pae.data.labels import read_labels
 from pae.errors import ConfigError
+from pae.novel_view_checks import novel_view_needs
 from pae.steps import CHECKPOINTS, GROUPS, MODELS, missing_checkpoints, steps_of
 
 SYNTHETIC_LAYOUT_BOUNDS = {
@@ -399,17 +400,8 @@ def validate_train_config(cfg: DictConfig, overrides: list[str] | None = None) -
         existing_file(cfg, key)
     _validate_scene_model(cfg)
     needs = _model_needs(cfg, steps)
-    if _validate_novel_views(cfg) and "teacher" in steps:
-        needs["teacher"] = (*needs["teacher"], "scene_model_ckpt")
-    student_views = [f"student.{key}" for key in ("novel_views", "store_novel_views")]
-    for key in student_views:
-        boolean(cfg, key)
-    if any(setting(cfg, key) for key in student_views) and "student" in steps:
-        if not setting(cfg, "student.cache_latents"):
-            raise ConfigError(
-                "student.novel_views and student.store_novel_views need student.cache_latents=true"
-            )
-        needs["student"] = (*needs["student"], "scene_model_ckpt")
+    for step, keys in novel_view_needs(cfg, steps).items():
+        needs[step] = (*needs[step], *keys)
     target = setting(cfg, "scene_model.model._target_")
     if "scene_fit" in steps and not getattr(get_object(target), "trains", False):
         raise ConfigError(f"scene_fit: scene_model.model._target_={target} does not train")
@@ -435,34 +427,6 @@ def _model_needs(cfg: DictConfig, steps: list[str]) -> dict[str, tuple[str, ...]
         )
         for step in steps_of(steps)
     }
-
-
-NOVEL_VIEW_KEYS = ("enabled", "ratio", "views", "between", "position_jitter_m")
-NOVEL_VIEW_KEYS += ("orientation_jitter_deg", "size", "cache")
-"""The settings of ``teacher.novel_views`` (pae.data.novel_views.NovelViewSettings's fields
-and ``enabled``)."""
-
-
-def _validate_novel_views(cfg: DictConfig) -> bool:
-    """``teacher.novel_views.*``: its keys and ranges -> whether novel views are on."""
-    views = setting(cfg, "teacher.novel_views")
-    if views is None:
-        return False
-    for name in views:
-        if name not in NOVEL_VIEW_KEYS:
-            raise ConfigError(
-                f"teacher.novel_views.{name}: not a setting of teacher.novel_views (it has "
-                f"{', '.join(NOVEL_VIEW_KEYS)})"
-            )
-    for name in ("enabled", "between", "cache"):
-        boolean(cfg, f"teacher.novel_views.{name}")
-    for name in ("ratio", "views"):
-        number(cfg, f"teacher.novel_views.{name}", 0, strict=True)
-    for name in ("position_jitter_m", "orientation_jitter_deg"):
-        number(cfg, f"teacher.novel_views.{name}", 0, strict=False)
-    if setting(cfg, "teacher.novel_views.size") is not None:
-        integer(cfg, "teacher.novel_views.size", 4)
-    return bool(views.enabled)
 
 
 def _validate_scene_model(cfg: DictConfig) -> None:

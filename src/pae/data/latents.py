@@ -214,9 +214,10 @@ class TeacherLatentDataModule(L.LightningDataModule):
     wrapped PoseDataModule's images (the teacher still runs on queries). With `cache` and
     `teacher_ckpt` the latents come from (or go to) that on-disk cache; `cache_hit` says
     which. `views` is called once the train split is read and gives rendered views
-    (``image`` uint8 [M, 3, H, W], ``pose`` [M, 7], ``scene`` [M]): with `train_on_views`
-    the teacher's latents of those views join the train rows (computed every run, never
-    cached), with `store_views` their poses join the retrieval store (`store_poses`)."""
+    (``pose`` [M, 7], ``scene`` [M], and with `train_on_views` ``image`` uint8
+    [M, 3, H, W]): with `train_on_views` the teacher's latents of those views join the train
+    rows (computed every run, never cached), with `store_views` their poses join the
+    retrieval store (`store_poses`)."""
 
     def __init__(
         self,

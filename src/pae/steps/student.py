@@ -27,18 +27,23 @@ from pae.runs.trainer import fit_and_test, optimisation, refinement_callbacks
 def novel_views(
     cfg: DictConfig, data: PoseDataModule, scene_model_ckpt: str | Path | None
 ) -> Callable[[], dict[str, Tensor]]:
-    """The views of ``student.novel_views``: the scene model of ``scene_model_ckpt`` (checked
-    to have been fitted to this data) rendering at the cameras ``teacher.novel_views``
-    samples (the pool of its first epoch), once ``data``'s train split is read."""
+    """The views of ``student.novel_views`` and ``student.store_novel_views``: the cameras
+    ``teacher.novel_views`` samples (the pool of its first epoch), once ``data``'s train
+    split is read, rendered by the scene model of ``scene_model_ckpt`` (checked to have been
+    fitted to this data) only when the student learns from them (the store needs the poses
+    alone): ``{"pose": [M, 7], "scene": [M]}`` and with ``student.novel_views`` ``"image"``."""
     model, settings = novel_view_source(
         cfg, data, scene_model_ckpt, "student with student.novel_views"
     )
 
-    def render() -> dict[str, Tensor]:
+    def views() -> dict[str, Tensor]:
         pool = NovelViewPool(data, model, settings, cfg.scene_model.appearance, cfg.seed)
-        return pool.views(0)
+        if cfg.student.novel_views:
+            return pool.views(0)
+        cameras = pool.cameras(0)
+        return {"pose": cameras.poses, "scene": cameras.scenes}
 
-    return render
+    return views
 
 
 def fit_student(
