@@ -21,6 +21,7 @@ from pae.data.novel_views import (
     NovelViewPool,
     NovelViewSettings,
     other_sequence_neighbours,
+    partners_within,
     render_views,
     sample_novel_poses,
 )
@@ -114,6 +115,33 @@ def test_views_lie_between_a_camera_and_the_nearest_one_of_another_sequence() ->
     assert torch.equal(cameras.nearest, on_lane)
     kept = sample_novel_poses(poses, scenes, sequences, 50, 0.0, 0.0, False, draws)
     torch.testing.assert_close(kept.poses, poses[kept.source])
+
+
+def test_partners_within_a_radius_reach_the_far_lane_drawn_uniformly() -> None:
+    """Four sequences beside the source's: one 0.1 m away, one a lane 1 m away, one 1 m away
+    turned by 90 degrees, one in another scene. Within 1.2 m and 30 degrees a partner is drawn
+    from the first two about equally often, never from the turned one, the source's own
+    sequence or another scene; where none lies that close, it is the nearest camera of another
+    sequence."""
+    x = torch.arange(10, dtype=torch.float64) * 0.05
+    lane = lambda y: torch.stack([x, torch.full_like(x, y), torch.zeros_like(x)], 1)  # noqa: E731
+    turned = torch.tensor([math.cos(math.pi / 4), 0, 0, math.sin(math.pi / 4)])
+    q = torch.tensor([1.0, 0, 0, 0]).double().repeat(50, 1)
+    q[30:40] = turned
+    poses = torch.cat([torch.cat([lane(0.0), lane(0.1), lane(1.0), lane(-1.0), lane(0.0)]), q], 1)
+    sequences = torch.arange(5).repeat_interleave(10)
+    scenes = torch.tensor([0, 0, 0, 0, 1]).repeat_interleave(10)
+    rows = torch.zeros(4000, dtype=torch.long)
+    draws = torch.Generator().manual_seed(0)
+    partners = partners_within(rows, poses, scenes, sequences, 1.2, 30.0, draws)
+    counts = torch.bincount(sequences[partners], minlength=5)
+    assert counts[0] == 0 and counts[3] == 0 and counts[4] == 0
+    assert abs(counts[1].item() - 2000) < 150 and abs(counts[2].item() - 2000) < 150
+    anywhere = partners_within(rows, poses, scenes, sequences, 1.2, 180.0, draws)
+    assert torch.bincount(sequences[anywhere], minlength=5)[3] > 1000
+    near = partners_within(rows[:5], poses, scenes, sequences, 0.05, 30.0, draws)
+    nearest = other_sequence_neighbours(poses[:, :3], scenes, sequences)
+    assert torch.equal(near, nearest[rows[:5]]) and torch.equal(near, torch.full((5,), 10))
 
 
 def test_each_view_has_its_sources_intrinsics_and_its_nearest_cameras_appearance(
@@ -221,6 +249,8 @@ def test_novel_view_settings_are_checked_before_any_work(compose_train, tmp_path
     for override, message in (
         ("teacher.novel_views.ratio=0", r"teacher\.novel_views\.ratio must be a number > 0"),
         ("teacher.novel_views.size=2", r"teacher\.novel_views\.size must be an integer >= 4"),
+        ("teacher.novel_views.between_radius_m=0", r"between_radius_m must be a number > 0"),
+        ("teacher.novel_views.between_max_turn_deg=-1", r"between_max_turn_deg must be a"),
         ("teacher.novel_views.cache=maybe", r"teacher\.novel_views\.cache must be true or"),
         ("teacher.novel_views.enabled=true", r"stage=teacher needs scene_model_ckpt=PATH"),
         ("student.store_novel_views=1", r"student\.store_novel_views must be true or false"),

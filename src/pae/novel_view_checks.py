@@ -9,7 +9,8 @@ from omegaconf import DictConfig
 from pae.config_checks import boolean, integer, number, setting
 from pae.errors import ConfigError
 
-NOVEL_VIEW_KEYS = ("enabled", "ratio", "views", "between", "position_jitter_m")
+NOVEL_VIEW_KEYS = ("enabled", "ratio", "views", "between", "between_radius_m")
+NOVEL_VIEW_KEYS += ("between_max_turn_deg", "position_jitter_m")
 NOVEL_VIEW_KEYS += ("orientation_jitter_deg", "size", "cache")
 """The settings of ``teacher.novel_views`` (pae.data.novel_views.NovelViewSettings's fields
 and ``enabled``)."""
@@ -34,6 +35,9 @@ def _teacher_views_on(cfg: DictConfig) -> bool:
         number(cfg, f"teacher.novel_views.{name}", 0, strict=True)
     for name in ("position_jitter_m", "orientation_jitter_deg"):
         number(cfg, f"teacher.novel_views.{name}", 0, strict=False)
+    number(cfg, "teacher.novel_views.between_max_turn_deg", 0, strict=True)
+    if setting(cfg, "teacher.novel_views.between_radius_m") is not None:
+        number(cfg, "teacher.novel_views.between_radius_m", 0, strict=True)
     if setting(cfg, "teacher.novel_views.size") is not None:
         integer(cfg, "teacher.novel_views.size", 4)
     return bool(views.enabled)

@@ -11,6 +11,7 @@ photograph taken there. Validation and test rows are never read.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -84,6 +85,38 @@ def other_sequence_neighbours(positions: Tensor, scenes: Tensor, sequences: Tens
     return torch.cat(rows) if rows else torch.zeros(0, dtype=torch.long)
 
 
+def partners_within(
+    rows: Tensor,
+    poses: Tensor,
+    scenes: Tensor,
+    sequences: Tensor,
+    radius_m: float,
+    max_turn_deg: float,
+    generator: torch.Generator,
+) -> Tensor:
+    """For each train camera of ``rows`` [M] (rows of poses [N, 7], scene ids [N], sequence
+    ids [N]) a camera [M] drawn uniformly among those of its scene and another sequence within
+    ``radius_m`` (m) of it whose orientation differs from its own by at most ``max_turn_deg``;
+    the nearest of another sequence where none does (its own row where its scene has a single
+    sequence)."""
+    positions = poses[:, :3].double()
+    nearest = other_sequence_neighbours(positions, scenes, sequences)
+    cos_half = math.cos(math.radians(max_turn_deg) / 2)
+    partners = []
+    for chunk in rows.split(CHUNK_ROWS):
+        distances = torch.cdist(positions[chunk], positions)
+        allowed = (scenes[chunk][:, None] == scenes[None, :]) & (
+            sequences[chunk][:, None] != sequences[None, :]
+        )
+        alignment = (poses[chunk, None, 3:].double() * poses[None, :, 3:].double()).sum(-1)
+        allowed &= (distances <= radius_m) & (alignment.abs() >= cos_half)
+        found = allowed.any(1)
+        weights = torch.where(found[:, None], allowed.double(), 1.0)
+        drawn = torch.multinomial(weights, 1, generator=generator).squeeze(1)
+        partners.append(torch.where(found, drawn, nearest[chunk]))
+    return torch.cat(partners) if partners else torch.zeros(0, dtype=torch.long)
+
+
 def sample_novel_poses(
     poses: Tensor,
     scenes: Tensor,
@@ -93,18 +126,34 @@ def sample_novel_poses(
     orientation_jitter_deg: float,
     between: bool,
     generator: torch.Generator,
+    between_radius_m: float | None = None,
+    between_max_turn_deg: float = 180.0,
 ) -> NovelPoses:
     """``count`` cameras around the train cameras poses [N, 7] (scene ids [N], sequence ids
     [N]): each from a train camera drawn uniformly, moved a uniform share of the way towards
-    the nearest camera of another sequence of its scene (``between``; its orientation
-    interpolated likewise), then by a distance uniform in [0, 2·``position_jitter_m``] (m) in
-    a random direction and a rotation uniform in [0, 2·``orientation_jitter_deg``] about a
-    random axis."""
+    a camera of another sequence of its scene (``between``; its orientation interpolated
+    likewise): the nearest one, or with ``between_radius_m`` one drawn among those within
+    that many metres turned at most ``between_max_turn_deg`` from it (:func:`partners_within`);
+    then by a distance uniform in
+    [0, 2·``position_jitter_m``] (m) in a random direction and a rotation uniform in
+    [0, 2·``orientation_jitter_deg``] about a random axis."""
     poses = poses.double()
     source = torch.randint(len(poses), (count,), generator=generator)
     start = poses[source]
     if between:
-        partner = poses[other_sequence_neighbours(poses[:, :3], scenes, sequences)[source]]
+        if between_radius_m is None:
+            partner_rows = other_sequence_neighbours(poses[:, :3], scenes, sequences)[source]
+        else:
+            partner_rows = partners_within(
+                source,
+                poses,
+                scenes,
+                sequences,
+                between_radius_m,
+                between_max_turn_deg,
+                generator,
+            )
+        partner = poses[partner_rows]
         share = torch.rand(count, 1, generator=generator, dtype=torch.float64)
         position = start[:, :3] + share * (partner[:, :3] - start[:, :3])
         q0, q1 = start[:, 3:], partner[:, 3:]
@@ -155,14 +204,17 @@ def render_views(
 class NovelViewSettings:
     """``teacher.novel_views``: ``ratio`` rendered images per real one in each train batch;
     a pool of ``views`` rendered views per train image, rendered once (``cache``) or afresh
-    each epoch; the sampling's ``position_jitter_m`` (m), ``orientation_jitter_deg`` and
-    ``between``; the render ``size`` (px shorter edge, None: the train images')."""
+    each epoch; the sampling's ``position_jitter_m`` (m), ``orientation_jitter_deg``,
+    ``between``, ``between_radius_m`` (m; None: the nearest camera of another sequence) and
+    ``between_max_turn_deg``; the render ``size`` (px shorter edge, None: the train images')."""
 
     ratio: float
     views: float
     position_jitter_m: float
     orientation_jitter_deg: float
     between: bool = True
+    between_radius_m: float | None = None
+    between_max_turn_deg: float = 180.0
     size: int | None = None
     cache: bool = True
 
@@ -206,6 +258,8 @@ class NovelViewPool:
             s.orientation_jitter_deg,
             s.between,
             streams.generator(self.seed, "novel_views", 0 if s.cache else epoch),
+            s.between_radius_m,
+            s.between_max_turn_deg,
         )
 
     def views(self, epoch: int) -> dict[str, Tensor]:
