@@ -103,7 +103,10 @@ def test_views_lie_between_a_camera_and_the_nearest_one_of_another_sequence() ->
     poses = torch.cat([torch.cat([lane(0.0), lane(1.0)]), q], 1).float()
     scenes, sequences = torch.zeros(20, dtype=torch.long), (torch.arange(20) >= 10).long()
     draws = torch.Generator().manual_seed(0)
-    cameras = sample_novel_poses(poses, scenes, sequences, 200, 0.0, 0.0, True, draws)
+    exact = NovelViewSettings(
+        ratio=0.5, views=1.0, position_jitter_m=0.0, orientation_jitter_deg=0.0
+    )
+    cameras = sample_novel_poses(poses, scenes, sequences, 200, exact, draws)
     start = poses[cameras.source]
     torch.testing.assert_close(cameras.poses[:, 0], start[:, 0])  # the partner is abreast
     share = (cameras.poses[:, 1] - start[:, 1]).abs()
@@ -113,7 +116,8 @@ def test_views_lie_between_a_camera_and_the_nearest_one_of_another_sequence() ->
     torch.testing.assert_close(degrees, 30 * offset, atol=0.6, rtol=0)  # nlerp, not slerp
     on_lane = torch.cdist(cameras.poses[:, :3], poses[:, :3]).argmin(1)
     assert torch.equal(cameras.nearest, on_lane)
-    kept = sample_novel_poses(poses, scenes, sequences, 50, 0.0, 0.0, False, draws)
+    still = dataclasses.replace(exact, between=False)
+    kept = sample_novel_poses(poses, scenes, sequences, 50, still, draws)
     torch.testing.assert_close(kept.poses, poses[kept.source])
 
 
@@ -142,6 +146,36 @@ def test_partners_within_a_radius_reach_the_far_lane_drawn_uniformly() -> None:
     near = partners_within(rows[:5], poses, scenes, sequences, 0.05, 30.0, draws)
     nearest = other_sequence_neighbours(poses[:, :3], scenes, sequences)
     assert torch.equal(near, nearest[rows[:5]]) and torch.equal(near, torch.full((5,), 10))
+
+
+def test_views_keep_their_distance_from_every_train_camera() -> None:
+    """Two lanes 1 m apart: with ``min_distance_m`` 0.3 every view lies at least 0.3 m from
+    every train camera (between the lanes, where none was taken); asked for more than the
+    draws can find (2 m), it still gives the views asked for, the farthest drawn."""
+    x = torch.arange(20, dtype=torch.float64) * 0.1
+    lane = lambda y: torch.stack([x, torch.full_like(x, y), torch.zeros_like(x)], 1)  # noqa: E731
+    q = torch.tensor([1.0, 0, 0, 0]).double().repeat(40, 1)
+    poses = torch.cat([torch.cat([lane(0.0), lane(1.0)]), q], 1).float()
+    scenes, sequences = torch.zeros(40, dtype=torch.long), (torch.arange(40) >= 20).long()
+    spread = NovelViewSettings(
+        ratio=1.0,
+        views=1.0,
+        position_jitter_m=0.05,
+        orientation_jitter_deg=1.0,
+        between_radius_m=1.5,
+        min_distance_m=0.3,
+    )
+    cameras = sample_novel_poses(poses, scenes, sequences, 300, spread, torch.Generator())
+    clear = torch.cdist(cameras.poses[:, :3], poses[:, :3]).min(1).values
+    assert len(cameras.poses) == 300 and (clear >= 0.3 - 1e-5).all()
+    assert torch.equal(cameras.nearest, torch.cdist(cameras.poses[:, :3], poses[:, :3]).argmin(1))
+    anywhere = dataclasses.replace(spread, min_distance_m=0.0)
+    drawn = sample_novel_poses(poses, scenes, sequences, 300, anywhere, torch.Generator())
+    assert (torch.cdist(drawn.poses[:, :3], poses[:, :3]).min(1).values < 0.3).float().mean() > 0.3
+    too_far = dataclasses.replace(spread, min_distance_m=2.0)
+    farthest = sample_novel_poses(poses, scenes, sequences, 300, too_far, torch.Generator())
+    assert len(farthest.poses) == 300
+    assert torch.cdist(farthest.poses[:, :3], poses[:, :3]).min(1).values.min() > 0.3
 
 
 def test_each_view_has_its_sources_intrinsics_and_its_nearest_cameras_appearance(
@@ -251,6 +285,7 @@ def test_novel_view_settings_are_checked_before_any_work(compose_train, tmp_path
         ("teacher.novel_views.size=2", r"teacher\.novel_views\.size must be an integer >= 4"),
         ("teacher.novel_views.between_radius_m=0", r"between_radius_m must be a number > 0"),
         ("teacher.novel_views.between_max_turn_deg=-1", r"between_max_turn_deg must be a"),
+        ("teacher.novel_views.min_distance_m=-1", r"min_distance_m must be a number >= 0"),
         ("teacher.novel_views.cache=maybe", r"teacher\.novel_views\.cache must be true or"),
         ("teacher.novel_views.enabled=true", r"stage=teacher needs scene_model_ckpt=PATH"),
         ("student.store_novel_views=1", r"student\.store_novel_views must be true or false"),

@@ -11,7 +11,7 @@ from pae.errors import ConfigError
 
 NOVEL_VIEW_KEYS = ("enabled", "ratio", "views", "between", "between_radius_m")
 NOVEL_VIEW_KEYS += ("between_max_turn_deg", "position_jitter_m")
-NOVEL_VIEW_KEYS += ("orientation_jitter_deg", "size", "cache")
+NOVEL_VIEW_KEYS += ("orientation_jitter_deg", "min_distance_m", "size", "cache")
 """The settings of ``teacher.novel_views`` (pae.data.novel_views.NovelViewSettings's fields
 and ``enabled``)."""
 STUDENT_VIEW_KEYS = ("student.novel_views", "student.store_novel_views")
@@ -33,7 +33,7 @@ def _teacher_views_on(cfg: DictConfig) -> bool:
         boolean(cfg, f"teacher.novel_views.{name}")
     for name in ("ratio", "views"):
         number(cfg, f"teacher.novel_views.{name}", 0, strict=True)
-    for name in ("position_jitter_m", "orientation_jitter_deg"):
+    for name in ("position_jitter_m", "orientation_jitter_deg", "min_distance_m"):
         number(cfg, f"teacher.novel_views.{name}", 0, strict=False)
     number(cfg, "teacher.novel_views.between_max_turn_deg", 0, strict=True)
     if setting(cfg, "teacher.novel_views.between_radius_m") is not None:

@@ -117,31 +117,44 @@ def partners_within(
     return torch.cat(partners) if partners else torch.zeros(0, dtype=torch.long)
 
 
-def sample_novel_poses(
+@dataclass(frozen=True)
+class NovelViewSettings:
+    """``teacher.novel_views``: ``ratio`` rendered images per real one in each train batch;
+    a pool of ``views`` rendered views per train image, rendered once (``cache``) or afresh
+    each epoch; the sampling's ``position_jitter_m`` (m), ``orientation_jitter_deg``,
+    ``between``, ``between_radius_m`` (m; None: the nearest camera of another sequence) and
+    ``between_max_turn_deg``; ``min_distance_m`` (m) between a view and every train camera;
+    the render ``size`` (px shorter edge, None: the train images')."""
+
+    ratio: float
+    views: float
+    position_jitter_m: float
+    orientation_jitter_deg: float
+    between: bool = True
+    between_radius_m: float | None = None
+    between_max_turn_deg: float = 180.0
+    min_distance_m: float = 0.0
+    size: int | None = None
+    cache: bool = True
+
+
+MAX_DRAWS = 16
+"""Rounds of candidate cameras drawn to find views ``min_distance_m`` from the train cameras."""
+
+
+def _draw_cameras(
     poses: Tensor,
     scenes: Tensor,
     sequences: Tensor,
     count: int,
-    position_jitter_m: float,
-    orientation_jitter_deg: float,
-    between: bool,
+    settings: NovelViewSettings,
     generator: torch.Generator,
-    between_radius_m: float | None = None,
-    between_max_turn_deg: float = 180.0,
 ) -> NovelPoses:
-    """``count`` cameras around the train cameras poses [N, 7] (scene ids [N], sequence ids
-    [N]): each from a train camera drawn uniformly, moved a uniform share of the way towards
-    a camera of another sequence of its scene (``between``; its orientation interpolated
-    likewise): the nearest one, or with ``between_radius_m`` one drawn among those within
-    that many metres turned at most ``between_max_turn_deg`` from it (:func:`partners_within`);
-    then by a distance uniform in
-    [0, 2·``position_jitter_m``] (m) in a random direction and a rotation uniform in
-    [0, 2·``orientation_jitter_deg``] about a random axis."""
-    poses = poses.double()
+    """``count`` candidate cameras of :func:`sample_novel_poses`, wherever they fall."""
     source = torch.randint(len(poses), (count,), generator=generator)
     start = poses[source]
-    if between:
-        if between_radius_m is None:
+    if settings.between:
+        if settings.between_radius_m is None:
             partner_rows = other_sequence_neighbours(poses[:, :3], scenes, sequences)[source]
         else:
             partner_rows = partners_within(
@@ -149,8 +162,8 @@ def sample_novel_poses(
                 poses,
                 scenes,
                 sequences,
-                between_radius_m,
-                between_max_turn_deg,
+                settings.between_radius_m,
+                settings.between_max_turn_deg,
                 generator,
             )
         partner = poses[partner_rows]
@@ -160,9 +173,52 @@ def sample_novel_poses(
         q1 = torch.where((q0 * q1).sum(-1, keepdim=True) < 0, -q1, q1)  # the shorter arc
         rotation = canonicalize_quaternion(q0 + share * (q1 - q0))
         start = torch.cat([position, rotation], -1)
-    moved = perturb_poses(start, position_jitter_m, orientation_jitter_deg, generator)
+    moved = perturb_poses(
+        start, settings.position_jitter_m, settings.orientation_jitter_deg, generator
+    )
     nearest = nearest_train_rows(moved[:, :3], scenes[source], poses[:, :3], scenes)
-    return NovelPoses(moved.float(), scenes[source], source, nearest)
+    return NovelPoses(moved, scenes[source], source, nearest)
+
+
+def sample_novel_poses(
+    poses: Tensor,
+    scenes: Tensor,
+    sequences: Tensor,
+    count: int,
+    settings: NovelViewSettings,
+    generator: torch.Generator,
+) -> NovelPoses:
+    """``count`` cameras around the train cameras poses [N, 7] (scene ids [N], sequence ids
+    [N]): each from a train camera drawn uniformly, moved a uniform share of the way towards
+    a camera of another sequence of its scene (``settings.between``; its orientation
+    interpolated likewise): the nearest one, or with ``between_radius_m`` one drawn among
+    those within that many metres turned at most ``between_max_turn_deg`` from it
+    (:func:`partners_within`); then by a distance uniform in [0, 2·``position_jitter_m``] (m)
+    in a random direction and a rotation uniform in [0, 2·``orientation_jitter_deg``] about a
+    random axis. With ``min_distance_m`` only cameras at least that far from every train
+    camera of their scene are kept (drawn in up to ``MAX_DRAWS`` rounds; the farthest of the
+    others fill what is still missing)."""
+    poses = poses.double()
+    rounds: list[NovelPoses] = []
+    found = 0
+    for _ in range(MAX_DRAWS if settings.min_distance_m > 0 else 1):
+        rounds.append(_draw_cameras(poses, scenes, sequences, count, settings, generator))
+        clear = (rounds[-1].poses[:, :3] - poses[rounds[-1].nearest, :3]).norm(dim=-1)
+        found += int((clear >= settings.min_distance_m).sum())
+        if found >= count:
+            break
+    drawn = NovelPoses(*(torch.cat(fields) for fields in zip(*rounds, strict=True)))
+    clear = (drawn.poses[:, :3] - poses[drawn.nearest, :3]).norm(dim=-1)
+    far = clear >= settings.min_distance_m
+    near = torch.nonzero(~far).squeeze(1)
+    order = torch.cat([torch.nonzero(far).squeeze(1), near[clear[near].argsort(descending=True)]])
+    picked = order[:count]
+    return NovelPoses(
+        drawn.poses[picked].float(),
+        drawn.scenes[picked],
+        drawn.source[picked],
+        drawn.nearest[picked],
+    )
 
 
 @torch.no_grad()
@@ -200,25 +256,6 @@ def render_views(
     return out
 
 
-@dataclass(frozen=True)
-class NovelViewSettings:
-    """``teacher.novel_views``: ``ratio`` rendered images per real one in each train batch;
-    a pool of ``views`` rendered views per train image, rendered once (``cache``) or afresh
-    each epoch; the sampling's ``position_jitter_m`` (m), ``orientation_jitter_deg``,
-    ``between``, ``between_radius_m`` (m; None: the nearest camera of another sequence) and
-    ``between_max_turn_deg``; the render ``size`` (px shorter edge, None: the train images')."""
-
-    ratio: float
-    views: float
-    position_jitter_m: float
-    orientation_jitter_deg: float
-    between: bool = True
-    between_radius_m: float | None = None
-    between_max_turn_deg: float = 180.0
-    size: int | None = None
-    cache: bool = True
-
-
 class NovelViewPool:
     """The rendered views of one epoch: sampled from the train split of a data module and
     rendered by ``scene_model`` (frozen, on the CPU), drawn from (``seed``, epoch) alone; with
@@ -248,18 +285,13 @@ class NovelViewPool:
 
     def cameras(self, epoch: int) -> NovelPoses:
         """The cameras of ``epoch``'s views (of epoch 0 with ``cache``)."""
-        s = self.settings
         return sample_novel_poses(
             self.poses,
             self.scenes,
             self.sequences,
             self.count,
-            s.position_jitter_m,
-            s.orientation_jitter_deg,
-            s.between,
-            streams.generator(self.seed, "novel_views", 0 if s.cache else epoch),
-            s.between_radius_m,
-            s.between_max_turn_deg,
+            self.settings,
+            streams.generator(self.seed, "novel_views", 0 if self.settings.cache else epoch),
         )
 
     def views(self, epoch: int) -> dict[str, Tensor]:
