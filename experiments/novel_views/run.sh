@@ -3,7 +3,8 @@
 # the demo's scene model (make demo first: outputs/demo), two runs side by side on one thread
 # each; finished runs are skipped (the script resumes).
 #   bash experiments/novel_views/run.sh [OUT]
-#   pae-report --compare OUT/plain OUT/jitter0.25 --names plain,novel_views [--split val]
+#   pae-report --compare OUT/plain OUT/partners/r1.2_t30_v2_ratio2 --names plain,novel_views \
+#     [--split val]
 set -uo pipefail
 OUT=${1:-outputs/nv_compare}
 BIN=${BIN:-.venv/bin}
@@ -16,23 +17,64 @@ run() {  # DIR overrides...: one run of pae-train in DIR unless it finished
   mkdir -p "$(dirname "$dir")"
   OMP_NUM_THREADS=1 "$BIN"/pae-train hydra.run.dir="$dir" "$@" > "$dir.log" 2>&1
 }
-# 1. the settings on val, seed 0 (the demo's settings spelled out for the group's defaults)
+# 1. the first round on val, seed 0: partners the nearest camera of another sequence (the
+# group's defaults: ratio 0.5, one view per train image)
+NV=(experiment=demo "${BASE[@]}" teacher.novel_views.enabled=true)
 run "$OUT/plain/s0" experiment=demo "${BASE[@]}" seed=0 &
-run "$OUT/default/s0" experiment=demo_novel_views "${BASE[@]}" seed=0 \
-  teacher.novel_views.position_jitter_m=0.1 teacher.novel_views.orientation_jitter_deg=3 &
+run "$OUT/default/s0" "${NV[@]}" seed=0 &
 wait
-run "$OUT/ratio1/s0" experiment=demo_novel_views "${BASE[@]}" seed=0 teacher.novel_views.ratio=1.0 \
-  teacher.novel_views.position_jitter_m=0.1 teacher.novel_views.orientation_jitter_deg=3 &
-run "$OUT/jitter0.25/s0" experiment=demo_novel_views "${BASE[@]}" seed=0 \
+run "$OUT/ratio1/s0" "${NV[@]}" seed=0 teacher.novel_views.ratio=1.0 &
+run "$OUT/jitter0.25/s0" "${NV[@]}" seed=0 \
   teacher.novel_views.position_jitter_m=0.25 teacher.novel_views.orientation_jitter_deg=6 &
 wait
-# 2. the chosen setting and the plain teacher over seeds 1 and 2
 for seed in 1 2; do
-  run "$OUT/jitter0.25/s$seed" experiment=demo_novel_views "${BASE[@]}" seed=$seed \
+  run "$OUT/jitter0.25/s$seed" "${NV[@]}" seed=$seed \
     teacher.novel_views.position_jitter_m=0.25 teacher.novel_views.orientation_jitter_deg=6 &
   run "$OUT/plain/s$seed" experiment=demo "${BASE[@]}" seed=$seed &
   wait
 done
+# 2. the second round on val, seed 0: partners drawn within 1.2 m (turned at most 30 degrees
+# with t30), V views per train image, ratio R, views at least D m from every train camera;
+# then the chosen one (experiment=demo_novel_views) over seeds 1 and 2
+partners() {  # NAME SEED overrides...
+  local name=$1 seed=$2
+  shift 2
+  run "$OUT/partners/$name/s$seed" "${NV[@]}" seed="$seed" teacher.novel_views.between_radius_m=1.2 \
+    teacher.novel_views.position_jitter_m=0.1 teacher.novel_views.orientation_jitter_deg=3 "$@"
+}
+T30=teacher.novel_views.between_max_turn_deg=30
+partners r1.2 0 &
+partners r1.2_t30_v2_ratio1 0 $T30 teacher.novel_views.views=2 teacher.novel_views.ratio=1 &
+wait
+partners r1.2_t30_v4_ratio1 0 $T30 teacher.novel_views.views=4 teacher.novel_views.ratio=1 &
+partners r1.2_t30_v2_ratio2 0 $T30 teacher.novel_views.views=2 teacher.novel_views.ratio=2 &
+wait
+for d in 0.2 0.3; do
+  partners r1.2_t30_v2_ratio1_d$d 0 $T30 teacher.novel_views.views=2 teacher.novel_views.ratio=1 \
+    teacher.novel_views.min_distance_m=$d &
+done
+wait
+partners r1.2_t15_v2_ratio1_d0.2 0 teacher.novel_views.between_max_turn_deg=15 \
+  teacher.novel_views.views=2 teacher.novel_views.ratio=1 teacher.novel_views.min_distance_m=0.2 &
+partners r1.2_t30_v2_ratio2_d0.2 0 $T30 teacher.novel_views.views=2 teacher.novel_views.ratio=2 \
+  teacher.novel_views.min_distance_m=0.2 &
+wait
+for seed in 1 2; do
+  partners r1.2_t30_v2_ratio2 $seed $T30 teacher.novel_views.views=2 teacher.novel_views.ratio=2 &
+done
+wait
+# the bound: views rendered around the test cameras themselves (an audit: it reads the test
+# labels, named *_oracle), with the settings of r1.2_t30_v2_ratio1
+ORACLE=$OUT/partners/test_pose_views_oracle/s0
+if [ ! -f "$ORACLE/metrics.json" ]; then
+  mkdir -p "$ORACLE"
+  LABELS=$("$BIN"/python -c 'import json, sys; print(json.load(open(sys.argv[1]))["data/test/labels"])' \
+    "$OUT/plain/s0/metrics.json")
+  OMP_NUM_THREADS=1 "$BIN"/python experiments/novel_views/test_pose_views_oracle.py "$LABELS" \
+    hydra.run.dir="$ORACLE" "${NV[@]}" seed=0 teacher.novel_views.views=2 \
+    teacher.novel_views.ratio=1.0 teacher.novel_views.position_jitter_m=0.1 \
+    teacher.novel_views.orientation_jitter_deg=3 > "$ORACLE.log" 2>&1
+fi
 # 3. the student on the novel-view teacher of seed 0 (group defaults): plain, trained on the
 # views, retrieving among them too, both
 NVT=$OUT/default/s0/teacher/checkpoints/last.ckpt
@@ -49,4 +91,21 @@ wait
 # experiments/ablation_teacher's gain0.15_s0
 run "$OUT/ms_transformer/s0" experiment=demo_ms_transformer 'stage.steps=[teacher]' \
   teacher.max_epochs=40 teacher.novel_views.enabled=true \
+  scene_model_ckpt=outputs/demo_ms_transformer/scene_model/checkpoints/last.ckpt
+# 5. the student on the chosen novel-view teacher of seed 0 (its own views: the settings of
+# experiment=demo_novel_views): plain, trained on the views, retrieving among them too, both
+NVT=$OUT/partners/r1.2_t30_v2_ratio2/s0/teacher/checkpoints/last.ckpt
+STUDENT=(experiment=demo_novel_views 'stage.steps=[student]' "teacher_ckpt=$NVT" "scene_model_ckpt=$SM")
+run "$OUT/partners/student/plain" "${STUDENT[@]}" &
+run "$OUT/partners/student/views" "${STUDENT[@]}" student.novel_views=true &
+wait
+run "$OUT/partners/student/store" "${STUDENT[@]}" student.store_novel_views=true &
+run "$OUT/partners/student/views_store" "${STUDENT[@]}" student.novel_views=true \
+  student.store_novel_views=true &
+wait
+# 6. the MS-Transformer teacher (40 epochs, seed 0) with the chosen settings' novel views
+run "$OUT/partners/ms_transformer/s0" experiment=demo_ms_transformer 'stage.steps=[teacher]' \
+  teacher.max_epochs=40 teacher.novel_views.enabled=true teacher.novel_views.views=2 \
+  teacher.novel_views.ratio=2 teacher.novel_views.between_radius_m=1.2 \
+  teacher.novel_views.between_max_turn_deg=30 \
   scene_model_ckpt=outputs/demo_ms_transformer/scene_model/checkpoints/last.ckpt
