@@ -109,3 +109,14 @@ run "$OUT/partners/ms_transformer/s0" experiment=demo_ms_transformer 'stage.step
   teacher.novel_views.ratio=2 teacher.novel_views.between_radius_m=1.2 \
   teacher.novel_views.between_max_turn_deg=30 \
   scene_model_ckpt=outputs/demo_ms_transformer/scene_model/checkpoints/last.ckpt
+# 7. where the test cameras lie and where each teacher of seed 0 errs (reads the test labels:
+# an analysis)
+DATA=$("$BIN"/python -c 'import json, sys; print(json.load(open(sys.argv[1]))["data/root"])' \
+  "$OUT/plain/s0/metrics.json")
+mkdir -p "$OUT/geometry"
+for r in plain/s0 jitter0.25/s0 partners/r1.2_t30_v2_ratio2/s0 partners/r1.2_t30_v2_ratio1_d0.2/s0 \
+  partners/test_pose_views_oracle/s0; do
+  OMP_NUM_THREADS=1 "$BIN"/pae-localize "$OUT/$r" "$DATA/labels/all_test.csv" \
+    --out "$OUT/geometry/${r//\//_}.csv" > /dev/null
+done
+"$BIN"/python experiments/novel_views/geometry.py "$DATA" "$OUT"/geometry/*.csv
