@@ -100,20 +100,21 @@ def partners_within(
     the nearest of another sequence where none does (its own row where its scene has a single
     sequence)."""
     positions = poses[:, :3].double()
-    nearest = other_sequence_neighbours(positions, scenes, sequences)
     cos_half = math.cos(math.radians(max_turn_deg) / 2)
     partners = []
     for chunk in rows.split(CHUNK_ROWS):
         distances = torch.cdist(positions[chunk], positions)
-        allowed = (scenes[chunk][:, None] == scenes[None, :]) & (
+        other = (scenes[chunk][:, None] == scenes[None, :]) & (
             sequences[chunk][:, None] != sequences[None, :]
         )
+        closest = distances.masked_fill(~other, float("inf")).min(1)
+        nearest = torch.where(closest.values.isfinite(), closest.indices, chunk)
         alignment = (poses[chunk, None, 3:].double() * poses[None, :, 3:].double()).sum(-1)
-        allowed &= (distances <= radius_m) & (alignment.abs() >= cos_half)
+        allowed = other & (distances <= radius_m) & (alignment.abs() >= cos_half)
         found = allowed.any(1)
         weights = torch.where(found[:, None], allowed.double(), 1.0)
         drawn = torch.multinomial(weights, 1, generator=generator).squeeze(1)
-        partners.append(torch.where(found, drawn, nearest[chunk]))
+        partners.append(torch.where(found, drawn, nearest))
     return torch.cat(partners) if partners else torch.zeros(0, dtype=torch.long)
 
 
