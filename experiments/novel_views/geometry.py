@@ -6,7 +6,8 @@ DATA_ROOT: the benchmark's folder (labels/all_train.csv, labels/all_test.csv); t
 labels without the validation sequence seq-06 (the demo's). Prints, per scene and median
 over cameras: the gap from each train camera to the nearest camera of another train sequence
 (what a view's partner was before ``between_radius_m``), and from each test camera to the
-nearest train camera and to the nearest one turned at most 30 degrees from it. For each
+nearest train camera and to the nearest one turned at most 30 degrees from it, and from each
+validation camera to the nearest train camera. For each
 POSES.csv (``pae-localize RUN DATA_ROOT/labels/all_test.csv --out POSES.csv``): the median
 position error along the test sequence's path, across it (horizontal) and in height. Reads
 the test labels: an analysis, nothing is chosen with it.
@@ -27,8 +28,8 @@ VAL_SEQUENCE = "seq-06"
 TURN_DEG = 30.0
 
 
-def _camera_gaps(train: LabelTable, test: LabelTable) -> None:
-    """Print the partner gap and the test cameras' distances to the train cameras."""
+def _camera_gaps(train: LabelTable, val: LabelTable, test: LabelTable) -> None:
+    """Print the partner gap and the val and test cameras' distances to the train cameras."""
     for scene in train.scene_names:
         rows = np.asarray(train.scene) == scene
         poses = torch.from_numpy(train.poses[rows])
@@ -39,11 +40,14 @@ def _camera_gaps(train: LabelTable, test: LabelTable) -> None:
         distances = torch.cdist(queries[:, :3], poses[:, :3])
         turns = orientation_error_deg(queries[:, None, 3:], poses[None, :, 3:])
         aligned = distances.masked_fill(turns > TURN_DEG, float("inf"))
+        held = torch.from_numpy(val.poses[np.asarray(val.scene) == scene])
+        held_gap = torch.cdist(held[:, :3], poses[:, :3]).min(1).values.median()
         print(
             f"{scene}: train camera -> nearest of another sequence "
             f"{gaps.min(1).values.median():.3f} m; test camera -> nearest train camera "
             f"{distances.min(1).values.median():.3f} m, -> nearest turned <= {TURN_DEG:g} deg "
-            f"{aligned.min(1).values.median():.3f} m"
+            f"{aligned.min(1).values.median():.3f} m; val camera -> nearest train camera "
+            f"{held_gap:.3f} m"
         )
 
 
@@ -66,10 +70,11 @@ def _error_directions(test: LabelTable, estimates: LabelTable) -> tuple[float, f
 
 def main(root: str, estimate_paths: list[str]) -> None:
     labels = Path(root) / "labels"
-    train = read_labels(labels / "all_train.csv")
-    train = train.select(np.flatnonzero(np.asarray(train.seq) != VAL_SEQUENCE))
+    rows = read_labels(labels / "all_train.csv")
+    held = np.asarray(rows.seq) == VAL_SEQUENCE
+    train, val = rows.select(np.flatnonzero(~held)), rows.select(np.flatnonzero(held))
     test = read_labels(labels / "all_test.csv")
-    _camera_gaps(train, test)
+    _camera_gaps(train, val, test)
     for path in estimate_paths:
         along, across, height = _error_directions(test, read_labels(path))
         print(f"{path}: along {along:.3f} m, across {across:.3f} m, height {height:.3f} m")
