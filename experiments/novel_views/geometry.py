@@ -76,7 +76,12 @@ def main(root: str, estimate_paths: list[str]) -> None:
     test = read_labels(labels / "all_test.csv")
     _camera_gaps(train, val, test)
     for path in estimate_paths:
-        along, across, height = _error_directions(test, read_labels(path))
+        estimates = read_labels(path)
+        if len(estimates) != len(test) or list(estimates.seq) != list(test.seq):
+            sys.exit(
+                f"{path}: not pae-localize's estimates of {labels / 'all_test.csv'} row by row"
+            )
+        along, across, height = _error_directions(test, estimates)
         print(f"{path}: along {along:.3f} m, across {across:.3f} m, height {height:.3f} m")
 
 

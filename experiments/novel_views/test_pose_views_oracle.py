@@ -27,7 +27,7 @@ def test_pose_cameras(labels: str):
     table = read_labels(labels)
 
     def cameras(pool: novel_views.NovelViewPool, epoch: int) -> novel_views.NovelPoses:
-        names = list(dict.fromkeys(pool.scene_model_names))
+        names = pool.scene_model_names
         poses = torch.tensor(table.poses, dtype=torch.float64)
         scenes = torch.tensor([names.index(name) for name in table.scene])
         draws = streams.generator(pool.seed, "novel_views", 0)

@@ -99,7 +99,7 @@ def partners_within(
     ``radius_m`` (m) of it whose orientation differs from its own by at most ``max_turn_deg``;
     the nearest of another sequence where none does (its own row where its scene has a single
     sequence)."""
-    positions = poses[:, :3].double()
+    positions, rotations = poses[:, :3].double(), poses[:, 3:].double()
     cos_half = math.cos(math.radians(max_turn_deg) / 2)
     partners = []
     for chunk in rows.split(CHUNK_ROWS):
@@ -109,7 +109,7 @@ def partners_within(
         )
         closest = distances.masked_fill(~other, float("inf")).min(1)
         nearest = torch.where(closest.values.isfinite(), closest.indices, chunk)
-        alignment = (poses[chunk, None, 3:].double() * poses[None, :, 3:].double()).sum(-1)
+        alignment = rotations[chunk] @ rotations.T
         allowed = other & (distances <= radius_m) & (alignment.abs() >= cos_half)
         found = allowed.any(1)
         weights = torch.where(found[:, None], allowed.double(), 1.0)
@@ -150,13 +150,16 @@ def _draw_cameras(
     count: int,
     settings: NovelViewSettings,
     generator: torch.Generator,
+    neighbours: Tensor | None,
 ) -> NovelPoses:
-    """``count`` candidate cameras of :func:`sample_novel_poses`, wherever they fall."""
+    """``count`` candidate cameras of :func:`sample_novel_poses`, wherever they fall
+    (``neighbours`` [N]: each train camera's nearest of another sequence, the partner when
+    ``settings.between_radius_m`` is None)."""
     source = torch.randint(len(poses), (count,), generator=generator)
     start = poses[source]
     if settings.between:
-        if settings.between_radius_m is None:
-            partner_rows = other_sequence_neighbours(poses[:, :3], scenes, sequences)[source]
+        if neighbours is not None:
+            partner_rows = neighbours[source]
         else:
             partner_rows = partners_within(
                 source,
@@ -200,16 +203,21 @@ def sample_novel_poses(
     camera of their scene are kept (drawn in up to ``MAX_DRAWS`` rounds; the farthest of the
     others fill what is still missing)."""
     poses = poses.double()
+    neighbours = None
+    if settings.between and settings.between_radius_m is None:
+        neighbours = other_sequence_neighbours(poses[:, :3], scenes, sequences)
     rounds: list[NovelPoses] = []
+    clearances: list[Tensor] = []
     found = 0
     for _ in range(MAX_DRAWS if settings.min_distance_m > 0 else 1):
-        rounds.append(_draw_cameras(poses, scenes, sequences, count, settings, generator))
-        clear = (rounds[-1].poses[:, :3] - poses[rounds[-1].nearest, :3]).norm(dim=-1)
-        found += int((clear >= settings.min_distance_m).sum())
+        drawn = _draw_cameras(poses, scenes, sequences, count, settings, generator, neighbours)
+        rounds.append(drawn)
+        clearances.append((drawn.poses[:, :3] - poses[drawn.nearest, :3]).norm(dim=-1))
+        found += int((clearances[-1] >= settings.min_distance_m).sum())
         if found >= count:
             break
     drawn = NovelPoses(*(torch.cat(fields) for fields in zip(*rounds, strict=True)))
-    clear = (drawn.poses[:, :3] - poses[drawn.nearest, :3]).norm(dim=-1)
+    clear = torch.cat(clearances)
     far = clear >= settings.min_distance_m
     near = torch.nonzero(~far).squeeze(1)
     order = torch.cat([torch.nonzero(far).squeeze(1), near[clear[near].argsort(descending=True)]])
