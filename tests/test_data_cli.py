@@ -338,6 +338,7 @@ def test_synth_passes_arguments_and_prints_summary(
     nuisances = ["--lighting-change", "0.5", "--occluder-fraction", "0.3"]
     nuisances += ["--sensor-noise", "0.02", "--motion-blur", "3"]
     b = ["synth", str(tmp_path / "b"), "--test-offset", "0", "--train-lane", "0.5", *nuisances]
+    b += ["--val-lane", "-0.25"]
     assert main(b) == 0
     written = capsys.readouterr()
     assert written.out == "synthetic summary\n" * 2
@@ -355,6 +356,7 @@ def test_synth_passes_arguments_and_prints_summary(
                 train_lane_m=0.0,
                 yaw_stray_rad=0.5,
                 stray_m=0.35,
+                val_lane_m=None,
                 lighting_change=0.0,
                 occluder_fraction=0.0,
                 sensor_noise_std=0.0,
@@ -374,6 +376,7 @@ def test_synth_passes_arguments_and_prints_summary(
                 train_lane_m=0.5,
                 yaw_stray_rad=0.5,
                 stray_m=0.35,
+                val_lane_m=-0.25,
                 lighting_change=0.5,
                 occluder_fraction=0.3,
                 sensor_noise_std=0.02,

@@ -400,6 +400,10 @@ def test_pae_train_refuses_a_checkpoint_of_the_wrong_kind_before_reading_data(
         ("data.crop=40", "data.crop=40 is larger than data.shorter_edge=32"),
         ("data.train_lane_m=-0.5", "data.train_lane_m must be a number >= 0, got -0.5"),
         ("data.yaw_stray_rad=2", "data.yaw_stray_rad must be <= 1.5708, got 2"),
+        (
+            "data.val_lane_m=0.8",
+            "data.val_lane_m must be null or a number no farther from 0 than data.train_lane_m=0.5",
+        ),
         ("backbone.weights_path=/nope.pt", "backbone.weights_path=/nope.pt: no such file"),
         ("teacher_ckpt=/nope.ckpt", "teacher_ckpt=/nope.ckpt: no such file"),
         ("data.val_sequences=0", "data.val_sequences must be null, an integer >= 1"),

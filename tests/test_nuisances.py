@@ -79,6 +79,8 @@ def test_default_folder_names_are_unchanged() -> None:
     assert str(SyntheticDataModule(**zeros).root) == plain
     assert default_root(*layout, Nuisances(**ALL_ON)) == f"{plain}_light1_occl0.3_noise0.02_blur3"
     assert str(SyntheticDataModule(occluder_fraction=0.3).root) == f"{plain}_occl0.3"
+    assert str(SyntheticDataModule(val_lane_m=0.0).root) == f"{plain}_val0"
+    assert str(SyntheticDataModule(val_lane_m=None).root) == plain
     assert SyntheticDataModule(**ALL_ON).render_args.items() >= ALL_ON.items()
 
 

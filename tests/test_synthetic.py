@@ -363,6 +363,26 @@ def test_train_lanes_and_yaw_stray_shape_the_sequences() -> None:
         train_index += 1
 
 
+def test_val_lane_moves_the_last_train_sequence_alone() -> None:
+    """``val_lane_m`` puts the last train sequence (the validation split of
+    ``val_sequences: 1``) that far beside the route, between the lanes; every other sequence,
+    train and test, keeps its poses to the bit."""
+    scene = make_scene(0, 0, 0.0, 0.5)
+    lanes = make_sequences(0, scene, 600, 100, 0, 0.0, 0.5, 0.0, 0.0)
+    between = make_sequences(0, scene, 600, 100, 0, 0.0, 0.5, 0.0, 0.0, val_lane_m=0.0)
+    on_route = make_sequences(0, scene, 600, 100, 0, 0.0, 0.0, 0.0, 0.0)
+    val = [s.split == "train" for s in lanes].index(False) - 1
+    for index, (before, after) in enumerate(zip(lanes, between, strict=True)):
+        if index == val:
+            shift = np.linalg.norm(after.poses[:, :3] - before.poses[:, :3], axis=1)
+            np.testing.assert_allclose(shift, 0.5, atol=1e-6)
+            np.testing.assert_allclose(after.poses, on_route[index].poses, atol=1e-9)
+        else:
+            np.testing.assert_array_equal(after.poses, before.poses)
+    with pytest.raises(ValueError, match=r"val_lane_m must lie in \[-train_lane_m"):
+        write_synthetic_dataset("unused", val_lane_m=0.7)
+
+
 def test_the_package_exports_every_public_name() -> None:
     import pae.data.synthetic as package
 

@@ -120,3 +120,32 @@ for r in plain/s0 jitter0.25/s0 partners/r1.2_t30_v2_ratio2/s0 partners/r1.2_t30
     --out "$OUT/geometry/${r//\//_}.csv" > /dev/null
 done
 "$BIN"/python experiments/novel_views/geometry.py "$DATA" "$OUT"/geometry/*.csv
+# 8. the validation split between the lanes (data.val_lane_m=0: seq-06, held out of train,
+# walks on the route instead of its lane; every other sequence, and so every train and test
+# image, is the same): each teacher above evaluated on it, with render-and-compare against
+# the same scene model (the teachers' training never reads the validation split)
+evaluate() {  # RUN: pae-eval of RUN's teacher into $OUT/val_between/RUN unless done
+  local dir=$OUT/val_between/$1
+  [ -f "$dir/metrics.json" ] && return
+  mkdir -p "$(dirname "$dir")"
+  OMP_NUM_THREADS=1 "$BIN"/pae-eval hydra.run.dir="$dir" data.val_lane_m=0 "scene_model_ckpt=$SM" \
+    "teacher_ckpt=$OUT/$1/teacher/checkpoints/last.ckpt" > "$dir.log" 2>&1
+}
+RUNS=(plain/s0 plain/s1 plain/s2 default/s0 ratio1/s0 jitter0.25/s0 jitter0.25/s1 jitter0.25/s2)
+for name in r1.2 r1.2_t30_v2_ratio1 r1.2_t30_v4_ratio1 r1.2_t30_v2_ratio2 r1.2_t30_v2_ratio1_d0.2 \
+  r1.2_t30_v2_ratio1_d0.3 r1.2_t15_v2_ratio1_d0.2 r1.2_t30_v2_ratio2_d0.2; do
+  RUNS+=("partners/$name/s0")
+done
+RUNS+=(partners/r1.2_t30_v2_ratio2/s1 partners/r1.2_t30_v2_ratio2/s2)
+for ((i = 0; i < ${#RUNS[@]}; i += 2)); do
+  evaluate "${RUNS[i]}" &
+  [ $((i + 1)) -lt ${#RUNS[@]} ] && evaluate "${RUNS[i + 1]}" &
+  wait
+done
+# 9. the third round, on the validation split between the lanes (seed 0): more rendered views
+# per real image (ratio 3), less dropout (the demo's 0.3 was chosen without views)
+VB=data.val_lane_m=0
+partners r1.2_t30_v2_ratio3 0 $VB $T30 teacher.novel_views.views=2 teacher.novel_views.ratio=3 &
+partners r1.2_t30_v2_ratio2_drop0.1 0 $VB $T30 teacher.novel_views.views=2 \
+  teacher.novel_views.ratio=2 teacher.model.dropout=0.1 &
+wait

@@ -184,6 +184,16 @@ def _train_set_size(cfg: DictConfig) -> int:
                 number(cfg, f"data.{key}", 0, strict=False)
                 if data[key] > high:
                     raise ConfigError(f"data.{key} must be <= {high:g}, got {data[key]!r}")
+        val_lane, lane = data.get("val_lane_m"), data.get("train_lane_m", 0.5)
+        if val_lane is not None and not (
+            (is_int(val_lane) or isinstance(val_lane, float)) and abs(val_lane) <= lane
+        ):
+            raise ConfigError(
+                f"data.val_lane_m must be null or a number no farther from 0 than "
+                f"data.train_lane_m={lane:g}, got {val_lane!r}"
+            )
+        if data.get("poses") and val_lane is not None:
+            raise ConfigError("data.poses renders the given rows: set data.val_lane_m to null")
         on = [f"data.{key}" for key in SYNTHETIC_NUISANCE_BOUNDS if data.get(key)]
         if data.get("poses") and on:
             raise ConfigError(

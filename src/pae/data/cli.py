@@ -3,7 +3,8 @@
 ::
 
     pae-data synth OUT [--scenes N --train-frames N --test-frames N --test-offset M
-                        --train-lane M --yaw-stray RAD --stray M --size PX --seed S]
+                        --train-lane M --val-lane M --yaw-stray RAD --stray M --size PX
+                        --seed S]
                        [--lighting-change S --occluder-fraction F --sensor-noise STD
                         --motion-blur PX] [--overwrite]
     pae-data synth OUT --poses LABELS.csv [LABELS.csv ...] [--size PX --seed S] [--overwrite]
@@ -56,6 +57,7 @@ def _synth(args: argparse.Namespace) -> int:
                 ("--test-frames", args.test_frames),
                 ("--test-offset", args.test_offset),
                 ("--train-lane", args.train_lane),
+                ("--val-lane", args.val_lane),
                 ("--yaw-stray", args.yaw_stray),
                 ("--stray", args.stray),
                 ("--lighting-change", args.lighting_change),
@@ -89,6 +91,7 @@ def _synth(args: argparse.Namespace) -> int:
             train_lane_m=chosen(args.train_lane, synthetic.DEFAULT_TRAIN_LANE_M),
             yaw_stray_rad=chosen(args.yaw_stray, synthetic.DEFAULT_YAW_STRAY_RAD),
             stray_m=chosen(args.stray, synthetic.DEFAULT_STRAY_M),
+            val_lane_m=args.val_lane,
             lighting_change=chosen(args.lighting_change, 0.0),
             occluder_fraction=chosen(args.occluder_fraction, 0.0),
             sensor_noise_std=chosen(args.sensor_noise, 0.0),
@@ -188,6 +191,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="M",
         help="lateral offset of the train sequences from the route in metres, alternately "
         "left and right (default: 0.5)",
+    )
+    synth.add_argument(
+        "--val-lane",
+        type=float,
+        metavar="M",
+        help="lateral offset (m, signed, within the train lanes) of the last train sequence of "
+        "each scene, the validation split of data.val_sequences=1 (default: its lane; 0: "
+        "between the lanes)",
     )
     synth.add_argument(
         "--yaw-stray",

@@ -28,11 +28,12 @@ def default_root(
     yaw_stray_rad: float = 0.15,
     stray_m: float = 0.1,
     nuisances: synthetic.Nuisances | None = None,
+    val_lane_m: float | None = None,
 ) -> str:
     """The folder a synthetic dataset renders into: named by its settings, or, for
     ``poses``, by a digest of the label files' contents (so edited files render anew).
-    ``nuisances`` that are on add a suffix naming them (``_light1_occl0.3…``); off, the name
-    is the one without them."""
+    ``nuisances`` that are on add a suffix naming them (``_light1_occl0.3…``), a
+    ``val_lane_m`` one naming it (``_val0``); off, the name is the one without them."""
     if poses:
         digest = hashlib.sha256()
         for path in poses:
@@ -46,6 +47,7 @@ def default_root(
         f"_seed{render_seed}_offset{test_offset_m:g}_lane{train_lane_m:g}"
         f"_yaw{yaw_stray_rad:g}_stray{stray_m:g}"
         f"{nuisances.folder_suffix() if nuisances is not None else ''}"
+        f"{'' if val_lane_m is None else f'_val{val_lane_m:g}'}"
     )
 
 
@@ -56,7 +58,9 @@ class SyntheticDataModule(PoseDataModule):
     Without ``poses``: the benchmark's rooms and routes (``scenes``, frames per scene, the
     lateral offsets of the test and train sequences from the route, ``test_offset_m`` and
     ``train_lane_m``, how far they stray from their lanes, ``stray_m``, and their yaw from
-    the route's heading, ``yaw_stray_rad``), and its nuisances, all off (0) by default:
+    the route's heading, ``yaw_stray_rad``; ``val_lane_m`` not None: the last train
+    sequence's offset, so that the validation split walks between the lanes), and its
+    nuisances, all off (0) by default:
     ``lighting_change`` (strength in ``[0, 1]`` of lighting and exposure changing between and
     within sequences), ``occluder_fraction`` (share of frames with a person-sized box in front
     of the camera), ``sensor_noise_std`` (extra Gaussian noise, std of values in ``[0, 1]``)
@@ -90,6 +94,7 @@ class SyntheticDataModule(PoseDataModule):
         occluder_fraction: float = 0.0,
         sensor_noise_std: float = 0.0,
         motion_blur_px: float = 0.0,
+        val_lane_m: float | None = None,
         **kwargs: Any,
     ) -> None:
         poses = [str(p) for p in poses] if poses else None
@@ -115,6 +120,7 @@ class SyntheticDataModule(PoseDataModule):
                 yaw_stray_rad,
                 stray_m,
                 nuisances,
+                val_lane_m,
             )
         labels = Path(root) / "labels"
         if kwargs.get("camera") is None:
@@ -142,6 +148,7 @@ class SyntheticDataModule(PoseDataModule):
             "occluder_fraction": occluder_fraction,
             "sensor_noise_std": sensor_noise_std,
             "motion_blur_px": motion_blur_px,
+            "val_lane_m": val_lane_m,
         }
 
     def prepare_data(self) -> None:

@@ -119,6 +119,7 @@ def make_sequences(
     train_lane_m: float = DEFAULT_TRAIN_LANE_M,
     yaw_stray_rad: float = DEFAULT_YAW_STRAY_RAD,
     stray_m: float = DEFAULT_STRAY_M,
+    val_lane_m: float | None = None,
 ) -> list[CameraSequence]:
     """Train sequences ``seq-01…`` then test sequences (numbered on) of scene ``scene_index``.
 
@@ -126,7 +127,10 @@ def make_sequences(
     scene's route with its own deviations and :class:`Appearance`; the sequences of a split
     start at staggered route times, so that together they cover the whole route. Test
     sequences walk ``test_offset_m`` beside the route, alternately to its left and right (0:
-    on the route, like the train sequences).
+    on the route, like the train sequences). ``val_lane_m`` not None: the last train sequence
+    (the validation sequence of ``val_sequences: 1``) walks that far from the route instead of
+    on its lane (signed, positive to the left; 0: on the route, between the lanes); the others
+    are the same sequences as without it.
     """
     train_counts = _split_counts(train_frames, TRAIN_SEQUENCES)
     test_counts = _split_counts(test_frames, TEST_SEQUENCES)
@@ -138,6 +142,8 @@ def make_sequences(
         start = (index_in_split + rng.uniform(0, 0.3)) / count
         lane = train_lane_m if split == "train" else test_offset_m
         offset = lane * (-1) ** index_in_split
+        if split == "train" and index_in_split == count - 1 and val_lane_m is not None:
+            offset = val_lane_m
         poses = trajectory(scene, frames, start, rng, offset, yaw_stray_rad, stray_m)
         appearance = Appearance.random(rng)
         sequences.append(

@@ -202,12 +202,14 @@ def write_synthetic_dataset(
     occluder_fraction: float = 0.0,
     sensor_noise_std: float = 0.0,
     motion_blur_px: float = 0.0,
+    val_lane_m: float | None = None,
 ) -> SyntheticSummary:
     """Render the benchmark into ``out`` (see :func:`write_whole`): images first, label files
     last.
 
     ``train_frames`` and ``test_frames`` are per scene; ``test_offset_m`` is the test
-    sequences' lateral offset from the train route (see :func:`make_sequences`). The same
+    sequences' lateral offset from the train route, ``val_lane_m`` (None: its lane) the last
+    train sequence's, within the train lanes (see :func:`make_sequences`). The same
     arguments give byte-identical files. ``progress(done, total)`` is called after each
     sequence with the frames rendered so far. ``lighting_change``, ``occluder_fraction``,
     ``sensor_noise_std`` and ``motion_blur_px`` are the nuisances of train and test frames
@@ -231,6 +233,13 @@ def write_synthetic_dataset(
     ):
         if not (math.isfinite(value) and 0 <= value <= 1.0):
             raise ValueError(f"{name} must lie in [0, 1] m, got {value!r}")
+    if val_lane_m is not None and not (
+        math.isfinite(val_lane_m) and abs(val_lane_m) <= train_lane_m
+    ):
+        raise ValueError(
+            f"val_lane_m must lie in [-train_lane_m, train_lane_m] = "
+            f"[{-train_lane_m:g}, {train_lane_m:g}] m, got {val_lane_m!r}"
+        )
     if not (math.isfinite(yaw_stray_rad) and 0 <= yaw_stray_rad <= math.pi / 2):
         raise ValueError(f"yaw_stray_rad must lie in [0, pi/2], got {yaw_stray_rad!r}")
 
@@ -243,7 +252,7 @@ def write_synthetic_dataset(
             test_frames,
             size,
             seed,
-            (test_offset_m, train_lane_m, yaw_stray_rad, stray_m),
+            (test_offset_m, train_lane_m, yaw_stray_rad, stray_m, val_lane_m),
             progress,
             nuisances,
         )
@@ -268,14 +277,15 @@ def _render(
     test_frames: int,
     size: int,
     seed: int,
-    layout: tuple[float, float, float, float],
+    layout: tuple[float, float, float, float, float | None],
     progress: RenderProgress | None = None,
     nuisances: Nuisances | None = None,
 ) -> None:
     """Render every scene into `out`: images first, label files last. ``layout``: the test
-    offset, train lane (m), yaw stray (rad) and stray (m) of :func:`make_sequences`;
+    offset, train lane (m), yaw stray (rad), stray (m) and validation lane (m or None) of
+    :func:`make_sequences`;
     ``nuisances`` on (not None or all 0): each sequence's, and ``labels/nuisances.csv``."""
-    test_offset_m, train_lane_m, yaw_stray_rad, stray_m = layout
+    test_offset_m, train_lane_m, yaw_stray_rad, stray_m, val_lane_m = layout
     total, done = scenes * (train_frames + test_frames), 0
     camera = PinholeCamera(size)
     label_tables: dict[tuple[str, str], LabelTable] = {}
@@ -293,6 +303,7 @@ def _render(
             train_lane_m,
             yaw_stray_rad,
             stray_m,
+            val_lane_m,
         )
         for sequence in sequences:
             paths = [
