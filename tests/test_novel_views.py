@@ -119,6 +119,10 @@ def test_views_lie_between_a_camera_and_the_nearest_one_of_another_sequence() ->
     still = dataclasses.replace(exact, between=False)
     kept = sample_novel_poses(poses, scenes, sequences, 50, still, draws)
     torch.testing.assert_close(kept.poses, poses[kept.source])
+    middle = dataclasses.replace(exact, between_share=(0.4, 0.6))
+    midway = sample_novel_poses(poses, scenes, sequences, 200, middle, draws)
+    share = (midway.poses[:, 1] - poses[midway.source, 1]).abs()
+    assert ((share >= 0.4 - 1e-6) & (share <= 0.6 + 1e-6)).all() and share.std() > 0.04
 
 
 def test_partners_within_a_radius_reach_the_far_lane_drawn_uniformly() -> None:
@@ -286,6 +290,8 @@ def test_novel_view_settings_are_checked_before_any_work(compose_train, tmp_path
         ("teacher.novel_views.between_radius_m=0", r"between_radius_m must be a number > 0"),
         ("teacher.novel_views.between_max_turn_deg=-1", r"between_max_turn_deg must be a"),
         ("teacher.novel_views.min_distance_m=-1", r"min_distance_m must be a number >= 0"),
+        ("teacher.novel_views.between_share=[0.6,0.4]", r"between_share must be \[lo, hi\]"),
+        ("teacher.novel_views.between_share=0.5", r"between_share must be \[lo, hi\] with"),
         ("teacher.novel_views.cache=maybe", r"teacher\.novel_views\.cache must be true or"),
         ("teacher.novel_views.enabled=true", r"stage=teacher needs scene_model_ckpt=PATH"),
         ("student.store_novel_views=1", r"student\.store_novel_views must be true or false"),

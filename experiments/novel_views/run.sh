@@ -149,3 +149,11 @@ partners r1.2_t30_v2_ratio3 0 $VB $T30 teacher.novel_views.views=2 teacher.novel
 partners r1.2_t30_v2_ratio2_drop0.1 0 $VB $T30 teacher.novel_views.views=2 \
   teacher.novel_views.ratio=2 teacher.model.dropout=0.1 &
 wait
+# 10. the fourth round, on the validation split between the lanes (seed 0): each view about
+# midway between its two cameras (between_share [0.4, 0.6]), also away from the train cameras
+MID="teacher.novel_views.between_share=[0.4,0.6]"
+partners r1.2_t30_v2_ratio2_mid 0 $VB $T30 teacher.novel_views.views=2 teacher.novel_views.ratio=2 \
+  "$MID" &
+partners r1.2_t30_v2_ratio2_mid_d0.2 0 $VB $T30 teacher.novel_views.views=2 \
+  teacher.novel_views.ratio=2 "$MID" teacher.novel_views.min_distance_m=0.2 &
+wait

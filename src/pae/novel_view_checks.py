@@ -4,13 +4,13 @@
 
 from __future__ import annotations
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, ListConfig
 
 from pae.config_checks import boolean, integer, number, setting
 from pae.errors import ConfigError
 
 NOVEL_VIEW_KEYS = ("enabled", "ratio", "views", "between", "between_radius_m")
-NOVEL_VIEW_KEYS += ("between_max_turn_deg", "position_jitter_m")
+NOVEL_VIEW_KEYS += ("between_max_turn_deg", "between_share", "position_jitter_m")
 NOVEL_VIEW_KEYS += ("orientation_jitter_deg", "min_distance_m", "size", "cache")
 """The settings of ``teacher.novel_views`` (pae.data.novel_views.NovelViewSettings's fields
 and ``enabled``)."""
@@ -36,6 +36,17 @@ def _teacher_views_on(cfg: DictConfig) -> bool:
     for name in ("position_jitter_m", "orientation_jitter_deg", "min_distance_m"):
         number(cfg, f"teacher.novel_views.{name}", 0, strict=False)
     number(cfg, "teacher.novel_views.between_max_turn_deg", 0, strict=True)
+    share = setting(cfg, "teacher.novel_views.between_share")
+    if share is not None and not (
+        isinstance(share, ListConfig | list)
+        and len(share) == 2
+        and all(isinstance(value, int | float) and not isinstance(value, bool) for value in share)
+        and 0 <= share[0] <= share[1] <= 1
+    ):
+        raise ConfigError(
+            "teacher.novel_views.between_share must be [lo, hi] with 0 <= lo <= hi <= 1, got "
+            f"{share!r}"
+        )
     if setting(cfg, "teacher.novel_views.between_radius_m") is not None:
         number(cfg, "teacher.novel_views.between_radius_m", 0, strict=True)
     if setting(cfg, "teacher.novel_views.size") is not None:

@@ -123,8 +123,9 @@ class NovelViewSettings:
     """``teacher.novel_views``: ``ratio`` rendered images per real one in each train batch;
     a pool of ``views`` rendered views per train image, rendered once (``cache``) or afresh
     each epoch; the sampling's ``position_jitter_m`` (m), ``orientation_jitter_deg``,
-    ``between``, ``between_radius_m`` (m; None: the nearest camera of another sequence) and
-    ``between_max_turn_deg``; ``min_distance_m`` (m) between a view and every train camera;
+    ``between``, ``between_radius_m`` (m; None: the nearest camera of another sequence),
+    ``between_max_turn_deg`` and ``between_share`` (the range [lo, hi] of the share of the way
+    towards the partner); ``min_distance_m`` (m) between a view and every train camera;
     the render ``size`` (px shorter edge, None: the train images')."""
 
     ratio: float
@@ -134,6 +135,7 @@ class NovelViewSettings:
     between: bool = True
     between_radius_m: float | None = None
     between_max_turn_deg: float = 180.0
+    between_share: tuple[float, float] = (0.0, 1.0)
     min_distance_m: float = 0.0
     size: int | None = None
     cache: bool = True
@@ -171,7 +173,8 @@ def _draw_cameras(
                 generator,
             )
         partner = poses[partner_rows]
-        share = torch.rand(count, 1, generator=generator, dtype=torch.float64)
+        low, high = settings.between_share
+        share = low + (high - low) * torch.rand(count, 1, generator=generator, dtype=torch.float64)
         position = start[:, :3] + share * (partner[:, :3] - start[:, :3])
         q0, q1 = start[:, 3:], partner[:, 3:]
         q1 = torch.where((q0 * q1).sum(-1, keepdim=True) < 0, -q1, q1)  # the shorter arc
@@ -193,10 +196,10 @@ def sample_novel_poses(
     generator: torch.Generator,
 ) -> NovelPoses:
     """``count`` cameras around the train cameras poses [N, 7] (scene ids [N], sequence ids
-    [N]): each from a train camera drawn uniformly, moved a uniform share of the way towards
-    a camera of another sequence of its scene (``settings.between``; its orientation
-    interpolated likewise): the nearest one, or with ``between_radius_m`` one drawn among
-    those within that many metres turned at most ``between_max_turn_deg`` from it
+    [N]): each from a train camera drawn uniformly, moved a share of the way towards a camera
+    of another sequence of its scene, uniform in ``between_share`` (``settings.between``; its
+    orientation interpolated likewise): the nearest one, or with ``between_radius_m`` one
+    drawn among those within that many metres turned at most ``between_max_turn_deg`` from it
     (:func:`partners_within`); then by a distance uniform in [0, 2·``position_jitter_m``] (m)
     in a random direction and a rotation uniform in [0, 2·``orientation_jitter_deg``] about a
     random axis. With ``min_distance_m`` only cameras at least that far from every train

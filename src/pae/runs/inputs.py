@@ -144,4 +144,6 @@ def novel_view_source(
     check_data(cfg, path, loaded, data)
     settings = OmegaConf.to_container(cfg.teacher.novel_views, resolve=True)
     settings.pop("enabled")
+    if "between_share" in settings:
+        settings["between_share"] = tuple(settings["between_share"])
     return loaded.model, NovelViewSettings(**settings)
