@@ -3,7 +3,7 @@
 # the demo's scene model (make demo first: outputs/demo), two runs side by side on one thread
 # each; finished runs are skipped (the script resumes).
 #   bash experiments/novel_views/run.sh [OUT]
-#   pae-report --compare OUT/plain OUT/partners/r1.2_t30_v2_ratio2 --names plain,novel_views \
+#   pae-report --compare OUT/plain_vb OUT/partners/r1.2_t30_v2_ratio3 --names plain,novel_views \
 #     [--split val]
 set -uo pipefail
 OUT=${1:-outputs/nv_compare}
@@ -35,7 +35,7 @@ for seed in 1 2; do
 done
 # 2. the second round on val, seed 0: partners drawn within 1.2 m (turned at most 30 degrees
 # with t30), V views per train image, ratio R, views at least D m from every train camera;
-# then the chosen one (experiment=demo_novel_views) over seeds 1 and 2
+# then the chosen one (r1.2_t30_v2_ratio2) over seeds 1 and 2
 partners() {  # NAME SEED overrides...
   local name=$1 seed=$2
   shift 2
@@ -93,9 +93,12 @@ run "$OUT/ms_transformer/s0" experiment=demo_ms_transformer 'stage.steps=[teache
   teacher.max_epochs=40 teacher.novel_views.enabled=true \
   scene_model_ckpt=outputs/demo_ms_transformer/scene_model/checkpoints/last.ckpt
 # 5. the student on the chosen novel-view teacher of seed 0 (its own views: the settings of
-# experiment=demo_novel_views): plain, trained on the views, retrieving among them too, both
+# the second round's choice, r1.2_t30_v2_ratio2): plain, trained on the views, retrieving among
+# them too, both
 NVT=$OUT/partners/r1.2_t30_v2_ratio2/s0/teacher/checkpoints/last.ckpt
-STUDENT=(experiment=demo_novel_views 'stage.steps=[student]' "teacher_ckpt=$NVT" "scene_model_ckpt=$SM")
+STUDENT=(experiment=demo 'stage.steps=[student]' "teacher_ckpt=$NVT" "scene_model_ckpt=$SM"
+  teacher.novel_views.enabled=true teacher.novel_views.views=2 teacher.novel_views.ratio=2
+  teacher.novel_views.between_radius_m=1.2 "$T30")
 run "$OUT/partners/student/plain" "${STUDENT[@]}" &
 run "$OUT/partners/student/views" "${STUDENT[@]}" student.novel_views=true &
 wait
@@ -156,4 +159,39 @@ partners r1.2_t30_v2_ratio2_mid 0 $VB $T30 teacher.novel_views.views=2 teacher.n
   "$MID" &
 partners r1.2_t30_v2_ratio2_mid_d0.2 0 $VB $T30 teacher.novel_views.views=2 \
   teacher.novel_views.ratio=2 "$MID" teacher.novel_views.min_distance_m=0.2 &
+wait
+# 11. longer (50 epochs: what the demo's 900 s allow with ratio 2), and ratio 3 over seeds
+partners r1.2_t30_v2_ratio2_e50 0 $VB $T30 teacher.novel_views.views=2 teacher.novel_views.ratio=2 \
+  teacher.max_epochs=50 &
+partners r1.2_t30_v2_ratio3 1 $VB $T30 teacher.novel_views.views=2 teacher.novel_views.ratio=3 &
+wait
+# 12. the choice (r1.2_t30_v2_ratio3) over seeds 1 and 2, and the plain teacher of seeds 0-2
+# on the same validation split
+partners r1.2_t30_v2_ratio3 2 $VB $T30 teacher.novel_views.views=2 teacher.novel_views.ratio=3 &
+for seed in 0 1 2; do
+  run "$OUT/plain_vb/s$seed" experiment=demo "${BASE[@]}" seed=$seed $VB
+done &
+wait
+# 13. the MS-Transformer (40 epochs) with the chosen views from the MS demo's scene models
+# (pae-train experiment=demo_ms_transformer first), seeds 0-2, on the validation split between
+# the lanes; its plain twins (experiments/ablation_teacher's gain0.15_s*) evaluated on it
+MSM=outputs/demo_ms_transformer/scene_model/checkpoints/last.ckpt
+MS_DATA=(data.scenes=3 data.train_frames=600 data.test_frames=100 $VB)
+ms() {  # SEED
+  run "$OUT/ms_between/views/s$1" experiment=demo_ms_transformer 'stage.steps=[teacher,scene_model]' \
+    seed="$1" $VB teacher.max_epochs=40 teacher.novel_views.enabled=true \
+    teacher.novel_views.views=2 teacher.novel_views.ratio=3 teacher.novel_views.between_radius_m=1.2 \
+    $T30 scene_model_ckpt=$MSM
+}
+ms 0 &
+ms 1 &
+wait
+ms 2 &
+for seed in 0 1 2; do
+  dir=$OUT/ms_between/plain/s$seed
+  [ -f "$dir/metrics.json" ] && continue
+  mkdir -p "$dir"
+  OMP_NUM_THREADS=1 "$BIN"/pae-eval hydra.run.dir="$dir" "${MS_DATA[@]}" "scene_model_ckpt=$MSM" \
+    "teacher_ckpt=outputs/ms_sweep/gain0.15_s$seed/checkpoints/last.ckpt" > "$dir.log" 2>&1
+done &
 wait
