@@ -191,7 +191,7 @@ for seed in 0 1 2; do
   dir=$OUT/ms_between/plain/s$seed
   [ -f "$dir/metrics.json" ] && continue
   mkdir -p "$dir"
-  OMP_NUM_THREADS=1 "$BIN"/pae-eval hydra.run.dir="$dir" "${MS_DATA[@]}" "scene_model_ckpt=$MSM" \
-    "teacher_ckpt=outputs/ms_sweep/gain0.15_s$seed/checkpoints/last.ckpt" > "$dir.log" 2>&1
+  OMP_NUM_THREADS=1 "$BIN"/pae-eval hydra.run.dir="$dir" seed="$seed" "${MS_DATA[@]}" "scene_model_ckpt=$MSM" \
+    "teacher_ckpt=outputs/ms_sweep/gain0.15_s\${seed}/checkpoints/last.ckpt" > "$dir.log" 2>&1
 done &
 wait
