@@ -77,15 +77,19 @@ if [ ! -f "$ORACLE/metrics.json" ]; then
 fi
 # 3. the student on the novel-view teacher of seed 0 (group defaults): plain, trained on the
 # views, retrieving among them too, both
+students() {  # DIR overrides...: the student step plain, trained on the views, retrieving
+  local dir=$1  # among them too, and both, in DIR/{plain,views,store,views_store}
+  shift
+  run "$dir/plain" "$@" &
+  run "$dir/views" "$@" student.novel_views=true &
+  wait
+  run "$dir/store" "$@" student.store_novel_views=true &
+  run "$dir/views_store" "$@" student.novel_views=true student.store_novel_views=true &
+  wait
+}
 NVT=$OUT/default/s0/teacher/checkpoints/last.ckpt
-STUDENT=(experiment=demo 'stage.steps=[student]' "teacher_ckpt=$NVT" "scene_model_ckpt=$SM")
-run "$OUT/student/plain" "${STUDENT[@]}" &
-run "$OUT/student/views" "${STUDENT[@]}" student.novel_views=true &
-wait
-run "$OUT/student/store" "${STUDENT[@]}" student.store_novel_views=true &
-run "$OUT/student/views_store" "${STUDENT[@]}" student.novel_views=true \
-  student.store_novel_views=true &
-wait
+students "$OUT/student" experiment=demo 'stage.steps=[student]' "teacher_ckpt=$NVT" \
+  "scene_model_ckpt=$SM"
 # 4. the MS-Transformer teacher (40 epochs, seed 0) with novel views from the scene models of
 # the MS demo (pae-train experiment=demo_ms_transformer first); its plain twin is
 # experiments/ablation_teacher's gain0.15_s0
@@ -96,16 +100,9 @@ run "$OUT/ms_transformer/s0" experiment=demo_ms_transformer 'stage.steps=[teache
 # the second round's choice, r1.2_t30_v2_ratio2): plain, trained on the views, retrieving among
 # them too, both
 NVT=$OUT/partners/r1.2_t30_v2_ratio2/s0/teacher/checkpoints/last.ckpt
-STUDENT=(experiment=demo 'stage.steps=[student]' "teacher_ckpt=$NVT" "scene_model_ckpt=$SM"
-  teacher.novel_views.enabled=true teacher.novel_views.views=2 teacher.novel_views.ratio=2
-  teacher.novel_views.between_radius_m=1.2 "$T30")
-run "$OUT/partners/student/plain" "${STUDENT[@]}" &
-run "$OUT/partners/student/views" "${STUDENT[@]}" student.novel_views=true &
-wait
-run "$OUT/partners/student/store" "${STUDENT[@]}" student.store_novel_views=true &
-run "$OUT/partners/student/views_store" "${STUDENT[@]}" student.novel_views=true \
-  student.store_novel_views=true &
-wait
+students "$OUT/partners/student" experiment=demo 'stage.steps=[student]' "teacher_ckpt=$NVT" \
+  "scene_model_ckpt=$SM" teacher.novel_views.enabled=true teacher.novel_views.views=2 \
+  teacher.novel_views.ratio=2 teacher.novel_views.between_radius_m=1.2 "$T30"
 # 6. the MS-Transformer teacher (40 epochs, seed 0) with the chosen settings' novel views
 run "$OUT/partners/ms_transformer/s0" experiment=demo_ms_transformer 'stage.steps=[teacher]' \
   teacher.max_epochs=40 teacher.novel_views.enabled=true teacher.novel_views.views=2 \
@@ -172,6 +169,18 @@ for seed in 0 1 2; do
   run "$OUT/plain_vb/s$seed" experiment=demo "${BASE[@]}" seed=$seed $VB
 done &
 wait
+# where the validation cameras lie now, and what differs between the two renders: seq-06's
+# images and, in the train label files, seq-06's rows alone
+DATA_VB=$("$BIN"/python -c 'import json, sys; print(json.load(open(sys.argv[1]))["data/root"])' \
+  "$OUT/plain_vb/s0/metrics.json")
+"$BIN"/python experiments/novel_views/geometry.py "$DATA_VB" > "$OUT/geometry/val_between.txt"
+{
+  diff -rq "$DATA" "$DATA_VB" | awk '{print $2}' | sed "s|^$DATA/||; s|/frame-.*||" | sort | uniq -c
+  for file in "$DATA"/labels/*.csv; do
+    cmp -s <(grep -v seq-06 "$file") <(grep -v seq-06 "$DATA_VB/labels/${file##*/}") \
+      || echo "${file##*/}: rows other than seq-06's differ"
+  done
+} > "$OUT/geometry/val_between_diff.txt"
 # 13. the MS-Transformer (40 epochs) with the chosen views from the MS demo's scene models
 # (pae-train experiment=demo_ms_transformer first), seeds 0-2, on the validation split between
 # the lanes; its plain twins (experiments/ablation_teacher's gain0.15_s*) evaluated on it
