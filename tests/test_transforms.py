@@ -84,3 +84,26 @@ def test_load_image_resizes_shorter_edge_and_converts_to_rgb(tmp_path) -> None:
     assert rgb[..., 2].min() == 255 and rgb[..., 0].max() == 0
     with pytest.raises(ImageError, match=r"missing\.png"):
         load_image(str(tmp_path / "missing.png"), 30)
+
+
+def test_crop_shift_bounds_the_random_crop_around_the_centre() -> None:
+    torch.manual_seed(0)
+    columns = torch.arange(64, dtype=torch.uint8).expand(256, 3, 64, 64).contiguous()
+    no_jitter = (0.0, 0.0, 0.0, 0.0)
+
+    def corners(shift: int | None) -> torch.Tensor:
+        out = ImageTransform(56, train=True, color_jitter=no_jitter, crop_shift_px=shift)
+        rgb = ImageTransform.unnormalize_batch(out(columns))
+        return (rgb[:, 0, 0, 0] * 255).round()
+
+    assert set(corners(None).tolist()) == set(range(9)), "anywhere: every corner of 0..8"
+    assert set(corners(2).tolist()) == {2.0, 3.0, 4.0, 5.0, 6.0}
+    assert set(corners(0).tolist()) == {4.0}, "0: the centre crop"
+
+
+def test_negative_crop_shift_names_the_key(tmp_path) -> None:
+    from pae.data.datamodule import PoseDataModule
+    from pae.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"data.crop_shift_px: .*not -1"):
+        PoseDataModule(str(tmp_path), "train.csv", "test.csv", crop_shift_px=-1)

@@ -204,3 +204,15 @@ for seed in 0 1 2; do
     "teacher_ckpt=outputs/ms_sweep/gain0.15_s\${seed}/checkpoints/last.ckpt" > "$dir.log" 2>&1
 done &
 wait
+# 14. the fifth round, on the validation split between the lanes (seed 0): the train-time
+# random crop bounded (data.crop_shift_px; null: its corner anywhere in the 64 px image, up to
+# 4 px from the centre crop's, a turn of about 5 degrees the label does not know), with the
+# chosen views (ratio 3) and for the plain teacher
+SHIFT=data.crop_shift_px
+R3=(teacher.novel_views.views=2 teacher.novel_views.ratio=3)
+partners r1.2_t30_v2_ratio3_shift0 0 $VB $T30 "${R3[@]}" $SHIFT=0 &
+{
+  run "$OUT/plain_vb_shift0/s0" experiment=demo "${BASE[@]}" seed=0 $VB $SHIFT=0
+  partners r1.2_t30_v2_ratio3_shift2 0 $VB $T30 "${R3[@]}" $SHIFT=2
+} &
+wait

@@ -33,7 +33,8 @@ class PoseDataModule(L.LightningDataModule):
     (or label files without them), the last `val_fraction` of their rows (pae.data.holdout).
     `val_sequences` None: validation reads the test split (said once on stderr), for
     comparisons with runs that had no validation split only.
-    Augmentation (random crop + colour jitter) runs batched on the device after transfer,
+    Augmentation (random crop, its corner at most `crop_shift_px` from the centre crop's, +
+    colour jitter) runs batched on the device after transfer,
     for training batches only when `augment` is true; evaluation uses the centre crop.
     `balance_scenes` samples scenes equally often in multi-scene training.
     `pose_loss_init` records the initial s_x, s_q of the learned pose loss that suit the
@@ -56,6 +57,7 @@ class PoseDataModule(L.LightningDataModule):
         crop: int = 224,
         color_jitter: tuple[float, float, float, float] = (0.5, 0.5, 0.5, 0.2),
         channel_gain: float = 0.0,
+        crop_shift_px: int | None = None,
         augment: bool = True,
         batch_size: int = 32,
         eval_batch_size: int = 128,
@@ -87,10 +89,15 @@ class PoseDataModule(L.LightningDataModule):
         self.keep_scenes = list(scenes) if scenes else None
         try:
             self.train_transform = ImageTransform(
-                crop, train=True, color_jitter=tuple(color_jitter), channel_gain=channel_gain
+                crop,
+                train=True,
+                color_jitter=tuple(color_jitter),
+                channel_gain=channel_gain,
+                crop_shift_px=crop_shift_px,
             )
         except ValueError as err:
-            raise ConfigError(f"data.channel_gain: {err}") from None
+            key = "crop_shift_px" if "crop_shift_px" in str(err) else "channel_gain"
+            raise ConfigError(f"data.{key}: {err}") from None
         self.eval_transform = ImageTransform(crop, train=False)
         self.tables: dict[str, LabelTable] = {}
         self.datasets: dict[str, PoseDataset] = {}

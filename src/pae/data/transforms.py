@@ -88,10 +88,11 @@ def _rotate_hue(images: Tensor, turns: Tensor) -> Tensor:
 class ImageTransform(nn.Module):
     """uint8 [B, 3, H, W] -> normalised float [B, 3, crop, crop].
 
-    train=True: random crop plus per-image colour jitter (brightness, contrast, saturation
-    factors drawn from [1 - j, 1 + j], hue shift from [-j_h, j_h] turns) and, with
-    ``channel_gain`` g > 0, a white-balance jitter (each colour channel times a factor drawn from
-    [1 - g, 1 + g], a tinted light or camera); train=False: centre crop only (the paper's test
+    train=True: random crop (its corner at most ``crop_shift_px`` px from the centre crop's
+    along each axis; None: anywhere in the image) plus per-image colour jitter (brightness,
+    contrast, saturation factors drawn from [1 - j, 1 + j], hue shift from [-j_h, j_h] turns)
+    and, with ``channel_gain`` g > 0, a white-balance jitter (each colour channel times a
+    factor drawn from [1 - g, 1 + g], a tinted light or camera); train=False: centre crop only (the paper's test
     pre-processing, also used to train PAEs).
     """
 
@@ -101,14 +102,26 @@ class ImageTransform(nn.Module):
         train: bool = False,
         color_jitter: tuple[float, float, float, float] = (0.5, 0.5, 0.5, 0.2),
         channel_gain: float = 0.0,
+        crop_shift_px: int | None = None,
     ) -> None:
         super().__init__()
         if not 0.0 <= channel_gain < 1.0:
             raise ValueError(f"channel_gain must lie in [0, 1), not {channel_gain}")
+        if crop_shift_px is not None and crop_shift_px < 0:
+            raise ValueError(f"crop_shift_px must be >= 0 or null, not {crop_shift_px}")
         self.crop = crop
         self.train_mode = train
         self.color_jitter = tuple(float(v) for v in color_jitter)
         self.channel_gain = float(channel_gain)
+        self.crop_shift_px = crop_shift_px
+
+    def _corners(self, b: int, margin: int, device: torch.device) -> Tensor:
+        """Random crop corners [b] along one axis with ``margin`` px of image to spare."""
+        if self.crop_shift_px is None:
+            return torch.randint(0, margin + 1, (b,), device=device)
+        low = max(0, margin // 2 - self.crop_shift_px)
+        high = min(margin, margin // 2 + self.crop_shift_px)
+        return torch.randint(low, high + 1, (b,), device=device)
 
     def _crop(self, images: Tensor) -> Tensor:
         b, _, h, w = images.shape
@@ -117,8 +130,8 @@ class ImageTransform(nn.Module):
         if not self.train_mode:
             top, left = (h - self.crop) // 2, (w - self.crop) // 2
             return images[:, :, top : top + self.crop, left : left + self.crop]
-        top = torch.randint(0, h - self.crop + 1, (b,), device=images.device)
-        left = torch.randint(0, w - self.crop + 1, (b,), device=images.device)
+        top = self._corners(b, h - self.crop, images.device)
+        left = self._corners(b, w - self.crop, images.device)
         offsets = torch.arange(self.crop, device=images.device)
         rows = (top[:, None] + offsets)[:, :, None]  # [B, crop, 1]
         cols = (left[:, None] + offsets)[:, None, :]  # [B, 1, crop]
