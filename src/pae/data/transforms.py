@@ -92,8 +92,8 @@ class ImageTransform(nn.Module):
     along each axis; None: anywhere in the image) plus per-image colour jitter (brightness,
     contrast, saturation factors drawn from [1 - j, 1 + j], hue shift from [-j_h, j_h] turns)
     and, with ``channel_gain`` g > 0, a white-balance jitter (each colour channel times a
-    factor drawn from [1 - g, 1 + g], a tinted light or camera); train=False: centre crop only (the paper's test
-    pre-processing, also used to train PAEs).
+    factor drawn from [1 - g, 1 + g], a tinted light or camera); train=False: centre crop only
+    (the paper's test pre-processing, also used to train PAEs).
     """
 
     def __init__(
