@@ -95,9 +95,8 @@ class PoseDataModule(L.LightningDataModule):
                 channel_gain=channel_gain,
                 crop_shift_px=crop_shift_px,
             )
-        except ValueError as err:
-            key = "crop_shift_px" if "crop_shift_px" in str(err) else "channel_gain"
-            raise ConfigError(f"data.{key}: {err}") from None
+        except ValueError as err:  # its message starts with the key
+            raise ConfigError(f"data.{err}") from None
         self.eval_transform = ImageTransform(crop, train=False)
         self.tables: dict[str, LabelTable] = {}
         self.datasets: dict[str, PoseDataset] = {}

@@ -106,9 +106,12 @@ class ImageTransform(nn.Module):
     ) -> None:
         super().__init__()
         if not 0.0 <= channel_gain < 1.0:
-            raise ValueError(f"channel_gain must lie in [0, 1), not {channel_gain}")
-        if crop_shift_px is not None and crop_shift_px < 0:
-            raise ValueError(f"crop_shift_px must be >= 0 or null, not {crop_shift_px}")
+            raise ValueError(f"channel_gain: must lie in [0, 1), not {channel_gain}")
+        whole = isinstance(crop_shift_px, int) and not isinstance(crop_shift_px, bool)
+        if crop_shift_px is not None and not (whole and crop_shift_px >= 0):
+            raise ValueError(
+                f"crop_shift_px: must be a whole number >= 0 or null, not {crop_shift_px!r}"
+            )
         self.crop = crop
         self.train_mode = train
         self.color_jitter = tuple(float(v) for v in color_jitter)
