@@ -216,3 +216,20 @@ partners r1.2_t30_v2_ratio3_shift0 0 $VB $T30 "${R3[@]}" $SHIFT=0 &
   partners r1.2_t30_v2_ratio3_shift2 0 $VB $T30 "${R3[@]}" $SHIFT=2
 } &
 wait
+# 15. the sixth round, on the validation split between the lanes (seed 0): with ratio 3, views
+# about midway between their two cameras, three views per train image instead of two, one view
+# per train image (each then seen three times an epoch), less weight decay (the demo's 1e-3 was
+# chosen without views)
+partners r1.2_t30_v2_ratio3_mid 0 $VB $T30 "${R3[@]}" "$MID" &
+partners r1.2_t30_v3_ratio3 0 $VB $T30 teacher.novel_views.views=3 teacher.novel_views.ratio=3 &
+wait
+partners r1.2_t30_v1_ratio3 0 $VB $T30 teacher.novel_views.views=1 teacher.novel_views.ratio=3 &
+partners r1.2_t30_v2_ratio3_wd1e-4 0 $VB $T30 "${R3[@]}" teacher.optimizer.weight_decay=1e-4 &
+wait
+# 16. the seventh round (seed 0): with ratio 3, twice the demo teacher's peak learning rate,
+# and partners drawn within 2 m instead of 1.2 m
+partners r1.2_t30_v2_ratio3_lr4e-3 0 $VB $T30 "${R3[@]}" teacher.optimizer.lr=4e-3 &
+run "$OUT/partners/r2.0_t30_v2_ratio3/s0" "${NV[@]}" seed=0 teacher.novel_views.between_radius_m=2.0 \
+  teacher.novel_views.position_jitter_m=0.1 teacher.novel_views.orientation_jitter_deg=3 $VB $T30 \
+  "${R3[@]}" &
+wait
