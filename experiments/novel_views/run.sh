@@ -233,3 +233,11 @@ run "$OUT/partners/r2.0_t30_v2_ratio3/s0" "${NV[@]}" seed=0 teacher.novel_views.
   teacher.novel_views.position_jitter_m=0.1 teacher.novel_views.orientation_jitter_deg=3 $VB $T30 \
   "${R3[@]}" &
 wait
+# 17. partners within 2 m (r2.0_t30_v2_ratio3, the lowest val median at seed 0) over seeds 1
+# and 2
+for seed in 1 2; do
+  run "$OUT/partners/r2.0_t30_v2_ratio3/s$seed" "${NV[@]}" seed=$seed \
+    teacher.novel_views.between_radius_m=2.0 teacher.novel_views.position_jitter_m=0.1 \
+    teacher.novel_views.orientation_jitter_deg=3 $VB $T30 "${R3[@]}" &
+done
+wait
