@@ -107,3 +107,90 @@ def test_negative_crop_shift_names_the_key(tmp_path) -> None:
 
     with pytest.raises(ConfigError, match=r"data.crop_shift_px: .*not -1"):
         PoseDataModule(str(tmp_path), "train.csv", "test.csv", crop_shift_px=-1)
+
+
+def _sky(poses: torch.Tensor, intrinsics: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """Images [B, 3, h, w] (values 0..255, float) of a world at infinity: each pixel's colour
+    a smooth function of its ray's world direction, so a turned camera's view is exactly a
+    homography of the unturned one's."""
+    from pae.data.camera import camera_rays
+
+    _, directions = camera_rays(poses, intrinsics.expand(len(poses), 4), w, h)
+    d = directions / directions.norm(dim=-1, keepdim=True)
+    x, y, z = d.unbind(-1)
+    channels = [torch.sin(5 * x + 2 * z), torch.cos(4 * y - 3 * x), torch.sin(3 * x * z + 4 * y)]
+    rgb = (torch.stack(channels, -1) + 1) * 127.5
+    return rgb.view(len(poses), h, w, 3).permute(0, 3, 1, 2)
+
+
+def test_turned_crop_without_offset_is_the_centre_crop() -> None:
+    from pae.data.transforms import turned_crops
+
+    images = _batch()
+    warped, turns = turned_crops(
+        images, torch.tensor([40.0, 40.0, 23.5, 19.5]), 32, torch.zeros(6, 2)
+    )
+    top, left = (40 - 32) // 2, (48 - 32) // 2
+    assert torch.allclose(warped, images[:, :, top : top + 32, left : left + 32].float(), atol=1e-3)
+    assert torch.equal(turns, torch.zeros(6, 3))
+
+
+def test_turned_crop_is_the_view_of_the_turned_camera() -> None:
+    from pae.data.transforms import turned_crops
+    from pae.geometry import orientation_error_deg
+    from pae.pose_sampling import perturb, perturb_poses
+
+    torch.manual_seed(0)
+    h = w = 64
+    intrinsics = torch.tensor([50.2, 50.2, 31.5, 31.5], dtype=torch.float64)
+    poses = perturb_poses(torch.tensor([[0.0, 0, 0, 1, 0, 0, 0]]).repeat(8, 1), 1.0, 60.0).double()
+    offsets = torch.tensor(
+        [[4.0, 0], [-4, 0], [0, 4], [0, -4], [3, -2.5], [-1, 2], [4, 4], [0.5, 0]]
+    )
+    warped, turns = turned_crops(_sky(poses, intrinsics, h, w), intrinsics, 56, offsets)
+    turned = perturb(poses, torch.cat([torch.zeros(8, 3), turns.double()], -1))
+    expected = _sky(turned, intrinsics, h, w)[:, :, 4:60, 4:60]
+    inner = (slice(None), slice(None), slice(6, -6), slice(6, -6))  # the corners of (4, 4)
+    # reach past the image, where the warp repeats its edge
+    error = (warped - expected)[inner].abs()
+    shifted = torch.stack(
+        [
+            _sky(poses, intrinsics, h, w)[i, :, 4 + int(v) : 60 + int(v), 4 + int(u) : 60 + int(u)]
+            for i, (u, v) in enumerate(offsets.round().tolist())
+        ]
+    )
+    assert error.max() < 0.5, "the warp is the turned camera's view (bilinear error only)"
+    assert error.mean() < 0.2 * (shifted - expected)[inner].abs().mean()
+    angles = orientation_error_deg(turned[:, 3:], poses[:, 3:])
+    tilt = (offsets / 50.2).norm(dim=-1)
+    assert torch.allclose(angles.double(), torch.rad2deg(torch.atan(tilt)).double(), atol=1e-3)
+
+
+def test_crop_turns_camera_turns_the_train_labels_only(tiny_root) -> None:
+    from pae.data.synthetic_datamodule import SyntheticDataModule
+    from pae.geometry import orientation_error_deg
+    from tests.conftest import TINY
+
+    torch.manual_seed(0)
+    data = SyntheticDataModule(
+        root=str(tiny_root), **TINY, crop=28, shorter_edge=32, crop_turns_camera=True, batch_size=8
+    )
+    data.setup()
+    batch = next(iter(data.train_dataloader()))
+    data.trainer = type("T", (), {"training": True})()
+    out = data.on_after_batch_transfer(dict(batch), 0)
+    assert out["image"].shape[-2:] == (28, 28)
+    angles = orientation_error_deg(out["pose"][:, 3:], batch["pose"][:, 3:])
+    assert (angles > 0).any() and (angles < 6.5).all()  # 2 px each way at f = 25 px
+    assert torch.equal(out["pose"][:, :3], batch["pose"][:, :3])
+    data.trainer = type("T", (), {"training": False})()
+    assert torch.equal(data.on_after_batch_transfer(dict(batch), 0)["pose"], batch["pose"])
+
+
+def test_crop_turns_camera_needs_one_camera(tmp_path) -> None:
+    from pae.data.datamodule import PoseDataModule
+    from pae.errors import ConfigError
+
+    data = PoseDataModule(str(tmp_path), "train.csv", "test.csv", crop_turns_camera=True)
+    with pytest.raises(ConfigError, match=r"data.crop_turns_camera: needs data.camera"):
+        data._one_train_camera()

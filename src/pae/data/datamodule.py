@@ -35,7 +35,10 @@ class PoseDataModule(L.LightningDataModule):
     comparisons with runs that had no validation split only.
     Augmentation (random crop, its corner at most `crop_shift_px` from the centre crop's, +
     colour jitter) runs batched on the device after transfer,
-    for training batches only when `augment` is true; evaluation uses the centre crop.
+    for training batches only when `augment` is true; evaluation uses the centre crop. With
+    `crop_turns_camera` the random crop is the view of the camera turned towards the crop's
+    centre instead (the homography of that pure rotation), its label turned with it: needs
+    `camera`, one for every train row.
     `balance_scenes` samples scenes equally often in multi-scene training.
     `pose_loss_init` records the initial s_x, s_q of the learned pose loss that suit the
     dataset's error scale (the configs of the pose losses read it). `camera` gives the
@@ -58,6 +61,7 @@ class PoseDataModule(L.LightningDataModule):
         color_jitter: tuple[float, float, float, float] = (0.5, 0.5, 0.5, 0.2),
         channel_gain: float = 0.0,
         crop_shift_px: int | None = None,
+        crop_turns_camera: bool = False,
         augment: bool = True,
         batch_size: int = 32,
         eval_batch_size: int = 128,
@@ -98,6 +102,8 @@ class PoseDataModule(L.LightningDataModule):
         except ValueError as err:  # its message starts with the key
             raise ConfigError(f"data.{err}") from None
         self.eval_transform = ImageTransform(crop, train=False)
+        self.crop_turns_camera = crop_turns_camera
+        self._turn_intrinsics: Tensor | None = None
         self.tables: dict[str, LabelTable] = {}
         self.datasets: dict[str, PoseDataset] = {}
         self.scene_names: list[str] = []
@@ -141,6 +147,24 @@ class PoseDataModule(L.LightningDataModule):
             self.datasets[split] = datasets[id(table)]
         self.datasets["val"].load()
         self.datasets["test"].load()
+        if self.crop_turns_camera and self.augment:
+            self._turn_intrinsics = self._one_train_camera()
+
+    def _one_train_camera(self) -> Tensor:
+        """The train images' intrinsics [4] (fx, fy, cx, cy in px, as the dataset holds them)
+        for ``crop_turns_camera``; ConfigError without ``camera`` or with several."""
+        if self.camera is None:
+            raise ConfigError(
+                "data.crop_turns_camera: needs data.camera (fx, fy, cx, cy, width, height of "
+                "the images as stored)"
+            )
+        rows = self.intrinsics("train", crop=False)
+        if len(rows) and not torch.equal(rows, rows[:1].expand_as(rows)):
+            raise ConfigError(
+                f"data.crop_turns_camera: needs one camera for every train row; the focal "
+                f"column of {self.tables['train'].source} gives several"
+            )
+        return rows[0] if len(rows) else torch.zeros(4)
 
     def _check_focal_lengths(self, tables: Iterable[LabelTable]) -> None:
         """LabelError at the first row whose focal length is implausible for the width of the
@@ -328,6 +352,11 @@ class PoseDataModule(L.LightningDataModule):
         image = batch.get("image") if isinstance(batch, dict) else None
         if image is not None and image.dtype == torch.uint8:
             training = self.trainer is not None and self.trainer.training
+            if training and self._turn_intrinsics is not None:
+                images, poses = self.train_transform.turned_batch(
+                    image, batch["pose"], self._turn_intrinsics
+                )
+                return {**batch, "image": images, "pose": poses}
             batch = {**batch, "image": self.preprocess(image, training)}
         return batch
 

@@ -1,7 +1,7 @@
 """Batched image pre-processing on uint8 batches, run on the batch's device.
 
-Per-sample random crops and colour jitter are drawn with tensor ops over the whole batch,
-so augmentation costs no Python loop per image.
+Per-sample random crops (or views of turned cameras, ``turned_crops``) and colour jitter are
+drawn with tensor ops over the whole batch, so augmentation costs no Python loop per image.
 """
 
 from __future__ import annotations
@@ -11,9 +11,12 @@ import math
 import cv2
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from pae.errors import ImageError
+from pae.geometry import quaternion_to_matrix, rotation_vector_to_quaternion
+from pae.pose_sampling import perturb
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -85,6 +88,41 @@ def _rotate_hue(images: Tensor, turns: Tensor) -> Tensor:
     return torch.einsum("bij,bjhw->bihw", matrix, images)
 
 
+def turned_crops(
+    images: Tensor, intrinsics: Tensor, crop: int, offsets: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Views of cameras turned so that each optical axis passes through the pixel ``offsets``
+    [B, 2] (px; column, row) from the principal point of its image.
+
+    images [B, C, H, W] (uint8 or float) of cameras with ``intrinsics`` [4] (fx, fy, cx, cy in
+    px of H x W images) are warped by the homography of that pure rotation (exact for any
+    scene; bilinear, edge pixels repeated) -> float [B, C, crop, crop] with the centre crop's
+    intrinsics (offsets 0: the centre crop) and the turns [B, 3]: rotation vectors (rad) in the
+    camera frame, the turned camera-to-world rotation ``R' = R · exp(turn)``.
+    """
+    h, w = images.shape[-2:]
+    device = images.device
+    fx, fy, cx, cy = intrinsics.to(device, torch.float64).unbind(-1)
+    tangent = torch.stack([offsets[:, 0] / fx, offsets[:, 1] / fy], -1).double()  # [B, 2]
+    tilt = tangent.norm(dim=-1, keepdim=True)
+    per_tangent = torch.where(tilt > 0, torch.atan(tilt) / tilt.clamp_min(1e-12), 1.0)
+    turns = torch.cat([-tangent[:, 1:], tangent[:, :1], torch.zeros_like(tilt)], -1) * per_tangent
+    rotation = quaternion_to_matrix(rotation_vector_to_quaternion(turns))  # old from turned
+    top, left = (h - crop) // 2, (w - crop) // 2
+    steps = torch.arange(crop, device=device, dtype=torch.float64)
+    x = ((steps + left - cx) / fx)[None, :].expand(crop, crop)
+    y = ((steps + top - cy) / fy)[:, None].expand(crop, crop)
+    rays = torch.stack([x, y, torch.ones_like(x)], -1)  # [crop, crop, 3], turned camera
+    seen = torch.einsum("bij,hwj->bhwi", rotation, rays)
+    u = fx * seen[..., 0] / seen[..., 2] + cx
+    v = fy * seen[..., 1] / seen[..., 2] + cy
+    grid = torch.stack([(2 * u + 1) / w - 1, (2 * v + 1) / h - 1], -1).float()
+    warped = F.grid_sample(
+        images.float(), grid, mode="bilinear", padding_mode="border", align_corners=False
+    )
+    return warped, turns.float()
+
+
 class ImageTransform(nn.Module):
     """uint8 [B, 3, H, W] -> normalised float [B, 3, crop, crop].
 
@@ -93,7 +131,8 @@ class ImageTransform(nn.Module):
     contrast, saturation factors drawn from [1 - j, 1 + j], hue shift from [-j_h, j_h] turns)
     and, with ``channel_gain`` g > 0, a white-balance jitter (each colour channel times a
     factor drawn from [1 - g, 1 + g], a tinted light or camera); train=False: centre crop only
-    (the paper's test pre-processing, also used to train PAEs).
+    (the paper's test pre-processing, also used to train PAEs). ``turned_batch`` takes the
+    random crop as a turn of the camera instead, and turns the labels with it.
     """
 
     def __init__(
@@ -125,6 +164,30 @@ class ImageTransform(nn.Module):
         low = max(0, margin // 2 - self.crop_shift_px)
         high = min(margin, margin // 2 + self.crop_shift_px)
         return torch.randint(low, high + 1, (b,), device=device)
+
+    def _offsets(self, b: int, h: int, w: int, device: torch.device) -> Tensor:
+        """Crop centres' offsets [b, 2] (px; column, row) from the centre crop's, uniform within
+        the random crop's range (``crop_shift_px`` or the image's margin)."""
+        margins = torch.tensor([w - self.crop, h - self.crop], device=device) / 2
+        if self.crop_shift_px is not None:
+            margins = margins.clamp_max(self.crop_shift_px)
+        return (2 * torch.rand(b, 2, device=device) - 1) * margins
+
+    def turned_batch(
+        self, images: Tensor, poses: Tensor, intrinsics: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """uint8 [B, 3, H, W] of cameras with ``intrinsics`` [4] (px of H x W) and their poses
+        [B, 7] -> network input [B, 3, crop, crop] and poses [B, 7]: each image the view of its
+        camera turned towards a random crop centre (:func:`turned_crops`, offsets within the
+        random crop's range), colour-jittered, and its pose turned with it."""
+        b, _, h, w = images.shape
+        if min(h, w) < self.crop:
+            raise ImageError(f"images of {h}x{w} px are smaller than the {self.crop} px crop")
+        offsets = self._offsets(b, h, w, images.device)
+        warped, turns = turned_crops(images, intrinsics, self.crop, offsets)
+        steps = torch.cat([torch.zeros_like(turns), turns], -1).to(poses.dtype)
+        images = self._jitter((warped / 255.0).clamp(0, 1))
+        return self.normalize_batch(images), perturb(poses, steps)
 
     def _crop(self, images: Tensor) -> Tensor:
         b, _, h, w = images.shape
