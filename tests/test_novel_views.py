@@ -123,6 +123,13 @@ def test_views_lie_between_a_camera_and_the_nearest_one_of_another_sequence() ->
     midway = sample_novel_poses(poses, scenes, sequences, 200, middle, draws)
     share = (midway.poses[:, 1] - poses[midway.source, 1]).abs()
     assert ((share >= 0.4 - 1e-6) & (share <= 0.6 + 1e-6)).all() and share.std() > 0.04
+    either = dataclasses.replace(exact, between_orientation="either")
+    kept_turn = sample_novel_poses(poses, scenes, sequences, 400, either, draws)
+    share = (kept_turn.poses[:, 1] - poses[kept_turn.source, 1]).abs()
+    assert share.std() > 0.2, "the position still moves between the two cameras"
+    degrees = orientation_error_deg(kept_turn.poses[:, 3:], poses[:1, 3:].expand(400, 4))
+    assert ((degrees < 0.1) | (degrees > 29.9)).all(), "one camera's orientation, not a blend"
+    assert 150 < (degrees > 15).sum() < 250, "either camera's, drawn at random"
 
 
 def test_partners_within_a_radius_reach_the_far_lane_drawn_uniformly() -> None:
@@ -293,6 +300,7 @@ def test_novel_view_settings_are_checked_before_any_work(compose_train, tmp_path
         ("teacher.novel_views.between_share=[0.6,0.4]", r"between_share must be \[lo, hi\]"),
         ("teacher.novel_views.between_share=0.5", r"between_share must be \[lo, hi\] with"),
         ("teacher.novel_views.cache=maybe", r"teacher\.novel_views\.cache must be true or"),
+        ("teacher.novel_views.between_orientation=slerp", r"between_orientation must be one of"),
         ("teacher.novel_views.enabled=true", r"stage=teacher needs scene_model_ckpt=PATH"),
         ("student.store_novel_views=1", r"student\.store_novel_views must be true or false"),
     ):

@@ -10,10 +10,13 @@ from pae.config_checks import boolean, integer, number, setting
 from pae.errors import ConfigError
 
 NOVEL_VIEW_KEYS = ("enabled", "ratio", "views", "between", "between_radius_m")
-NOVEL_VIEW_KEYS += ("between_max_turn_deg", "between_share", "position_jitter_m")
+NOVEL_VIEW_KEYS += ("between_max_turn_deg", "between_share", "between_orientation")
+NOVEL_VIEW_KEYS += ("position_jitter_m",)
 NOVEL_VIEW_KEYS += ("orientation_jitter_deg", "min_distance_m", "size", "cache")
 """The settings of ``teacher.novel_views`` (pae.data.novel_views.NovelViewSettings's fields
 and ``enabled``)."""
+BETWEEN_ORIENTATIONS = ("interpolated", "either")
+"""A view's orientation between two cameras: interpolated like its position, or either's."""
 STUDENT_VIEW_KEYS = ("student.novel_views", "student.store_novel_views")
 """The student's switches that read the views of ``teacher.novel_views``."""
 
@@ -46,6 +49,12 @@ def _teacher_views_on(cfg: DictConfig) -> bool:
         raise ConfigError(
             "teacher.novel_views.between_share must be [lo, hi] with 0 <= lo <= hi <= 1, got "
             f"{share!r}"
+        )
+    orientation = setting(cfg, "teacher.novel_views.between_orientation")
+    if orientation is not None and orientation not in BETWEEN_ORIENTATIONS:
+        raise ConfigError(
+            f"teacher.novel_views.between_orientation must be one of "
+            f"{', '.join(BETWEEN_ORIENTATIONS)}, got {orientation!r}"
         )
     if setting(cfg, "teacher.novel_views.between_radius_m") is not None:
         number(cfg, "teacher.novel_views.between_radius_m", 0, strict=True)

@@ -124,9 +124,10 @@ class NovelViewSettings:
     a pool of ``views`` rendered views per train image, rendered once (``cache``) or afresh
     each epoch; the sampling's ``position_jitter_m`` (m), ``orientation_jitter_deg``,
     ``between``, ``between_radius_m`` (m; None: the nearest camera of another sequence),
-    ``between_max_turn_deg`` and ``between_share`` (the range [lo, hi] of the share of the way
-    towards the partner); ``min_distance_m`` (m) between a view and every train camera;
-    the render ``size`` (px shorter edge, None: the train images')."""
+    ``between_max_turn_deg``, ``between_share`` (the range [lo, hi] of the share of the way
+    towards the partner) and ``between_orientation`` (``interpolated`` like the position, or
+    ``either`` camera's, drawn at random); ``min_distance_m`` (m) between a view and every
+    train camera; the render ``size`` (px shorter edge, None: the train images')."""
 
     ratio: float
     views: float
@@ -136,6 +137,7 @@ class NovelViewSettings:
     between_radius_m: float | None = None
     between_max_turn_deg: float = 180.0
     between_share: tuple[float, float] = (0.0, 1.0)
+    between_orientation: str = "interpolated"
     min_distance_m: float = 0.0
     size: int | None = None
     cache: bool = True
@@ -177,8 +179,12 @@ def _draw_cameras(
         share = low + (high - low) * torch.rand(count, 1, generator=generator, dtype=torch.float64)
         position = start[:, :3] + share * (partner[:, :3] - start[:, :3])
         q0, q1 = start[:, 3:], partner[:, 3:]
-        q1 = torch.where((q0 * q1).sum(-1, keepdim=True) < 0, -q1, q1)  # the shorter arc
-        rotation = canonicalize_quaternion(q0 + share * (q1 - q0))
+        if settings.between_orientation == "either":
+            either = torch.rand(count, 1, generator=generator, dtype=torch.float64) < 0.5
+            rotation = torch.where(either, q1, q0)
+        else:
+            q1 = torch.where((q0 * q1).sum(-1, keepdim=True) < 0, -q1, q1)  # the shorter arc
+            rotation = canonicalize_quaternion(q0 + share * (q1 - q0))
         start = torch.cat([position, rotation], -1)
     moved = perturb_poses(
         start, settings.position_jitter_m, settings.orientation_jitter_deg, generator
@@ -197,12 +203,14 @@ def sample_novel_poses(
 ) -> NovelPoses:
     """``count`` cameras around the train cameras poses [N, 7] (scene ids [N], sequence ids
     [N]): each from a train camera drawn uniformly, moved a share of the way towards a camera
-    of another sequence of its scene, uniform in ``between_share`` (``settings.between``; its
-    orientation interpolated likewise): the nearest one, or with ``between_radius_m`` one
-    drawn among those within that many metres turned at most ``between_max_turn_deg`` from it
-    (:func:`partners_within`); then by a distance uniform in [0, 2·``position_jitter_m``] (m)
-    in a random direction and a rotation uniform in [0, 2·``orientation_jitter_deg``] about a
-    random axis. With ``min_distance_m`` only cameras at least that far from every train
+    of another sequence of its scene, uniform in ``between_share`` (``settings.between``):
+    the nearest one, or with ``between_radius_m`` one drawn among those within that many
+    metres turned at most ``between_max_turn_deg`` from it (:func:`partners_within`); its
+    orientation interpolated likewise, or with ``between_orientation`` "either" that of one
+    of the two cameras drawn at random (interpolating two orientations shrinks their
+    spread); then by a distance uniform in [0, 2·``position_jitter_m``] (m) in a random
+    direction and a rotation uniform in [0, 2·``orientation_jitter_deg``] about a random
+    axis. With ``min_distance_m`` only cameras at least that far from every train
     camera of their scene are kept (drawn in up to ``MAX_DRAWS`` rounds; the farthest of the
     others fill what is still missing)."""
     poses = poses.double()
