@@ -240,3 +240,20 @@ wait
 wide 1 &
 wide 2 &
 wait
+# 18. the eighth round, on the validation split between the lanes (seed 0): the random crop as
+# a labelled turn of the camera (data.crop_turns_camera: the view of the camera turned towards
+# the crop's centre, its label turned with it), for the plain teacher and with the chosen
+# views; and each view with one of its two cameras' orientations instead of their blend
+# (teacher.novel_views.between_orientation=either)
+TURN=data.crop_turns_camera=true
+run "$OUT/plain_vb_turned/s0" experiment=demo "${BASE[@]}" seed=0 $VB $TURN &
+partners r1.2_t30_v2_ratio3_turned 0 $VB $T30 "${R3[@]}" $TURN &
+wait
+EITHER=teacher.novel_views.between_orientation=either
+partners r1.2_t30_v2_ratio3_either 0 $VB $T30 "${R3[@]}" $EITHER &
+partners r1.2_t30_v2_ratio3_either_turned 0 $VB $T30 "${R3[@]}" $EITHER $TURN &
+wait
+# 19. either orientation (the lowest val median at seed 0) over seeds 1 and 2
+partners r1.2_t30_v2_ratio3_either 1 $VB $T30 "${R3[@]}" $EITHER &
+partners r1.2_t30_v2_ratio3_either 2 $VB $T30 "${R3[@]}" $EITHER &
+wait
