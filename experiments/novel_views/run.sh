@@ -3,7 +3,7 @@
 # the demo's scene model (make demo first: outputs/demo), two runs side by side on one thread
 # each; finished runs are skipped (the script resumes).
 #   bash experiments/novel_views/run.sh [OUT]
-#   pae-report --compare OUT/plain_vb OUT/partners/r1.2_t30_v2_ratio3 --names plain,novel_views \
+#   pae-report --compare OUT/plain_vb OUT/partners/r1.2_t30_v2_ratio3_either --names plain,novel_views \
 #     [--split val]
 set -uo pipefail
 OUT=${1:-outputs/nv_compare}
@@ -257,3 +257,8 @@ wait
 partners r1.2_t30_v2_ratio3_either 1 $VB $T30 "${R3[@]}" $EITHER &
 partners r1.2_t30_v2_ratio3_either 2 $VB $T30 "${R3[@]}" $EITHER &
 wait
+# 20. where the eighth round's teachers err on val, in each true camera's frame
+mkdir -p "$OUT/geometry"
+"$BIN"/python experiments/novel_views/error_frame.py "$OUT/plain_vb/s0" "$OUT/plain_vb_turned/s0" \
+  "$OUT/partners/r1.2_t30_v2_ratio3_either/s0" "$OUT/partners/r1.2_t30_v2_ratio3_turned/s0" \
+  "$OUT/partners/r1.2_t30_v2_ratio3_either_turned/s0" 2> /dev/null | grep val > "$OUT/geometry/error_frame.txt"
