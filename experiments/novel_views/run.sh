@@ -262,3 +262,8 @@ mkdir -p "$OUT/geometry"
 "$BIN"/python experiments/novel_views/error_frame.py "$OUT/plain_vb/s0" "$OUT/plain_vb_turned/s0" \
   "$OUT/partners/r1.2_t30_v2_ratio3_either/s0" "$OUT/partners/r1.2_t30_v2_ratio3_turned/s0" \
   "$OUT/partners/r1.2_t30_v2_ratio3_either_turned/s0" 2> /dev/null | grep val > "$OUT/geometry/error_frame.txt"
+# 21. leads for a next round (seed 0): either orientation with views kept 0.2 m from every
+# train camera, and with twice the orientation jitter
+partners r1.2_t30_v2_ratio3_either_d0.2 0 $VB $T30 "${R3[@]}" $EITHER teacher.novel_views.min_distance_m=0.2 &
+partners r1.2_t30_v2_ratio3_either_o6 0 $VB $T30 "${R3[@]}" $EITHER teacher.novel_views.orientation_jitter_deg=6 &
+wait
