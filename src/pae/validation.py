@@ -259,7 +259,7 @@ def validate_data(cfg: DictConfig, train: bool = True) -> None:
         )
     integer(cfg, "data.eval_batch_size", 1)
     integer(cfg, "data.num_workers", 0)
-    for key in ("augment", "cache_images", "balance_scenes"):
+    for key in ("augment", "cache_images", "balance_scenes", "crop_turns_camera"):
         boolean(cfg, f"data.{key}")
     _validate_holdout(cfg)
     batch_size = integer(cfg, "data.batch_size", 1)

@@ -181,18 +181,21 @@ class ImageTransform(nn.Module):
         camera turned towards a random crop centre (:func:`turned_crops`, offsets within the
         random crop's range), colour-jittered, and its pose turned with it."""
         b, _, h, w = images.shape
-        if min(h, w) < self.crop:
-            raise ImageError(f"images of {h}x{w} px are smaller than the {self.crop} px crop")
+        self._check_size(h, w)
         offsets = self._offsets(b, h, w, images.device)
         warped, turns = turned_crops(images, intrinsics, self.crop, offsets)
         steps = torch.cat([torch.zeros_like(turns), turns], -1).to(poses.dtype)
         images = self._jitter((warped / 255.0).clamp(0, 1))
         return self.normalize_batch(images), perturb(poses, steps)
 
-    def _crop(self, images: Tensor) -> Tensor:
-        b, _, h, w = images.shape
+    def _check_size(self, h: int, w: int) -> None:
+        """ImageError for images of h x w px smaller than the crop."""
         if min(h, w) < self.crop:
             raise ImageError(f"images of {h}x{w} px are smaller than the {self.crop} px crop")
+
+    def _crop(self, images: Tensor) -> Tensor:
+        b, _, h, w = images.shape
+        self._check_size(h, w)
         if not self.train_mode:
             top, left = (h - self.crop) // 2, (w - self.crop) // 2
             return images[:, :, top : top + self.crop, left : left + self.crop]
