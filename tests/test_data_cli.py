@@ -338,7 +338,7 @@ def test_synth_passes_arguments_and_prints_summary(
     nuisances = ["--lighting-change", "0.5", "--occluder-fraction", "0.3"]
     nuisances += ["--sensor-noise", "0.02", "--motion-blur", "3"]
     b = ["synth", str(tmp_path / "b"), "--test-offset", "0", "--train-lane", "0.5", *nuisances]
-    b += ["--val-lane", "-0.25"]
+    b += ["--val-lane", "-0.25", "--val-walks", "2"]
     assert main(b) == 0
     written = capsys.readouterr()
     assert written.out == "synthetic summary\n" * 2
@@ -357,6 +357,7 @@ def test_synth_passes_arguments_and_prints_summary(
                 yaw_stray_rad=0.5,
                 stray_m=0.35,
                 val_lane_m=None,
+                val_walks=0,
                 lighting_change=0.0,
                 occluder_fraction=0.0,
                 sensor_noise_std=0.0,
@@ -377,6 +378,7 @@ def test_synth_passes_arguments_and_prints_summary(
                 yaw_stray_rad=0.5,
                 stray_m=0.35,
                 val_lane_m=-0.25,
+                val_walks=2,
                 lighting_change=0.5,
                 occluder_fraction=0.3,
                 sensor_noise_std=0.02,

@@ -404,6 +404,8 @@ def test_pae_train_refuses_a_checkpoint_of_the_wrong_kind_before_reading_data(
             "data.val_lane_m=0.8",
             "data.val_lane_m must be null or a number no farther from 0 than data.train_lane_m=0.5",
         ),
+        ("data.val_walks=-1", "data.val_walks must be an integer >= 0, got -1"),
+        ("data.val_walks=1.5", "data.val_walks must be an integer, got 1.5"),
         ("backbone.weights_path=/nope.pt", "backbone.weights_path=/nope.pt: no such file"),
         ("teacher_ckpt=/nope.ckpt", "teacher_ckpt=/nope.ckpt: no such file"),
         ("data.val_sequences=0", "data.val_sequences must be null, an integer >= 1"),
@@ -417,6 +419,15 @@ def test_values_are_checked_before_anything_trains(
     with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
         run(compose_train("stage=pipeline", override, run_dir=tmp_path), tmp_path)
     assert list(tmp_path.iterdir()) == [], "nothing was trained or written"
+
+
+def test_validation_walks_need_a_count_of_held_out_sequences(compose_train, tmp_path: Path) -> None:
+    """Walks are held out on top of an integer data.val_sequences: named sequences would
+    leave them in the train split, so the run stops before any work."""
+    overrides = ("stage=pipeline", "data.val_walks=2", "data.val_sequences=[seq-06]")
+    with pytest.raises(ConfigError, match=r"data.val_walks=2 holds its walks out on top of"):
+        run(compose_train(*overrides, run_dir=tmp_path), tmp_path)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_run_dir_and_checkpoint_files_fail_in_one_line(tiny_root: Path, tmp_path: Path) -> None:

@@ -81,6 +81,8 @@ def test_default_folder_names_are_unchanged() -> None:
     assert str(SyntheticDataModule(occluder_fraction=0.3).root) == f"{plain}_occl0.3"
     assert str(SyntheticDataModule(val_lane_m=0.0).root) == f"{plain}_val0"
     assert str(SyntheticDataModule(val_lane_m=None).root) == plain
+    walks = SyntheticDataModule(val_lane_m=0.0, val_walks=3)
+    assert str(walks.root) == f"{plain}_val0_walks3" and walks.holdout == (4, 0.1)
     assert SyntheticDataModule(**ALL_ON).render_args.items() >= ALL_ON.items()
 
 

@@ -383,6 +383,38 @@ def test_val_lane_moves_the_last_train_sequence_alone() -> None:
         write_synthetic_dataset("unused", val_lane_m=0.7)
 
 
+def test_validation_walks_add_sequences_and_change_none(tmp_path: Path) -> None:
+    """``val_walks`` appends train-split sequences after the test ones, each as long as the
+    last train sequence and walking where it walks; every other sequence keeps its poses to
+    the bit, and the data module holds the walks out with seq-06: its train split (its
+    fingerprint) is the one without them, its validation split seq-06 and the walks."""
+    scene = make_scene(0, 0, 0.0, 0.5)
+    plain = make_sequences(0, scene, 600, 100, 0, 0.0, 0.5, 0.15, 0.1, val_lane_m=0.0)
+    layout = (0, scene, 600, 100, 0, 0.0, 0.5, 0.15, 0.1)
+    walked = make_sequences(*layout, val_lane_m=0.0, val_walks=2)
+    beside = make_sequences(*layout, val_lane_m=0.3, val_walks=2)
+    assert [s.name for s in walked[len(plain) :]] == ["seq-09", "seq-10"]
+    for before, after in zip(plain, walked, strict=False):
+        np.testing.assert_array_equal(after.poses, before.poses)
+    for walk, moved in zip(walked[len(plain) :], beside[len(plain) :], strict=True):
+        assert walk.split == "train" and len(walk.poses) == len(plain[5].poses)
+        shift = np.linalg.norm(moved.poses[:, :3] - walk.poses[:, :3], axis=1)
+        np.testing.assert_allclose(shift, 0.3, atol=1e-6)
+    from pae.data.synthetic_datamodule import SyntheticDataModule
+
+    modules = []
+    for name, walks in (("plain", 0), ("walks", 2)):
+        layout = dict(SMALL, val_lane_m=0.0, val_walks=walks)
+        write_synthetic_dataset(tmp_path / name, seed=SEED, **layout)
+        data = SyntheticDataModule(str(tmp_path / name), **layout, crop=28, cache_images=False)
+        data.setup()
+        modules.append(data)
+    assert modules[1].fingerprint() == modules[0].fingerprint()
+    val = modules[1].tables["val"]
+    assert sorted(set(val.seq)) == ["seq-06", "seq-09", "seq-10"]
+    assert len(val) == 3 * len(modules[0].tables["val"])
+
+
 def test_the_package_exports_every_public_name() -> None:
     import pae.data.synthetic as package
 

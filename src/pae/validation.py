@@ -173,6 +173,22 @@ def match_synthetic_settings(cfg: DictConfig) -> list[str]:
     return corrections
 
 
+def _check_val_walks(cfg: DictConfig) -> None:
+    """data.val_walks: a count of validation walks, held out on top of an integer
+    data.val_sequences, of the benchmark's own layout (not data.poses)."""
+    data = cfg.data
+    if not data.get("val_walks"):
+        return
+    integer(cfg, "data.val_walks", 0)
+    held = data.get("val_sequences")
+    if not is_int(held) or data.get("val_labels") or data.get("poses"):
+        raise ConfigError(
+            f"data.val_walks={data.val_walks} holds its walks out on top of "
+            f"data.val_sequences: set it to an integer (got {held!r}), data.val_labels and "
+            f"data.poses to null"
+        )
+
+
 def _train_set_size(cfg: DictConfig) -> int:
     """Rows of the train split: from the synthetic data's settings when it renders on first
     use (it may not be rendered yet), otherwise from the train label file (its chosen
@@ -194,6 +210,7 @@ def _train_set_size(cfg: DictConfig) -> int:
             )
         if data.get("poses") and val_lane is not None:
             raise ConfigError("data.poses renders the given rows: set data.val_lane_m to null")
+        _check_val_walks(cfg)
         on = [f"data.{key}" for key in SYNTHETIC_NUISANCE_BOUNDS if data.get(key)]
         if data.get("poses") and on:
             raise ConfigError(

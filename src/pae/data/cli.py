@@ -58,6 +58,7 @@ def _synth(args: argparse.Namespace) -> int:
                 ("--test-offset", args.test_offset),
                 ("--train-lane", args.train_lane),
                 ("--val-lane", args.val_lane),
+                ("--val-walks", args.val_walks),
                 ("--yaw-stray", args.yaw_stray),
                 ("--stray", args.stray),
                 ("--lighting-change", args.lighting_change),
@@ -92,6 +93,7 @@ def _synth(args: argparse.Namespace) -> int:
             yaw_stray_rad=chosen(args.yaw_stray, synthetic.DEFAULT_YAW_STRAY_RAD),
             stray_m=chosen(args.stray, synthetic.DEFAULT_STRAY_M),
             val_lane_m=args.val_lane,
+            val_walks=chosen(args.val_walks, 0),
             lighting_change=chosen(args.lighting_change, 0.0),
             occluder_fraction=chosen(args.occluder_fraction, 0.0),
             sensor_noise_std=chosen(args.sensor_noise, 0.0),
@@ -199,6 +201,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="lateral offset (m, signed, within the train lanes) of the last train sequence of "
         "each scene, the validation split of data.val_sequences=1 (default: its lane; 0: "
         "between the lanes)",
+    )
+    synth.add_argument(
+        "--val-walks",
+        type=int,
+        metavar="N",
+        help="more validation sequences per scene, numbered after the test ones, each as long "
+        "as the last train sequence and walking where it walks (default: 0; hold them out with "
+        "data.val_walks=N)",
     )
     synth.add_argument(
         "--yaw-stray",

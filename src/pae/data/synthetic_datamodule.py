@@ -29,11 +29,13 @@ def default_root(
     stray_m: float = 0.1,
     nuisances: synthetic.Nuisances | None = None,
     val_lane_m: float | None = None,
+    val_walks: int = 0,
 ) -> str:
     """The folder a synthetic dataset renders into: named by its settings, or, for
     ``poses``, by a digest of the label files' contents (so edited files render anew).
     ``nuisances`` that are on add a suffix naming them (``_light1_occl0.3…``), a
-    ``val_lane_m`` one naming it (``_val0``); off, the name is the one without them."""
+    ``val_lane_m`` one naming it (``_val0``), validation walks their count (``_walks3``);
+    off, the name is the one without them."""
     if poses:
         digest = hashlib.sha256()
         for path in poses:
@@ -48,6 +50,7 @@ def default_root(
         f"_yaw{yaw_stray_rad:g}_stray{stray_m:g}"
         f"{nuisances.folder_suffix() if nuisances is not None else ''}"
         f"{'' if val_lane_m is None else f'_val{val_lane_m:g}'}"
+        f"{f'_walks{val_walks}' if val_walks else ''}"
     )
 
 
@@ -59,7 +62,9 @@ class SyntheticDataModule(PoseDataModule):
     lateral offsets of the test and train sequences from the route, ``test_offset_m`` and
     ``train_lane_m``, how far they stray from their lanes, ``stray_m``, and their yaw from
     the route's heading, ``yaw_stray_rad``; ``val_lane_m`` not None: the last train
-    sequence's offset, so that the validation split walks between the lanes), and its
+    sequence's offset, so that the validation split walks between the lanes; ``val_walks``
+    more validation sequences per scene walking where it walks, held out on top of
+    ``val_sequences``, an integer then), and its
     nuisances, all off (0) by default:
     ``lighting_change`` (strength in ``[0, 1]`` of lighting and exposure changing between and
     within sequences), ``occluder_fraction`` (share of frames with a person-sized box in front
@@ -95,6 +100,7 @@ class SyntheticDataModule(PoseDataModule):
         sensor_noise_std: float = 0.0,
         motion_blur_px: float = 0.0,
         val_lane_m: float | None = None,
+        val_walks: int = 0,
         **kwargs: Any,
     ) -> None:
         poses = [str(p) for p in poses] if poses else None
@@ -106,6 +112,15 @@ class SyntheticDataModule(PoseDataModule):
                 "data.poses renders the given rows without nuisances: set lighting_change, "
                 "occluder_fraction, sensor_noise_std and motion_blur_px to 0"
             )
+        if val_walks:
+            held = kwargs.get("val_sequences", 1)
+            if type(held) is not int or kwargs.get("val_labels"):
+                raise ValueError(
+                    f"data.val_walks={val_walks} holds its walks out on top of "
+                    f"data.val_sequences: set it to an integer and data.val_labels to null, "
+                    f"got {held!r}"
+                )
+            kwargs["val_sequences"] = held + val_walks
         self.renders_on_first_use = root is None
         if root is None:
             root = default_root(
@@ -121,6 +136,7 @@ class SyntheticDataModule(PoseDataModule):
                 stray_m,
                 nuisances,
                 val_lane_m,
+                val_walks,
             )
         labels = Path(root) / "labels"
         if kwargs.get("camera") is None:
@@ -149,6 +165,7 @@ class SyntheticDataModule(PoseDataModule):
             "sensor_noise_std": sensor_noise_std,
             "motion_blur_px": motion_blur_px,
             "val_lane_m": val_lane_m,
+            "val_walks": val_walks,
         }
 
     def prepare_data(self) -> None:

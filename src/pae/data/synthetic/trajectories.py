@@ -46,6 +46,11 @@ def _split_counts(total: int, parts: int) -> list[int]:
     return [total // parts + (1 if i < total % parts else 0) for i in range(parts)]
 
 
+def walk_frames(train_frames: int) -> int:
+    """Frames of each validation walk of :func:`make_sequences`: the last train sequence's."""
+    return _split_counts(train_frames, TRAIN_SEQUENCES)[-1]
+
+
 def smooth_wave(
     rng: np.random.Generator,
     t: np.ndarray,
@@ -120,8 +125,10 @@ def make_sequences(
     yaw_stray_rad: float = DEFAULT_YAW_STRAY_RAD,
     stray_m: float = DEFAULT_STRAY_M,
     val_lane_m: float | None = None,
+    val_walks: int = 0,
 ) -> list[CameraSequence]:
-    """Train sequences ``seq-01…`` then test sequences (numbered on) of scene ``scene_index``.
+    """Train sequences ``seq-01…``, test sequences, then ``val_walks`` validation walks
+    (numbered on) of scene ``scene_index``.
 
     Up to 6 train and 2 test sequences share the frames of each split. Each walks most of the
     scene's route with its own deviations and :class:`Appearance`; the sequences of a split
@@ -130,20 +137,29 @@ def make_sequences(
     on the route, like the train sequences). ``val_lane_m`` not None: the last train sequence
     (the validation sequence of ``val_sequences: 1``) walks that far from the route instead of
     on its lane (signed, positive to the left; 0: on the route, between the lanes); the others
-    are the same sequences as without it.
+    are the same sequences as without it. The validation walks are train-split sequences
+    with as many frames as the last train sequence, staggered along the route like the
+    others and walking where it walks (``val_lane_m``, or alternately its lane and the
+    other): more validation data from the same layout, every other sequence unchanged.
     """
     train_counts = _split_counts(train_frames, TRAIN_SEQUENCES)
     test_counts = _split_counts(test_frames, TEST_SEQUENCES)
     splits = [("train", i, len(train_counts), n) for i, n in enumerate(train_counts)]
     splits += [("test", i, len(test_counts), n) for i, n in enumerate(test_counts)]
+    splits += [("walk", i, val_walks, walk_frames(train_frames)) for i in range(val_walks)]
+    last_lane = train_lane_m * (-1) ** (len(train_counts) - 1)
     sequences = []
-    for number, (split, index_in_split, count, frames) in enumerate(splits, start=1):
+    for number, (kind, index_in_split, count, frames) in enumerate(splits, start=1):
         rng = np.random.default_rng([seed, scene_index, 1, number])
         start = (index_in_split + rng.uniform(0, 0.3)) / count
-        lane = train_lane_m if split == "train" else test_offset_m
+        lane = test_offset_m if kind == "test" else train_lane_m
         offset = lane * (-1) ** index_in_split
-        if split == "train" and index_in_split == count - 1 and val_lane_m is not None:
+        last_train = kind == "train" and index_in_split == count - 1
+        if (last_train or kind == "walk") and val_lane_m is not None:
             offset = val_lane_m
+        elif kind == "walk":
+            offset = last_lane * (-1) ** index_in_split
+        split = "test" if kind == "test" else "train"
         poses = trajectory(scene, frames, start, rng, offset, yaw_stray_rad, stray_m)
         appearance = Appearance.random(rng)
         sequences.append(

@@ -28,7 +28,12 @@ from pae.data.synthetic.scene import (
     make_scene,
     scene_name,
 )
-from pae.data.synthetic.trajectories import DEFAULT_STRAY_M, DEFAULT_YAW_STRAY_RAD, make_sequences
+from pae.data.synthetic.trajectories import (
+    DEFAULT_STRAY_M,
+    DEFAULT_YAW_STRAY_RAD,
+    make_sequences,
+    walk_frames,
+)
 
 DEFAULT_SCENES = 2
 DEFAULT_TRAIN_FRAMES = 1600
@@ -203,13 +208,16 @@ def write_synthetic_dataset(
     sensor_noise_std: float = 0.0,
     motion_blur_px: float = 0.0,
     val_lane_m: float | None = None,
+    val_walks: int = 0,
 ) -> SyntheticSummary:
     """Render the benchmark into ``out`` (see :func:`write_whole`): images first, label files
     last.
 
     ``train_frames`` and ``test_frames`` are per scene; ``test_offset_m`` is the test
     sequences' lateral offset from the train route, ``val_lane_m`` (None: its lane) the last
-    train sequence's, within the train lanes (see :func:`make_sequences`). The same
+    train sequence's, within the train lanes, and ``val_walks`` the validation walks per
+    scene, train-split sequences numbered after the test ones (see :func:`make_sequences`;
+    their frames come on top of ``train_frames``). The same
     arguments give byte-identical files. ``progress(done, total)`` is called after each
     sequence with the frames rendered so far. ``lighting_change``, ``occluder_fraction``,
     ``sensor_noise_std`` and ``motion_blur_px`` are the nuisances of train and test frames
@@ -223,6 +231,7 @@ def write_synthetic_dataset(
         ("test_frames", test_frames, 1),
         ("size", size, 8),
         ("seed", seed, 0),
+        ("val_walks", val_walks, 0),
     ):
         if int(value) != value or value < low:
             raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
@@ -243,6 +252,8 @@ def write_synthetic_dataset(
     if not (math.isfinite(yaw_stray_rad) and 0 <= yaw_stray_rad <= math.pi / 2):
         raise ValueError(f"yaw_stray_rad must lie in [0, pi/2], got {yaw_stray_rad!r}")
 
+    train_and_walks = train_frames + val_walks * walk_frames(train_frames)
+
     def render(folder: Path) -> SyntheticSummary:
         started = time.perf_counter()
         _render(
@@ -252,7 +263,7 @@ def write_synthetic_dataset(
             test_frames,
             size,
             seed,
-            (test_offset_m, train_lane_m, yaw_stray_rad, stray_m, val_lane_m),
+            (test_offset_m, train_lane_m, yaw_stray_rad, stray_m, val_lane_m, val_walks),
             progress,
             nuisances,
         )
@@ -260,11 +271,11 @@ def write_synthetic_dataset(
         return SyntheticSummary(
             root=str(folder),
             scenes=[scene_name(i) for i in range(scenes)],
-            train_frames=scenes * train_frames,
+            train_frames=scenes * train_and_walks,
             test_frames=scenes * test_frames,
             size=size,
             seconds=seconds,
-            frames_per_second=scenes * (train_frames + test_frames) / seconds,
+            frames_per_second=scenes * (train_and_walks + test_frames) / seconds,
         )
 
     return write_whole(out, overwrite, render)
@@ -277,16 +288,17 @@ def _render(
     test_frames: int,
     size: int,
     seed: int,
-    layout: tuple[float, float, float, float, float | None],
+    layout: tuple[float, float, float, float, float | None, int],
     progress: RenderProgress | None = None,
     nuisances: Nuisances | None = None,
 ) -> None:
     """Render every scene into `out`: images first, label files last. ``layout``: the test
-    offset, train lane (m), yaw stray (rad), stray (m) and validation lane (m or None) of
-    :func:`make_sequences`;
+    offset, train lane (m), yaw stray (rad), stray (m), validation lane (m or None) and
+    validation walks of :func:`make_sequences`;
     ``nuisances`` on (not None or all 0): each sequence's, and ``labels/nuisances.csv``."""
-    test_offset_m, train_lane_m, yaw_stray_rad, stray_m, val_lane_m = layout
-    total, done = scenes * (train_frames + test_frames), 0
+    test_offset_m, train_lane_m, yaw_stray_rad, stray_m, val_lane_m, val_walks = layout
+    walks = val_walks * walk_frames(train_frames)
+    total, done = scenes * (train_frames + walks + test_frames), 0
     camera = PinholeCamera(size)
     label_tables: dict[tuple[str, str], LabelTable] = {}
     nuisance_rows: list[tuple[str, float, float, float]] = []
@@ -304,6 +316,7 @@ def _render(
             yaw_stray_rad,
             stray_m,
             val_lane_m,
+            val_walks,
         )
         for sequence in sequences:
             paths = [
