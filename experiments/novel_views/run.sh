@@ -3,8 +3,8 @@
 # the demo's scene model (make demo first: outputs/demo), two runs side by side on one thread
 # each; finished runs are skipped (the script resumes).
 #   bash experiments/novel_views/run.sh [OUT]
-#   pae-report --compare OUT/plain_vb OUT/partners/r1.2_t30_v2_ratio3_either --names plain,novel_views \
-#     [--split val]
+#   pae-report --compare OUT/val_walks/plain_vb OUT/val_walks/partners/r1.2_t30_v2_ratio3_either_d0.2 \
+#     --names plain,novel_views [--split val]
 set -uo pipefail
 OUT=${1:-outputs/nv_compare}
 BIN=${BIN:-.venv/bin}
