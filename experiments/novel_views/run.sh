@@ -298,13 +298,17 @@ DATA_WALKS=$("$BIN"/python -c 'import json, sys; print(json.load(open(sys.argv[1
 } > "$OUT/geometry/val_walks_diff.txt"
 # 23. with either orientation, views kept 0.2 m from every train camera (the lowest median on
 # the four-sequence validation split at seed 0) over seeds 1 and 2, evaluated on that split
-D02=teacher.novel_views.min_distance_m=0.2
-partners r1.2_t30_v2_ratio3_either_d0.2 1 $VB $T30 "${R3[@]}" $EITHER $D02 &
-partners r1.2_t30_v2_ratio3_either_d0.2 2 $VB $T30 "${R3[@]}" $EITHER $D02 &
-wait
-walks_eval "${P}_either_d0.2/s1" &
-walks_eval "${P}_either_d0.2/s2" &
-wait
+seeds12() {  # NAME overrides...: partners NAME over seeds 1 and 2, then both evaluated on the
+  local name=$1  # four-sequence validation split
+  shift
+  partners "$name" 1 "$@" &
+  partners "$name" 2 "$@" &
+  wait
+  walks_eval "partners/$name/s1" &
+  walks_eval "partners/$name/s2" &
+  wait
+}
+seeds12 r1.2_t30_v2_ratio3_either_d0.2 $VB $T30 "${R3[@]}" $EITHER teacher.novel_views.min_distance_m=0.2
 # 24. the blend (the choice until the eighth round, seed 0, retrained: it reproduces its
 # figures) and views kept 0.3 m away, on the four-sequence validation split; 0.3 m (the lowest
 # there at seed 0) over seeds 1 and 2
@@ -315,9 +319,4 @@ wait
 walks_eval "$P/s0" &
 walks_eval "${P}_either_d0.3/s0" &
 wait
-partners r1.2_t30_v2_ratio3_either_d0.3 1 $VB $T30 "${R3[@]}" $EITHER $D03 &
-partners r1.2_t30_v2_ratio3_either_d0.3 2 $VB $T30 "${R3[@]}" $EITHER $D03 &
-wait
-walks_eval "${P}_either_d0.3/s1" &
-walks_eval "${P}_either_d0.3/s2" &
-wait
+seeds12 r1.2_t30_v2_ratio3_either_d0.3 $VB $T30 "${R3[@]}" $EITHER $D03
