@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, open_dict
@@ -82,6 +84,24 @@ def compose_train(tiny_root: Path) -> Callable[..., DictConfig]:
         return cfg
 
     return make
+
+
+FOCAL_CAMERA = {"fx": 25.0, "fy": 25.0, "cx": 15.5, "cy": 15.5, "width": 32, "height": 32}
+"""data.camera for the tiny dataset's label files with a focal column (``with_focal_column``)."""
+
+
+def with_focal_column(tiny_root: Path, out: Path, train_focal: np.ndarray) -> tuple[Path, Path]:
+    """The tiny dataset's train and test label files written to ``out`` with a focal column:
+    ``train_focal`` (px, one per train row) and 25 px for every test row."""
+    from pae.data.labels import read_labels, write_labels
+
+    paths = []
+    for split in ("train", "test"):
+        table = read_labels(tiny_root / "labels" / f"all_{split}.csv")
+        focal = train_focal if split == "train" else np.full(len(table), 25.0)
+        paths.append(out / f"{split}.csv")
+        write_labels(paths[-1], dataclasses.replace(table, focal=focal))
+    return paths[0], paths[1]
 
 
 POISON_M = 1000.0

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 from pathlib import Path
@@ -32,7 +31,15 @@ from pae.models.voxel_grid import VoxelGrid, VoxelGridSceneModel, camera_bounds
 from pae.pose_sampling import perturb
 from pae.refine.render_compare import RenderCompareRefiner, RenderCompareResult, gate
 from pae.refine.render_images import band_pass, trimmed_zncc, zncc
-from tests.conftest import MAGENTA, POISON_M, TINY, TINY_SCENE_MODEL, tiny_data_overrides
+from tests.conftest import (
+    FOCAL_CAMERA,
+    MAGENTA,
+    POISON_M,
+    TINY,
+    TINY_SCENE_MODEL,
+    tiny_data_overrides,
+    with_focal_column,
+)
 
 
 def _camera_pose(position: list[float], yaw: float = 0.3, pitch: float = -0.1) -> torch.Tensor:
@@ -505,24 +512,18 @@ def test_a_focal_column_sets_each_rows_intrinsics(tiny_root: Path, tmp_path: Pat
     """Per-image focal lengths (px at data.camera's size) are read, written back and carried
     through the loaders' resize and crop."""
     from pae.data.datamodule import PoseDataModule
-    from pae.data.labels import read_labels, write_labels
+    from pae.data.labels import read_labels
 
-    table = read_labels(tiny_root / "labels" / "all_train.csv")
-    focal = np.linspace(20.0, 30.0, len(table))
-    labels = tmp_path / "train.csv"
-    write_labels(labels, dataclasses.replace(table, focal=focal))
+    focal = np.linspace(20.0, 30.0, len(read_labels(tiny_root / "labels" / "all_train.csv")))
+    labels, test_labels = with_focal_column(tiny_root, tmp_path, focal)
     np.testing.assert_array_equal(read_labels(labels).focal, focal)
-    test_table = read_labels(tiny_root / "labels" / "all_test.csv")
-    test_labels = tmp_path / "test.csv"
-    write_labels(test_labels, dataclasses.replace(test_table, focal=np.full(len(test_table), 25.0)))
-    camera = {"fx": 25.0, "fy": 25.0, "cx": 15.5, "cy": 15.5, "width": 32, "height": 32}
     data = PoseDataModule(
         str(tiny_root),
         str(labels),
         str(test_labels),
         shorter_edge=64,
         crop=56,
-        camera=camera,
+        camera=FOCAL_CAMERA,
     )
     data.setup()
     train, test = data.intrinsics("train"), data.intrinsics("test")

@@ -188,29 +188,23 @@ def test_crop_turns_camera_turns_the_train_labels_only(tiny_root) -> None:
 
 
 def test_crop_turns_camera_needs_one_camera(tiny_root, tmp_path) -> None:
-    import dataclasses
-
     from pae.data.datamodule import PoseDataModule
-    from pae.data.labels import read_labels, write_labels
+    from pae.data.labels import read_labels
     from pae.errors import ConfigError
+    from tests.conftest import FOCAL_CAMERA, with_focal_column
 
     data = PoseDataModule(str(tmp_path), "train.csv", "test.csv", crop_turns_camera=True)
     with pytest.raises(ConfigError, match=r"data.crop_turns_camera: needs data.camera"):
         data._one_train_camera()
-    table = read_labels(tiny_root / "labels" / "all_train.csv")
-    labels = tmp_path / "train.csv"
-    write_labels(labels, dataclasses.replace(table, focal=np.linspace(20.0, 30.0, len(table))))
-    test_table = read_labels(tiny_root / "labels" / "all_test.csv")
-    test_labels = tmp_path / "test.csv"
-    write_labels(test_labels, dataclasses.replace(test_table, focal=np.full(len(test_table), 25.0)))
-    camera = {"fx": 25.0, "fy": 25.0, "cx": 15.5, "cy": 15.5, "width": 32, "height": 32}
+    rows = len(read_labels(tiny_root / "labels" / "all_train.csv"))
+    labels, test_labels = with_focal_column(tiny_root, tmp_path, np.linspace(20.0, 30.0, rows))
     several = PoseDataModule(
         str(tiny_root),
         str(labels),
         str(test_labels),
         shorter_edge=32,
         crop=28,
-        camera=camera,
+        camera=FOCAL_CAMERA,
         crop_turns_camera=True,
     )
     with pytest.raises(ConfigError, match=r"needs one camera for every train row; the focal col"):
