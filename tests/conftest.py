@@ -21,7 +21,7 @@ TINY = {"scenes": 2, "train_frames": 24, "test_frames": 12, "size": 32}
 @pytest.fixture(scope="session")
 def tiny_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A 2-scene synthetic dataset of 32 px frames, rendered once per test session."""
-    from pae.data.synthetic import write_synthetic_dataset
+    from pae.synthetic import write_synthetic_dataset
 
     root = tmp_path_factory.mktemp("tiny_synthetic")
     write_synthetic_dataset(root, seed=0, **TINY)

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pae.data.cli import main
 from pae.data.labels import LabelTable, read_labels, write_labels
+from pae.data_cli import main
 from pae.refine.audit import guess_audit
 from tests.conftest import REFERENCE_LABELS
 

@@ -141,7 +141,7 @@ def test_padding_repeats_are_counted_once() -> None:
 
 
 def test_pose_error_metric_counts_each_index_once() -> None:
-    from pae.metrics import PoseErrorMetric
+    from pae.core.metrics import PoseErrorMetric
 
     generator = torch.Generator().manual_seed(1)
     target = _poses(9, 0.0, generator)

@@ -1,12 +1,12 @@
-"""The camera's geometry in ``pae.data.camera``: intrinsics through a resize, and rays."""
+"""The camera's geometry in ``pae.core.camera``: intrinsics through a resize, and rays."""
 
 from __future__ import annotations
 
 import torch
 
-from pae.data.camera import Intrinsics, camera_rays, scale_intrinsics
-from pae.data.rays import RayBatches
-from pae.geometry import normalize_quaternion
+from pae.core.camera import Intrinsics, camera_rays, scale_intrinsics
+from pae.core.geometry import normalize_quaternion
+from pae.scene_model.rays import RayBatches
 
 
 def test_a_resized_camera_matches_its_scaled_intrinsic_vector_exactly() -> None:

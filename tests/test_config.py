@@ -127,9 +127,9 @@ def test_python_defaults_are_the_yaml_defaults() -> None:
     from omegaconf import OmegaConf
 
     from pae.callbacks.refinement import TestTimeRefinement
-    from pae.data.synthetic_datamodule import SyntheticDataModule
     from pae.models.pae import PoseAutoEncoder
     from pae.refine import PoseIndex
+    from pae.synthetic.datamodule import SyntheticDataModule
 
     def defaults(function) -> dict:
         return {
@@ -160,11 +160,11 @@ def test_python_defaults_are_the_yaml_defaults() -> None:
 
 
 def test_old_key_pae_ckpt_is_read_as_student_ckpt_with_one_warning(capsys) -> None:
-    import pae.validation
-    from pae.errors import ConfigError
-    from pae.validation import apply_renamed_keys
+    import pae.config.validation
+    from pae.config.validation import apply_renamed_keys
+    from pae.core.errors import ConfigError
 
-    pae.validation._WARNED.clear()
+    pae.config.validation._WARNED.clear()
     for config in ("train", "eval"):
         cfg = _compose(config, ["pae_ckpt=/x.ckpt"])
         apply_renamed_keys(cfg, "pae-train")
@@ -181,7 +181,7 @@ def test_entry_points_load_no_torch_before_a_run() -> None:
     """A sweep's launching process (joblib, submitit) starts its jobs without importing torch:
     it is imported by the jobs, which train."""
     code = (
-        "import sys, pae.train, pae.evaluate, pae.preflight; "
+        "import sys, pae.train, pae.evaluate, pae.config.preflight; "
         "print(sorted({'torch', 'lightning'} & set(sys.modules)))"
     )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)

@@ -12,14 +12,14 @@ import torch
 
 import pae.callbacks.progress as progress_module
 from pae.callbacks.progress import EpochProgress
-from pae.console import Progress, duration, quiet_third_party
+from pae.core.console import Progress, duration, quiet_third_party
 from tests.test_faults import pae_command
 
 
 def test_duration_and_throttled_progress(monkeypatch: pytest.MonkeyPatch) -> None:
     assert (duration(5), duration(65.4), duration(3725)) == ("0:05", "1:05", "1:02:05")
     now = [100.0]
-    monkeypatch.setattr("pae.console.time.perf_counter", lambda: now[0])
+    monkeypatch.setattr("pae.core.console.time.perf_counter", lambda: now[0])
     lines: list[str] = []
     progress = Progress("rendering out", "frames", lines.append, every_s=10)
     for done, at in ((10, 102.0), (20, 104.0), (30, 113.0), (40, 114.0)):

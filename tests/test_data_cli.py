@@ -16,8 +16,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import pae.data
-from pae.data.cli import main
 from pae.data.labels import LABEL_COLUMNS, read_labels
+from pae.data_cli import main
 
 HEADER = ",".join(LABEL_COLUMNS)
 SRC = Path(__file__).resolve().parents[1] / "src"
@@ -150,7 +150,7 @@ def test_subprocess_reports_error_without_traceback(dataset: Path) -> None:
         "PYTHONPATH": os.pathsep.join([str(SRC), os.environ.get("PYTHONPATH", "")]),
     }
     result = subprocess.run(
-        [sys.executable, "-m", "pae.data.cli", "check", str(labels), str(dataset)],
+        [sys.executable, "-m", "pae.data_cli", "check", str(labels), str(dataset)],
         capture_output=True,
         text=True,
         env=env,
@@ -326,13 +326,13 @@ def test_synth_passes_arguments_and_prints_summary(
         progress(1, 2)
         return Written()
 
-    fake = types.ModuleType("pae.data.synthetic")
+    fake = types.ModuleType("pae.synthetic")
     fake.DEFAULT_SCENES, fake.DEFAULT_TRAIN_FRAMES, fake.DEFAULT_TEST_FRAMES = 3, 40, 20
     fake.DEFAULT_SIZE, fake.DEFAULT_TEST_OFFSET_M, fake.DEFAULT_TRAIN_LANE_M = 64, 0.7, 0.0
     fake.DEFAULT_YAW_STRAY_RAD, fake.DEFAULT_STRAY_M = 0.5, 0.35
     fake.write_synthetic_dataset = write_synthetic_dataset
-    monkeypatch.setitem(sys.modules, "pae.data.synthetic", fake)
-    monkeypatch.setattr(pae.data, "synthetic", fake, raising=False)
+    monkeypatch.setitem(sys.modules, "pae.synthetic", fake)
+    monkeypatch.setattr(pae, "synthetic", fake, raising=False)
 
     assert main(["synth", str(tmp_path / "a"), "--scenes", "2", "--size", "32", "--seed", "7"]) == 0
     nuisances = ["--lighting-change", "0.5", "--occluder-fraction", "0.3"]

@@ -7,8 +7,8 @@ import torch
 from pae.data import datamodule
 from pae.data.datamodule import PoseDataModule
 from pae.data.labels import LabelError, read_labels, write_labels
-from pae.data.latents import TeacherLatentDataModule
 from pae.models.backbones import Backbone
+from pae.models.latents import TeacherLatentDataModule
 from pae.models.posenet import PoseNet
 
 

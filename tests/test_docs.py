@@ -107,7 +107,7 @@ OVERRIDES = {
         "hydra.run.dir=outputs/7scenes/render_compare",
         {
             "stage.steps": ["scene_model"],
-            "scene_model.model._target_": ("pae.models.voxel_grid.VoxelGridSceneModel"),
+            "scene_model.model._target_": ("pae.scene_model.voxel_grid.VoxelGridSceneModel"),
         },
     ),
     "all_scenes": (

@@ -22,14 +22,14 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 import pae.runs.trainer
-from pae.checkpoints import read_checkpoint
-from pae.data.cli import main as pae_data
+from pae.core.checkpoints import read_checkpoint
+from pae.core.errors import CheckpointError, ConfigError, ImageError, LabelError, LabelWarning
 from pae.data.dataset import PoseDataset
 from pae.data.labels import LabelTable, read_labels, write_labels
-from pae.data.synthetic import write_synthetic_dataset
-from pae.errors import CheckpointError, ConfigError, ImageError, LabelError, LabelWarning
-from pae.reporting import format_results_table, sweep_report, sweep_table
-from pae.reporting import main as reporting_main
+from pae.data_cli import main as pae_data
+from pae.report.tables import format_results_table, sweep_report, sweep_table
+from pae.report.tables import main as reporting_main
+from pae.synthetic import write_synthetic_dataset
 from pae.train import run
 from tests.conftest import TINY, tiny_data_overrides, tiny_overrides
 from tests.figures import WORSE_THAN_MEAN_POSE, assert_error_figure, label_reference
@@ -124,13 +124,13 @@ def test_a_bad_sweep_job_does_not_stop_the_others(tiny_root: Path, tmp_path: Pat
     )
     assert (sweep_dir / "1" / "metrics.json").is_file(), "the job after the bad one ran"
     assert "teacher.max_epochs must be" in (sweep_dir / "0" / "error.txt").read_text()
-    report = pae_command("reporting", str(sweep_dir), cwd=tmp_path)
+    report = pae_command("report.tables", str(sweep_dir), cwd=tmp_path)
     assert report.returncode == 1, "a sweep with a failed job is reported as failed"
     failed = report.stdout.split("1 failed job:\n")[1]
     assert "teacher.max_epochs=-1" in failed and "must be an integer >= 0" in failed
     assert "| " in report.stdout.split("1 failed job:")[0], "the finished job's row"
     shutil.rmtree(sweep_dir / "1")  # as if the sweep had been stopped before its last job
-    report = pae_command("reporting", str(sweep_dir), cwd=tmp_path)
+    report = pae_command("report.tables", str(sweep_dir), cwd=tmp_path)
     assert report.returncode == 1
     [missing] = [line for line in report.stdout.splitlines() if "never started" in line]
     assert "teacher.max_epochs=0 " in missing
@@ -189,7 +189,7 @@ def test_last_checkpoint_after_every_training_epoch(
 def test_checkpoints_are_written_whole(
     compose_train, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from pae.checkpoints import AtomicCheckpointIO
+    from pae.core.checkpoints import AtomicCheckpointIO
 
     trainer = pae.runs.trainer.build_trainer(compose_train(), tmp_path, 1, [])
     assert isinstance(trainer.strategy.checkpoint_io, AtomicCheckpointIO)
@@ -520,7 +520,7 @@ def test_check_and_loaders_agree_on_paths_outside_the_root(
 def test_checkpoints_remember_their_data(
     teacher_run: Path, compose_train, tiny_root: Path, tmp_path: Path
 ) -> None:
-    from pae.checkpoints import DATA_FINGERPRINT_KEY
+    from pae.core.checkpoints import DATA_FINGERPRINT_KEY
 
     teacher_ckpt = teacher_run / "checkpoints" / "last.ckpt"
     fingerprint = read_checkpoint(teacher_ckpt)[DATA_FINGERPRINT_KEY]
@@ -547,7 +547,7 @@ def test_checkpoints_remember_their_train_images(
     tells them apart, a checkpoint trained on the first refuses the second (naming both),
     allow_other_data=true is said and recorded, and a checkpoint written before images were
     fingerprinted loads with a warning line."""
-    from pae.checkpoints import DATA_FINGERPRINT_KEY
+    from pae.core.checkpoints import DATA_FINGERPRINT_KEY
 
     labels = [str(tiny_root / "labels" / f"all_{split}.csv") for split in ("train", "test")]
     fingerprints = []
@@ -695,21 +695,21 @@ def test_a_read_only_install_and_home_train_a_teacher(tiny_root: Path, shared_di
 def test_compiled_loops_run_uncached_where_no_folder_can_be_written(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import pae.compiled
+    import pae.core.compiled
 
     blocked = tmp_path / "a file"
     blocked.write_text("no folder can be made below a file")
-    monkeypatch.setattr(pae.compiled, "candidate_folders", lambda source: [blocked / "cache"])
-    monkeypatch.setattr(pae.compiled, "_SAID", set())
-    pae.compiled.cache_folder.cache_clear()
+    monkeypatch.setattr(pae.core.compiled, "candidate_folders", lambda source: [blocked / "cache"])
+    monkeypatch.setattr(pae.core.compiled, "_SAID", set())
+    pae.core.compiled.cache_folder.cache_clear()
     try:
-        with pytest.warns(pae.compiled.CompileCacheWarning, match="not cached") as said:
-            doubled = pae.compiled.jit(nogil=True)(lambda x: 2 * x)
-            tripled = pae.compiled.jit()(lambda x: 3 * x)
+        with pytest.warns(pae.core.compiled.CompileCacheWarning, match="not cached") as said:
+            doubled = pae.core.compiled.jit(nogil=True)(lambda x: 2 * x)
+            tripled = pae.core.compiled.jit()(lambda x: 3 * x)
         assert doubled(2) == 4 and tripled(2) == 6
         assert len(said) == 1
     finally:
-        pae.compiled.cache_folder.cache_clear()
+        pae.core.compiled.cache_folder.cache_clear()
 
 
 def test_a_changed_helper_module_is_not_run_from_a_stale_cache(tmp_path: Path) -> None:
@@ -720,9 +720,11 @@ def test_a_changed_helper_module_is_not_run_from_a_stale_cache(tmp_path: Path) -
     package.mkdir()
     (package / "__init__.py").write_text("")
     helper = package / "helpers.py"
-    helper.write_text("from pae.compiled import jit\n\n@jit()\ndef step(x):\n    return x + 1\n")
+    helper.write_text(
+        "from pae.core.compiled import jit\n\n@jit()\ndef step(x):\n    return x + 1\n"
+    )
     (package / "main.py").write_text(
-        "from pae.compiled import jit\nfrom toy.helpers import step\n\n"
+        "from pae.core.compiled import jit\nfrom toy.helpers import step\n\n"
         "@jit()\ndef twice(x):\n    return 2 * step(x)\n"
     )
     env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
@@ -806,7 +808,7 @@ def test_a_diverging_run_stops_at_once_and_writes_no_result(
     assert not (run_dir / "metrics.json").exists(), "no figure of a diverged model is written"
     assert not (run_dir / "checkpoints" / "last.ckpt").exists(), "it stopped in its first epoch"
     assert (run_dir / "error.txt").read_text() == line + "\n"
-    report = pae_command("reporting", str(run_dir), cwd=tmp_path)
+    report = pae_command("report.tables", str(run_dir), cwd=tmp_path)
     assert report.returncode == 1
     assert "1 failed job:" in report.stdout and "training diverged" in report.stdout
 
@@ -814,8 +816,8 @@ def test_a_diverging_run_stops_at_once_and_writes_no_result(
 def test_non_finite_figures_are_never_results(tmp_path: Path) -> None:
     from types import SimpleNamespace
 
-    from pae.atomic import write_json_atomic
-    from pae.errors import DivergenceError
+    from pae.core.atomic import write_json_atomic
+    from pae.core.errors import DivergenceError
     from pae.runs.trainer import collect_metrics
 
     trainer = SimpleNamespace(
@@ -836,14 +838,14 @@ def test_non_finite_figures_are_never_results(tmp_path: Path) -> None:
 
 
 def test_a_run_directory_holds_one_run_at_a_time(tiny_root: Path, tmp_path: Path) -> None:
-    from pae.run_lock import LOCK_FILE, lock_run_dir, release_run_dir
+    from pae.core.run_lock import LOCK_FILE, lock_run_dir, release_run_dir
 
     run_dir = tmp_path / "run"
     holder = subprocess.Popen(
         [
             sys.executable,
             "-c",
-            "import sys; from pathlib import Path; from pae.run_lock import lock_run_dir; "
+            "import sys; from pathlib import Path; from pae.core.run_lock import lock_run_dir; "
             "lock_run_dir(Path(sys.argv[1]), 'hydra.run.dir'); print('locked', flush=True); "
             "sys.stdin.read()",
             str(run_dir),
@@ -894,7 +896,7 @@ def test_pae_eval_takes_a_teacher_of_the_students_architecture_only(
     from hydra import compose, initialize_config_dir
 
     from pae import CONFIG_DIR
-    from pae.checkpoint_evaluation import evaluate_checkpoints
+    from pae.apps.checkpoint_evaluation import evaluate_checkpoints
     from tests.conftest import tiny_data_overrides
 
     teacher_ckpt = teacher_run / "checkpoints" / "last.ckpt"
@@ -966,9 +968,9 @@ def test_report_lists_every_job_of_a_sweep_that_has_no_result(tmp_path: Path) ->
 def test_a_full_disk_is_one_line_naming_the_device_and_the_file(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from pae.atomic import device_of
-    from pae.checkpoints import AtomicCheckpointIO
-    from pae.error_reporting import reporting_errors
+    from pae.core.atomic import device_of
+    from pae.core.checkpoints import AtomicCheckpointIO
+    from pae.core.error_reporting import reporting_errors
 
     class FullDisk:
         """A file that takes 100 bytes, then finds no space left (as torch.save sees it)."""
@@ -1010,8 +1012,8 @@ def test_a_full_disk_under_tensorboard_is_one_line_naming_the_event_file(
     from tensorboard.summary.writer.record_writer import RecordWriter
     from torch.utils.tensorboard import SummaryWriter
 
-    from pae.atomic import device_of
-    from pae.error_reporting import reporting_errors
+    from pae.core.atomic import device_of
+    from pae.core.error_reporting import reporting_errors
 
     with reporting_errors("pae-train"):  # installs the writer threads' hook, as every run does
         writer = SummaryWriter(str(tmp_path))
@@ -1035,7 +1037,7 @@ def test_a_missing_scene_is_named_with_the_scenes_present(tiny_root: Path) -> No
     from hydra import compose, initialize_config_dir
 
     from pae import CONFIG_DIR
-    from pae.validation import validate_train_config
+    from pae.config.validation import validate_train_config
 
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
         cfg = compose("train", overrides=["data=cambridge", f"data.root={tiny_root}"])
@@ -1050,7 +1052,7 @@ def test_a_missing_scene_is_named_with_the_scenes_present(tiny_root: Path) -> No
 
 
 def test_a_killed_cache_write_leaves_no_temporary_behind(tmp_path: Path) -> None:
-    from pae.data.latents import LATENT_KEYS, LatentCache, TeacherLatents
+    from pae.models.latents import LATENT_KEYS, LatentCache, TeacherLatents
 
     cache = LatentCache(tmp_path)
     key = {"format": 1, "teacher": "a"}
@@ -1088,15 +1090,15 @@ def test_a_failing_start_check_stops_the_run(
 ) -> None:
     """Hydra turns an exception in a callback into a warning and runs on: a start check that
     fails for any reason ends the process, with its traceback when it is not a user error."""
-    import pae.preflight
+    import pae.config.preflight
 
     def broken(cfg: object) -> None:
         raise RuntimeError("a bug in a check")
 
-    monkeypatch.setattr(pae.preflight, "validate_train_config", broken)
+    monkeypatch.setattr(pae.config.preflight, "validate_train_config", broken)
     cfg = compose_train()
     with pytest.raises(SystemExit) as stopped:
-        pae.preflight.Preflight("pae-train").on_run_start(cfg)
+        pae.config.preflight.Preflight("pae-train").on_run_start(cfg)
     assert stopped.value.code == 1
     assert "RuntimeError: a bug in a check" in capsys.readouterr().err
 
@@ -1130,7 +1132,7 @@ def _with_flipped_bits(path: Path, copy: Path, n_bytes: int = 40_000) -> Path:
 
 
 def test_a_damaged_checkpoint_is_refused_wherever_it_is_loaded(tmp_path: Path) -> None:
-    from pae.checkpoints import load_teacher
+    from pae.core.checkpoints import load_teacher
     from pae.runs.trainer import _resume_path
 
     intact = _tiny_teacher_checkpoint(tmp_path / "intact.ckpt")
@@ -1253,7 +1255,7 @@ def test_a_missing_scene_in_an_evaluated_split_is_said_and_recorded(
 def test_scene_model_and_score_settings_are_checked_before_any_work(
     compose_train, override: str, message: str
 ) -> None:
-    from pae.validation import validate_train_config
+    from pae.config.validation import validate_train_config
 
     cfg = compose_train("stage=render_compare", override)
     with pytest.raises(ConfigError, match=message):

@@ -9,7 +9,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from pae.geometry import (
+from pae.core.geometry import (
     average_quaternions,
     canonicalize_quaternion,
     compose_pose,
@@ -241,7 +241,7 @@ def test_weighted_average_follows_the_weights() -> None:
 def test_one_sign_convention_for_numpy_and_torch() -> None:
     import numpy as np
 
-    from pae.quaternion_sign import canonical_sign
+    from pae.core.quaternion_sign import canonical_sign
 
     q = [[-0.5, 0.5, 0.5, 0.5], [0.0, -1.0, 0.0, 0.0], [2.0, 0.0, 0.0, 0.0]]
     expected = [[0.5, -0.5, -0.5, -0.5], [0.0, -1.0, 0.0, 0.0], [2.0, 0.0, 0.0, 0.0]]

@@ -97,7 +97,7 @@ def reachable(graph: Graph, module: str) -> set[str]:
 def test_the_graph_reads_the_forms_of_import() -> None:
     graph = import_graph()
     assert "pae.steps" in graph["pae.train"]  # from pae.steps import CHECKPOINTS, ...
-    assert "pae.data.synthetic" in graph["pae.data.cli"]  # imported inside a function
+    assert "pae.synthetic" in graph["pae.data_cli"]  # imported inside a function
 
 
 def test_cycles_are_found() -> None:
@@ -119,7 +119,7 @@ def test_steps_import_their_helpers_and_no_other_step() -> None:
     steps = {module for module in graph if module.startswith("pae.steps.")}
     assert "pae.steps.teacher" in steps
     for step in steps:
-        found = reachable(graph, step) & (steps | {"pae.checkpoint_evaluation"})
+        found = reachable(graph, step) & (steps | {"pae.apps.checkpoint_evaluation"})
         assert not found, f"{step} imports {sorted(found)}"
     for helper in (module for module in graph if module.startswith("pae.runs")):
         found = reachable(graph, helper) & steps
@@ -141,3 +141,54 @@ def test_numba_threads_follow_omp_num_threads(
     code = "import pae, numba; print(numba.config.NUMBA_NUM_THREADS)"
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
     assert out.stdout.strip() == expected, out.stderr
+
+
+LAYERS = (
+    ("pae.core",),
+    ("pae.data", "pae.synthetic", "pae.report"),
+    ("pae.models", "pae.scene_model"),
+    ("pae.refine", "pae.relative", "pae.render_compare"),
+    ("pae.lit", "pae.callbacks"),
+    ("pae.runs", "pae.steps"),
+    ("pae.apps", "pae.config"),
+)
+"""The packages of ``pae`` from the bottom up: shared maths and infrastructure, data, models
+and the scene model, methods, Lightning wiring, steps, what the entry points run. A module
+imports its own layer and those below; the entry points (``pae.train``, ``pae.evaluate``,
+``pae.localize``, ``pae.data_cli``, ``pae.bench``) sit above every layer."""
+
+
+def layer_of(module: str) -> int:
+    """The layer of ``module`` (its index in ``LAYERS``; ``pae`` itself, which only names the
+    config folder and the version, at the bottom; entry points: above all)."""
+    if module == "pae":
+        return 0
+    for rank, packages in enumerate(LAYERS):
+        if any(module == p or module.startswith(p + ".") for p in packages):
+            return rank
+    return len(LAYERS)
+
+
+def test_no_package_imports_a_package_above_it() -> None:
+    graph = import_graph()
+    wrong = [
+        f"{module} imports {imported}"
+        for module, imports in graph.items()
+        for imported in imports
+        if layer_of(imported) > layer_of(module)
+    ]
+    assert not wrong, "\n".join(sorted(wrong))
+
+
+def test_the_layers_are_found() -> None:
+    assert layer_of("pae.core.geometry") == 0
+    assert layer_of("pae.render_compare.refiner") == 3
+    assert layer_of("pae.train") == len(LAYERS)
+    assert layer_of("pae.database") == len(LAYERS)
+
+
+def test_few_modules_at_the_top_and_none_too_long() -> None:
+    top = [p for p in (SRC / "pae").glob("*.py")]
+    assert len(top) <= 12, sorted(p.name for p in top)
+    long = [str(p) for p in (SRC / "pae").rglob("*.py") if len(p.read_text().splitlines()) > 500]
+    assert not long, long

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from pae.data.latents import LatentCache, TeacherLatents, latent_cache_key
+from pae.models.latents import LatentCache, TeacherLatents, latent_cache_key
 
 KEY = {"format": 1, "teacher_sha256": "abc", "crop": 28}
 
@@ -108,8 +108,8 @@ def test_key_follows_teacher_bytes_and_preprocessing(tiny_root: Path, tmp_path: 
 def test_unwritable_cache_folder_is_refused_before_the_run(tmp_path: Path) -> None:
     from omegaconf import OmegaConf
 
-    from pae.errors import ConfigError
-    from pae.preflight import _check_latent_cache
+    from pae.config.preflight import _check_latent_cache
+    from pae.core.errors import ConfigError
 
     blocker = tmp_path / "file"
     blocker.write_text("")
@@ -123,8 +123,8 @@ def test_a_cache_hit_reads_no_train_image_and_runs_no_teacher(
     tiny_root: Path, tmp_path: Path
 ) -> None:
     from pae.data.datamodule import PoseDataModule
-    from pae.data.latents import TeacherLatentDataModule
     from pae.models.backbones import Backbone
+    from pae.models.latents import TeacherLatentDataModule
     from pae.models.posenet import PoseNet
 
     teacher = PoseNet(Backbone("small_cnn", pool="flatten", spatial=2), latent_dim=16).eval()

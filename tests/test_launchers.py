@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from pae.reporting import sweep_table
+from pae.report.tables import sweep_table
 from tests.conftest import tiny_overrides
 
 pytestmark = pytest.mark.slow

@@ -13,10 +13,10 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from pae import CONFIG_DIR
+from pae.core.geometry import pose_errors
+from pae.core.metrics import summarise_errors
 from pae.data.labels import read_labels
-from pae.geometry import pose_errors
 from pae.localize import main
-from pae.metrics import summarise_errors
 from tests.conftest import tiny_data_overrides, tiny_overrides
 
 RENDER_COMPARE = [
@@ -92,7 +92,7 @@ def test_pae_eval_of_the_runs_checkpoints_gives_the_same_figures(
     finished_run: Path, tiny_root: Path, tmp_path: Path
 ) -> None:
     """What pae-localize is compared with above: pae-eval's figures of the run's checkpoints."""
-    from pae.checkpoint_evaluation import evaluate_checkpoints
+    from pae.apps.checkpoint_evaluation import evaluate_checkpoints
 
     overrides = [
         *tiny_data_overrides(tiny_root),
@@ -133,7 +133,7 @@ def test_images_and_folders_get_the_teachers_scene_and_pose(
 def test_render_compare_takes_the_gate_and_steps_the_run_applied_at_test(
     finished_run: Path,
 ) -> None:
-    from pae.localization import read_run, render_compare_settings
+    from pae.apps.localization import read_run, render_compare_settings
 
     run = read_run(finished_run)
     recorded = {

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from pae.losses import LearnedPoseLoss, latent_distance
+from pae.core.losses import LearnedPoseLoss, latent_distance
 
 
 def test_learned_pose_loss_hand_computed() -> None:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from pae.metrics import PoseErrorMetric, summarise_errors
+from pae.core.metrics import PoseErrorMetric, summarise_errors
 
 
 def test_medians_are_numpys_per_scene_and_averaged_over_scenes() -> None:

@@ -14,7 +14,7 @@ import torch
 from omegaconf import DictConfig
 from torch import Tensor
 
-from pae.checkpoints import CheckpointError, load_teacher
+from pae.core.checkpoints import CheckpointError, load_teacher
 from pae.models.backbones import Backbone
 from pae.models.base import Latents
 from pae.models.convert import (

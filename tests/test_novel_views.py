@@ -15,8 +15,14 @@ from hydra import compose, initialize_config_dir
 from torch import Tensor
 
 from pae import CONFIG_DIR
-from pae.data.latents import TeacherLatentDataModule
-from pae.data.novel_views import (
+from pae.config.novel_views import NOVEL_VIEW_KEYS
+from pae.config.validation import validate_train_config
+from pae.core.errors import ConfigError
+from pae.core.geometry import orientation_error_deg
+from pae.models.base import Latents
+from pae.models.latents import TeacherLatentDataModule
+from pae.scene_model.base import SceneModel, SceneRendering
+from pae.scene_model.novel_views import (
     NovelViewBatches,
     NovelViewPool,
     NovelViewSettings,
@@ -25,13 +31,7 @@ from pae.data.novel_views import (
     render_views,
     sample_novel_poses,
 )
-from pae.data.synthetic_datamodule import SyntheticDataModule
-from pae.errors import ConfigError
-from pae.geometry import orientation_error_deg
-from pae.models.base import Latents
-from pae.models.scene_model import SceneModel, SceneRendering
-from pae.novel_view_checks import NOVEL_VIEW_KEYS
-from pae.validation import validate_train_config
+from pae.synthetic.datamodule import SyntheticDataModule
 from tests.conftest import POISON_M, TINY, TINY_SCENE_MODEL, tiny_data_overrides
 
 

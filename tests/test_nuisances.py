@@ -14,7 +14,9 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from pae import CONFIG_DIR
-from pae.data.synthetic import (
+from pae.config.validation import validate_data
+from pae.core.errors import ConfigError
+from pae.synthetic import (
     NUISANCE_COLUMNS,
     OCCLUDER_DISTANCE_M,
     FrameConditions,
@@ -28,9 +30,7 @@ from pae.data.synthetic import (
     world_to_camera,
     write_synthetic_dataset,
 )
-from pae.data.synthetic_datamodule import SyntheticDataModule, default_root
-from pae.errors import ConfigError
-from pae.validation import validate_data
+from pae.synthetic.datamodule import SyntheticDataModule, default_root
 
 TINY = {"scenes": 1, "train_frames": 12, "test_frames": 6, "size": 16}
 ALL_ON = {

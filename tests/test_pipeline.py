@@ -9,9 +9,9 @@ import pytest
 import torch
 from omegaconf import open_dict
 
-from pae.checkpoint_evaluation import evaluate_checkpoints
-from pae.checkpoints import load_pae, load_teacher
-from pae.errors import CheckpointError, ConfigError
+from pae.apps.checkpoint_evaluation import evaluate_checkpoints
+from pae.core.checkpoints import load_pae, load_teacher
+from pae.core.errors import CheckpointError, ConfigError
 from pae.train import run
 from tests.figures import (
     MAX_ANGLE_DEG,
@@ -106,7 +106,7 @@ def test_val_figures_come_from_held_out_train_sequences(
 ) -> None:
     import hashlib
 
-    from pae.checkpoints import DATA_FINGERPRINT_KEY, read_checkpoint
+    from pae.core.checkpoints import DATA_FINGERPRINT_KEY, read_checkpoint
     from pae.data.labels import read_labels
 
     metrics = json.loads((pipeline_run / "metrics.json").read_text())
@@ -270,8 +270,8 @@ def _refined_by_hand(cfg, student_ckpt: Path, weight_model: str) -> dict[str, fl
     """The test split refined without pae-eval's modules and callback: the checkpoint's
     teacher estimates every test image, a PositionRefiner over the train poses refines them
     (markley orientation), and the errors are summarised."""
-    from pae.geometry import pose_errors
-    from pae.metrics import summarise_errors
+    from pae.core.geometry import pose_errors
+    from pae.core.metrics import summarise_errors
     from pae.models.base import Latents
     from pae.refine import PoseIndex, PositionRefiner
     from pae.runs.inputs import build_data
@@ -355,7 +355,7 @@ def test_student_on_other_scenes_is_rejected(
 def test_report_tables_a_run_and_rejects_an_empty_directory(
     pipeline_run: Path, tmp_path: Path, capsys
 ) -> None:
-    from pae.reporting import main as report
+    from pae.report.tables import main as report
 
     assert report([str(pipeline_run)]) == 0
     table = capsys.readouterr().out.splitlines()
@@ -399,8 +399,8 @@ def test_multirun_sweep_writes_one_metrics_file_per_job(
 
 def _raw_seven_scenes_copy(synthetic_root: Path, raw_root: Path) -> None:
     """Rewrite a synthetic dataset in the raw 7-Scenes layout (colour PNG + 4x4 pose file)."""
+    from pae.core.geometry import quaternion_to_matrix
     from pae.data.labels import read_labels
-    from pae.geometry import quaternion_to_matrix
 
     for split, split_file in (("train", "TrainSplit.txt"), ("test", "TestSplit.txt")):
         table = read_labels(synthetic_root / "labels" / f"all_{split}.csv")
@@ -426,7 +426,7 @@ def test_real_data_layout_trains_end_to_end(tiny_root: Path, tmp_path: Path) -> 
     from omegaconf import open_dict
 
     from pae import CONFIG_DIR
-    from pae.data.cli import main as pae_data
+    from pae.data_cli import main as pae_data
 
     raw = tmp_path / "7Scenes"
     _raw_seven_scenes_copy(tiny_root, raw)
@@ -522,7 +522,7 @@ def test_resume_continues_an_interrupted_run(
     import lightning as L
 
     import pae.runs.trainer
-    from pae.checkpoints import read_checkpoint
+    from pae.core.checkpoints import read_checkpoint
 
     class Interrupt(L.Callback):
         def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
@@ -555,7 +555,7 @@ def test_resume_continues_an_interrupted_run(
 def test_student_variants_train(
     pipeline_run: Path, compose_train, tmp_path: Path, options: tuple[str, ...]
 ) -> None:
-    from pae.checkpoints import read_checkpoint
+    from pae.core.checkpoints import read_checkpoint
 
     teacher_ckpt = pipeline_run / "teacher" / "checkpoints" / "last.ckpt"
     cfg = compose_train(
@@ -579,8 +579,8 @@ def test_pae_eval_runs_the_image_methods_of_their_checkpoints(
     from hydra import compose, initialize_config_dir
 
     from pae import CONFIG_DIR
-    from pae.checkpoint_evaluation import evaluate_methods
-    from pae.validation import validate_eval_config
+    from pae.apps.checkpoint_evaluation import evaluate_methods
+    from pae.config.validation import validate_eval_config
     from tests.conftest import tiny_data_overrides
 
     paths = [

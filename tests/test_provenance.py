@@ -10,10 +10,10 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-from pae.data.synthetic_datamodule import SyntheticDataModule
-from pae.errors import ConfigError, LabelError
-from pae.provenance import dataset_line, flat_record, save_corrected_config
-from pae.validation import validate_train_config
+from pae.config.validation import validate_train_config
+from pae.core.errors import ConfigError, LabelError
+from pae.core.provenance import dataset_line, flat_record, save_corrected_config
+from pae.synthetic.datamodule import SyntheticDataModule
 from tests.conftest import TINY
 
 

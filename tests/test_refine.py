@@ -10,7 +10,7 @@ import pytest
 import torch
 from torch import Tensor, nn
 
-from pae.geometry import orientation_error_deg
+from pae.core.geometry import orientation_error_deg
 from pae.models.base import Latents
 from pae.refine import (
     PoseIndex,
@@ -508,7 +508,7 @@ def test_latent_retrieval_finds_the_pose_that_encodes_the_query() -> None:
     result = refiner(query, far_estimates, scenes[picked])
     assert torch.equal(result.neighbour_indices[:, 0], picked)
     torch.testing.assert_close(result.poses[:, :3], store[picked, :3])
-    from pae.geometry import canonicalize_quaternion
+    from pae.core.geometry import canonicalize_quaternion
 
     torch.testing.assert_close(result.poses[:, 3:], canonicalize_quaternion(far_estimates[:, 3:]))
 

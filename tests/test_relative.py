@@ -11,26 +11,26 @@ import pytest
 import torch
 from torch import Tensor
 
-from pae.data.datamodule import PoseDataModule
-from pae.geometry import (
+from pae.core.geometry import (
     canonicalize_quaternion,
     compose_pose,
     orientation_error_deg,
     position_error,
     relative_pose,
 )
+from pae.core.losses import LearnedPoseLoss
+from pae.core.pose_sampling import perturb_poses
+from pae.data.datamodule import PoseDataModule
 from pae.lit.decoder import mean_train_image, psnr_db
 from pae.lit.iapr import IAPRModule
 from pae.lit.rpr_image import ImageRPRModule
-from pae.losses import LearnedPoseLoss
 from pae.models.backbones import Backbone
 from pae.models.base import TeacherEstimate
 from pae.models.iapr import IterativeAPR
 from pae.models.pae import PoseAutoEncoder
 from pae.models.posenet import PoseNet
 from pae.models.rpr import SiameseRPR
-from pae.pose_sampling import perturb_poses
-from pae.refine.relative import ImageRPR, IterativeAPRRefiner
+from pae.relative.refiners import ImageRPR, IterativeAPRRefiner
 
 
 def random_poses(n: int, generator: torch.Generator) -> Tensor:

@@ -12,8 +12,14 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from pae import CONFIG_DIR
-from pae.data.camera import Intrinsics, camera_rays, project, resized_size
-from pae.data.synthetic import (
+from pae.core.camera import Intrinsics, camera_rays, project, resized_size
+from pae.core.geometry import pose_errors
+from pae.core.pose_sampling import perturb
+from pae.render_compare.images import band_pass, trimmed_zncc, zncc
+from pae.render_compare.refiner import RenderCompareRefiner, RenderCompareResult, gate
+from pae.scene_model.oracle import OracleSceneModel
+from pae.scene_model.voxel_grid import VoxelGrid, VoxelGridSceneModel, camera_bounds
+from pae.synthetic import (
     Appearance,
     PinholeCamera,
     SyntheticScene,
@@ -24,13 +30,7 @@ from pae.data.synthetic import (
     room_textures,
     world_to_camera,
 )
-from pae.data.synthetic_datamodule import SyntheticDataModule
-from pae.geometry import pose_errors
-from pae.models.oracle_scene import OracleSceneModel
-from pae.models.voxel_grid import VoxelGrid, VoxelGridSceneModel, camera_bounds
-from pae.pose_sampling import perturb
-from pae.refine.render_compare import RenderCompareRefiner, RenderCompareResult, gate
-from pae.refine.render_images import band_pass, trimmed_zncc, zncc
+from pae.synthetic.datamodule import SyntheticDataModule
 from tests.conftest import (
     FOCAL_CAMERA,
     MAGENTA,
@@ -44,8 +44,8 @@ from tests.conftest import (
 
 def _camera_pose(position: list[float], yaw: float = 0.3, pitch: float = -0.1) -> torch.Tensor:
     """A camera-to-world pose [7] looking roughly along +x (world z up)."""
-    from pae.data.synthetic.camera import look_rotations
-    from pae.geometry import matrix_to_quaternion
+    from pae.core.geometry import matrix_to_quaternion
+    from pae.synthetic.camera import look_rotations
 
     rotation = look_rotations(np.array([yaw]), np.array([pitch]), np.array([0.05]))
     q = matrix_to_quaternion(torch.from_numpy(rotation))[0]
@@ -113,7 +113,7 @@ def _one_box_scene() -> SyntheticScene:
     """A room holding one textured box."""
     rng = np.random.default_rng(3)
     size = np.array([5.0, 4.0, 2.6])
-    from pae.data.synthetic import Box
+    from pae.synthetic import Box
 
     lo = np.array([-size[0] / 2, -size[1] / 2, 0.0])
     room = Box(lo, lo + size, room_textures(rng, size))
@@ -316,7 +316,7 @@ def test_the_search_draws_the_same_numbers_chunk_by_chunk() -> None:
 
 
 def test_fit_images_are_resized_with_their_intrinsics(tiny_root: Path) -> None:
-    from pae.data.rays import fit_images
+    from pae.scene_model.rays import fit_images
 
     data = SyntheticDataModule(
         root=str(tiny_root), **TINY, crop=28, shorter_edge=TINY["size"], cache_images=True
@@ -348,8 +348,8 @@ def test_bounds_come_from_the_train_cameras_only(poisoned_root: Path) -> None:
     """The grid's bounds are the clean train rows' positions plus the margin, read from the
     label file here; a validation or test row read would move them by POISON_M."""
     from pae.data.labels import read_labels
-    from pae.models.scene_model import SceneModelInputs
-    from pae.models.voxel_grid import camera_extent_m
+    from pae.scene_model.base import SceneModelInputs
+    from pae.scene_model.voxel_grid import camera_extent_m
 
     data = _poisoned_data(poisoned_root)
     table = read_labels(poisoned_root / "labels" / "all_train.csv")
@@ -386,7 +386,7 @@ def test_bounds_come_from_the_train_cameras_only(poisoned_root: Path) -> None:
 
 
 def test_camera_extent_ignores_a_few_stray_frames() -> None:
-    from pae.models.voxel_grid import camera_extent_m
+    from pae.scene_model.voxel_grid import camera_extent_m
 
     positions = torch.zeros(200, 3)
     positions[:, 0] = torch.linspace(0, 4, 200)
@@ -398,8 +398,8 @@ def test_scene_model_rays_come_from_the_train_images_only(poisoned_root: Path) -
     """Every ray starts at a clean train camera, runs through one of its pixels and carries
     that pixel's colour; a validation or test row read would start POISON_M away or be
     magenta."""
-    from pae.data.camera import camera_rays
-    from pae.data.rays import RayLoader
+    from pae.core.camera import camera_rays
+    from pae.scene_model.rays import RayLoader
 
     data = _poisoned_data(poisoned_root)
     data.train_batches = RayLoader(rays_per_batch=512, batches=2)
@@ -426,7 +426,7 @@ def test_ray_batches_are_drawn_from_seed_epoch_and_batch_alone(tiny_root: Path) 
     nothing drawn before it: a resumed run's loader gives what an uninterrupted one's did."""
     from types import SimpleNamespace
 
-    from pae.data.rays import RayLoader
+    from pae.scene_model.rays import RayLoader
 
     data = _poisoned_data(tiny_root)
 
@@ -451,7 +451,7 @@ def test_render_compare_step_logs_its_rows_and_marks_the_oracle(
 ) -> None:
     """stage=render_compare on the tiny benchmark: honest and oracle rows, the scene model's
     quality, a timing; on data without true scenes the oracle row is absent."""
-    from pae.reporting import format_results_table
+    from pae.report.tables import format_results_table
     from pae.train import run
 
     overrides = [
@@ -627,7 +627,7 @@ def test_the_paper_decoder_is_a_scene_model_without_depth() -> None:
     refiner then renders every candidate instead of projecting a surface."""
     from pae.models.decoder import ImageDecoder
     from pae.models.pae import PoseAutoEncoder
-    from pae.models.scene_model import PaeDecoderSceneModel
+    from pae.scene_model.base import PaeDecoderSceneModel
 
     model = PaeDecoderSceneModel(PoseAutoEncoder(latent_dim=16), ImageDecoder(latent_dim=16))
     poses = _camera_pose([0.0, 0.0, 1.4])[None].repeat(3, 1)

@@ -12,16 +12,16 @@ import torch
 from omegaconf import OmegaConf
 
 from pae import CONFIG_DIR
-from pae.data.rays import RayLoader
-from pae.data.synthetic import write_synthetic_dataset
-from pae.data.synthetic_datamodule import SyntheticDataModule
+from pae.core.geometry import pose_errors
+from pae.core.pose_sampling import perturb
 from pae.data.transforms import ImageTransform
-from pae.geometry import pose_errors
 from pae.lit.scene_model import SceneModelModule
-from pae.models.scene_model import SceneModelInputs
-from pae.models.voxel_grid import VoxelGridSceneModel
-from pae.pose_sampling import perturb
-from pae.refine.render_compare import RenderCompareRefiner
+from pae.render_compare.refiner import RenderCompareRefiner
+from pae.scene_model.base import SceneModelInputs
+from pae.scene_model.rays import RayLoader
+from pae.scene_model.voxel_grid import VoxelGridSceneModel
+from pae.synthetic import write_synthetic_dataset
+from pae.synthetic.datamodule import SyntheticDataModule
 
 BENCHMARK = {"scenes": 1, "train_frames": 48, "test_frames": 12, "size": 32}
 START_SIGMA = (0.2, 0.06)

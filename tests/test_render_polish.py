@@ -4,22 +4,22 @@ from __future__ import annotations
 
 import torch
 
-from pae.geometry import (
+from pae.core.geometry import (
     matrix_to_quaternion,
     pose_errors,
     quaternion_to_matrix,
     rotation_vector_to_quaternion,
 )
-from pae.pose_sampling import perturb
-from pae.refine.render_compare import RenderCompareRefiner, pyramid_widths
-from pae.refine.render_polish import (
+from pae.core.pose_sampling import perturb
+from pae.render_compare.polish import (
     image_gradients,
     polish_tensor,
     rotation_vector_to_matrix,
     score_tensor,
 )
-from pae.refine.render_polish_kernel import polish_compiled
-from pae.refine.render_score import compiled_zncc_scores
+from pae.render_compare.polish_kernel import polish_compiled
+from pae.render_compare.refiner import RenderCompareRefiner, pyramid_widths
+from pae.render_compare.score import compiled_zncc_scores
 from tests.test_render_compare import _oracle_queries
 
 

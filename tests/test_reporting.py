@@ -3,10 +3,10 @@ from pathlib import Path
 
 import pytest
 
-from pae.atomic import write_json_atomic
-from pae.error_reporting import reporting_errors
-from pae.errors import ConfigError, ImageError
-from pae.reporting import format_results_table
+from pae.core.atomic import write_json_atomic
+from pae.core.error_reporting import reporting_errors
+from pae.core.errors import ConfigError, ImageError
+from pae.report.tables import format_results_table
 
 
 def test_user_errors_become_one_line_and_exit_1(capsys: pytest.CaptureFixture[str]) -> None:
@@ -88,7 +88,7 @@ def test_results_table_gives_the_scene_accuracy_before_and_after_render_compare(
 def test_compare_table_has_a_column_per_run(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from pae.reporting import main
+    from pae.report.tables import main
 
     for name, refined in (("a", 0.45), ("b", 0.6)):
         write_json_atomic(tmp_path / name / "metrics.json", _metrics(0.5, refined))
@@ -104,7 +104,7 @@ def test_compare_table_has_a_column_per_run(
 
 
 def test_the_best_refinement_is_chosen_on_validation_and_reported_on_test() -> None:
-    from pae.reporting import best_refinement
+    from pae.report.tables import best_refinement
 
     metrics = {
         "test/teacher/pos_median_m": 1.0,

@@ -6,8 +6,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from pae.refine.render_gate import RenderCompareResult
-from pae.refine.scene_decision import (
+from pae.render_compare.gate import RenderCompareResult
+from pae.render_compare.scene_decision import (
     ALWAYS,
     NEVER,
     choose_scene_check,

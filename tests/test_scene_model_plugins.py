@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from pae.errors import ConfigError
+from pae.core.errors import ConfigError
 from pae.train import run
 
 PLUGIN = '''
@@ -20,7 +20,7 @@ PLUGIN = '''
 import torch
 from torch import nn
 
-from pae.models.scene_model import SceneModel, SceneRendering
+from pae.scene_model.base import SceneModel, SceneRendering
 
 
 class FlatSceneModel(SceneModel):
@@ -79,7 +79,7 @@ SMALL_REFINER = ("render_compare.refiner.rounds=1", "render_compare.refiner.cand
 def test_a_scene_model_in_its_own_module_and_config_trains_and_refines(
     compose_train, plugin: str, tmp_path: Path
 ) -> None:
-    from pae.checkpoints import load_scene_model
+    from pae.core.checkpoints import load_scene_model
 
     teacher_dir = tmp_path / "teacher"
     run(compose_train("stage=teacher", "teacher.max_epochs=0", run_dir=teacher_dir), teacher_dir)

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from pae.atomic import write_json_atomic
-from pae.reporting import main
-from pae.seed_stats import PairedDifference, Spread, seed_variants, t_quantile_975
+from pae.core.atomic import write_json_atomic
+from pae.report.seed_stats import PairedDifference, Spread, seed_variants, t_quantile_975
+from pae.report.tables import main
 
 
 def _job(folder: Path, overrides: list[str], seed: int, teacher: float, student: float) -> None:
@@ -116,7 +116,7 @@ def test_a_finished_sweep_writes_its_seed_table_to_report_md(
 ) -> None:
     from omegaconf import OmegaConf
 
-    from pae.reporting import SweepReport
+    from pae.report.tables import SweepReport
 
     SweepReport().on_multirun_end(OmegaConf.create({"hydra": {"sweep": {"dir": str(sweep)}}}))
     report = (sweep / "report.md").read_text()

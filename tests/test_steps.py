@@ -11,10 +11,10 @@ import yaml
 from omegaconf import open_dict
 
 from pae import CONFIG_DIR
-from pae.errors import ConfigError
+from pae.config.validation import validate_train_config
+from pae.core.errors import ConfigError
 from pae.steps import RESUMABLE_CHANGES, STEPS, missing_checkpoints, steps_of
 from pae.train import run
-from pae.validation import validate_train_config
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "pae"
 
@@ -82,7 +82,7 @@ def test_no_private_name_is_imported_across_modules() -> None:
         ("pae._target_=pae.models.pae.Nothing", "pae._target_=pae.models.pae.Nothing: cannot"),
         (
             "+data.cam=1",
-            "data.cam: not an argument of pae.data.synthetic_datamodule.SyntheticDataModule; "
+            "data.cam: not an argument of pae.synthetic.datamodule.SyntheticDataModule; "
             "did you mean data.camera?",
         ),
         ("+trainer.typo=1", "trainer.typo: not an argument of lightning.Trainer"),
@@ -135,7 +135,7 @@ def test_a_key_added_to_a_steps_settings_is_refused_with_its_nearest_name(
     """`+teacher.max_epoch=3` (for max_epochs) would be read by nothing and train the default
     epochs: refused before any work; keys added inside a model config or to the trainer are
     left to their own checks."""
-    from pae.validation import check_added_keys
+    from pae.config.validation import check_added_keys
 
     cfg = compose_train("stage=pipeline", "+teacher.max_epoch=3", run_dir=tmp_path)
     message = r"teacher\.max_epoch: not a setting of teacher .*did you mean teacher\.max_epochs\?"
@@ -152,7 +152,7 @@ def test_a_misspelt_refiner_key_stops_the_run_before_any_work(
 ) -> None:
     """`+render_compare.refiner.polish_step=1` (for polish_steps) is refused by the train
     config's checks, naming the nearest setting, before any step trains."""
-    from pae.validation import validate_train_config
+    from pae.config.validation import validate_train_config
 
     override = "+render_compare.refiner.polish_step=1"
     cfg = compose_train("stage=full", override, run_dir=tmp_path)
@@ -164,7 +164,7 @@ def test_a_misspelt_refiner_key_stops_the_run_before_any_work(
 def test_a_mandatory_value_left_unset_is_named_in_one_line(compose_train) -> None:
     """A ``???`` the user must give (a dataset's root) is named before any work; the ones pae
     fills in for each step (a logger's save_dir) are not the user's to give."""
-    from pae.config_checks import check_missing
+    from pae.core.checks import check_missing
 
     cfg = compose_train("stage=pipeline")
     check_missing(cfg)

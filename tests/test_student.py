@@ -1,8 +1,8 @@
 import pytest
 import torch
 
+from pae.core.losses import LearnedPoseLoss
 from pae.lit.student import StudentModule
-from pae.losses import LearnedPoseLoss
 from pae.models.backbones import Backbone
 from pae.models.pae import PoseAutoEncoder
 from pae.models.posenet import PoseNet

@@ -11,7 +11,7 @@ import pytest
 
 from pae.bench.rendering import measure_render_speed
 from pae.data.labels import read_labels
-from pae.data.synthetic import (
+from pae.synthetic import (
     DEFAULT_SIZE,
     DEFAULT_TEST_FRAMES,
     DEFAULT_TRAIN_FRAMES,
@@ -400,7 +400,7 @@ def test_validation_walks_add_sequences_and_change_none(tmp_path: Path) -> None:
         assert walk.split == "train" and len(walk.poses) == len(plain[5].poses)
         shift = np.linalg.norm(moved.poses[:, :3] - walk.poses[:, :3], axis=1)
         np.testing.assert_allclose(shift, 0.3, atol=1e-6)
-    from pae.data.synthetic_datamodule import SyntheticDataModule
+    from pae.synthetic.datamodule import SyntheticDataModule
 
     modules = []
     for name, walks in (("plain", 0), ("walks", 2)):
@@ -416,7 +416,7 @@ def test_validation_walks_add_sequences_and_change_none(tmp_path: Path) -> None:
 
 
 def test_the_package_exports_every_public_name() -> None:
-    import pae.data.synthetic as package
+    import pae.synthetic as package
 
     for name in package.__all__:
         assert getattr(package, name) is not None, name

@@ -9,11 +9,11 @@ import cv2
 import numpy as np
 import pytest
 
-from pae.data.cli import main
+from pae.core.geometry import matrix_to_quaternion
 from pae.data.labels import LabelTable, read_labels, write_labels
-from pae.data.synthetic import pose_rotation_translation
-from pae.data.synthetic_poses import ROOM_MARGIN_M, make_scene_around, write_dataset_at_poses
-from pae.geometry import matrix_to_quaternion
+from pae.data_cli import main
+from pae.synthetic import pose_rotation_translation
+from pae.synthetic.poses import ROOM_MARGIN_M, make_scene_around, write_dataset_at_poses
 from tests.conftest import REFERENCE_LABELS
 
 

@@ -60,8 +60,8 @@ def test_channel_gain_scales_each_channel_by_its_own_factor_within_range() -> No
 
 
 def test_channel_gain_out_of_range_names_the_key(tmp_path) -> None:
+    from pae.core.errors import ConfigError
     from pae.data.datamodule import PoseDataModule
-    from pae.errors import ConfigError
 
     with pytest.raises(ConfigError, match=r"data.channel_gain: .*\[0, 1\), not 1.5"):
         PoseDataModule(str(tmp_path), "train.csv", "test.csv", channel_gain=1.5)
@@ -102,8 +102,8 @@ def test_crop_shift_bounds_the_random_crop_around_the_centre() -> None:
 
 
 def test_negative_crop_shift_names_the_key(tmp_path) -> None:
+    from pae.core.errors import ConfigError
     from pae.data.datamodule import PoseDataModule
-    from pae.errors import ConfigError
 
     with pytest.raises(ConfigError, match=r"data.crop_shift_px: .*not -1"):
         PoseDataModule(str(tmp_path), "train.csv", "test.csv", crop_shift_px=-1)
@@ -113,7 +113,7 @@ def _sky(poses: torch.Tensor, intrinsics: torch.Tensor, h: int, w: int) -> torch
     """Images [B, 3, h, w] (values 0..255, float) of a world at infinity: each pixel's colour
     a smooth function of its ray's world direction, so a turned camera's view is exactly a
     homography of the unturned one's."""
-    from pae.data.camera import camera_rays
+    from pae.core.camera import camera_rays
 
     _, directions = camera_rays(poses, intrinsics.expand(len(poses), 4), w, h)
     d = directions / directions.norm(dim=-1, keepdim=True)
@@ -136,9 +136,9 @@ def test_turned_crop_without_offset_is_the_centre_crop() -> None:
 
 
 def test_turned_crop_is_the_view_of_the_turned_camera() -> None:
+    from pae.core.geometry import orientation_error_deg
+    from pae.core.pose_sampling import perturb, perturb_poses
     from pae.data.transforms import turned_crops
-    from pae.geometry import orientation_error_deg
-    from pae.pose_sampling import perturb, perturb_poses
 
     torch.manual_seed(0)
     h = w = 64
@@ -167,8 +167,8 @@ def test_turned_crop_is_the_view_of_the_turned_camera() -> None:
 
 
 def test_crop_turns_camera_turns_the_train_labels_only(tiny_root) -> None:
-    from pae.data.synthetic_datamodule import SyntheticDataModule
-    from pae.geometry import orientation_error_deg
+    from pae.core.geometry import orientation_error_deg
+    from pae.synthetic.datamodule import SyntheticDataModule
     from tests.conftest import TINY
 
     torch.manual_seed(0)
@@ -188,9 +188,9 @@ def test_crop_turns_camera_turns_the_train_labels_only(tiny_root) -> None:
 
 
 def test_crop_turns_camera_needs_one_camera(tiny_root, tmp_path) -> None:
+    from pae.core.errors import ConfigError
     from pae.data.datamodule import PoseDataModule
     from pae.data.labels import read_labels
-    from pae.errors import ConfigError
     from tests.conftest import FOCAL_CAMERA, with_focal_column
 
     data = PoseDataModule(str(tmp_path), "train.csv", "test.csv", crop_turns_camera=True)
@@ -212,8 +212,8 @@ def test_crop_turns_camera_needs_one_camera(tiny_root, tmp_path) -> None:
 
 
 def test_crop_turns_camera_must_be_a_boolean(compose_train) -> None:
-    from pae.errors import ConfigError
-    from pae.validation import validate_train_config
+    from pae.config.validation import validate_train_config
+    from pae.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match=r"data\.crop_turns_camera must be true or false"):
         validate_train_config(compose_train("data.crop_turns_camera=maybe"))

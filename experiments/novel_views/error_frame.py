@@ -19,8 +19,8 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
-from pae.checkpoints import load_teacher
-from pae.geometry import quaternion_conjugate, quaternion_multiply, quaternion_to_matrix
+from pae.core.checkpoints import load_teacher
+from pae.core.geometry import quaternion_conjugate, quaternion_multiply, quaternion_to_matrix
 from pae.runs.inputs import build_data
 
 

@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pae.core.geometry import orientation_error_deg
 from pae.data.labels import LabelTable, read_labels
-from pae.geometry import orientation_error_deg
 
 VAL_SEQUENCE = "seq-06"
 TURN_DEG = 30.0

@@ -16,10 +16,10 @@ import sys
 
 import torch
 
-from pae import streams
-from pae.data import novel_views
+from pae.core import streams
+from pae.core.pose_sampling import perturb_poses
 from pae.data.labels import read_labels
-from pae.pose_sampling import perturb_poses
+from pae.scene_model import novel_views
 
 
 def test_pose_cameras(labels: str):

@@ -18,7 +18,7 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from pae import CONFIG_DIR
-from pae.checkpoints import load_teacher
+from pae.core.checkpoints import load_teacher
 
 BINS_M = (0.0, 0.1, 0.2, 0.4, 0.8, np.inf)
 FACING_DEG = 10.0

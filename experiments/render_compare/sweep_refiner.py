@@ -25,9 +25,9 @@ from pathlib import Path
 from typing import Any
 
 from pae.callbacks import render_compare as callback
-from pae.geometry import pose_errors
+from pae.core.geometry import pose_errors
+from pae.core.metrics import summarise_errors
 from pae.lit.eval_outputs import EVAL, collect_outputs
-from pae.metrics import summarise_errors
 
 
 def parse(setting: str) -> dict[str, Any]:

@@ -1,7 +1,7 @@
 """`pae-eval`: evaluate trained checkpoints with test-time refinement, and the methods of
 rpr, rpr_image and iapr checkpoints (`method_ckpts`) (Hydra; conf/eval.yaml).
 
-Torch, Lightning and the evaluations (`pae.checkpoint_evaluation`) are imported when a run
+Torch, Lightning and the evaluations (`pae.apps.checkpoint_evaluation`) are imported when a run
 starts, as in `pae-train`.
 """
 
@@ -14,25 +14,25 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from pae import CONFIG_DIR
-from pae.atomic import write_json_atomic
-from pae.error_reporting import reporting_errors
-from pae.provenance import save_corrected_config
-from pae.reporting import format_results_table
-from pae.validation import apply_renamed_keys, validate_eval_config
+from pae.config.validation import apply_renamed_keys, validate_eval_config
+from pae.core.atomic import write_json_atomic
+from pae.core.error_reporting import reporting_errors
+from pae.core.provenance import save_corrected_config
+from pae.report.tables import format_results_table
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="eval")
 def main(cfg: DictConfig) -> float | None:
-    from pae.console import quiet_third_party
+    from pae.core.console import quiet_third_party
 
     quiet_third_party()
     with reporting_errors("pae-eval"):
         import lightning as L
         from lightning.pytorch.utilities import rank_zero_only
 
-        from pae.checkpoint_evaluation import evaluate_checkpoints, evaluate_methods
-        from pae.checkpoints import check_checkpoint_kinds
-        from pae.console import say
+        from pae.apps.checkpoint_evaluation import evaluate_checkpoints, evaluate_methods
+        from pae.core.checkpoints import check_checkpoint_kinds
+        from pae.core.console import say
         from pae.runs.inputs import other_data_record, record_dataset, start_data_checks
 
         apply_renamed_keys(cfg, "pae-eval")

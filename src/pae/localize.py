@@ -1,5 +1,5 @@
 """`pae-localize RUN_DIR INPUT... --out poses.csv`: the poses of images from a finished run's
-checkpoints, in the label-file format (pae.localization)."""
+checkpoints, in the label-file format (pae.apps.localization)."""
 
 from __future__ import annotations
 
@@ -40,8 +40,8 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Localise the inputs with the run's checkpoints and write ``--out`` atomically."""
     args = parser().parse_args(argv)
-    from pae.console import quiet_third_party
-    from pae.error_reporting import reporting_errors
+    from pae.core.console import quiet_third_party
+    from pae.core.error_reporting import reporting_errors
 
     quiet_third_party()
     with reporting_errors("pae-localize"):
@@ -53,11 +53,11 @@ def localize(args: argparse.Namespace) -> None:
     """What main runs once the arguments are parsed."""
     import torch
 
-    from pae import localization as loc
-    from pae.checkpoints import load_teacher
-    from pae.console import Progress
+    from pae.apps import localization as loc
+    from pae.core.checkpoints import load_teacher
+    from pae.core.console import Progress
+    from pae.core.errors import ConfigError
     from pae.data.labels import write_labels
-    from pae.errors import ConfigError
 
     run = loc.read_run(args.run_dir)
     methods = loc.methods_of(run)

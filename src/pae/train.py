@@ -15,12 +15,12 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from pae import CONFIG_DIR
-from pae.atomic import write_json_atomic
-from pae.error_reporting import reporting_errors
-from pae.provenance import save_corrected_config
-from pae.reporting import format_results_table, step_figures
+from pae.config.validation import apply_renamed_keys, validate_train_config
+from pae.core.atomic import write_json_atomic
+from pae.core.error_reporting import reporting_errors
+from pae.core.provenance import save_corrected_config
+from pae.report.tables import format_results_table, step_figures
 from pae.steps import CHECKPOINTS, steps_of
-from pae.validation import apply_renamed_keys, validate_train_config
 
 
 def run(cfg: DictConfig, run_dir: Path) -> dict[str, float | int | str]:
@@ -32,7 +32,7 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, float | int | str]:
     import lightning as L
     from lightning.pytorch.utilities import rank_zero_only
 
-    from pae.console import duration, quiet_third_party, say
+    from pae.core.console import duration, quiet_third_party, say
     from pae.runs.inputs import other_data_record, record_dataset, start_data_checks
 
     quiet_third_party()
@@ -67,7 +67,7 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, float | int | str]:
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="train")
 def main(cfg: DictConfig) -> float | None:
     with reporting_errors("pae-train"):
-        from pae.console import say
+        from pae.core.console import say
 
         run_dir = Path(HydraConfig.get().runtime.output_dir)
         metrics = run(cfg, run_dir)

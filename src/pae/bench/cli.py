@@ -36,14 +36,14 @@ from pae.bench.scale import (
     SEVEN_SCENES_TRAIN,
     bench_render_compare_scale,
 )
+from pae.core.losses import LearnedPoseLoss
 from pae.data.datamodule import PoseDataModule
-from pae.data.latents import TeacherLatentDataModule
-from pae.data.synthetic import write_synthetic_dataset
 from pae.lit.student import StudentModule
-from pae.losses import LearnedPoseLoss
 from pae.models.backbones import Backbone
+from pae.models.latents import TeacherLatentDataModule
 from pae.models.pae import PoseAutoEncoder
 from pae.models.posenet import PoseNet
+from pae.synthetic import write_synthetic_dataset
 
 REFERENCE_LABELS = Path(__file__).resolve().parents[4] / "shared" / "reference" / "labels"
 

@@ -24,14 +24,14 @@ from pae.models.pae import PoseAutoEncoder
 from pae.models.posenet import PoseNet
 from pae.models.rpr import SiameseRPR
 from pae.refine.index import PoseIndex
-from pae.refine.relative import (
+from pae.refine.weights import refine_affine
+from pae.relative.refiners import (
     ImageRefiner,
     ImageRPR,
     IterativeAPRRefiner,
     RefinedPoses,
     VirtualRPR,
 )
-from pae.refine.weights import refine_affine
 
 
 def network_bytes(*modules: nn.Module) -> int:

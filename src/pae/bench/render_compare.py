@@ -17,10 +17,10 @@ import torch
 from omegaconf import OmegaConf
 
 from pae import CONFIG_DIR
-from pae.geometry import matrix_to_quaternion
-from pae.models.voxel_grid import VoxelGridSceneModel
-from pae.pose_sampling import perturb
-from pae.refine.render_compare import RenderCompareRefiner
+from pae.core.geometry import matrix_to_quaternion
+from pae.core.pose_sampling import perturb
+from pae.render_compare.refiner import RenderCompareRefiner
+from pae.scene_model.voxel_grid import VoxelGridSceneModel
 
 ROOM_HALF_M = (3.5, 3.0)
 """Half the room's width and depth (m); the room spans z in [0, 2.8] m."""

@@ -6,10 +6,10 @@ import time
 
 import numpy as np
 
-from pae.data.synthetic.camera import DEFAULT_SIZE, PinholeCamera
-from pae.data.synthetic.raycast import Appearance, render_batch
-from pae.data.synthetic.scene import make_scene
-from pae.data.synthetic.trajectories import trajectory
+from pae.synthetic.camera import DEFAULT_SIZE, PinholeCamera
+from pae.synthetic.raycast import Appearance, render_batch
+from pae.synthetic.scene import make_scene
+from pae.synthetic.trajectories import trajectory
 
 
 def measure_render_speed(frames: int = 200, size: int = DEFAULT_SIZE, seed: int = 0) -> float:

@@ -38,11 +38,11 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
+from pae.core.geometry import matrix_to_quaternion
 from pae.data.holdout import held_out_rows
 from pae.data.labels import LabelTable, read_labels
-from pae.data.synthetic import write_label_files, write_synthetic_dataset
-from pae.data.synthetic.camera import look_rotations
-from pae.geometry import matrix_to_quaternion
+from pae.synthetic import write_label_files, write_synthetic_dataset
+from pae.synthetic.camera import look_rotations
 
 SEVEN_SCENES: tuple[tuple[str, tuple[int, ...], tuple[int, ...], int], ...] = (
     ("chess", (1, 2, 4, 6), (3, 5), 1000),

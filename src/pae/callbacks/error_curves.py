@@ -11,7 +11,7 @@ import numpy as np
 from torch import Tensor
 
 from pae.callbacks.trajectory import METHOD_RGB, draw_text, nice_step
-from pae.metrics import summarise_errors
+from pae.core.metrics import summarise_errors
 
 MARGIN = {"left": 56, "right": 240, "top": 36, "bottom": 46}
 """Pixels around each plot: tick labels left and below, the title above, the legend right."""

@@ -10,7 +10,7 @@ from typing import Any
 import lightning as L
 import torch
 
-from pae.errors import DivergenceError
+from pae.core.errors import DivergenceError
 
 
 def batch_loss(outputs: Any) -> torch.Tensor | None:

@@ -9,8 +9,8 @@ import lightning as L
 import torch
 
 from pae.callbacks.finite_loss import TrainLossCallback
-from pae.console import duration, say
-from pae.reporting import step_figures
+from pae.core.console import duration, say
+from pae.report.tables import step_figures
 
 
 class EpochProgress(TrainLossCallback):

@@ -13,9 +13,9 @@ from torch import Tensor
 from pae.callbacks.error_curves import error_curves_figure
 from pae.callbacks.tensorboard import log_figure, tensorboard_loggers
 from pae.callbacks.trajectory import log_trajectories
-from pae.geometry import pose_errors
+from pae.core.geometry import pose_errors
+from pae.core.metrics import summarise_errors
 from pae.lit.eval_outputs import EVAL, collect_outputs
-from pae.metrics import summarise_errors
 from pae.models.base import Latents
 from pae.refine import (
     ACTIVATIONS,

@@ -14,21 +14,19 @@ import lightning as L
 import torch
 from torch import Tensor
 
-from pae.atomic import atomic_write
+from pae.core.atomic import atomic_write
+from pae.core.geometry import pose_errors
+from pae.core.metrics import summarise_errors
 from pae.data.transforms import ImageTransform
-from pae.geometry import pose_errors
 from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
-from pae.metrics import summarise_errors
-from pae.models.oracle_scene import OracleSceneModel
-from pae.models.scene_model import SceneModel
-from pae.refine.render_compare import (
+from pae.render_compare.refiner import (
     ACCEPT_ALL,
     RenderCompareRefiner,
     RenderCompareResult,
     gate,
     refiner_defaults,
 )
-from pae.refine.scene_decision import (
+from pae.render_compare.scene_decision import (
     ALWAYS,
     NEVER,
     Refine,
@@ -36,6 +34,8 @@ from pae.refine.scene_decision import (
     decide_scenes,
     narrow,
 )
+from pae.scene_model.base import SceneModel
+from pae.scene_model.oracle import OracleSceneModel
 
 HONEST = "render_compare"
 ORACLE = "render_compare_oracle"
@@ -106,7 +106,7 @@ class RenderCompareCallback(L.Callback):
 
     A refined pose replaces the teacher's only where its score beats the start's by more
     than ``accept_margin`` and itself exceeds ``accept_score``
-    (:func:`pae.refine.render_compare.gate`: a low final score marks a query the scene model
+    (:func:`pae.render_compare.refiner.gate`: a low final score marks a query the scene model
     does not explain; ``ACCEPT_ALL``, the default: no floor); ``auto`` chooses each on every
     validation run (:func:`choose_gate`, jointly, from the split's held-out train sequences)
     and applies the last choice at test (margin 0 and no floor where no validation ran).

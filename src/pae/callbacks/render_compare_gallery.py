@@ -18,10 +18,10 @@ from pae.callbacks.error_curves import error_curves_figure
 from pae.callbacks.render_compare import HONEST, ORACLE, RenderCompareCallback
 from pae.callbacks.tensorboard import log_figure, tensorboard_loggers
 from pae.callbacks.trajectory import log_trajectories
-from pae.data.camera import scale_intrinsics
-from pae.geometry import pose_errors
+from pae.core.camera import scale_intrinsics
+from pae.core.geometry import pose_errors
 from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
-from pae.refine.render_compare import ACCEPT_ALL, gate
+from pae.render_compare.refiner import ACCEPT_ALL, gate
 
 FONT = cv2.FONT_HERSHEY_SIMPLEX
 LABEL_PX = 30

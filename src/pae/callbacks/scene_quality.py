@@ -10,9 +10,9 @@ import torchvision
 from lightning.pytorch.loggers import TensorBoardLogger
 from torch import Tensor, nn
 
-from pae.data.camera import scale_intrinsics
+from pae.core.camera import scale_intrinsics
 from pae.data.transforms import ImageTransform
-from pae.refine.render_images import grey, zncc
+from pae.render_compare.images import grey, zncc
 
 MEAN_IMAGE_ROWS = 1024
 """Train images (evenly spaced) averaged into the mean-image baseline."""

@@ -15,13 +15,13 @@ from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 from torch import Tensor
 from torch.utils.data import DataLoader, WeightedRandomSampler
 
-from pae.data.camera import Intrinsics, resized_size
+from pae.core.camera import Intrinsics, resized_size
+from pae.core.errors import ConfigError, LabelError
 from pae.data.dataset import PoseDataset, collate_batch
 from pae.data.fingerprint import images_sha256
 from pae.data.holdout import HeldOut, held_out_rows, scenes_short_of_sequences
 from pae.data.labels import LabelTable, focal_column_mismatch, focal_problems, read_labels
 from pae.data.transforms import ImageTransform, image_size
-from pae.errors import ConfigError, LabelError
 
 
 class PoseDataModule(L.LightningDataModule):
@@ -43,7 +43,7 @@ class PoseDataModule(L.LightningDataModule):
     `pose_loss_init` records the initial s_x, s_q of the learned pose loss that suit the
     dataset's error scale (the configs of the pose losses read it). `camera` gives the
     intrinsics of the images as stored (`fx, fy, cx, cy` in px, `width`, `height`; see
-    pae.data.camera), which `intrinsics` carries through the loaders' resize and crop; None
+    pae.core.camera), which `intrinsics` carries through the loaders' resize and crop; None
     where unknown (render-and-compare then cannot run). `scenes` keeps only
     those scenes of the label files (None: all). With `cache_images`, setup decodes the
     val/test images (a bad image fails the run before training) and the train images are
@@ -109,7 +109,7 @@ class PoseDataModule(L.LightningDataModule):
         self.scene_names: list[str] = []
         self._fingerprint: dict[str, Any] | None = None
         self.train_batches: Callable[[PoseDataModule], DataLoader] | None = None
-        """Another kind of train batch (a scene model's rays: ``pae.data.rays.RayLoader``):
+        """Another kind of train batch (a scene model's rays: ``pae.scene_model.rays.RayLoader``):
         called with this module, it gives the train loader; None: the train images."""
 
     def setup(self, stage: str | None = None) -> None:

@@ -11,9 +11,9 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset, default_collate
 
+from pae.core.errors import ImageError, LabelError
 from pae.data.labels import LabelTable, odd_sizes, outside_root
 from pae.data.transforms import image_size, load_image, load_sized_image
-from pae.errors import ImageError, LabelError
 
 
 class PoseDataset(Dataset):

@@ -6,8 +6,8 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
+from pae.core.errors import ImageError
 from pae.data.labels import LabelTable
-from pae.errors import ImageError
 
 SAMPLE_BYTES = 4096
 """Bytes read from the middle of each image file (all of a smaller one): compressed image data,

@@ -9,8 +9,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from pae.core.errors import LabelError
 from pae.data.labels import LabelTable
-from pae.errors import LabelError
 
 HeldOut = int | Sequence[str]
 """``data.val_sequences``: n (the last n train sequences of every scene, in numeric order), or

@@ -25,9 +25,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pae.atomic import atomic_write
-from pae.errors import LabelError, LabelWarning
-from pae.quaternion_sign import canonical_sign
+from pae.core.atomic import atomic_write
+from pae.core.errors import LabelError, LabelWarning
+from pae.core.quaternion_sign import canonical_sign
 
 __all__ = [
     "LABEL_COLUMNS",

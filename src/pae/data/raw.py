@@ -30,9 +30,9 @@ from typing import Literal
 
 import numpy as np
 
+from pae.core.errors import LabelError
+from pae.core.quaternion_sign import canonical_sign
 from pae.data.labels import ZERO_QUATERNION_NORM, LabelTable, write_labels
-from pae.errors import LabelError
-from pae.quaternion_sign import canonical_sign
 
 __all__ = [
     "CAMBRIDGE_SPLIT_FILES",
@@ -159,7 +159,7 @@ def read_seven_scenes_scene(scene_dir: str | os.PathLike[str], split: str) -> La
     """
     import torch
 
-    from pae.geometry import matrix_to_quaternion
+    from pae.core.geometry import matrix_to_quaternion
 
     scene_dir = Path(scene_dir)
     scene = scene_dir.name

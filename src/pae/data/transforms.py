@@ -14,9 +14,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from pae.errors import ImageError
-from pae.geometry import quaternion_to_matrix, rotation_vector_to_quaternion
-from pae.pose_sampling import perturb
+from pae.core.errors import ImageError
+from pae.core.geometry import quaternion_to_matrix, rotation_vector_to_quaternion
+from pae.core.pose_sampling import perturb
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)

@@ -10,9 +10,9 @@ import lightning as L
 import torch
 from torch import Tensor, nn
 
-from pae.checkpoints import DATA_FINGERPRINT_KEY
+from pae.core.checkpoints import DATA_FINGERPRINT_KEY
+from pae.core.metrics import mean_pose_per_scene
 from pae.lit.evaluation import PoseEvaluation
-from pae.metrics import mean_pose_per_scene
 
 OptimizerFactory = Callable[..., torch.optim.Optimizer]
 SchedulerFactory = Callable[..., Any]

@@ -12,8 +12,8 @@ import lightning as L
 import torch
 from torch import Tensor
 
-from pae.metrics import first_occurrences
-from pae.models.scene_model import SceneModel
+from pae.core.metrics import first_occurrences
+from pae.scene_model.base import SceneModel
 
 
 @dataclass(frozen=True)

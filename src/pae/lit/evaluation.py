@@ -5,7 +5,7 @@ from __future__ import annotations
 import lightning as L
 from torch import Tensor, nn
 
-from pae.metrics import PoseErrorMetric
+from pae.core.metrics import PoseErrorMetric
 
 EVAL_SPLITS = ("val", "test")
 

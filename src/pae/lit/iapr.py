@@ -8,15 +8,15 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from pae.geometry import canonicalize_quaternion, relative_pose
+from pae.core.geometry import canonicalize_quaternion, relative_pose
+from pae.core.losses import LearnedPoseLoss
+from pae.core.pose_sampling import perturb_poses
 from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import PoseEvaluation
-from pae.losses import LearnedPoseLoss
 from pae.models.base import PoseRegressor
 from pae.models.iapr import IterativeAPR
 from pae.models.pae import PoseAutoEncoder
-from pae.pose_sampling import perturb_poses
-from pae.refine.relative import IterativeAPRRefiner
+from pae.relative.refiners import IterativeAPRRefiner
 
 
 class IAPRModule(PaeModule):

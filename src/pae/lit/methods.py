@@ -11,7 +11,7 @@ from torch import Tensor, nn
 from pae.lit.base import EvaluationModule
 from pae.lit.evaluation import PoseEvaluation
 from pae.models.base import PoseRegressor
-from pae.refine.relative import ImageRefiner
+from pae.relative.refiners import ImageRefiner
 
 MethodFactory = Callable[[Any], ImageRefiner]
 """Builds a method from the data module (its train poses and images, the method's store)."""

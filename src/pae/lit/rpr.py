@@ -9,17 +9,17 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor, nn
 
-from pae.geometry import relative_pose
+from pae.core.geometry import relative_pose
+from pae.core.losses import LearnedPoseLoss
+from pae.core.pose_sampling import perturb_poses
 from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import PoseEvaluation
-from pae.losses import LearnedPoseLoss
 from pae.models.base import PoseRegressor
 from pae.models.decoder import ImageDecoder
 from pae.models.pae import PoseAutoEncoder
 from pae.models.rpr import SiameseRPR
-from pae.pose_sampling import perturb_poses
 from pae.refine.index import PoseIndex
-from pae.refine.relative import VirtualRPR
+from pae.relative.refiners import VirtualRPR
 
 
 def nearby_references(
@@ -50,7 +50,7 @@ class PairedRPRModule(PaeModule, ABC):
     (never the query's own row) — or, with `pair_offset` ({position_m, orientation_deg}),
     of that pose moved by `perturb_poses` as a teacher's estimate errs, so that the pairs'
     offsets resemble those met at test time. The RPR regresses the query's pose relative to
-    the reference (``pae.geometry.relative_pose``). Subclasses give the reference images
+    the reference (``pae.core.geometry.relative_pose``). Subclasses give the reference images
     (``reference_images``), the evaluation and the methods it reports (``METHODS``).
     """
 

@@ -8,7 +8,7 @@ from typing import Any
 from torch import Tensor
 
 from pae.lit.rpr import PairedRPRModule
-from pae.refine.relative import ImageRPR, TrainImages, with_position
+from pae.relative.refiners import ImageRPR, TrainImages, with_position
 
 
 class ImageRPRModule(PairedRPRModule):

@@ -8,15 +8,15 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from pae.data.camera import scale_intrinsics
+from pae.core.camera import scale_intrinsics
+from pae.core.streams import seeded_global
 from pae.data.transforms import ImageTransform
 from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.eval_outputs import EVAL
 from pae.lit.evaluation import PoseEvaluation
 from pae.models.base import PoseRegressor
-from pae.models.scene_model import SceneModel
-from pae.refine.render_images import compare_size
-from pae.streams import seeded_global
+from pae.render_compare.images import compare_size
+from pae.scene_model.base import SceneModel
 
 SCENE_MODEL_METHODS = ["teacher", "mean_pose"]
 
@@ -34,7 +34,7 @@ def compare_queries(rgb: Tensor, intrinsics: Tensor, width: int | None) -> tuple
 
 
 class SceneModelModule(PaeModule):
-    """Trains ``scene_model`` (when it has parameters) on ray batches (pae.data.rays: each
+    """Trains ``scene_model`` (when it has parameters) on ray batches (pae.scene_model.rays: each
     with the seed its rendering draws from): the mean squared error
     of its renderings, as each ray's train image's appearance saw them, plus ``tv_weight``
     times its total variation. ``fit_trim``: from epoch ``fit_trim_from_epoch`` (0-based) on,

@@ -8,11 +8,11 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from pae.geometry import normalize_pose
+from pae.core.geometry import normalize_pose
+from pae.core.losses import LATENT_LOSSES, LearnedPoseLoss, latent_distance
 from pae.lit.base import EvaluationModule, OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.eval_outputs import EVAL
 from pae.lit.evaluation import PoseEvaluation
-from pae.losses import LATENT_LOSSES, LearnedPoseLoss, latent_distance
 from pae.models.base import Latents, PoseRegressor
 from pae.models.pae import PoseAutoEncoder
 

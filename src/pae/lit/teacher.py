@@ -7,9 +7,9 @@ from typing import Any
 from torch import Tensor, nn
 from torchmetrics.classification import MulticlassAccuracy
 
+from pae.core.losses import LearnedPoseLoss
 from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.evaluation import EVAL_SPLITS, PoseEvaluation
-from pae.losses import LearnedPoseLoss
 from pae.models.base import PoseRegressor
 
 

@@ -9,7 +9,7 @@ import torch
 import torchvision
 from torch import Tensor, nn
 
-from pae.errors import BackboneError
+from pae.core.errors import BackboneError
 
 
 def _small_cnn() -> tuple[nn.Module, int]:

@@ -7,7 +7,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from pae.geometry import normalize_pose
+from pae.core.geometry import normalize_pose
 
 
 class Latents(NamedTuple):

@@ -26,8 +26,8 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from pae.checkpoints import read_checkpoint
-from pae.errors import CheckpointError
+from pae.core.checkpoints import read_checkpoint
+from pae.core.errors import CheckpointError
 from pae.models.ms_transformer import MSTransformer
 from pae.models.pae import PoseAutoEncoder
 

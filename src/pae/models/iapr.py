@@ -13,7 +13,7 @@ from pae.models.backbones import Backbone
 class IterativeAPR(nn.Module):
     """image [B, 3, H, W] + PAE encoding [B, 2d] of a pose estimate -> relative pose [B, 7]
     (world-frame translation query − estimate in m, rotation conj(q_est)·q_query, not
-    normalised), the convention of `pae.geometry.relative_pose`.
+    normalised), the convention of `pae.core.geometry.relative_pose`.
 
     Image features (its own backbone) and the encoding are each projected to `hidden`
     (ReLU), concatenated and fused by an MLP; the heads start at the identity correction

@@ -13,7 +13,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from pae.geometry import normalize_pose
+from pae.core.geometry import normalize_pose
 from pae.models.backbones import Backbone
 from pae.models.base import Latents, PoseRegressor
 

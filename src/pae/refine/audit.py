@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from pae.core.pose_sampling import perturb_positions
 from pae.data.labels import LabelTable
-from pae.pose_sampling import perturb_positions
 from pae.refine.index import PoseDistance, PoseIndex
 
 

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pae.compiled import run_in_parts
+from pae.core.compiled import run_in_parts
 from pae.refine.fused_kernels import fit_rows
 from pae.refine.regressor import ADAM_BETAS, ADAM_EPS, SERIES_RATIO, SMALLEST_INPUTS, LayerParams
 

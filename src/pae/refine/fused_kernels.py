@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from pae.compiled import FASTMATH, copy_into, insert_sorted, jit
+from pae.core.compiled import FASTMATH, copy_into, insert_sorted, jit
 from pae.refine.regressor import ADAM_EPS
 
 

@@ -9,8 +9,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pae.compiled import insert_sorted, jit, run_in_parts
-from pae.geometry import canonicalize_quaternion
+from pae.core.compiled import insert_sorted, jit, run_in_parts
+from pae.core.geometry import canonicalize_quaternion
 
 PoseDistance = Literal["normalized", "fixed"]
 SearchEngine = Literal["auto", "fused", "batched"]

@@ -2,7 +2,7 @@
 
 ``PositionRefiner`` runs the paper's refinement (§3.3) for a batch of APR estimates;
 ``combine_orientations`` gives the refined orientation (the random-guess check's queries
-come from ``pae.pose_sampling.perturb_positions``).
+come from ``pae.core.pose_sampling.perturb_positions``).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import Any, Literal, NamedTuple
 import torch
 from torch import Tensor
 
-from pae.geometry import average_quaternions, canonicalize_quaternion, normalize_quaternion
+from pae.core.geometry import average_quaternions, canonicalize_quaternion, normalize_quaternion
 from pae.models.base import Latents
 from pae.refine.index import PoseIndex
 from pae.refine.weights import WEIGHT_MODELS, Objective, WeightModel, refine_affine

@@ -10,7 +10,7 @@ from hydra.core.hydra_config import HydraConfig
 from lightning.pytorch.loggers import TensorBoardLogger
 from omegaconf import DictConfig, OmegaConf
 
-from pae.reporting import (
+from pae.report.tables import (
     best_refinement,
     format_results_table,
     headline_metrics,

@@ -11,13 +11,13 @@ from hydra.utils import instantiate
 from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
-from pae.checkpoints import CheckpointError, LoadedModel, load_scene_model
-from pae.console import say
+from pae.core.checkpoints import CheckpointError, LoadedModel, load_scene_model
+from pae.core.console import say
+from pae.core.errors import ConfigError
+from pae.core.provenance import dataset_line, flat_record, save_record
 from pae.data.datamodule import PoseDataModule
-from pae.data.novel_views import NovelViewSettings
-from pae.errors import ConfigError
-from pae.models.scene_model import SceneModel
-from pae.provenance import dataset_line, flat_record, save_record
+from pae.scene_model.base import SceneModel
+from pae.scene_model.novel_views import NovelViewSettings
 
 
 def build_data(cfg: DictConfig, **overrides: Any) -> PoseDataModule:
@@ -30,7 +30,7 @@ def build_data(cfg: DictConfig, **overrides: Any) -> PoseDataModule:
 def record_dataset(cfg: DictConfig, run_dir: Path) -> dict[str, str | int]:
     """Prepare the configured data (the default synthetic benchmark renders on first use),
     print which dataset the run reads and record it in `run_dir/.hydra/data.yaml` -> its
-    `data/...` keys for metrics.json (pae.provenance)."""
+    `data/...` keys for metrics.json (pae.core.provenance)."""
     data = instantiate(cfg.data)
     data.prepare_data()
     record = data.describe()

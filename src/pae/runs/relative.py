@@ -11,7 +11,7 @@ from hydra.utils import instantiate
 from lightning.pytorch.utilities import rank_zero_info
 from omegaconf import DictConfig, OmegaConf
 
-from pae.errors import ConfigError
+from pae.core.errors import ConfigError
 from pae.models.base import PoseRegressor
 
 

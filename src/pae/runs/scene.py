@@ -11,14 +11,14 @@ from typing import Any
 from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 
-from pae.checkpoints import LoadedModel, load_decoder, load_pae, load_teacher
-from pae.data.rays import RayLoader
-from pae.errors import ConfigError
+from pae.core.checkpoints import LoadedModel, load_decoder, load_pae, load_teacher
+from pae.core.errors import ConfigError
 from pae.lit.scene_model import SceneModelModule
 from pae.models.base import PoseRegressor
-from pae.models.scene_model import SceneModel, SceneModelInputs
 from pae.runs.inputs import check_data
 from pae.runs.trainer import optimisation
+from pae.scene_model.base import SceneModel, SceneModelInputs
+from pae.scene_model.rays import RayLoader
 
 LOADERS: dict[str, Callable[..., LoadedModel]] = {
     "teacher_ckpt": load_teacher,

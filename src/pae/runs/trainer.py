@@ -18,16 +18,16 @@ from lightning.pytorch.utilities import rank_zero_info
 from omegaconf import DictConfig, OmegaConf
 
 from pae.callbacks.finite_loss import StopOnNonFiniteLoss
-from pae.checkpoints import (
+from pae.core.checkpoints import (
     DATA_FINGERPRINT_KEY,
     AtomicCheckpointIO,
     CheckpointError,
     newest_readable_checkpoint,
     read_checkpoint,
 )
-from pae.console import say
-from pae.error_reporting import first_line
-from pae.errors import ConfigError, DivergenceError
+from pae.core.console import say
+from pae.core.error_reporting import first_line
+from pae.core.errors import ConfigError, DivergenceError
 from pae.lit.evaluation import EVAL_SPLITS
 from pae.runs import Metrics
 from pae.runs.hparams import log_hparams

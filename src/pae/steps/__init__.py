@@ -1,7 +1,7 @@
 """The steps of `pae-train`, in one registry: what each needs, trains and may change on resume.
 
-`pae.train` runs them, `pae.validation` checks `stage.steps` and each step's checkpoints
-against it, `pae.preflight` reads which settings a resumed run may change, and every
+`pae.train` runs them, `pae.config.validation` checks `stage.steps` and each step's checkpoints
+against it, `pae.config.preflight` reads which settings a resumed run may change, and every
 `conf/stage/*.yaml` lists names from it. Importing this module loads no torch: a sweep's
 launching process reads it; a step's fit function, in the step's own module of this package
 (``pae.steps.teacher``, ...), is imported when the step runs. Those modules import the
@@ -89,7 +89,7 @@ STEPS: dict[str, Step] = {
             {"scene_model.model": ()},
             produces="scene_model_ckpt",
         ),
-        # reads scene_model_ckpt with teacher.novel_views.enabled (pae.validation says so)
+        # reads scene_model_ckpt with teacher.novel_views.enabled (pae.config.validation says so)
         Step(
             "teacher",
             "teacher",

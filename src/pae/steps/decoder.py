@@ -8,7 +8,7 @@ from pathlib import Path
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from pae.checkpoints import load_pae
+from pae.core.checkpoints import load_pae
 from pae.lit.decoder import DecoderModule
 from pae.runs import Metrics
 from pae.runs.inputs import load_frozen

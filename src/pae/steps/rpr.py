@@ -8,7 +8,7 @@ from pathlib import Path
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from pae.checkpoints import load_decoder, load_pae, load_teacher
+from pae.core.checkpoints import load_decoder, load_pae, load_teacher
 from pae.lit.rpr import RPRModule
 from pae.runs import Metrics
 from pae.runs.inputs import build_data, check_data, required

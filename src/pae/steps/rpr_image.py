@@ -9,7 +9,7 @@ from pathlib import Path
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from pae.checkpoints import load_teacher
+from pae.core.checkpoints import load_teacher
 from pae.lit.rpr_image import ImageRPRModule
 from pae.runs import Metrics
 from pae.runs.inputs import build_data, check_data, required

@@ -13,7 +13,7 @@ from omegaconf import DictConfig
 
 from pae.callbacks.render_compare_gallery import RenderCompareGallery
 from pae.callbacks.scene_quality import SceneModelQuality
-from pae.checkpoints import LoadedModel, load_scene_model, load_teacher
+from pae.core.checkpoints import LoadedModel, load_scene_model, load_teacher
 from pae.lit.scene_model import SceneModelModule
 from pae.runs import Metrics
 from pae.runs.hparams import log_hparams

@@ -13,15 +13,15 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
-from pae.checkpoints import load_teacher
+from pae.core.checkpoints import load_teacher
+from pae.core.errors import ConfigError
 from pae.data.datamodule import PoseDataModule
-from pae.data.latents import LatentCache, TeacherLatentDataModule
-from pae.data.novel_views import NovelViewPool
-from pae.errors import ConfigError
 from pae.lit.student import StudentModule
+from pae.models.latents import LatentCache, TeacherLatentDataModule
 from pae.runs import Metrics
 from pae.runs.inputs import load_frozen, novel_view_source
 from pae.runs.trainer import fit_and_test, optimisation, refinement_callbacks
+from pae.scene_model.novel_views import NovelViewPool
 
 
 def novel_views(

@@ -1,6 +1,6 @@
 """The teacher step: train and test a teacher APR, the absolute pose regressor whose latents
 the PAE learns; with ``teacher.novel_views.enabled``, on the train images mixed with views a
-scene model renders around the train cameras (pae.data.novel_views)."""
+scene model renders around the train cameras (pae.scene_model.novel_views)."""
 
 from __future__ import annotations
 
@@ -11,11 +11,11 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from pae.data.datamodule import PoseDataModule
-from pae.data.novel_views import NovelViewLoader
 from pae.lit.teacher import TeacherModule
 from pae.runs import Metrics
 from pae.runs.inputs import build_data, novel_view_source
 from pae.runs.trainer import fit_and_test, optimisation
+from pae.scene_model.novel_views import NovelViewLoader
 
 
 def _teacher_config(cfg: DictConfig, n_scenes: int) -> dict[str, Any]:

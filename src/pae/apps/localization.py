@@ -1,0 +1,379 @@
+"""Poses of images from a finished run's checkpoints (`pae-localize`): the teacher's
+estimates, optionally refined by render-and-compare against the run's scene model or by the
+student's test-time refinements, read exactly as the run evaluated its test split."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+from torch import Tensor
+
+from pae.core.camera import Intrinsics
+from pae.core.checkpoints import load_pae, load_scene_model
+from pae.core.errors import CheckpointError, ConfigError, ImageError
+from pae.core.geometry import canonicalize_quaternion, normalize_pose, pose_errors
+from pae.core.metrics import summarise_errors
+from pae.core.provenance import DATA_RECORD
+from pae.data.datamodule import PoseDataModule
+from pae.data.dataset import PoseDataset
+from pae.data.labels import LabelTable, read_labels
+from pae.data.transforms import ImageTransform
+from pae.lit.eval_outputs import EVAL
+from pae.lit.scene_model import compare_queries
+from pae.models.base import Latents
+from pae.render_compare.refiner import (
+    ACCEPT_ALL,
+    BUILD_KEYS,
+    RenderCompareRefiner,
+    gate,
+    refiner_defaults,
+)
+
+TEACHER = "teacher"
+RENDER_COMPARE = "render_compare"
+STUDENT_METHODS = ("student", "refined", "knn_mean")
+"""Methods of the student step's checkpoint besides the ``refine.alternatives`` by name."""
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+QUERY_SPLIT = "query"
+"""The ``split`` column of the rows written for images given without a label file."""
+
+
+class Run(NamedTuple):
+    """A finished run directory: its saved config, ``metrics.json`` (empty when absent) and
+    the dataset root it read (``.hydra/data.yaml``; None when unrecorded)."""
+
+    folder: Path
+    config: DictConfig
+    metrics: dict[str, Any]
+    data_root: str | None
+
+    @property
+    def steps(self) -> list[str]:
+        return list(self.config.stage.steps)
+
+    def checkpoint(self, step: str, method: str) -> Path:
+        """The last checkpoint of ``step``; a CheckpointError naming the run when it lacks
+        one (``method``: what needed it)."""
+        folder = self.folder / step if len(self.steps) > 1 else self.folder
+        path = folder / "checkpoints" / "last.ckpt"
+        if step not in self.steps or not path.is_file():
+            raise CheckpointError(
+                f"{self.folder}: no {step} checkpoint ({path}), which {method} needs: the run's "
+                f"steps are {self.steps}"
+            )
+        return path
+
+
+def read_run(folder: str | Path) -> Run:
+    """The run in ``folder`` (as ``pae-train`` leaves it, e.g. ``outputs/demo``)."""
+    folder = Path(folder)
+    saved = folder / ".hydra" / "config.yaml"
+    if not saved.is_file():
+        raise ConfigError(f"{folder}: not a pae-train run directory (no .hydra/config.yaml)")
+    config = OmegaConf.load(saved)
+    metrics_path = folder / "metrics.json"
+    metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
+    record = folder / ".hydra" / DATA_RECORD
+    data_root = OmegaConf.load(record).get("root") if record.is_file() else None
+    return Run(folder, config, metrics, data_root)
+
+
+def methods_of(run: Run) -> list[str]:
+    """The methods ``pae-localize`` can give for ``run``'s config (whether or not the run
+    trained their steps): teacher, render_compare, the student's and its alternatives."""
+    alternatives = list((run.config.get("refine") or {}).get("alternatives") or {})
+    return [TEACHER, RENDER_COMPARE, *STUDENT_METHODS, *alternatives]
+
+
+class Queries(NamedTuple):
+    """The images to localise as label-file rows (``img_path`` joined to ``root``), whether
+    their poses are labels (a label file was given) or placeholders, and each image's path
+    as the output names it."""
+
+    table: LabelTable
+    root: Path
+    labelled: bool
+    shown: list[str]
+
+
+def image_files(inputs: Sequence[str | Path]) -> list[Path]:
+    """Image files given directly, and those under given folders (recursively, sorted)."""
+    files: list[Path] = []
+    for item in map(Path, inputs):
+        if item.is_dir():
+            found = sorted(p for p in item.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
+            if not found:
+                raise ImageError(f"{item}: a folder without images ({', '.join(IMAGE_SUFFIXES)})")
+            files += found
+        elif item.exists():
+            files.append(item)
+        else:
+            raise ImageError(f"{item}: no such image, folder or label file")
+    return files
+
+
+def gather_queries(inputs: Sequence[str | Path], root: str | Path | None) -> Queries:
+    """Label files (``*.csv``: their rows, ``img_path`` under ``root``), or image files and
+    folders (one row each, ``split`` ``query``, ``seq`` the image's folder name)."""
+    labels = [Path(p) for p in inputs if Path(p).suffix.lower() == ".csv"]
+    if labels and len(labels) < len(inputs):
+        raise ConfigError("give label files or images and folders, not both")
+    if labels:
+        if root is None:
+            raise ConfigError(f"{labels[0]}: a label file's img_path needs --root")
+        table = LabelTable.concat(read_labels(p) for p in labels)
+        return Queries(table, Path(root), True, table.img_path)
+    files = image_files(inputs)
+    table = LabelTable(
+        scene=[""] * len(files),
+        split=[QUERY_SPLIT] * len(files),
+        seq=[p.resolve().parent.name for p in files],
+        img_path=[str(p.resolve()) for p in files],
+        poses=np.tile([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0], (len(files), 1)),
+    )
+    return Queries(table, Path(Path.cwd().anchor), False, [str(p) for p in files])
+
+
+def data_module(run: Run, **overrides: Any) -> PoseDataModule:
+    """The run's data module (not set up), reading the dataset root it recorded."""
+    if run.data_root is not None:
+        overrides = {"root": run.data_root, **overrides}
+    return instantiate(run.config.data, **overrides)
+
+
+def query_intrinsics(
+    camera: Intrinsics | None,
+    size: tuple[int, int],
+    shorter_edge: int,
+    crop: int,
+    focal: np.ndarray | None = None,
+    focal_px: float | None = None,
+) -> Tensor:
+    """Intrinsics [N, 4] (fx, fy, cx, cy in px) of N images of ``size`` (h, w) px on disk, as
+    the teacher sees them (shorter edge resized to ``shorter_edge``, centre ``crop``):
+    ``camera`` (the run's ``data.camera``) scaled to that size, with a label file's focal
+    lengths ``focal`` [N] (px at the camera's width) where given. ``focal_px``: the images'
+    focal length in px at their size on disk instead (principal point: the camera's, else
+    the image centre)."""
+    h, w = size
+    if focal_px is not None:
+        centred = Intrinsics(1.0, 1.0, (w - 1) / 2, (h - 1) / 2, w, h)
+        camera = (centred if camera is None else camera.resized(w, h)).with_focal(focal_px)
+        focal = None
+    if camera is None:
+        raise ConfigError(
+            "the run's data has no camera (data.camera): give --focal PX, the images' focal "
+            "length in px"
+        )
+    seen = camera.resized(w, h).preprocessed(shorter_edge, crop)
+    vectors = torch.tensor([seen.vector()], dtype=torch.float64)
+    if focal is not None:
+        vectors = vectors.repeat(len(focal), 1)
+        scale = seen.fx / camera.fx
+        vectors[:, :2] = torch.as_tensor(focal, dtype=torch.float64)[:, None] * scale
+    return vectors.float()
+
+
+class Estimates(NamedTuple):
+    """The teacher's answer for every query: pose [N, 7] (unit quaternion), scene [N] it
+    assigns, latents [N, 2d] ([z_x, z_q]); for render-and-compare, the query images [N, 3,
+    h, w] in [0, 1] at its compare width and their intrinsics [N, 4] (else None)."""
+
+    pose: Tensor
+    scene: Tensor
+    latents: Tensor
+    images: Tensor | None
+    intrinsics: Tensor | None
+
+
+@torch.no_grad()
+def estimate(
+    teacher: torch.nn.Module,
+    queries: Queries,
+    data: PoseDataModule,
+    intrinsics: Callable[[tuple[int, int], np.ndarray | None], Tensor] | None,
+    compare_width: int | None,
+    batch_size: int,
+    device: torch.device,
+    progress: Callable[[int, int], None],
+) -> Estimates:
+    """The teacher's estimates of every query, a batch at a time, pre-processed as the run
+    evaluated its test split; ``intrinsics`` ((h, w) on disk, focal lengths of the rows or
+    None -> [B, 4]): keep the images for render-and-compare at ``compare_width`` px."""
+    table = queries.table
+    dataset = PoseDataset(table, queries.root, table.scene_names, data.shorter_edge)
+    if dataset.image_size is None:
+        raise ImageError("no images to localise")
+    teacher = teacher.to(device)
+    transform = ImageTransform(data.crop, train=False).to(device)
+    parts: list[dict[str, Tensor]] = []
+    total = len(dataset)
+    for start in range(0, total, batch_size):
+        rows = list(range(start, min(start + batch_size, total)))
+        images = transform(dataset.__getitems__(rows)["image"].to(device))
+        answer = teacher.estimate(images, torch.zeros(len(rows), dtype=torch.long, device=device))
+        part = {
+            EVAL.estimate: answer.pose.cpu(),
+            EVAL.scene_estimate: answer.scene.cpu(),
+            "latents": answer.latents.joint().cpu(),
+        }
+        if intrinsics is not None:
+            focal = None if table.focal is None else table.focal[rows]
+            rgb = ImageTransform.unnormalize_batch(images)
+            vectors = intrinsics(dataset.image_size, focal).expand(len(rows), 4).to(device)
+            small, vectors = compare_queries(rgb, vectors, compare_width)
+            part |= {EVAL.image: small.cpu(), EVAL.intrinsics: vectors.cpu()}
+        parts.append(part)
+        progress(rows[-1] + 1, total)
+    joined = {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
+    return Estimates(
+        joined[EVAL.estimate],
+        joined[EVAL.scene_estimate],
+        joined["latents"],
+        joined.get(EVAL.image),
+        joined.get(EVAL.intrinsics),
+    )
+
+
+def render_compare_settings(run: Run) -> tuple[dict[str, Any], float, float]:
+    """RenderCompareRefiner's settings of the run (``render_compare.refiner``, with the
+    steps it chose on val and applied at test where metrics.json records them) and the
+    acceptance gate it applied at test (margin, score floor; as configured where
+    unrecorded: ``auto`` then is margin 0, no floor)."""
+    config = run.config.render_compare
+    configured = OmegaConf.to_container(config.refiner, resolve=True)
+    assert isinstance(configured, dict)
+    settings = refiner_defaults() | {
+        name: value for name, value in configured.items() if name not in BUILD_KEYS
+    }
+    for name, default in settings.items():
+        key = f"test/{RENDER_COMPARE}/{name}"
+        if key in run.metrics:
+            kind = int if isinstance(default, int) and not isinstance(default, bool) else float
+            settings[name] = kind(run.metrics[key])
+
+    def chosen(name: str, fallback: float) -> float:
+        recorded = run.metrics.get(f"test/{RENDER_COMPARE}/{name}")
+        if recorded is not None:
+            return float(recorded)
+        configured = config.get(name)
+        return float(configured) if isinstance(configured, int | float) else fallback
+
+    return settings, chosen("accept_margin", 0.0), chosen("accept_score", ACCEPT_ALL)
+
+
+def compare_width(settings: dict[str, Any]) -> int:
+    """The width (px) at which the refiner compares queries."""
+    return int(settings.get("resolution", refiner_defaults()["resolution"]))
+
+
+def scene_model_path(run: Run) -> Path:
+    """The scene model the run's render-and-compare used: ``scene_model_ckpt`` when given, else
+    the checkpoint of its scene_fit step, else of its scene_model step."""
+    given = run.config.get("scene_model_ckpt")
+    if given:
+        return Path(given)
+    step = "scene_fit" if "scene_fit" in run.steps else "scene_model"
+    return run.checkpoint(step, RENDER_COMPARE)
+
+
+def render_compare(
+    run: Run, teacher: torch.nn.Module, found: Estimates, device: torch.device
+) -> Tensor:
+    """The render-and-compare poses [N, 7] of the queries against the run's scene model,
+    from the teacher's estimates, through the gate the run applied at test."""
+    from pae.callbacks.render_compare import teacher_features
+
+    loaded = load_scene_model(scene_model_path(run), "scene_model_ckpt")
+    settings, margin, floor = render_compare_settings(run)
+    features = None
+    if settings.get("score") == "features":
+        features = teacher_features(teacher, run.config.render_compare.feature_layers)
+    refiner = RenderCompareRefiner.configured(
+        loaded.model.to(device), features=features, **settings
+    )
+    assert found.images is not None and found.intrinsics is not None
+    estimate = found.pose.to(device)
+    result = refiner(
+        found.images.to(device), found.intrinsics.to(device), estimate, found.scene.to(device)
+    )
+    return gate(result, estimate, margin, floor).poses.cpu()
+
+
+def student_poses(run: Run, method: str, teacher: torch.nn.Module, found: Estimates) -> Tensor:
+    """The poses [N, 7] of a student method (``student``, ``refined``, ``knn_mean`` or a
+    ``refine.alternatives`` entry) with the run's student checkpoint and refine settings,
+    retrieving among the run's train poses (the validation rows held out, as in the run)."""
+    from pae.runs.inputs import check_data
+    from pae.runs.trainer import refinement_callbacks
+
+    path = run.checkpoint("student", method)
+    pae = load_pae(path, "student_ckpt")
+    if method == "student":
+        with torch.no_grad():
+            return teacher.regress(pae.model(found.pose, found.scene)).cpu()
+    callbacks = refinement_callbacks(run.config)
+    if not callbacks:
+        raise ConfigError(f"{run.folder}: the run has no refinement (refine=none)")
+    refinement = callbacks[0]
+    data = data_module(run, cache_images=False)
+    data.setup()
+    check_data(run.config, path, pae, data)
+    store = refinement.store(*data.train_poses())
+    d = found.latents.shape[-1] // 2
+    query = Latents(found.latents[:, :d], found.latents[:, d:])
+    if method in refinement.alternatives:
+        factory = refinement.alternatives[method]
+        return factory(index=store, pae=pae.model)(query, found.pose, found.scene).poses
+    refiner = refinement.refiner(pae.model, store)
+    result = refiner(query, found.pose, found.scene)
+    if method == "knn_mean":
+        return refiner.neighbour_mean(result.neighbour_indices, found.pose)
+    return result.poses
+
+
+def canonical(poses: Tensor) -> Tensor:
+    """Poses [N, 7] as label files store them: unit quaternion with ``qw >= 0``."""
+    poses = normalize_pose(poses.double())
+    return torch.cat([poses[:, :3], canonicalize_quaternion(poses[:, 3:])], -1)
+
+
+def summary_line(method: str, poses: Tensor, queries: Queries, scene_names: list[str]) -> str:
+    """The median errors of ``poses`` [N, 7] against the label file's poses (per scene,
+    averaged over scenes, as pae-eval's overall figures)."""
+    table = queries.table
+    truth = torch.as_tensor(table.poses, dtype=torch.float32)
+    known = [s for s in table.scene_names if s in scene_names]
+    names = scene_names if known == table.scene_names else table.scene_names
+    scene = torch.as_tensor(table.scene_ids(names))
+    pos, rot = pose_errors(poses.float(), truth)
+    summary = summarise_errors(pos, rot, scene, names)
+    return (
+        f"{method}: median {float(summary['pos_median_m']):.3f} m / "
+        f"{float(summary['rot_median_deg']):.2f}° against the label file's poses "
+        f"({len(table)} images; within 10 cm, 10°: "
+        f"{100 * float(summary['within_10cm_10deg']):.1f} %)"
+    )
+
+
+def output_table(queries: Queries, poses: Tensor, scene: Tensor, names: list[str]) -> LabelTable:
+    """Label-file rows of the queries with ``poses`` [N, 7]: a label file's own columns, or
+    for images the scene the teacher assigns (``scene`` [N], ids into ``names``) and the path
+    as given."""
+    table = queries.table
+    scenes = table.scene if queries.labelled else [names[i] for i in scene.tolist()]
+    return LabelTable(
+        scene=scenes,
+        split=table.split,
+        seq=table.seq,
+        img_path=queries.shown,
+        poses=canonical(poses).numpy(),
+        focal=table.focal,
+    )

@@ -1,0 +1,499 @@
+"""Every configured value checked when a run starts, before data is rendered or read for
+training: types, ranges and paths, each failure a ConfigError naming its key."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
+
+from pae.config.novel_views import novel_view_needs
+from pae.core.checks import (
+    boolean,
+    check_constructor,
+    check_missing,
+    choice,
+    existing_file,
+    integer,
+    is_int,
+    number,
+    present,
+    setting,
+)
+from pae.core.errors import ConfigError
+from pae.data.labels import read_labels
+from pae.steps import CHECKPOINTS, GROUPS, MODELS, missing_checkpoints, steps_of
+
+SYNTHETIC_LAYOUT_BOUNDS = {
+    "test_offset_m": 1.0,
+    "train_lane_m": 1.0,
+    "stray_m": 1.0,
+    "yaw_stray_rad": math.pi / 2,
+}
+"""Upper bounds of the synthetic camera layout's settings (all >= 0), as rendering checks."""
+SYNTHETIC_NUISANCE_BOUNDS = {
+    "lighting_change": 1.0,
+    "occluder_fraction": 1.0,
+    "sensor_noise_std": 0.5,
+    "motion_blur_px": 64.0,
+}
+"""Upper bounds of the synthetic nuisances' settings (all >= 0, 0: off), as rendering checks
+(``pae.synthetic.NUISANCE_BOUNDS``)."""
+
+RENAMED_KEYS = {"pae_ckpt": "student_ckpt"}
+"""Old key -> its new name. The old key is still read for one more release, with a one-line
+deprecation warning."""
+_WARNED: set[str] = set()
+
+
+def apply_renamed_keys(cfg: DictConfig, program: str | None = None) -> None:
+    """Move a value given under an old key (RENAMED_KEYS) to its new name; with `program`,
+    say once per process that the old name is deprecated. Both names with different values
+    are a ConfigError."""
+    for old, new in RENAMED_KEYS.items():
+        value = OmegaConf.select(cfg, old, default=None, throw_on_missing=False)
+        if value is None:
+            continue
+        current = OmegaConf.select(cfg, new, default=None, throw_on_missing=False)
+        if current is not None and current != value:
+            raise ConfigError(f"{old}={value} and {new}={current}: {old} is the old name of {new}")
+        with open_dict(cfg):
+            cfg[new], cfg[old] = value, None
+        if program is not None and old not in _WARNED:
+            _WARNED.add(old)
+            print(
+                f"{program}: warning: {old} is deprecated, use {new} (the old name is read "
+                "for one more release)",
+                file=sys.stderr,
+            )
+
+
+def validate_models(cfg: DictConfig) -> None:
+    """The ranges a constructor's signature cannot state (for the keys the config has), then
+    every model config a step builds (``pae.steps.MODELS``) against its class's constructor."""
+    for key, low in (("teacher.model.latent_dim", 1), ("pae.latent_dim", 1), ("pae.L", 0)):
+        if present(cfg, key):
+            integer(cfg, key, low)
+    if present(cfg, "pae.hidden"):
+        hidden = setting(cfg, "pae.hidden")
+        if not isinstance(hidden, ListConfig) or not all(is_int(h) and h >= 1 for h in hidden):
+            raise ConfigError(f"pae.hidden must be a list of layer widths >= 1, got {hidden!r}")
+    for key, supplied in MODELS.items():
+        check_constructor(cfg, key, supplied)
+
+
+def _is_synthetic(cfg: DictConfig) -> bool:
+    return "train_frames" in cfg.data
+
+
+def _renders(cfg: DictConfig) -> bool:
+    """The synthetic benchmark without a data.root: rendered under data/synthetic/ on first
+    use. A given data.root is only read."""
+    return _is_synthetic(cfg) and cfg.data.get("root") is None
+
+
+def _label_files(cfg: DictConfig) -> dict[str, Any]:
+    """split -> the label file a run reads (synthetic data: ROOT/labels/all_{split}.csv)."""
+    data = cfg.data
+    if _is_synthetic(cfg):
+        labels = Path(str(data.root)) / "labels"
+        return {split: labels / f"all_{split}.csv" for split in ("train", "test")}
+    return {split: data.get(f"{split}_labels") for split in ("train", "test", "val")}
+
+
+def _check_root(cfg: DictConfig) -> None:
+    """data.root is a folder that holds the label files; else one line naming it (synthetic
+    data: and how to render a dataset there)."""
+    root = Path(str(cfg.data.root))
+    hint = ""
+    if _is_synthetic(cfg):
+        hint = (
+            f"; `pae-data synth {root}` renders a dataset there (without data.root the "
+            "default benchmark renders under data/synthetic/)"
+        )
+    if not root.is_dir():
+        raise ConfigError(f"data.root={root}: no such directory{hint}")
+    if not any(root.iterdir()):
+        raise ConfigError(f"data.root={root}: empty folder{hint}")
+    if _is_synthetic(cfg):
+        for path in _label_files(cfg).values():
+            if not path.is_file():
+                raise ConfigError(f"data.root={root}: no label file {path}{hint}")
+    else:
+        from pae.data.raw import raw_download
+
+        raw = raw_download(root)
+        for key in ("train_labels", "test_labels", "val_labels"):
+            value = setting(cfg, f"data.{key}")
+            if raw and value is not None and not Path(str(value)).is_file():
+                raise ConfigError(
+                    f"data.{key}={value}: no such file; {root} holds a raw {raw[0]} download: "
+                    f"`pae-data convert {raw[1]} {root} {root}/labels` writes its label files"
+                )
+            existing_file(cfg, f"data.{key}")
+
+
+def _per_scene(table: Any) -> int | None:
+    """Rows per scene of a label table, None when the scenes' counts differ."""
+    counts = set(np.unique(np.asarray(table.scene), return_counts=True)[1].tolist())
+    return counts.pop() if len(counts) == 1 else None
+
+
+def match_synthetic_settings(cfg: DictConfig) -> list[str]:
+    """Synthetic data read from a given data.root: set data.scenes, data.train_frames,
+    data.test_frames (per scene; null where the scenes' counts differ) and data.size (the
+    images' shorter side) to what the folder holds, so that the run's config and its saved
+    copy describe the data it reads; -> the corrections, as `key: old -> new`."""
+    from pae.data.transforms import image_size
+
+    files = _label_files(cfg)
+    train, test = read_labels(files["train"]), read_labels(files["test"])
+    first_image = Path(str(cfg.data.root)) / train.img_path[0]
+    on_disk = {
+        "scenes": len(train.scene_names),
+        "train_frames": _per_scene(train),
+        "test_frames": _per_scene(test),
+        "size": min(image_size(str(first_image))),
+    }
+    corrections = []
+    with open_dict(cfg):
+        for key, value in on_disk.items():
+            if cfg.data.get(key) != value:
+                corrections.append(f"data.{key}: {cfg.data.get(key)} -> {value}")
+                cfg.data[key] = value
+    if corrections:
+        print(
+            f"data: data.root={cfg.data.root} holds other data than the settings say; the "
+            f"run's config now describes it ({', '.join(corrections)})"
+        )
+    return corrections
+
+
+def _check_val_walks(cfg: DictConfig) -> None:
+    """data.val_walks: a count of validation walks, held out on top of an integer
+    data.val_sequences, of the benchmark's own layout (not data.poses)."""
+    data = cfg.data
+    if not data.get("val_walks"):
+        return
+    integer(cfg, "data.val_walks", 0)
+    held = data.get("val_sequences")
+    if not is_int(held) or data.get("val_labels") or data.get("poses"):
+        raise ConfigError(
+            f"data.val_walks={data.val_walks} holds its walks out on top of "
+            f"data.val_sequences: set it to an integer (got {held!r}), data.val_labels and "
+            f"data.poses to null"
+        )
+
+
+def _train_set_size(cfg: DictConfig) -> int:
+    """Rows of the train split: from the synthetic data's settings when it renders on first
+    use (it may not be rendered yet), otherwise from the train label file (its chosen
+    scenes)."""
+    data = cfg.data
+    if _is_synthetic(cfg):
+        for key, high in {**SYNTHETIC_LAYOUT_BOUNDS, **SYNTHETIC_NUISANCE_BOUNDS}.items():
+            if key in data:
+                number(cfg, f"data.{key}", 0, strict=False)
+                if data[key] > high:
+                    raise ConfigError(f"data.{key} must be <= {high:g}, got {data[key]!r}")
+        val_lane, lane = data.get("val_lane_m"), data.get("train_lane_m", 0.5)
+        if val_lane is not None and not (
+            (is_int(val_lane) or isinstance(val_lane, float)) and abs(val_lane) <= lane
+        ):
+            raise ConfigError(
+                f"data.val_lane_m must be null or a number no farther from 0 than "
+                f"data.train_lane_m={lane:g}, got {val_lane!r}"
+            )
+        if data.get("poses") and val_lane is not None:
+            raise ConfigError("data.poses renders the given rows: set data.val_lane_m to null")
+        _check_val_walks(cfg)
+        on = [f"data.{key}" for key in SYNTHETIC_NUISANCE_BOUNDS if data.get(key)]
+        if data.get("poses") and on:
+            raise ConfigError(
+                f"data.poses renders the given rows without nuisances: set {', '.join(on)} to 0"
+            )
+    if _renders(cfg):
+        integer(cfg, "data.scenes", 1)
+        integer(cfg, "data.train_frames", 1)
+        integer(cfg, "data.test_frames", 1)
+        integer(cfg, "data.size", 8)
+        integer(cfg, "data.render_seed", 0)
+        return data.scenes * data.train_frames
+    _check_root(cfg)
+    table = read_labels(_label_files(cfg)["train"])
+    if _is_synthetic(cfg):
+        match_synthetic_settings(cfg)
+        return len(table)
+    scenes = data.get("scenes")
+    if scenes is not None and not (
+        isinstance(scenes, ListConfig) and scenes and all(isinstance(s, str) for s in scenes)
+    ):
+        raise ConfigError(f"data.scenes must be null or a list of scene names, got {scenes!r}")
+    if scenes is None:
+        return len(table)
+    missing = [scene for scene in scenes if scene not in table.scene_names]
+    if missing:
+        raise ConfigError(
+            f"data.scenes={list(scenes)}: no rows of {', '.join(missing)} in "
+            f"data.train_labels={data.train_labels}, which has the scenes {table.scene_names}"
+        )
+    return int(np.isin(np.asarray(table.scene), list(scenes)).sum())
+
+
+def _validate_holdout(cfg: DictConfig) -> None:
+    """data.val_sequences: null, an integer >= 1 or a list of sequence names;
+    data.val_fraction: null or a number in (0, 1)."""
+    sequences = setting(cfg, "data.val_sequences")
+    names = isinstance(sequences, ListConfig) and all(isinstance(s, str) for s in sequences)
+    names = names and len(sequences) > 0
+    if not (sequences is None or (is_int(sequences) and sequences >= 1) or names):
+        raise ConfigError(
+            "data.val_sequences must be null, an integer >= 1 (the last n train sequences of "
+            f"each scene) or a list of sequence names, got {sequences!r}"
+        )
+    fraction = setting(cfg, "data.val_fraction")
+    if fraction is not None and not (
+        isinstance(fraction, int | float) and not isinstance(fraction, bool) and 0 < fraction < 1
+    ):
+        raise ConfigError(f"data.val_fraction must be null or a number in (0, 1), got {fraction!r}")
+
+
+def validate_data(cfg: DictConfig, train: bool = True) -> None:
+    """data.*: paths (a given data.root holds label files; synthetic data read from one
+    gets the settings of what it holds), sizes, batch sizes (train: at most the train set),
+    workers."""
+    n_train = _train_set_size(cfg)
+    crop = integer(cfg, "data.crop", 1)
+    shorter_edge = integer(cfg, "data.shorter_edge", 1)
+    if crop > shorter_edge:
+        raise ConfigError(
+            f"data.crop={crop} is larger than data.shorter_edge={shorter_edge} (the images' "
+            "shorter edge after resizing)"
+        )
+    integer(cfg, "data.eval_batch_size", 1)
+    integer(cfg, "data.num_workers", 0)
+    for key in ("augment", "cache_images", "balance_scenes", "crop_turns_camera"):
+        boolean(cfg, f"data.{key}")
+    _validate_holdout(cfg)
+    batch_size = integer(cfg, "data.batch_size", 1)
+    if train and batch_size > n_train:
+        raise ConfigError(
+            f"data.batch_size={batch_size} is larger than the train set ({n_train} rows): "
+            "training would get no full batch"
+        )
+
+
+def validate_refine(cfg: DictConfig) -> None:
+    """refine.*: ranges here (for the keys the configured refinement has); the choices
+    (weight model, orientation, distance) are checked by building its callback."""
+    refine = cfg.get("refine")
+    if not refine:
+        return
+    for key, low in (("k", 1), ("iterations", 0), ("every_n_val_epochs", 1)):
+        if key in refine:
+            integer(cfg, f"refine.{key}", low)
+    if "lr" in refine:
+        number(cfg, "refine.lr", 0, strict=True)
+    if "rot_weight" in refine:
+        number(cfg, "refine.rot_weight", 0, strict=False)
+    if "guess_sigma_m" in refine:
+        number(cfg, "refine.guess_sigma_m", 0, strict=False, optional=True)
+    from pae.runs.trainer import refinement_callbacks
+
+    refinement_callbacks(cfg)
+
+
+def _validate_common(cfg: DictConfig) -> None:
+    integer(cfg, "seed", 0)
+    boolean(cfg, "allow_other_data")
+    if "check_val_every_n_epoch" in cfg.trainer:
+        integer(cfg, "trainer.check_val_every_n_epoch", 1)
+    validate_refine(cfg)
+
+
+ADDED_KEY_GROUPS = GROUPS
+"""The steps' groups, whose settings are exactly their YAML's: a key added to one with ``+``
+is a typo, unless it lies in a model config (those are checked against their
+constructors)."""
+
+
+def check_added_keys(cfg: DictConfig, overrides: list[str]) -> None:
+    """Command-line overrides that add a key (``+group.key=value``) to a group of
+    ``ADDED_KEY_GROUPS`` outside its model configs (a node with ``_target_``): pae reads no
+    such setting, so it is refused, naming the key and the group's nearest setting."""
+    import difflib
+
+    for override in overrides:
+        if not override.startswith("+") or override.startswith("++") or "=" not in override:
+            continue
+        key = override[1:].split("=", 1)[0]
+        parts = key.split(".")
+        if parts[0] not in ADDED_KEY_GROUPS or len(parts) < 2:
+            continue
+        node: Any = cfg
+        inside_model = False
+        for part in parts[:-1]:
+            node = node.get(part) if isinstance(node, DictConfig) else None
+            if isinstance(node, DictConfig) and "_target_" in node:
+                inside_model = True
+        if inside_model or not isinstance(node, DictConfig):
+            continue
+        known = [name for name in node if name != parts[-1]]
+        near = difflib.get_close_matches(parts[-1], known, n=1)
+        hint = f"; did you mean {'.'.join([*parts[:-1], near[0]])}?" if near else ""
+        raise ConfigError(f"{key}: not a setting of {'.'.join(parts[:-1])} (added with +){hint}")
+
+
+GROUP_CONSTRUCTORS: dict[str, tuple[str, ...]] = {
+    "data": ("augment",),
+    "trainer": ("max_epochs", "logger", "callbacks", "default_root_dir", "plugins"),
+    "refine": (),
+    "render_compare": (),
+}
+"""Groups built from their ``_target_`` besides the steps' models -> the constructor
+arguments their builder fills in; each entry of ``callbacks`` and ``logger`` is checked too
+(a logger's ``save_dir`` filled in). Nested ``_target_`` configs (the render-and-compare
+refiner) are checked with their parent."""
+
+
+def validate_groups(cfg: DictConfig) -> None:
+    """Every key of the groups built from a ``_target_`` (``GROUP_CONSTRUCTORS``, callbacks,
+    loggers) is an argument of its class, before any work: a misspelt or added key is a
+    ConfigError naming it."""
+    checks = dict(GROUP_CONSTRUCTORS)
+    for group, supplied in (("callbacks", ()), ("logger", ("save_dir",))):
+        node = setting(cfg, group)
+        if isinstance(node, DictConfig):
+            checks |= {f"{group}.{name}": supplied for name in node}
+    for key, supplied in checks.items():
+        node = setting(cfg, key)
+        if isinstance(node, DictConfig) and "_target_" in node:
+            check_constructor(cfg, key, supplied)
+
+
+def validate_render_compare(cfg: DictConfig) -> None:
+    """render_compare.*: its values and ranges as its classes check them (the callback and
+    the refiner it builds; their keys: ``validate_groups``), by building the callback."""
+    if setting(cfg, "render_compare") is None:
+        return
+    from pae.runs.trainer import render_compare_callback
+
+    render_compare_callback(cfg)
+
+
+def validate_train_config(cfg: DictConfig, overrides: list[str] | None = None) -> None:
+    """All of pae-train's settings (conf/train.yaml), and the keys ``overrides`` (the command
+    line's) add; raises ConfigError naming the key."""
+    from hydra.utils import get_object
+
+    from pae.core.losses import LATENT_LOSSES
+
+    check_missing(cfg)
+    check_added_keys(cfg, overrides or [])
+    steps = list(cfg.stage.steps)
+    try:
+        steps_of(steps)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    validate_models(cfg)
+    validate_groups(cfg)
+    _validate_common(cfg)
+    boolean(cfg, "resume")
+    for group in GROUPS:
+        integer(cfg, f"{group}.max_epochs", 0)
+        number(cfg, f"{group}.optimizer.lr", 0, strict=True)
+        number(cfg, f"{group}.optimizer.weight_decay", 0, strict=False, optional=True)
+    number(cfg, "teacher.scene_loss_weight", 0, strict=False)
+    choice(cfg, "student.input", ("gt", "teacher"))
+    choice(cfg, "student.latent_loss", LATENT_LOSSES)
+    boolean(cfg, "student.cache_latents")
+    integer(cfg, "rpr.pair_k", 1)
+    integer(cfg, "iapr.iterations", 1)
+    number(cfg, "iapr.start.position_m", 0, strict=False)
+    number(cfg, "iapr.start.orientation_deg", 0, strict=False)
+    boolean(cfg, "iapr.refine_orientation")
+    choice(cfg, "iapr.init_backbone", ("teacher", None))
+    choice(cfg, "rpr.init_backbone", ("teacher", None))
+    if setting(cfg, "rpr.pair_offset") is not None:
+        number(cfg, "rpr.pair_offset.position_m", 0, strict=False)
+        number(cfg, "rpr.pair_offset.orientation_deg", 0, strict=False)
+    boolean(cfg, "backbone.pretrained")
+    existing_file(cfg, "backbone.weights_path")
+    for key in CHECKPOINTS:
+        existing_file(cfg, key)
+    _validate_scene_model(cfg)
+    needs = _model_needs(cfg, steps)
+    for step, keys in novel_view_needs(cfg, steps).items():
+        needs[step] = (*needs[step], *keys)
+    target = setting(cfg, "scene_model.model._target_")
+    if "scene_fit" in steps and not getattr(get_object(target), "trains", False):
+        raise ConfigError(f"scene_fit: scene_model.model._target_={target} does not train")
+    given = {key: setting(cfg, key) for key in CHECKPOINTS}
+    missing = missing_checkpoints(steps, given, needs)
+    if missing:
+        raise ConfigError(f"stage={cfg.stage.name} needs {missing[0][1]}=PATH")
+    from pae.core.checkpoints import check_checkpoint_kinds
+
+    check_checkpoint_kinds(given)
+    validate_data(cfg, train=True)
+
+
+def _model_needs(cfg: DictConfig, steps: list[str]) -> dict[str, tuple[str, ...]]:
+    """Step name -> the checkpoint keys its models' classes declare they need (``needs``)."""
+    from hydra.utils import get_object
+
+    return {
+        step.name: tuple(
+            key
+            for model in step.models
+            for key in getattr(get_object(setting(cfg, f"{model}._target_")), "needs", ())
+        )
+        for step in steps_of(steps)
+    }
+
+
+def _validate_scene_model(cfg: DictConfig) -> None:
+    """scene_model.* (the step's settings; its model's ranges are its class's
+    ``check_config``) and render_compare.*."""
+    if setting(cfg, "scene_model") is None:
+        return
+    for key in ("batches_per_epoch", "rays_per_batch", "quality_size", "quality_images"):
+        integer(cfg, f"scene_model.{key}", 1)
+    number(cfg, "scene_model.tv_weight", 0, strict=False)
+    choice(cfg, "scene_model.appearance", ("sequence", "image"))
+    number(cfg, "scene_model.appearance_lr", 0, strict=True, optional=True)
+    integer(cfg, "scene_model.fit_trim_from_epoch", 0)
+    fit_trim = setting(cfg, "scene_model.fit_trim")
+    if not (is_int(fit_trim) or isinstance(fit_trim, float)) or not 0 <= fit_trim < 1:
+        raise ConfigError(f"scene_model.fit_trim must be a number in [0, 1), got {fit_trim!r}")
+    if setting(cfg, "scene_model.image_size") is not None:
+        integer(cfg, "scene_model.image_size", 4)
+    validate_render_compare(cfg)
+
+
+def validate_eval_config(cfg: DictConfig) -> None:
+    """All of pae-eval's settings (conf/eval.yaml); raises ConfigError naming the key."""
+    check_missing(cfg)
+    validate_groups(cfg)
+    _validate_common(cfg)
+    if setting(cfg, "student_ckpt") is None and setting(cfg, "scene_model_ckpt") is None:
+        raise ConfigError(
+            "pae-eval needs student_ckpt=PATH (a checkpoint of stage=student) or "
+            "scene_model_ckpt=PATH (a checkpoint of stage=render_compare)"
+        )
+    for key in ("student_ckpt", "teacher_ckpt", "scene_model_ckpt"):
+        existing_file(cfg, key)
+    methods = setting(cfg, "method_ckpts")
+    if methods is not None and not isinstance(methods, ListConfig):
+        raise ConfigError(f"method_ckpts must be a list of checkpoint paths, got {methods!r}")
+    for position, path in enumerate(methods or []):
+        if not Path(str(path)).is_file():
+            raise ConfigError(f"method_ckpts[{position}]={path}: no such file")
+    if "iapr_iterations" in cfg:
+        integer(cfg, "iapr_iterations", 1)
+    validate_render_compare(cfg)
+    validate_data(cfg, train=False)

@@ -1,0 +1,319 @@
+"""``pae-data``: make, convert and check label files.
+
+::
+
+    pae-data synth OUT [--scenes N --train-frames N --test-frames N --test-offset M
+                        --train-lane M --val-lane M --yaw-stray RAD --stray M --size PX
+                        --seed S]
+                       [--lighting-change S --occluder-fraction F --sensor-noise STD
+                        --motion-blur PX] [--overwrite]
+    pae-data synth OUT --poses LABELS.csv [LABELS.csv ...] [--size PX --seed S] [--overwrite]
+    pae-data convert {cambridge,7scenes} RAW_ROOT OUT_DIR
+    pae-data check LABELS.csv [LABELS.csv ...] ROOT
+    pae-data audit-guess --test TEST.csv [...] --train TRAIN.csv [...] [--sigma M --k K --seed S]
+
+Bad input ends with exit status 1 and a one-line ``pae-data: error: ...`` message on stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+from pae.core.console import Progress
+from pae.core.errors import LabelError, LabelWarning
+from pae.data.labels import (
+    FOCAL_COLUMN,
+    LabelTable,
+    find_image_problems,
+    focal_column_mismatch,
+    read_labels,
+    read_labels_lenient,
+)
+
+PROG = "pae-data"
+
+
+def _render_progress(out: Path) -> Progress:
+    """Rendering progress lines on stderr (stdout keeps the summary)."""
+    return Progress(f"rendering {out}", "frames", lambda line: print(line, file=sys.stderr))
+
+
+def _synth(args: argparse.Namespace) -> int:
+    from pae import synthetic
+
+    def chosen(value: int | float | None, default: int | float) -> int | float:
+        return default if value is None else value
+
+    if args.poses:
+        ignored = [
+            flag
+            for flag, value in (
+                ("--scenes", args.scenes),
+                ("--train-frames", args.train_frames),
+                ("--test-frames", args.test_frames),
+                ("--test-offset", args.test_offset),
+                ("--train-lane", args.train_lane),
+                ("--val-lane", args.val_lane),
+                ("--val-walks", args.val_walks),
+                ("--yaw-stray", args.yaw_stray),
+                ("--stray", args.stray),
+                ("--lighting-change", args.lighting_change),
+                ("--occluder-fraction", args.occluder_fraction),
+                ("--sensor-noise", args.sensor_noise),
+                ("--motion-blur", args.motion_blur),
+            )
+            if value is not None
+        ]
+        if ignored:
+            raise ValueError(f"--poses renders the given rows only: drop {', '.join(ignored)}")
+        from pae.synthetic.poses import write_dataset_at_poses
+
+        dataset = write_dataset_at_poses(
+            args.out,
+            args.poses,
+            size=chosen(args.size, synthetic.DEFAULT_SIZE),
+            seed=args.seed,
+            overwrite=args.overwrite,
+            progress=_render_progress(args.out),
+        )
+    else:
+        dataset = synthetic.write_synthetic_dataset(
+            args.out,
+            scenes=chosen(args.scenes, synthetic.DEFAULT_SCENES),
+            train_frames=chosen(args.train_frames, synthetic.DEFAULT_TRAIN_FRAMES),
+            test_frames=chosen(args.test_frames, synthetic.DEFAULT_TEST_FRAMES),
+            size=chosen(args.size, synthetic.DEFAULT_SIZE),
+            seed=args.seed,
+            test_offset_m=chosen(args.test_offset, synthetic.DEFAULT_TEST_OFFSET_M),
+            train_lane_m=chosen(args.train_lane, synthetic.DEFAULT_TRAIN_LANE_M),
+            yaw_stray_rad=chosen(args.yaw_stray, synthetic.DEFAULT_YAW_STRAY_RAD),
+            stray_m=chosen(args.stray, synthetic.DEFAULT_STRAY_M),
+            val_lane_m=args.val_lane,
+            val_walks=chosen(args.val_walks, 0),
+            lighting_change=chosen(args.lighting_change, 0.0),
+            occluder_fraction=chosen(args.occluder_fraction, 0.0),
+            sensor_noise_std=chosen(args.sensor_noise, 0.0),
+            motion_blur_px=chosen(args.motion_blur, 0.0),
+            overwrite=args.overwrite,
+            progress=_render_progress(args.out),
+        )
+    print(dataset.summary())
+    return 0
+
+
+def _convert(args: argparse.Namespace) -> int:
+    from pae.data.raw import convert_raw
+
+    written = convert_raw(args.dataset, args.raw_root, args.out_dir)
+    scene_files = [name for name in written if not name.startswith("all_")]
+    scenes = sorted({name.rsplit("_", 1)[0] for name in scene_files})
+    print(f"wrote {len(written)} label files for {len(scenes)} scenes to {args.out_dir}:")
+    width = max(len(name) for name in written)
+    for name, rows in written.items():
+        print(f"  {name:<{width}}  {rows:>7} rows")
+    print(f"img_path is relative to {args.raw_root}: use it as data.root")
+    return 0
+
+
+def _check(args: argparse.Namespace) -> int:
+    """Every row of each label file, then whether the files agree on the focal column."""
+    failed, tables = False, []
+    for labels in args.labels:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", LabelWarning)
+            table, label_errors = read_labels_lenient(labels)
+        for warning in caught:
+            print(f"{PROG}: warning: {warning.message}", file=sys.stderr)
+        image_problems = find_image_problems(table, args.root)
+        problems = [str(error) for error in label_errors] + image_problems
+        rows = len(table) + len(label_errors)
+        tables.append(table)
+        if problems:
+            for problem in problems:
+                print(problem)
+            print(f"FAILED: {len(problems)} of {rows} rows in {labels} have problems")
+            failed = True
+        else:
+            print(f"OK: {rows} rows, {len(table.scene_names)} scenes")
+    mismatch = focal_column_mismatch(tables)
+    if mismatch is not None:
+        print(mismatch)
+        print(f"FAILED: the {len(tables)} label files disagree on the {FOCAL_COLUMN} column")
+        failed = True
+    return 1 if failed else 0
+
+
+def _read_tables(paths: Sequence[Path]) -> LabelTable:
+    """The rows of all label files; repairs are reported as one warning line per file."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", LabelWarning)
+        table = LabelTable.concat(read_labels(path) for path in paths)
+    for warning in caught:
+        print(f"{PROG}: warning: {warning.message}", file=sys.stderr)
+    return table
+
+
+def _audit_guess(args: argparse.Namespace) -> int:
+    from pae.refine.audit import format_guess_audit, guess_audit
+
+    test, train = _read_tables(args.test), _read_tables(args.train)
+    rows = guess_audit(test, train, sigma_m=args.sigma, k=args.k, seed=args.seed)
+    print(format_guess_audit(rows, args.sigma, args.k))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``pae-data`` argument parser."""
+    parser = argparse.ArgumentParser(prog=PROG, description="Make, convert and check label files.")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    synth = commands.add_parser(
+        "synth",
+        help="render the synthetic benchmark",
+        description="Render the synthetic benchmark: OUT/labels/*.csv and images under OUT/.",
+    )
+    synth.add_argument("out", type=Path, metavar="OUT", help="output folder")
+    synth.add_argument("--scenes", type=int, help="number of scenes (default: module default)")
+    synth.add_argument("--train-frames", type=int, help="train frames per scene")
+    synth.add_argument("--test-frames", type=int, help="test frames per scene")
+    synth.add_argument(
+        "--test-offset",
+        type=float,
+        metavar="M",
+        help="lateral offset of the test sequences from the route in metres, alternately "
+        "left and right (default: 0, on the route)",
+    )
+    synth.add_argument(
+        "--train-lane",
+        type=float,
+        metavar="M",
+        help="lateral offset of the train sequences from the route in metres, alternately "
+        "left and right (default: 0.5)",
+    )
+    synth.add_argument(
+        "--val-lane",
+        type=float,
+        metavar="M",
+        help="lateral offset (m, signed, within the train lanes) of the last train sequence of "
+        "each scene, the validation split of data.val_sequences=1 (default: its lane; 0: "
+        "between the lanes)",
+    )
+    synth.add_argument(
+        "--val-walks",
+        type=int,
+        metavar="N",
+        help="more validation sequences per scene, numbered after the test ones, each as long "
+        "as the last train sequence and walking where it walks (default: 0; hold them out with "
+        "data.val_walks=N)",
+    )
+    synth.add_argument(
+        "--yaw-stray",
+        type=float,
+        metavar="RAD",
+        help="how far each sequence's yaw strays from the route's heading (default: 0.15)",
+    )
+    synth.add_argument(
+        "--stray",
+        type=float,
+        metavar="M",
+        help="how far each camera strays horizontally from its lane (default: 0.1)",
+    )
+    synth.add_argument(
+        "--lighting-change",
+        type=float,
+        metavar="S",
+        help="strength in [0, 1] of lighting and exposure changing between and within "
+        "sequences (default: 0, off)",
+    )
+    synth.add_argument(
+        "--occluder-fraction",
+        type=float,
+        metavar="F",
+        help="share in [0, 1] of frames with a person-sized box in front of the camera "
+        "(default: 0, off)",
+    )
+    synth.add_argument(
+        "--sensor-noise",
+        type=float,
+        metavar="STD",
+        help="extra Gaussian sensor noise, std of values in [0, 1] (default: 0, off)",
+    )
+    synth.add_argument(
+        "--motion-blur",
+        type=float,
+        metavar="PX",
+        help="longest motion blur in pixels, each frame's random up to it (default: 0, off)",
+    )
+    synth.add_argument(
+        "--poses",
+        type=Path,
+        nargs="+",
+        metavar="LABELS.csv",
+        help="render one image per row of these label files, at exactly its pose, in a world "
+        "built around their camera positions (e.g. real Cambridge / 7-Scenes labels)",
+    )
+    synth.add_argument("--size", type=int, metavar="PX", help="image side in pixels")
+    synth.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    synth.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the dataset already in OUT (otherwise a non-empty OUT is refused)",
+    )
+    synth.set_defaults(run=_synth)
+
+    convert = commands.add_parser(
+        "convert",
+        help="write label files from a raw Cambridge / 7-Scenes download",
+        description="Write OUT_DIR/<scene>_{train,test}.csv and OUT_DIR/all_{train,test}.csv "
+        "from the scene folders under RAW_ROOT; img_path is relative to RAW_ROOT.",
+    )
+    convert.add_argument("dataset", choices=("cambridge", "7scenes"))
+    convert.add_argument("raw_root", type=Path, metavar="RAW_ROOT")
+    convert.add_argument("out_dir", type=Path, metavar="OUT_DIR")
+    convert.set_defaults(run=_convert)
+
+    check = commands.add_parser(
+        "check",
+        help="validate label files and their images",
+        description="Validate every row of each LABELS.csv (its focal length, if any, "
+        "against the width of its images) and decode its image under ROOT; with the files of "
+        "several splits, check that all or none have a focal column; exit 1 listing every "
+        "problem.",
+    )
+    check.add_argument("labels", type=Path, nargs="+", metavar="LABELS.csv")
+    check.add_argument("root", type=Path, metavar="ROOT", help="dataset root of img_path")
+    check.set_defaults(run=_check)
+
+    audit = commands.add_parser(
+        "audit-guess",
+        help="the random-guess check from label files alone (no images, no PAE)",
+        description="Per scene: a guess around each test pose (true position + Gaussian "
+        "noise, true orientation) and the mean of its k nearest poses, retrieved from the test "
+        "poses (the authors' public scripts) and from the train poses.",
+    )
+    audit.add_argument("--test", type=Path, nargs="+", required=True, metavar="TEST.csv")
+    audit.add_argument("--train", type=Path, nargs="+", required=True, metavar="TRAIN.csv")
+    audit.add_argument("--sigma", type=float, default=1.0, metavar="M", help="noise std (m)")
+    audit.add_argument("--k", type=int, default=3, help="neighbours (default: 3)")
+    audit.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    audit.set_defaults(run=_audit_guess)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``pae-data``; returns the exit status (argparse usage errors exit with 2)."""
+    args = build_parser().parse_args(argv)
+    try:
+        return args.run(args)
+    except (LabelError, OSError, ValueError) as error:
+        message = " ".join(str(error).split()) or type(error).__name__
+        print(f"{PROG}: error: {message}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,119 @@
+"""RenderCompareRefiner's settings: their defaults (``RenderCompareSettings``, their one home
+in code; ``conf/render_compare/default.yaml`` overrides them) and their ranges (checked when a
+refiner is made)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+SCORES = ("zncc", "features")
+ENGINES = ("auto", "compiled", "torch")
+"""auto: compiled loops (``pae.render_compare.score``, ``pae.render_compare.polish_kernel``)
+for CPU tensors and the ZNCC score, tensor operations otherwise; compiled: always (ZNCC only);
+torch: always tensor operations (any device)."""
+
+BUILD_KEYS = ("_target_", "_partial_")
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderCompareSettings:
+    """Every setting of :class:`pae.render_compare.refiner.RenderCompareRefiner` with its
+    default (chosen on the demo's validation split: experiments/render_compare)."""
+
+    rounds: int = 4
+    candidates: int = 12
+    hypotheses: int = 4
+    position_sigma_m: float = 0.25
+    orientation_sigma_deg: float = 4.0
+    shrink: float = 0.6
+    resolution: int = 64
+    levels: int = 3
+    blur_sigma_px: float = 0.3
+    highpass_sigma_px: float = 0.0
+    reference_size: int = 16
+    reference_fov_scale: float = 1.3
+    final_reference_size: int = 32
+    final_fov_scale: float = 1.05
+    polish_steps: int = 5
+    polish_damping: float = 1.0e-3
+    min_overlap: float = 0.2
+    trim_sigma: float = 0.0
+    trim_passes: int = 2
+    score: str = "zncc"
+    seed: int = 0
+    chunk: int = 64
+    engine: str = "auto"
+
+
+def refiner_defaults() -> dict[str, Any]:
+    """RenderCompareRefiner's default settings (``RenderCompareSettings``) as a mapping."""
+    return dataclasses.asdict(RenderCompareSettings())
+
+
+def check_settings(
+    *,
+    score: str,
+    engine: str,
+    features: Any,
+    rounds: int,
+    candidates: int,
+    hypotheses: int,
+    levels: int,
+    polish_steps: int,
+    resolution: int,
+    reference_size: int,
+    final_reference_size: int,
+    reference_fov_scale: float,
+    final_fov_scale: float,
+    blur_sigma_px: float,
+    highpass_sigma_px: float,
+    polish_damping: float,
+    trim_sigma: float,
+    trim_passes: int,
+    **_: Any,
+) -> None:
+    """The ranges and combinations of the refiner's settings (``features``: the feature
+    extractor given, or None); a ValueError naming the setting otherwise."""
+    if score not in SCORES:
+        raise ValueError(f"unknown render_compare.score {score!r}; choose one of {SCORES}")
+    if engine not in ENGINES:
+        raise ValueError(f"unknown render_compare.engine {engine!r}; choose one of {ENGINES}")
+    if engine == "compiled" and score != "zncc":
+        raise ValueError("render_compare.engine=compiled scores zncc only; use auto or torch")
+    if score == "features" and polish_steps:
+        raise ValueError(
+            "render_compare.polish_steps align the zncc score only; set "
+            "render_compare.refiner.polish_steps=0 with score=features"
+        )
+    if score == "features" and features is None:
+        raise ValueError("render_compare.score=features needs a feature extractor")
+    if (
+        min(rounds, polish_steps, final_reference_size) < 0
+        or min(candidates, hypotheses, levels) < 1
+    ):
+        raise ValueError(
+            "render_compare needs rounds, polish_steps, final_reference_size >= 0 and "
+            "candidates, hypotheses, levels >= 1"
+        )
+    if min(resolution, reference_size) < 8 or 0 < final_reference_size < 8:
+        raise ValueError(
+            "render_compare needs resolution, reference_size and final_reference_size "
+            "(unless 0) >= 8 px"
+        )
+    if min(reference_fov_scale, final_fov_scale) <= 0:
+        raise ValueError(
+            "render_compare needs reference_fov_scale and final_fov_scale > 0, not "
+            f"{reference_fov_scale:g} and {final_fov_scale:g}"
+        )
+    if highpass_sigma_px < 0 or blur_sigma_px < 0 or polish_damping <= 0:
+        raise ValueError(
+            "render_compare needs blur_sigma_px >= 0, highpass_sigma_px >= 0 and "
+            f"polish_damping > 0, not {blur_sigma_px:g}, {highpass_sigma_px:g}, "
+            f"{polish_damping:g}"
+        )
+    if trim_sigma < 0 or trim_passes < 0:
+        raise ValueError(
+            f"render_compare needs trim_sigma >= 0 and trim_passes >= 0, not {trim_sigma} "
+            f"and {trim_passes}"
+        )

@@ -1,0 +1,345 @@
+"""A voxel radiance grid per scene (DVGO / Plenoxels style): density and colour on a dense
+grid, sampled trilinearly and alpha-composited along stratified ray samples.
+
+Bounds come from the train cameras (their positions plus a margin, computed by the caller),
+never from the scene's geometry. With ``contract`` the grid covers unbounded scenes: points
+outside the bounds are contracted as in mip-NeRF 360 (``x -> (2 - 1/‖x‖∞)·x/‖x‖∞`` in the
+coordinates where the bounds are ``[-1, 1]³``), and half of each ray's samples are spaced
+evenly in inverse depth out to ``far_factor`` times the bounds' size.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from omegaconf import DictConfig, ListConfig
+from torch import Tensor, nn
+
+from pae.core.camera import camera_rays
+from pae.core.checks import boolean, integer, is_int, number, setting
+from pae.core.errors import ConfigError
+from pae.scene_model.base import SceneModel, SceneModelInputs, SceneRendering
+from pae.scene_model.voxel_render import CompiledComposite, GridGeometry, RaySegments, channels_last
+
+_EPS = 1e-9
+
+
+def grid_shape(extent: Sequence[float], num_voxels: int) -> tuple[int, int, int]:
+    """(nx, ny, nz) of cubic voxels filling ``extent`` [3] (m) with about ``num_voxels``."""
+    volume = math.prod(extent)
+    voxel = (volume / num_voxels) ** (1 / 3)
+    return tuple(max(2, round(e / voxel)) for e in extent)  # type: ignore[return-value]
+
+
+def camera_bounds(positions: Tensor, margin_m: float | Sequence[float]) -> Tensor:
+    """Axis-aligned bounds [2, 3] (lo, hi) of camera positions [N, 3] plus a margin (m),
+    one value or one per axis."""
+    margin = torch.as_tensor(margin_m, dtype=torch.float64).expand(3)
+    positions = positions.double()
+    return torch.stack([positions.min(0).values - margin, positions.max(0).values + margin])
+
+
+def camera_extent_m(positions: Tensor) -> float:
+    """The largest side (m) of the box holding the middle 96 % of camera positions [N, 3]
+    along each axis: the camera region's size, robust to a few stray frames."""
+    if len(positions) < 2:
+        return 0.0
+    q = torch.tensor([0.02, 0.98], dtype=torch.float64)
+    spread = positions.double().quantile(q, dim=0)
+    return float((spread[1] - spread[0]).max())
+
+
+def train_scale(
+    poses: Tensor, scenes: Tensor, n_scenes: int, config: Mapping[str, Any]
+) -> dict[str, Any]:
+    """The grid's bounds and contraction from the train cameras alone (poses [N, 7] of scene
+    ids [N]; never the scene's geometry): per scene the camera positions' bounds plus
+    ``margin_m``, and ``contract``. ``margin_m: auto`` is ``max(auto_scale.margin_floor_m,
+    auto_scale.margin_fraction × extent)`` per scene (extent: :func:`camera_extent_m`);
+    ``contract: auto`` contracts space when some scene's extent exceeds
+    ``auto_scale.contract_above_m`` (a street, not a room). Returns ``config`` with ``bounds``
+    and ``contract`` set, and ``margin_m`` and ``auto_scale`` gone."""
+    positions = [poses[scenes == s, :3] for s in range(n_scenes)]
+    extents = [camera_extent_m(p) for p in positions]
+    config = dict(config)
+    margin, auto = config.pop("margin_m"), config.pop("auto_scale")
+    if margin == "auto":
+        margins = [max(auto["margin_floor_m"], auto["margin_fraction"] * e) for e in extents]
+    else:
+        margins = [margin] * len(positions)
+    if config.get("contract") == "auto":
+        config["contract"] = max(extents, default=0.0) > auto["contract_above_m"]
+    pairs = zip(positions, margins, strict=True)
+    config["bounds"] = [camera_bounds(p, m).tolist() for p, m in pairs]
+    return config
+
+
+class VoxelGrid(nn.Module):
+    """One scene: a 4-channel grid [1, 4, nz, ny, nx] (raw density, raw RGB) over the box
+    ``bounds`` [2, 3] (m), or over its contraction."""
+
+    def __init__(
+        self,
+        bounds: Sequence[Sequence[float]],
+        num_voxels: int,
+        contract: bool = False,
+        init_alpha: float = 1e-2,
+    ) -> None:
+        super().__init__()
+        bounds_t = torch.as_tensor(bounds, dtype=torch.float32).reshape(2, 3)
+        if not bool((bounds_t[1] > bounds_t[0]).all()):
+            raise ValueError(f"scene bounds must have lo < hi on every axis, got {bounds}")
+        self.register_buffer("lo", bounds_t[0].clone())
+        self.register_buffer("hi", bounds_t[1].clone())
+        self.contract = contract
+        extent = (bounds_t[1] - bounds_t[0]).tolist()
+        shape = grid_shape([2 * e for e in extent] if contract else extent, num_voxels)
+        self.shape = shape
+        self.voxel_m = float(min(e / (n - 1) for e, n in zip(extent, shape, strict=True)))
+        if contract:
+            self.voxel_m *= 2
+        self.grid = nn.Parameter(torch.zeros(1, 4, shape[2], shape[1], shape[0]))
+        # softplus(shift) · (one voxel) = -log(1 - init_alpha): a faint initial fog
+        self.density_shift = math.log(math.expm1(-math.log1p(-init_alpha)))
+        self.background = nn.Parameter(torch.zeros(3))
+        self._kernel_cells: tuple[tuple[int, int], np.ndarray] | None = None
+
+    def normalised(self, points: Tensor) -> Tensor:
+        """World points [..., 3] -> grid coordinates in [-1, 1] (contracted when set)."""
+        unit = (points - self.lo) / (self.hi - self.lo) * 2 - 1
+        if not self.contract:
+            return unit
+        norm = unit.abs().amax(-1, keepdim=True).clamp_min(_EPS)
+        contracted = torch.where(norm <= 1, unit, (2 - 1 / norm) * unit / norm)
+        return contracted / 2
+
+    def ray_bounds(self, origins: Tensor, directions: Tensor, near_m: float) -> RaySegments:
+        """Rays [R, 3] -> their segments: the depths where sampling starts (``near_m`` or
+        where the ray enters the bounds), where it leaves the bounds, and where it ends
+        (contracted grids: ``far_m`` beyond the bounds; else where it leaves)."""
+        safe = torch.where(directions.abs() < _EPS, torch.full_like(directions, _EPS), directions)
+        t_lo, t_hi = (self.lo - origins) / safe, (self.hi - origins) / safe
+        enter = torch.minimum(t_lo, t_hi).amax(-1)
+        leave = torch.maximum(t_lo, t_hi).amin(-1)
+        norm = directions.norm(dim=-1)
+        near = torch.maximum(enter, near_m / norm)
+        leave = torch.maximum(leave, near)
+        far = leave + self.far_m / norm if self.contract else leave
+        return RaySegments(origins, directions, near, leave, far)
+
+    def sample_depths(self, rays: RaySegments, offsets: Tensor) -> tuple[Tensor, Tensor]:
+        """Depths [R, S] of the samples along ``rays`` (see ``ray_bounds``) at ``offsets``
+        [R, S] in [0, 1) within their strata, and their lengths [R, S] (m); rays that miss
+        the bounds get zero-length samples."""
+        near, leave, far = rays.near, rays.leave, rays.far
+        samples = offsets.shape[1]
+        norm = rays.directions.norm(dim=-1)
+        steps = torch.arange(samples, device=offsets.device, dtype=offsets.dtype)
+        unit = (steps + offsets) / samples  # [R, S] in (0, 1)
+        if not self.contract:
+            depth = near[:, None] + (leave - near)[:, None] * unit
+            length = ((leave - near) * norm / samples)[:, None].expand_as(depth)
+            return depth, length
+        inner = unit < 0.5
+        linear = near[:, None] + (leave - near)[:, None] * (2 * unit).clamp(max=1)
+        s = (2 * unit - 1).clamp(min=0)
+        inverse = 1 / (1 / leave[:, None] * (1 - s) + 1 / far[:, None] * s)
+        depth = torch.where(inner, linear, inverse)
+        edges = torch.cat([near[:, None], (depth[:, 1:] + depth[:, :-1]) / 2, far[:, None]], 1)
+        return depth, (edges[:, 1:] - edges[:, :-1]) * norm[:, None]
+
+    @property
+    def far_m(self) -> float:
+        """How far (m) beyond the bounds contracted rays sample: 100× their diagonal."""
+        return 100 * float((self.hi - self.lo).norm())
+
+    def composite(
+        self,
+        origins: Tensor,
+        directions: Tensor,
+        samples: int,
+        near_m: float,
+        jitter: bool,
+        compiled: bool = True,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Volume rendering of rays [R, 3] -> rgb [R, 3] in [0, 1], depth [R] (along the
+        directions, in their units), opacity [R]. ``compiled``: the numba renderer (CPU
+        float32 tensors), which stops each ray once its light is spent; otherwise
+        ``grid_sample`` over every sample (any device)."""
+        rays = self.ray_bounds(origins, directions, near_m)
+        shape = (len(origins), samples)
+        if jitter:
+            offsets = torch.rand(shape, device=origins.device)
+        else:
+            offsets = origins.new_full(shape, 0.5)
+        background = torch.sigmoid(self.background)
+        if compiled and self.grid.device.type == "cpu" and self.grid.dtype == torch.float32:
+            geometry = GridGeometry(
+                self.lo.double().numpy(),
+                self.hi.double().numpy(),
+                np.array([n - 1 for n in self.shape], np.float64),
+                1 / self.voxel_m,
+                bool(self.contract),
+            )
+            return CompiledComposite.apply(
+                self.grid,
+                self.kernel_cells(),
+                background,
+                rays,
+                offsets,
+                geometry,
+                self.density_shift,
+            )
+        depth, length = self.sample_depths(rays, offsets)
+        points = origins[:, None] + depth[..., None] * directions[:, None]
+        coords = self.normalised(points).view(1, -1, 1, 1, 3)
+        raw = F.grid_sample(self.grid, coords, align_corners=True, padding_mode="border")
+        raw = raw.view(4, *depth.shape)
+        sigma = F.softplus(raw[0] + self.density_shift)  # per voxel length
+        alpha = 1 - torch.exp(-sigma * length / self.voxel_m)
+        transmit = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha], 1), 1)
+        weights = alpha * transmit[:, :-1]
+        opacity = weights.sum(1)
+        colour = torch.sigmoid(raw[1:]).permute(1, 2, 0)  # [R, S, 3]
+        rgb = (weights[..., None] * colour).sum(1) + (1 - opacity)[:, None] * background
+        surface = (weights * depth).sum(1) / opacity.clamp_min(1e-6)
+        return rgb, surface, opacity
+
+    def kernel_cells(self) -> np.ndarray:
+        """The grid in the compiled kernels' layout [nz, ny, nx, 4]: copied once per change
+        of the grid (an optimiser step, a loaded state), not once per call or chunk."""
+        key = (self.grid._version, self.grid.data_ptr())
+        if self._kernel_cells is None or self._kernel_cells[0] != key:
+            self._kernel_cells = (key, channels_last(self.grid))
+        return self._kernel_cells[1]
+
+    def total_variation(self) -> Tensor:
+        """Mean squared difference of neighbouring voxels (density and colour channels)."""
+        g = self.grid
+        return (
+            (g[..., 1:, :, :] - g[..., :-1, :, :]).square().mean()
+            + (g[..., :, 1:, :] - g[..., :, :-1, :]).square().mean()
+            + (g[..., :, :, 1:] - g[..., :, :, :-1]).square().mean()
+        )
+
+
+class VoxelGridSceneModel(SceneModel):
+    """One :class:`VoxelGrid` per scene plus a per-image-sequence appearance: per-channel
+    gain (``exp``) and bias, applied to training renderings only, so that a sequence's
+    lighting does not bake into the grid.
+
+    bounds: per scene [2, 3] (lo, hi) in metres; n_appearances: the train sequences over all
+    scenes; num_voxels: per scene; samples_per_ray: stratified samples; near_m: the nearest
+    depth rendered (their defaults: conf/scene_model/voxel_grid.yaml). Built by the
+    scene_model step from the train cameras (:func:`train_scale`: its config's ``margin_m``,
+    ``auto_scale`` and ``contract: auto``) and the train images' appearance ids.
+    """
+
+    has_depth = True
+    trains = True
+    from_run = ("bounds", "n_appearances")
+    build_keys = ("margin_m", "auto_scale", "contract")
+
+    def __init__(
+        self,
+        bounds: Sequence[Sequence[Sequence[float]]],
+        n_appearances: int,
+        num_voxels: int,
+        samples_per_ray: int,
+        contract: bool,
+        near_m: float,
+        chunk_rays: int = 8192,
+    ) -> None:
+        super().__init__()
+        self.grids = nn.ModuleList(VoxelGrid(b, num_voxels, contract) for b in bounds)
+        self.appearance = nn.Embedding(max(1, n_appearances), 6)
+        nn.init.zeros_(self.appearance.weight)
+        self.samples_per_ray = samples_per_ray
+        self.near_m = near_m
+        self.chunk_rays = chunk_rays
+
+    @classmethod
+    def check_config(cls, cfg: DictConfig, key: str) -> None:
+        """num_voxels >= 8, samples_per_ray >= 1, contract true, false or auto, margin_m auto,
+        one number >= 0 or three, auto_scale's numbers >= 0."""
+        integer(cfg, f"{key}.num_voxels", 8)
+        integer(cfg, f"{key}.samples_per_ray", 1)
+        number(cfg, f"{key}.near_m", 0, strict=False)
+        if setting(cfg, f"{key}.contract") != "auto":
+            boolean(cfg, f"{key}.contract")
+        for name in ("margin_floor_m", "margin_fraction", "contract_above_m"):
+            number(cfg, f"{key}.auto_scale.{name}", 0, strict=False)
+        margin = setting(cfg, f"{key}.margin_m")
+        values = list(margin) if isinstance(margin, ListConfig) else [margin]
+        if margin != "auto" and (
+            len(values) not in (1, 3)
+            or not all((is_int(v) or isinstance(v, float)) and v >= 0 for v in values)
+        ):
+            raise ConfigError(
+                f"{key}.margin_m must be auto, one number >= 0 or three, got {margin!r}"
+            )
+
+    @classmethod
+    def build(
+        cls, config: dict[str, Any], inputs: SceneModelInputs
+    ) -> tuple[SceneModel, dict[str, Any] | None]:
+        """Bounds from the train cameras, one appearance code per train sequence or image."""
+        data = inputs.data
+        poses, scenes = data.train_poses()
+        config = train_scale(poses, scenes, data.n_scenes, config)
+        _, config["n_appearances"] = data.appearance_ids("train", inputs.appearance)
+        return cls(**config), config
+
+    def render_rays(
+        self, origins: Tensor, directions: Tensor, scenes: Tensor, jitter: bool = False
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Rays [R, 3] of scenes [R] -> rgb [R, 3], depth [R], opacity [R]; one grid call per
+        scene present (per chunk of ``chunk_rays``)."""
+        rgb = origins.new_zeros(len(origins), 3)
+        depth = origins.new_zeros(len(origins))
+        opacity = origins.new_zeros(len(origins))
+        for scene in range(len(self.grids)):
+            rows = (scenes == scene).nonzero().squeeze(1)
+            if not len(rows):
+                continue
+            grid = self.grids[scene]
+            parts = [
+                grid.composite(
+                    origins[chunk], directions[chunk], self.samples_per_ray, self.near_m, jitter
+                )
+                for chunk in rows.split(self.chunk_rays)
+            ]
+            rgb = rgb.index_put((rows,), torch.cat([p[0] for p in parts]))
+            depth = depth.index_put((rows,), torch.cat([p[1] for p in parts]))
+            opacity = opacity.index_put((rows,), torch.cat([p[2] for p in parts]))
+        return rgb, depth, opacity
+
+    def with_appearance(self, rgb: Tensor, appearance: Tensor) -> Tensor:
+        """Renderings [R, 3] as train sequence ``appearance`` [R] saw them."""
+        code = self.appearance(appearance)
+        return rgb * code[:, :3].exp() + code[:, 3:]
+
+    def total_variation(self) -> Tensor:
+        return torch.stack([grid.total_variation() for grid in self.grids]).mean()
+
+    def render(
+        self, poses: Tensor, scenes: Tensor, intrinsics: Tensor, width: int, height: int
+    ) -> SceneRendering:
+        origins, directions = camera_rays(poses, intrinsics, width, height)
+        pixels = origins.shape[1]
+        rgb, depth, opacity = self.render_rays(
+            origins.reshape(-1, 3),
+            directions.reshape(-1, 3),
+            scenes.repeat_interleave(pixels),
+        )
+        b = len(poses)
+        return SceneRendering(
+            rgb.view(b, height, width, 3).permute(0, 3, 1, 2),
+            depth.view(b, height, width),
+            opacity.view(b, height, width),
+        )

@@ -1,0 +1,306 @@
+"""Compiled volume rendering of a voxel grid on the CPU (numba): forward and backward.
+
+One pass per ray marches its samples, interpolates the grid trilinearly, composites and
+stops once the transmittance falls below ``STOP_TRANSMITTANCE``; the backward pass marches
+the same samples again and scatters the gradient into per-thread copies of the grid's
+gradient (summed afterwards). It computes what :meth:`VoxelGrid.composite_torch` computes
+with ``grid_sample`` (tested against it), 5-10 times faster on CPU cores, where many
+elementwise passes over every sample dominate.
+
+Grid layout: ``[nz, ny, nx, 4]`` float32 (raw density, raw RGB), channels last. Each ray's
+samples (depths, world points, their contraction and grid coordinates) are computed inside
+the kernels, as :meth:`VoxelGrid.sample_depths` and :meth:`VoxelGrid.normalised` define them.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor
+
+from pae.core.compiled import jit
+
+
+class RaySegments(NamedTuple):
+    """Rays and where they are sampled: origins [R, 3], directions [R, 3] (world frame), and
+    the depths (in units of the directions) where sampling starts (``near``: ``near_m`` or
+    where the ray enters the bounds), where it leaves the bounds (``leave``) and where it
+    ends (``far``: contracted grids sample beyond the bounds; else ``leave``), each [R].
+    Tensors for the grid's tensor path, float64 arrays for the compiled one."""
+
+    origins: Tensor | np.ndarray
+    directions: Tensor | np.ndarray
+    near: Tensor | np.ndarray
+    leave: Tensor | np.ndarray
+    far: Tensor | np.ndarray
+
+
+class GridGeometry(NamedTuple):
+    """Where a grid lies: its bounds ``lo`` and ``hi`` [3] (m), ``cells`` [3] (voxels per axis
+    minus one, x y z), ``inverse_voxel_m`` (1 / voxel length, m) and ``contract``."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+    cells: np.ndarray
+    inverse_voxel_m: float
+    contract: bool
+
+
+class March(NamedTuple):
+    """What the forward and backward kernels march: the grid [nz, ny, nx, 4] in their layout
+    (``channels_last``), the rays (``RaySegments`` of float64 arrays), their sample offsets
+    [R, S], the grid's ``GridGeometry``, the shift added to the raw density and the
+    background colour [3] (after its sigmoid)."""
+
+    grid: np.ndarray
+    rays: RaySegments
+    offsets: np.ndarray
+    geometry: GridGeometry
+    density_shift: float
+    background: np.ndarray
+
+
+STOP_TRANSMITTANCE = 1e-4
+"""A ray's march stops once less than this share of its light remains."""
+SKIP_WEIGHT = 1e-6
+"""Samples that take less of the light than this are not coloured (their colour is not read)."""
+
+
+@jit(nogil=True, inline="always", fastmath=True)
+def _corners(grid_shape: tuple[int, int, int], x: float, y: float, z: float) -> tuple:
+    """The lower corner (clamped inside the grid) and fractions of a point's voxel cell."""
+    nz, ny, nx = grid_shape
+    x = min(max(x, 0.0), nx - 1.0)
+    y = min(max(y, 0.0), ny - 1.0)
+    z = min(max(z, 0.0), nz - 1.0)
+    i0 = min(int(z), nz - 2)
+    j0 = min(int(y), ny - 2)
+    k0 = min(int(x), nx - 2)
+    return i0, j0, k0, z - i0, y - j0, x - k0
+
+
+@jit(nogil=True, inline="always", fastmath=True)
+def _sample(grid: np.ndarray, i0: int, j0: int, k0: int, fz: float, fy: float, fx: float, c: int):
+    """Trilinear value of channel ``c`` in the cell at (i0, j0, k0)."""
+    c00 = grid[i0, j0, k0, c] * (1 - fx) + grid[i0, j0, k0 + 1, c] * fx
+    c01 = grid[i0, j0 + 1, k0, c] * (1 - fx) + grid[i0, j0 + 1, k0 + 1, c] * fx
+    c10 = grid[i0 + 1, j0, k0, c] * (1 - fx) + grid[i0 + 1, j0, k0 + 1, c] * fx
+    c11 = grid[i0 + 1, j0 + 1, k0, c] * (1 - fx) + grid[i0 + 1, j0 + 1, k0 + 1, c] * fx
+    return (c00 * (1 - fy) + c01 * fy) * (1 - fz) + (c10 * (1 - fy) + c11 * fy) * fz
+
+
+@jit(nogil=True, inline="always", fastmath=True)
+def _scatter(
+    grad: np.ndarray, i0: int, j0: int, k0: int, fz: float, fy: float, fx: float, c: int, g: float
+) -> None:
+    """Add ``g`` times the trilinear weights of the cell at (i0, j0, k0) to channel ``c``."""
+    for di in range(2):
+        wz = fz if di else 1 - fz
+        for dj in range(2):
+            wy = fy if dj else 1 - fy
+            for dk in range(2):
+                wx = fx if dk else 1 - fx
+                grad[i0 + di, j0 + dj, k0 + dk, c] += g * wz * wy * wx
+
+
+@jit(nogil=True, inline="always", fastmath=True)
+def _softplus(x: float) -> float:
+    return x + math.log1p(math.exp(-x)) if x > 0 else math.log1p(math.exp(x))
+
+
+@jit(nogil=True, inline="always", fastmath=True)
+def _sigmoid(x: float) -> float:
+    return 1.0 / (1.0 + math.exp(-x))
+
+
+@jit(nogil=True, inline="always", fastmath=True)
+def _depth(u: float, near: float, leave: float, far: float, contract: bool) -> float:
+    """Depth at the fraction ``u`` in (0, 1) of a ray's samples (see VoxelGrid.sample_depths)."""
+    if not contract:
+        return near + (leave - near) * u
+    if u < 0.5:
+        return near + (leave - near) * min(2 * u, 1.0)
+    s = max(2 * u - 1, 0.0)
+    return 1.0 / ((1.0 - s) / leave + s / far)
+
+
+@jit(nogil=True, inline="always", fastmath=True)
+def _point(rays: tuple, r: int, s: int, n: int, offsets: np.ndarray, geometry: tuple) -> tuple:
+    """Grid coordinates, length (voxels) and depth of sample ``s`` of ray ``r`` (offsets
+    [R, S] in [0, 1) within the samples' strata); ``rays`` and ``geometry``: the fields of
+    ``RaySegments`` and ``GridGeometry``, unpacked once by the kernel."""
+    origins, directions, nears, leaves, fars = rays
+    lo, hi, cells, inverse_voxel_m, contract = geometry
+    near, leave, far = nears[r], leaves[r], fars[r]
+    t = _depth((s + offsets[r, s]) / n, near, leave, far, contract)
+    norm = math.sqrt(directions[r, 0] ** 2 + directions[r, 1] ** 2 + directions[r, 2] ** 2)
+    if contract:
+        before = near if s == 0 else _depth((s - 1 + offsets[r, s - 1]) / n, near, leave, far, True)
+        after = (
+            far if s == n - 1 else _depth((s + 1 + offsets[r, s + 1]) / n, near, leave, far, True)
+        )
+        low = near if s == 0 else (before + t) / 2
+        high = far if s == n - 1 else (t + after) / 2
+        length = (high - low) * norm * inverse_voxel_m
+    else:
+        length = (leave - near) * norm / n * inverse_voxel_m
+    ux = (origins[r, 0] + t * directions[r, 0] - lo[0]) / (hi[0] - lo[0]) * 2 - 1
+    uy = (origins[r, 1] + t * directions[r, 1] - lo[1]) / (hi[1] - lo[1]) * 2 - 1
+    uz = (origins[r, 2] + t * directions[r, 2] - lo[2]) / (hi[2] - lo[2]) * 2 - 1
+    if contract:
+        largest = max(abs(ux), abs(uy), abs(uz))
+        scale = 0.5 if largest <= 1 else (2 - 1 / largest) / largest / 2
+        ux, uy, uz = ux * scale, uy * scale, uz * scale
+    return (
+        (ux + 1) / 2 * cells[0],
+        (uy + 1) / 2 * cells[1],
+        (uz + 1) / 2 * cells[2],
+        length,
+        t,
+    )
+
+
+@jit(parallel=True, nogil=True, fastmath=True)
+def render_forward(
+    march: March, rgb: np.ndarray, surface: np.ndarray, opacity: np.ndarray, used: np.ndarray
+) -> None:
+    """Composite the rays of ``march`` -> rgb [R, 3], surface [R] (mean depth of the light),
+    opacity [R], used [R] (samples marched)."""
+    grid, rays, offsets, geometry, density_shift, background = march
+    shape = (grid.shape[0], grid.shape[1], grid.shape[2])
+    n = offsets.shape[1]
+    segments = (rays.origins, rays.directions, rays.near, rays.leave, rays.far)
+    where = (geometry.lo, geometry.hi, geometry.cells, geometry.inverse_voxel_m, geometry.contract)
+    for r in numba.prange(offsets.shape[0]):
+        transmit = 1.0
+        red = green = blue = depth = 0.0
+        s = 0
+        while s < n and transmit >= STOP_TRANSMITTANCE:
+            x, y, z, length, t = _point(segments, r, s, n, offsets, where)
+            i0, j0, k0, fz, fy, fx = _corners(shape, x, y, z)
+            sigma = _softplus(_sample(grid, i0, j0, k0, fz, fy, fx, 0) + density_shift)
+            alpha = 1.0 - math.exp(-sigma * length)
+            weight = transmit * alpha
+            if weight > SKIP_WEIGHT:  # empty space: its colour adds nothing visible
+                red += weight * _sigmoid(_sample(grid, i0, j0, k0, fz, fy, fx, 1))
+                green += weight * _sigmoid(_sample(grid, i0, j0, k0, fz, fy, fx, 2))
+                blue += weight * _sigmoid(_sample(grid, i0, j0, k0, fz, fy, fx, 3))
+                depth += weight * t
+            transmit *= 1.0 - alpha
+            s += 1
+        rgb[r, 0] = red + transmit * background[0]
+        rgb[r, 1] = green + transmit * background[1]
+        rgb[r, 2] = blue + transmit * background[2]
+        opacity[r] = 1.0 - transmit
+        surface[r] = depth / max(1.0 - transmit, 1e-6)
+        used[r] = s
+
+
+@jit(parallel=True, nogil=True, fastmath=True)
+def render_backward(
+    march: March,
+    rgb: np.ndarray,
+    used: np.ndarray,
+    grad_rgb: np.ndarray,
+    grad_grid: np.ndarray,
+    grad_background: np.ndarray,
+) -> None:
+    """Gradient of a loss with d loss / d rgb = grad_rgb [R, 3] (of :func:`render_forward`'s
+    rgb and used) w.r.t. the grid of ``march`` (added to grad_grid [T, nz, ny, nx, 4], one
+    copy per chunk of rays) and the background colour (grad_background [T, 3])."""
+    grid, rays, offsets, geometry, density_shift, _ = march
+    shape = (grid.shape[0], grid.shape[1], grid.shape[2])
+    chunks = grad_grid.shape[0]
+    n_rays, n = offsets.shape
+    segments = (rays.origins, rays.directions, rays.near, rays.leave, rays.far)
+    where = (geometry.lo, geometry.hi, geometry.cells, geometry.inverse_voxel_m, geometry.contract)
+    for t in numba.prange(chunks):
+        grad = grad_grid[t]
+        for r in range(t * n_rays // chunks, (t + 1) * n_rays // chunks):
+            gr, gg, gb = grad_rgb[r, 0], grad_rgb[r, 1], grad_rgb[r, 2]
+            total = rgb[r, 0] * gr + rgb[r, 1] * gg + rgb[r, 2] * gb
+            transmit = 1.0
+            done = 0.0
+            for s in range(used[r]):
+                px, py, pz, length, _ = _point(segments, r, s, n, offsets, where)
+                i0, j0, k0, fz, fy, fx = _corners(shape, px, py, pz)
+                x = _sample(grid, i0, j0, k0, fz, fy, fx, 0) + density_shift
+                sigma = _softplus(x)
+                alpha = 1.0 - math.exp(-sigma * length)
+                weight = transmit * alpha
+                cr = _sigmoid(_sample(grid, i0, j0, k0, fz, fy, fx, 1))
+                cg = _sigmoid(_sample(grid, i0, j0, k0, fz, fy, fx, 2))
+                cb = _sigmoid(_sample(grid, i0, j0, k0, fz, fy, fx, 3))
+                along = cr * gr + cg * gg + cb * gb
+                done += weight * along
+                rest = total - done
+                d_sigma = length * (transmit * (1.0 - alpha) * along - rest)
+                _scatter(grad, i0, j0, k0, fz, fy, fx, 0, d_sigma * _sigmoid(x))
+                _scatter(grad, i0, j0, k0, fz, fy, fx, 1, weight * gr * cr * (1 - cr))
+                _scatter(grad, i0, j0, k0, fz, fy, fx, 2, weight * gg * cg * (1 - cg))
+                _scatter(grad, i0, j0, k0, fz, fy, fx, 3, weight * gb * cb * (1 - cb))
+                transmit *= 1.0 - alpha
+            grad_background[t, 0] += transmit * gr
+            grad_background[t, 1] += transmit * gg
+            grad_background[t, 2] += transmit * gb
+
+
+def channels_last(grid: Tensor) -> np.ndarray:
+    """A grid [1, 4, nz, ny, nx] in the kernels' layout [nz, ny, nx, 4] (a copy)."""
+    return grid.detach()[0].permute(1, 2, 3, 0).contiguous().numpy()
+
+
+class CompiledComposite(torch.autograd.Function):
+    """(grid [1, 4, nz, ny, nx], the same grid in the kernels' layout (``channels_last``,
+    made once per change of the grid by the caller), background [3] after its sigmoid, rays
+    (``RaySegments`` of tensors), offsets [R, S], geometry (``GridGeometry``), density_shift)
+    -> rgb [R, 3], surface [R], opacity [R]; differentiable in rgb w.r.t. the grid and the
+    background."""
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: torch.autograd.function.FunctionCtx,
+        grid: Tensor,
+        cells: np.ndarray,
+        background: Tensor,
+        rays: RaySegments,
+        offsets: Tensor,
+        geometry: GridGeometry,
+        density_shift: float,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        bg = background.detach().double().numpy()
+        ray_array = RaySegments(*(part.detach().double().contiguous().numpy() for part in rays))
+        offset_array = offsets.detach().float().contiguous().numpy()
+        march = March(cells, ray_array, offset_array, geometry, density_shift, bg)
+        r = offset_array.shape[0]
+        rgb = np.empty((r, 3), np.float32)
+        surface, opacity = np.empty(r, np.float32), np.empty(r, np.float32)
+        used = np.empty(r, np.int64)
+        render_forward(march, rgb, surface, opacity, used)
+        ctx.save_for_backward(grid)
+        ctx.arrays = (march, rgb, used)
+        outputs = torch.from_numpy(rgb), torch.from_numpy(surface), torch.from_numpy(opacity)
+        ctx.mark_non_differentiable(outputs[1], outputs[2])
+        return outputs
+
+    @staticmethod
+    def backward(  # type: ignore[override]
+        ctx: torch.autograd.function.FunctionCtx,
+        grad_rgb: Tensor,
+        grad_surface: Tensor,
+        grad_opacity: Tensor,
+    ) -> tuple[Tensor | None, ...]:
+        (grid,) = ctx.saved_tensors
+        march, rgb, used = ctx.arrays
+        chunks = max(1, numba.get_num_threads())
+        grad_cells = np.zeros((chunks, *march.grid.shape), np.float32)
+        grad_bg = np.zeros((chunks, 3), np.float64)
+        g = grad_rgb.detach().float().contiguous().numpy()
+        render_backward(march, rgb, used, g, grad_cells, grad_bg)
+        grad_grid = torch.from_numpy(grad_cells.sum(0)).permute(3, 0, 1, 2)[None]
+        grad_background = torch.from_numpy(grad_bg.sum(0)).to(grid.dtype)
+        return grad_grid.to(grid.dtype), None, grad_background, None, None, None, None

@@ -1,0 +1,361 @@
+"""Writing a synthetic dataset: images rendered in batches and written whole (atomically),
+label files in the format of ``pae.data.labels`` (``write_synthetic_dataset``), and, when a
+nuisance is on, ``labels/nuisances.csv`` (``NUISANCE_COLUMNS``): each frame's occluder share,
+blur and exposure, for analysis only (the label files stay as they are)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import shutil
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pae.data.labels import LabelTable, write_labels
+from pae.synthetic.camera import DEFAULT_SIZE, PinholeCamera
+from pae.synthetic.nuisances import Nuisances, sequence_nuisances
+from pae.synthetic.raycast import Appearance, FrameConditions, render_batch
+from pae.synthetic.scene import (
+    DEFAULT_TEST_OFFSET_M,
+    DEFAULT_TRAIN_LANE_M,
+    SyntheticScene,
+    make_scene,
+    scene_name,
+)
+from pae.synthetic.trajectories import (
+    DEFAULT_STRAY_M,
+    DEFAULT_YAW_STRAY_RAD,
+    make_sequences,
+    walk_frames,
+)
+
+DEFAULT_SCENES = 2
+DEFAULT_TRAIN_FRAMES = 1600
+"""Training frames per scene."""
+DEFAULT_TEST_FRAMES = 250
+"""Test frames per scene."""
+FRAMES_PER_WRITE = 64
+"""Frames rendered before they are written, bounding memory for large images."""
+NUISANCE_FILE = "nuisances.csv"
+"""Name of the per-frame nuisance table in ``labels/`` (only written when a nuisance is on)."""
+NUISANCE_COLUMNS = ("img_path", "occluder_share", "blur_px", "exposure_gain")
+"""Its columns: the image (as in the label files), the share of the image its occluder covers
+(0–1, 0: none), its motion blur's length (px) and its total gain (the sequence's gain times
+the frame's exposure)."""
+
+
+@dataclass(frozen=True)
+class SyntheticSummary:
+    """What :func:`write_synthetic_dataset` wrote and how fast."""
+
+    root: str
+    scenes: list[str]
+    train_frames: int
+    """Training frames over all scenes."""
+    test_frames: int
+    """Test frames over all scenes."""
+    size: int
+    seconds: float
+    frames_per_second: float
+
+    def summary(self) -> str:
+        """Short human-readable multi-line summary."""
+        return "\n".join(
+            [
+                f"synthetic dataset at {self.root}",
+                f"  scenes: {len(self.scenes)} ({', '.join(self.scenes)})",
+                f"  frames: {self.train_frames} train, {self.test_frames} test "
+                f"({self.size}x{self.size} px)",
+                f"  time:   {self.seconds:.1f} s ({self.frames_per_second:.1f} frames/s)",
+            ]
+        )
+
+
+def _write_png(path: Path, image_rgb: np.ndarray) -> None:
+    """Write an RGB image as PNG (into the rendering folder, renamed into place when whole)."""
+    ok, encoded = cv2.imencode(".png", cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise OSError(f"could not encode {path}")
+    path.write_bytes(encoded.tobytes())
+
+
+def _prepare_output(out: Path, overwrite: bool) -> None:
+    """Refuse a used folder unless `overwrite`, and even then one that holds no dataset."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise FileExistsError(f"{out}: exists and is not a folder")
+    if not any(out.iterdir()):
+        return
+    if not overwrite:
+        raise FileExistsError(f"{out}: folder is not empty; --overwrite replaces the dataset in it")
+    if not (out / "labels").is_dir():
+        raise FileExistsError(
+            f"{out}: folder is not empty and holds no dataset (no labels/); not replacing it"
+        )
+
+
+def _replace_folder(new: Path, out: Path) -> None:
+    """Put the folder `new` in place of `out` (moved aside, then deleted if it existed)."""
+    old = out.with_name(f".{out.name}.old-{uuid.uuid4().hex}")
+    if out.exists():
+        out.rename(old)
+    new.rename(out)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+RenderProgress = Callable[[int, int], None]
+"""``progress(done, total)``: frames rendered so far, of all the dataset's frames."""
+
+
+def render_frames(
+    out: Path,
+    paths: list[str],
+    scene: SyntheticScene,
+    poses: np.ndarray,
+    camera: PinholeCamera,
+    appearance: Appearance,
+    noise: np.random.Generator,
+    conditions: FrameConditions | None = None,
+) -> np.ndarray:
+    """Render ``poses`` ``[n, 7]`` of one sequence (with its frames' nuisances ``conditions``,
+    if any) and write them as PNGs at ``out / paths[i]``, ``FRAMES_PER_WRITE`` frames at a
+    time: -> the share ``[n]`` of each image its occluder covers."""
+    for folder in sorted({(out / path).parent for path in paths}):
+        folder.mkdir(parents=True, exist_ok=True)
+    shares = np.zeros(len(poses))
+    for start in range(0, len(poses), FRAMES_PER_WRITE):
+        batch = slice(start, start + FRAMES_PER_WRITE)
+        images = render_batch(
+            scene,
+            poses[batch],
+            camera,
+            appearance,
+            noise,
+            conditions=None if conditions is None else conditions[batch],
+            occluded=shares[batch],
+        )
+        for path, image in zip(paths[batch], images, strict=True):
+            _write_png(out / path, image)
+    return shares
+
+
+def write_nuisance_table(path: Path, rows: list[tuple[str, float, float, float]]) -> None:
+    """Write ``rows`` ``(img_path, occluder_share, blur_px, exposure_gain)`` to ``path`` as
+    CSV with a header of ``NUISANCE_COLUMNS``."""
+    lines = [",".join(NUISANCE_COLUMNS)]
+    lines += [f"{img},{share:.4f},{blur:.3f},{gain:.4f}" for img, share, blur, gain in rows]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
+
+
+def write_label_files(folder: Path, tables: dict[tuple[str, str], LabelTable]) -> None:
+    """``folder/<scene>_<split>.csv`` for each ``(scene, split)`` table, then
+    ``folder/all_<split>.csv`` for each split (the data modules read those last)."""
+    for (name, split), table in tables.items():
+        write_labels(folder / f"{name}_{split}.csv", table)
+    for split in dict.fromkeys(split for _, split in tables):
+        write_labels(
+            folder / f"all_{split}.csv",
+            LabelTable.concat(t for (_, s), t in tables.items() if s == split),
+        )
+
+
+def write_whole(
+    out: Path | str, overwrite: bool, render: Callable[[Path], SyntheticSummary]
+) -> SyntheticSummary:
+    """Run ``render(folder)`` into a hidden folder beside ``out``, then put it in place of
+    ``out``: ``out`` ends as exactly the new dataset, or unchanged when rendering fails.
+
+    A non-empty ``out`` is refused (FileExistsError) unless ``overwrite``, which replaces a
+    folder holding a dataset (``labels/``) as a whole, stale files included. The summary's
+    ``root`` names ``out``.
+    """
+    final = Path(out)
+    _prepare_output(final, overwrite)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    folder = final.with_name(f".{final.name}.rendering-{uuid.uuid4().hex}")
+    try:
+        summary = render(folder)
+    except BaseException:
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    _replace_folder(folder, final)
+    return dataclasses.replace(summary, root=str(final))
+
+
+def write_synthetic_dataset(
+    out: Path | str,
+    scenes: int = DEFAULT_SCENES,
+    train_frames: int = DEFAULT_TRAIN_FRAMES,
+    test_frames: int = DEFAULT_TEST_FRAMES,
+    size: int = DEFAULT_SIZE,
+    seed: int = 0,
+    test_offset_m: float = DEFAULT_TEST_OFFSET_M,
+    overwrite: bool = False,
+    train_lane_m: float = DEFAULT_TRAIN_LANE_M,
+    yaw_stray_rad: float = DEFAULT_YAW_STRAY_RAD,
+    stray_m: float = DEFAULT_STRAY_M,
+    progress: RenderProgress | None = None,
+    lighting_change: float = 0.0,
+    occluder_fraction: float = 0.0,
+    sensor_noise_std: float = 0.0,
+    motion_blur_px: float = 0.0,
+    val_lane_m: float | None = None,
+    val_walks: int = 0,
+) -> SyntheticSummary:
+    """Render the benchmark into ``out`` (see :func:`write_whole`): images first, label files
+    last.
+
+    ``train_frames`` and ``test_frames`` are per scene; ``test_offset_m`` is the test
+    sequences' lateral offset from the train route, ``val_lane_m`` (None: its lane) the last
+    train sequence's, within the train lanes, and ``val_walks`` the validation walks per
+    scene, train-split sequences numbered after the test ones (see :func:`make_sequences`;
+    their frames come on top of ``train_frames``). The same
+    arguments give byte-identical files. ``progress(done, total)`` is called after each
+    sequence with the frames rendered so far. ``lighting_change``, ``occluder_fraction``,
+    ``sensor_noise_std`` and ``motion_blur_px`` are the nuisances of train and test frames
+    alike (:class:`~pae.synthetic.nuisances.Nuisances`; all 0: none, and no
+    ``labels/nuisances.csv``).
+    """
+    nuisances = Nuisances(lighting_change, occluder_fraction, sensor_noise_std, motion_blur_px)
+    for name, value, low in (
+        ("scenes", scenes, 1),
+        ("train_frames", train_frames, 1),
+        ("test_frames", test_frames, 1),
+        ("size", size, 8),
+        ("seed", seed, 0),
+        ("val_walks", val_walks, 0),
+    ):
+        if int(value) != value or value < low:
+            raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+    for name, value in (
+        ("test_offset_m", test_offset_m),
+        ("train_lane_m", train_lane_m),
+        ("stray_m", stray_m),
+    ):
+        if not (math.isfinite(value) and 0 <= value <= 1.0):
+            raise ValueError(f"{name} must lie in [0, 1] m, got {value!r}")
+    if val_lane_m is not None and not (
+        math.isfinite(val_lane_m) and abs(val_lane_m) <= train_lane_m
+    ):
+        raise ValueError(
+            f"val_lane_m must lie in [-train_lane_m, train_lane_m] = "
+            f"[{-train_lane_m:g}, {train_lane_m:g}] m, got {val_lane_m!r}"
+        )
+    if not (math.isfinite(yaw_stray_rad) and 0 <= yaw_stray_rad <= math.pi / 2):
+        raise ValueError(f"yaw_stray_rad must lie in [0, pi/2], got {yaw_stray_rad!r}")
+
+    train_and_walks = train_frames + val_walks * walk_frames(train_frames)
+
+    def render(folder: Path) -> SyntheticSummary:
+        started = time.perf_counter()
+        _render(
+            folder,
+            scenes,
+            train_frames,
+            test_frames,
+            size,
+            seed,
+            (test_offset_m, train_lane_m, yaw_stray_rad, stray_m, val_lane_m, val_walks),
+            progress,
+            nuisances,
+        )
+        seconds = time.perf_counter() - started
+        return SyntheticSummary(
+            root=str(folder),
+            scenes=[scene_name(i) for i in range(scenes)],
+            train_frames=scenes * train_and_walks,
+            test_frames=scenes * test_frames,
+            size=size,
+            seconds=seconds,
+            frames_per_second=scenes * (train_and_walks + test_frames) / seconds,
+        )
+
+    return write_whole(out, overwrite, render)
+
+
+def _render(
+    out: Path,
+    scenes: int,
+    train_frames: int,
+    test_frames: int,
+    size: int,
+    seed: int,
+    layout: tuple[float, float, float, float, float | None, int],
+    progress: RenderProgress | None = None,
+    nuisances: Nuisances | None = None,
+) -> None:
+    """Render every scene into `out`: images first, label files last. ``layout``: the test
+    offset, train lane (m), yaw stray (rad), stray (m), validation lane (m or None) and
+    validation walks of :func:`make_sequences`;
+    ``nuisances`` on (not None or all 0): each sequence's, and ``labels/nuisances.csv``."""
+    test_offset_m, train_lane_m, yaw_stray_rad, stray_m, val_lane_m, val_walks = layout
+    walks = val_walks * walk_frames(train_frames)
+    total, done = scenes * (train_frames + walks + test_frames), 0
+    camera = PinholeCamera(size)
+    label_tables: dict[tuple[str, str], LabelTable] = {}
+    nuisance_rows: list[tuple[str, float, float, float]] = []
+    for index in range(scenes):
+        scene = make_scene(index, seed, test_offset_m, train_lane_m)
+        rows: dict[str, list[tuple[str, str, np.ndarray]]] = {"train": [], "test": []}
+        sequences = make_sequences(
+            index,
+            scene,
+            train_frames,
+            test_frames,
+            seed,
+            test_offset_m,
+            train_lane_m,
+            yaw_stray_rad,
+            stray_m,
+            val_lane_m,
+            val_walks,
+        )
+        for sequence in sequences:
+            paths = [
+                f"{scene.name}/{sequence.name}/frame-{frame:06d}.png"
+                for frame in range(len(sequence.poses))
+            ]
+            noise = np.random.default_rng(list(sequence.noise_seed))
+            appearance, conditions = sequence.appearance, None
+            if nuisances is not None and nuisances.active:
+                appearance, conditions = sequence_nuisances(
+                    nuisances, scene, sequence.poses, camera, appearance, sequence.nuisance_seed
+                )
+            shares = render_frames(
+                out, paths, scene, sequence.poses, camera, appearance, noise, conditions
+            )
+            if conditions is not None:
+                nuisance_rows += zip(
+                    paths,
+                    shares.tolist(),
+                    conditions.blur_px.tolist(),
+                    (appearance.gain * conditions.exposure).tolist(),
+                    strict=True,
+                )
+            done += len(paths)
+            if progress is not None:
+                progress(done, total)
+            rows[sequence.split] += [
+                (sequence.name, path, pose)
+                for path, pose in zip(paths, sequence.poses, strict=True)
+            ]
+        for split, split_rows in rows.items():
+            label_tables[scene.name, split] = LabelTable(
+                scene=[scene.name] * len(split_rows),
+                split=[split] * len(split_rows),
+                seq=[r[0] for r in split_rows],
+                img_path=[r[1] for r in split_rows],
+                poses=np.array([r[2] for r in split_rows]),
+                source=f"synthetic seed={seed}",
+            )
+    if nuisance_rows:
+        write_nuisance_table(out / "labels" / NUISANCE_FILE, nuisance_rows)
+    write_label_files(out / "labels", label_tables)
