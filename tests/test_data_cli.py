@@ -19,6 +19,8 @@ import pae.data
 from pae.data.labels import LABEL_COLUMNS, read_labels
 from pae.data_cli import main
 
+from .conftest import REFERENCE_LABELS
+
 HEADER = ",".join(LABEL_COLUMNS)
 SRC = Path(__file__).resolve().parents[1] / "src"
 
@@ -240,7 +242,7 @@ CAMBRIDGE_HEADER = (
 )
 
 
-def test_convert_cambridge_keeps_the_raw_numbers(
+def test_convert_cambridge_conjugates_the_world_to_camera_quaternions(
     capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:
     raw = tmp_path / "cambridge"
@@ -271,12 +273,77 @@ def test_convert_cambridge_keeps_the_raw_numbers(
         assert len(written) == len(raw_rows[split]) + 1
         for fields, (img, numbers) in zip(written[1:], raw_rows[split], strict=True):
             assert fields[:4] == ["ShopFacade", split, img.split("/")[0], f"ShopFacade/{img}"]
+            # the conjugate (x, y, z negated), then the sign that makes W >= 0
             flip = numbers[3].startswith("-")
-            quat = [n[1:] if n.startswith("-") else "-" + n for n in numbers[3:]]
-            assert fields[4:] == numbers[:3] + (quat if flip else numbers[3:])
+            negated = [n[1:] if n.startswith("-") else "-" + n for n in numbers[3:]]
+            expected = [negated[0], *numbers[4:]] if flip else [numbers[3], *negated[1:]]
+            assert fields[4:] == numbers[:3] + expected
         assert (out / f"all_{split}.csv").read_text() == (
             out / f"ShopFacade_{split}.csv"
         ).read_text()
+
+
+def test_convert_cambridge_gives_back_known_camera_to_world_poses(tmp_path: Path) -> None:
+    """Known camera-to-world poses written as Cambridge does (camera centre, world-to-camera
+    quaternion) convert back to themselves."""
+    rng = np.random.default_rng(5)
+    rotations = Rotation.random(6, random_state=7)
+    centres = rng.uniform(-20, 20, size=(6, 3))
+    world_to_camera = rotations.inv().as_quat(scalar_first=True)
+    lines = "".join(
+        f"seq1/frame{i:05d}.png {' '.join(repr(float(v)) for v in (*c, *q))}\n"
+        for i, (c, q) in enumerate(zip(centres, world_to_camera, strict=True))
+    )
+    scene = tmp_path / "raw" / "ShopFacade"
+    scene.mkdir(parents=True)
+    for split in ("train", "test"):
+        (scene / f"dataset_{split}.txt").write_text(CAMBRIDGE_HEADER + lines)
+    assert main(["convert", "cambridge", str(tmp_path / "raw"), str(tmp_path / "out")]) == 0
+    table = read_labels(tmp_path / "out" / "ShopFacade_train.csv")
+    np.testing.assert_allclose(table.poses[:, :3], centres, atol=1e-6)
+    got = Rotation.from_quat(table.poses[:, 3:], scalar_first=True)
+    np.testing.assert_allclose((got * rotations.inv()).magnitude(), 0.0, atol=1e-6)
+
+
+def test_check_warns_on_world_to_camera_orientations(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    """Upright cameras (y axes near one world direction) read as camera-to-world pass; the
+    same file written world-to-camera is flagged with the command that fixes it, and that
+    command's output passes."""
+    rng = np.random.default_rng(2)
+    yaw = Rotation.from_euler("y", rng.uniform(-180, 180, (40, 1)), degrees=True)
+    tilt = Rotation.from_euler("xz", rng.normal(0, 3, (40, 2)), degrees=True)
+    z_up = Rotation.from_euler("x", 90, degrees=True)  # the world's up is z, as in SfM frames
+    upright = (z_up * yaw * tilt).as_quat(scalar_first=True)
+    rows = [",".join(LABEL_COLUMNS)]
+    for label, quats in (("c2w", upright), ("w2c", upright * [1, -1, -1, -1])):
+        body = [
+            f"s,train,seq1,a{i}.png,{i},0,0,{','.join(map(str, q))}" for i, q in enumerate(quats)
+        ]
+        (tmp_path / f"{label}.csv").write_text("\n".join([*rows, *body]) + "\n")
+    main(["check", str(tmp_path / "c2w.csv"), str(tmp_path)])
+    assert "world-to-camera" not in capsys.readouterr().err
+    main(["check", str(tmp_path / "w2c.csv"), str(tmp_path)])
+    err = capsys.readouterr().err
+    assert "w2c.csv: its orientations look world-to-camera" in err
+    assert "pae-data convert authors-csv" in err
+    assert main(["convert", "authors-csv", str(tmp_path / "w2c.csv"), str(tmp_path / "fixed")]) == 0
+    main(["check", str(tmp_path / "fixed" / "w2c.csv"), str(tmp_path)])
+    assert "world-to-camera" not in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not REFERENCE_LABELS.is_dir(), reason="no reference label files")
+def test_check_flags_the_authors_cambridge_files_only(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    shop = REFERENCE_LABELS / "CambridgeLandmarks" / "ShopFacade_train.csv"
+    chess = REFERENCE_LABELS / "7Scenes" / "chess_train.csv"
+    main(["check", str(shop), str(tmp_path)])
+    assert "ShopFacade_train.csv: its orientations look world-to-camera" in capsys.readouterr().err
+    if chess.is_file():
+        main(["check", str(chess), str(tmp_path)])
+        assert "world-to-camera" not in capsys.readouterr().err
 
 
 def test_convert_reports_malformed_raw_lines(

@@ -18,13 +18,17 @@ Bad input ends with exit status 1 and a one-line ``pae-data: error: ...`` messag
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
 from pae.core.console import Progress
 from pae.core.errors import LabelError, LabelWarning
+from pae.core.quaternion_sign import canonical_sign
 from pae.data.labels import (
     FOCAL_COLUMN,
     LabelTable,
@@ -32,7 +36,9 @@ from pae.data.labels import (
     focal_column_mismatch,
     read_labels,
     read_labels_lenient,
+    write_labels,
 )
+from pae.data.orientation import conjugate, looks_world_to_camera
 
 PROG = "pae-data"
 
@@ -105,8 +111,26 @@ def _synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _convert_authors_csv(source: Path, out_dir: Path) -> int:
+    """A label file whose orientations are world-to-camera (the authors' Cambridge CSVs) ->
+    ``out_dir/<its name>`` with camera-to-world orientations (conjugated)."""
+    table = _read_tables([source])
+    quaternions = canonical_sign(conjugate(table.poses[:, 3:]))
+    poses = np.concatenate([table.poses[:, :3], quaternions], 1)
+    out = out_dir / source.name
+    if out.resolve() == source.resolve():
+        raise ValueError(f"{out}: would overwrite its source; give another OUT_DIR")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_labels(out, dataclasses.replace(table, poses=poses))
+    print(f"wrote {len(table)} rows with camera-to-world orientations to {out}")
+    return 0
+
+
 def _convert(args: argparse.Namespace) -> int:
     from pae.data.raw import convert_raw
+
+    if args.dataset == "authors-csv":
+        return _convert_authors_csv(args.raw_root, args.out_dir)
 
     written = convert_raw(args.dataset, args.raw_root, args.out_dir)
     scene_files = [name for name in written if not name.startswith("all_")]
@@ -128,6 +152,15 @@ def _check(args: argparse.Namespace) -> int:
             table, label_errors = read_labels_lenient(labels)
         for warning in caught:
             print(f"{PROG}: warning: {warning.message}", file=sys.stderr)
+        if len(table) >= 2:
+            flipped, plain, conjugated = looks_world_to_camera(table.poses[:, 3:])
+            if flipped:
+                print(
+                    f"{PROG}: warning: {labels}: its orientations look world-to-camera (camera "
+                    f"y axes spread {plain:.1f} deg, conjugated {conjugated:.1f} deg); pae "
+                    f"reads camera-to-world: pae-data convert authors-csv {labels} OUT_DIR",
+                    file=sys.stderr,
+                )
         image_problems = find_image_problems(table, args.root)
         problems = [str(error) for error in label_errors] + image_problems
         rows = len(table) + len(label_errors)
@@ -271,7 +304,13 @@ def build_parser() -> argparse.ArgumentParser:
         description="Write OUT_DIR/<scene>_{train,test}.csv and OUT_DIR/all_{train,test}.csv "
         "from the scene folders under RAW_ROOT; img_path is relative to RAW_ROOT.",
     )
-    convert.add_argument("dataset", choices=("cambridge", "7scenes"))
+    convert.add_argument(
+        "dataset",
+        choices=("cambridge", "7scenes", "authors-csv"),
+        help="cambridge: dataset_{train,test}.txt (world-to-camera quaternions, conjugated); "
+        "7scenes: frame-*.pose.txt; authors-csv: RAW_ROOT is one label file whose "
+        "orientations are world-to-camera, written to OUT_DIR camera-to-world",
+    )
     convert.add_argument("raw_root", type=Path, metavar="RAW_ROOT")
     convert.add_argument("out_dir", type=Path, metavar="OUT_DIR")
     convert.set_defaults(run=_convert)

@@ -33,6 +33,7 @@ import numpy as np
 from pae.core.errors import LabelError
 from pae.core.quaternion_sign import canonical_sign
 from pae.data.labels import ZERO_QUATERNION_NORM, LabelTable, write_labels
+from pae.data.orientation import conjugate
 
 __all__ = [
     "CAMBRIDGE_SPLIT_FILES",
@@ -99,10 +100,13 @@ def _scene_table(
 
 
 def read_cambridge_scene(scene_dir: str | os.PathLike[str], split: str) -> LabelTable:
-    """Rows of ``<scene_dir>/dataset_<split>.txt`` with the raw numbers kept as they are.
+    """Rows of ``<scene_dir>/dataset_<split>.txt`` as camera-to-world poses.
 
-    Only the sign of a whole quaternion is flipped where ``W < 0``; quaternions are not
-    normalised (reading the written label file normalises them).
+    The file's positions are the camera centres in the world and are kept as they are; its
+    quaternions are world-to-camera rotations (from the dataset's VisualSFM reconstruction),
+    so each is conjugated into the camera-to-world rotation pae's label files hold
+    (``pae.data.orientation``), and its sign flipped where the result has ``W < 0``;
+    quaternions are not normalised (reading the written label file normalises them).
     """
     scene_dir = Path(scene_dir)
     scene = scene_dir.name
@@ -132,7 +136,7 @@ def read_cambridge_scene(scene_dir: str | os.PathLike[str], split: str) -> Label
     if not poses:
         raise LabelError(path, None, "no frames listed")
     pose_array = np.asarray(poses, dtype=np.float64)
-    pose_array[:, 3:] = canonical_sign(pose_array[:, 3:])
+    pose_array[:, 3:] = canonical_sign(conjugate(pose_array[:, 3:]))
     return _scene_table(scene, split, seqs, img_paths, pose_array, path, lines)
 
 
