@@ -216,3 +216,42 @@ def test_the_scene_model_step_logs_trajectories_with_render_compare(finished_run
         rgb = cv2.imdecode(np.frombuffer(image.encoded_image_string, np.uint8), 1)[..., ::-1]
         for colour in METHOD_RGB[:2]:
             assert (rgb == np.array(colour, np.uint8)).all(-1).sum() > 20, colour
+
+
+def test_render_compare_from_a_file_of_the_teachers_estimates_is_the_runs(
+    finished_run: Path, tiny_root: Path, tmp_path: Path, capsys
+) -> None:
+    """--init with the teacher's own estimates as result-file lines gives the poses of the
+    run's own render_compare; a file missing an image names it."""
+    labels = tiny_root / "labels" / "all_test.csv"
+
+    def localize(out: Path, *extra: str) -> torch.Tensor:
+        argv = [str(finished_run), str(labels), "--out", str(out), *extra]
+        assert main(argv) == 0
+        return torch.as_tensor(read_labels(out).poses)
+
+    teacher = localize(tmp_path / "teacher.csv", "--refine", "teacher")
+    refined = localize(tmp_path / "rc.csv", "--refine", "render_compare")
+    table = read_labels(tmp_path / "teacher.csv")
+    lines = [
+        f"{name} {' '.join(f'{v:.9f}' for v in pose)}"
+        for name, pose in zip(table.img_path, table.poses, strict=True)
+    ]
+    results = tmp_path / "results.txt"
+    results.write_text("\n".join(lines) + "\n")
+    from_lines = localize(tmp_path / "b.csv", "--refine", "render_compare", "--init", str(results))
+    assert torch.allclose(from_lines, refined, atol=2e-3)  # starts as a label file rounds them
+    # a label file's scene column is each image's scene: here the labels' true scenes
+    from_labels = localize(
+        tmp_path / "a.csv", "--refine", "render_compare", "--init", str(tmp_path / "teacher.csv")
+    )
+    assert from_labels.shape == refined.shape
+    assert not torch.allclose(refined, teacher, atol=2e-2)
+    capsys.readouterr()
+    results.write_text("\n".join(lines[1:]) + "\n")
+    with pytest.raises(SystemExit):
+        localize(tmp_path / "c.csv", "--refine", "render_compare", "--init", str(results))
+    errors = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
+    assert len(errors) == 1 and "no start for 1 of 24 images" in errors[0], errors
+    assert Path(table.img_path[0]).name in errors[0]
+    assert not (tmp_path / "c.csv").exists()

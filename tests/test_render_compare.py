@@ -284,7 +284,7 @@ def test_the_gate_also_keeps_the_start_where_the_refined_score_is_below_the_floo
 
 
 def test_the_auto_margin_rejects_refinements_that_made_poses_worse() -> None:
-    from pae.callbacks.render_compare import ACCEPT_ALL, choose_gate
+    from pae.render_compare.calibration import ACCEPT_ALL, choose_gate
 
     gains = torch.linspace(0.01, 0.5, 100)
     scores = torch.full((100,), 0.8)
@@ -298,7 +298,7 @@ def test_the_auto_margin_rejects_refinements_that_made_poses_worse() -> None:
 def test_the_auto_floor_rejects_refinements_the_scene_model_does_not_explain() -> None:
     """Gains do not tell the bad refinements apart, their low final scores do: the floor
     chosen is the grid point just above the bad ones, and a fixed margin is kept."""
-    from pae.callbacks.render_compare import ACCEPT_ALL, choose_gate
+    from pae.render_compare.calibration import ACCEPT_ALL, choose_gate
 
     gains = torch.rand(100, generator=torch.Generator().manual_seed(0))
     scores = torch.linspace(0.2, 0.9, 100)
@@ -751,3 +751,76 @@ def test_the_band_pass_score_ignores_smooth_shading_that_plain_zncc_does_not() -
     torch.testing.assert_close(band_pass(texture, 1.0, 0.0), band_pass(texture, 1.0, -1.0))
     with pytest.raises(ValueError, match="highpass_sigma_px"):
         RenderCompareRefiner.configured(OracleSceneModel([]), highpass_sigma_px=-1.0)
+
+
+def test_the_package_refines_without_lightning_as_the_callback_does(tmp_path: Path) -> None:
+    """pae.render_compare's calibrate and refine run with lightning never imported, and give
+    the callback's poses on the same val and test queries."""
+    import subprocess
+    import sys
+    from types import SimpleNamespace
+
+    from pae.callbacks.render_compare import RenderCompareCallback
+
+    settings = {"rounds": 3, "candidates": 8, "resolution": 16, "reference_size": 12}
+    model, images, intrinsics, truth, start = _oracle_queries(6)
+    n = len(truth)
+    scenes = torch.zeros(n, dtype=torch.long)
+    callback = RenderCompareCallback(
+        settings, oracle=False, step_from_val={"position": 0.3, "orientation": 0.4}
+    )
+    trainer = SimpleNamespace(world_size=1, datamodule=SimpleNamespace(), log_dir=None)
+    module = SimpleNamespace(
+        scene_model=model,
+        teacher=None,
+        scene_names=["scene00"],
+        log_dict=lambda figures: None,
+        eval_outputs=[
+            {
+                "image": images,
+                "intrinsics": intrinsics,
+                "estimate": start,
+                "scene_estimate": scenes,
+                "pose": truth,
+                "scene": scenes,
+                "index": torch.arange(n),
+            }
+        ],
+    )
+    for split in ("val", "test"):
+        callback.refine(trainer, module, split)
+    torch.save(
+        {"images": images, "intrinsics": intrinsics, "truth": truth, "start": start},
+        tmp_path / "queries.pt",
+    )
+    code = f"""
+import sys, torch
+from pae.render_compare import calibrate, refine
+from pae.scene_model.oracle import OracleSceneModel
+q = torch.load({str(tmp_path / "queries.pt")!r})
+from pae.synthetic import make_scene
+model = OracleSceneModel([make_scene(0)])
+scenes = torch.zeros(6, dtype=torch.long)
+settings = {settings!r}
+fractions = {{"position": 0.3, "orientation": 0.4}}
+calibration, val = calibrate(model, q["images"], q["intrinsics"], q["start"], scenes,
+                             q["truth"], settings, fractions, accept_margin=None)
+test = refine(model, q["images"], q["intrinsics"], q["start"], scenes, settings, calibration)
+assert "lightning" not in sys.modules and "pytorch_lightning" not in sys.modules
+torch.save({{"val": val.poses, "test": test.poses}}, {str(tmp_path / "out.pt")!r})
+"""
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    out = torch.load(tmp_path / "out.pt")
+    # the test split's refinement under the gate and steps chosen on val, as the callback's
+    torch.testing.assert_close(out["test"], callback.refined["test"]["render_compare_oracle"])
+    torch.testing.assert_close(out["val"], callback.refined["val"]["render_compare_oracle"])
+
+
+def test_the_public_refine_names_a_wrong_shape() -> None:
+    from pae.render_compare import refine
+
+    model, images, intrinsics, _, start = _oracle_queries(3)
+    with pytest.raises(ValueError, match=r"starts must be \[3, 7\], got \[3, 6\]"):
+        refine(model, images, intrinsics, start[:, :6], torch.zeros(3, dtype=torch.long))

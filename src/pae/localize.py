@@ -13,9 +13,10 @@ EPILOG = """examples:
       --out poses.csv
 INPUT: image files, folders of images (searched recursively) or label files (their img_path
 read under --root, by default the run's data root; their poses only give the printed errors).
-The teacher's estimates by default; --refine render_compare refines them against the run's
-scene model (with the gate and steps the run chose on val), --refine refined (knn_mean,
-student, or an entry of the run's refine.alternatives) with its student."""
+The teacher's estimates by default, or another APR's with --init FILE; --refine
+render_compare refines them against the run's scene model (with the gate and steps the run
+chose on val), --refine refined (knn_mean, student, or an entry of the run's
+refine.alternatives) with its student."""
 
 
 def parser() -> argparse.ArgumentParser:
@@ -34,6 +35,21 @@ def parser() -> argparse.ArgumentParser:
     parse.add_argument("--focal", type=float, help="focal length (px) of the images on disk")
     parse.add_argument("--batch-size", type=int, default=64, help="images per teacher pass")
     parse.add_argument("--device", default="cpu", help="torch device (default: cpu)")
+    parse.add_argument(
+        "--init",
+        type=Path,
+        metavar="FILE",
+        help="refine the poses in FILE instead of the teacher's: a pae label file, or lines "
+        "'NAME x y z qw qx qy qz' (or NAME and a row-major 4x4 camera-to-world matrix), "
+        "matched to the images by the longest common path suffix",
+    )
+    parse.add_argument(
+        "--init-axes",
+        default="pae",
+        choices=("pae", "opengl"),
+        help="camera axes of --init's orientations: pae (x right, y down, z forward) or "
+        "opengl (y up, z backward: DFNet's and NeFeS's result files)",
+    )
     return parse
 
 
@@ -100,6 +116,12 @@ def localize(args: argparse.Namespace) -> None:
         device,
         Progress(f"pae-localize: {method}", "images", emit),
     )
+    if args.init is not None:
+        from pae.apps.starts import starts_for
+
+        pose, scene = starts_for(queries.shown, args.init, teacher.scene_names, args.init_axes)
+        found = found._replace(pose=pose, scene=found.scene if scene is None else scene)
+        emit(f"pae-localize: {len(pose)} starts from {args.init}")
     if method == loc.TEACHER:
         poses = found.pose
     elif method == loc.RENDER_COMPARE:

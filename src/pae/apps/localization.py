@@ -28,13 +28,9 @@ from pae.data.transforms import ImageTransform
 from pae.lit.eval_outputs import EVAL
 from pae.lit.scene_model import compare_queries
 from pae.models.base import Latents
-from pae.render_compare.refiner import (
-    ACCEPT_ALL,
-    BUILD_KEYS,
-    RenderCompareRefiner,
-    gate,
-    refiner_defaults,
-)
+from pae.render_compare import Calibration, refine
+from pae.render_compare.calibration import teacher_features
+from pae.render_compare.refiner import ACCEPT_ALL, BUILD_KEYS, refiner_defaults
 
 TEACHER = "teacher"
 RENDER_COMPARE = "render_compare"
@@ -289,22 +285,23 @@ def render_compare(
 ) -> Tensor:
     """The render-and-compare poses [N, 7] of the queries against the run's scene model,
     from the teacher's estimates, through the gate the run applied at test."""
-    from pae.callbacks.render_compare import teacher_features
-
     loaded = load_scene_model(scene_model_path(run), "scene_model_ckpt")
     settings, margin, floor = render_compare_settings(run)
     features = None
     if settings.get("score") == "features":
         features = teacher_features(teacher, run.config.render_compare.feature_layers)
-    refiner = RenderCompareRefiner.configured(
-        loaded.model.to(device), features=features, **settings
-    )
     assert found.images is not None and found.intrinsics is not None
-    estimate = found.pose.to(device)
-    result = refiner(
-        found.images.to(device), found.intrinsics.to(device), estimate, found.scene.to(device)
+    refined = refine(
+        loaded.model.to(device),
+        found.images.to(device),
+        found.intrinsics.to(device),
+        found.pose.to(device),
+        found.scene.to(device),
+        settings,
+        Calibration(margin, floor),
+        features,
     )
-    return gate(result, estimate, margin, floor).poses.cpu()
+    return refined.poses.cpu()
 
 
 def student_poses(run: Run, method: str, teacher: torch.nn.Module, found: Estimates) -> Tensor:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import functools
 import logging
 import time
@@ -14,11 +13,15 @@ import lightning as L
 import torch
 from torch import Tensor
 
-from pae.core.atomic import atomic_write
 from pae.core.geometry import pose_errors
 from pae.core.metrics import summarise_errors
-from pae.data.transforms import ImageTransform
 from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
+from pae.render_compare.calibration import (
+    choose_gate,
+    steps_from_errors,
+    teacher_features,
+)
+from pae.render_compare.queries import gate_figures, write_queries
 from pae.render_compare.refiner import (
     ACCEPT_ALL,
     RenderCompareRefiner,
@@ -39,54 +42,7 @@ from pae.scene_model.oracle import OracleSceneModel
 
 HONEST = "render_compare"
 ORACLE = "render_compare_oracle"
-MARGIN_QUANTILES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
-"""Candidate acceptance margins of ``accept_margin=auto`` besides accept-all and 0, and
-score floors of ``accept_score=auto`` besides none: these quantiles of the validation
-queries' score gains and refined scores."""
 log = logging.getLogger(__name__)
-
-
-def choose_gate(
-    gains: Tensor,
-    scores: Tensor,
-    refined_error: Tensor,
-    start_error: Tensor,
-    margin: float | None = None,
-    floor: float | None = None,
-) -> tuple[float, float]:
-    """The acceptance margin and score floor that minimise the mean position error over
-    queries with score gains [N] (refined minus start), refined scores [N] and position
-    errors [N] (m) of the refined poses and of the starts. Margins: accept-all
-    (``ACCEPT_ALL``), 0 and ``MARGIN_QUANTILES`` of the gains; floors: none (``ACCEPT_ALL``)
-    and those quantiles of the refined scores; a given ``margin`` or ``floor`` is kept as it
-    is. The smallest margin, then the smallest floor, wins ties."""
-    if not len(gains):
-        return (0.0 if margin is None else margin), (ACCEPT_ALL if floor is None else floor)
-    levels = gains.new_tensor(MARGIN_QUANTILES, dtype=torch.float)
-
-    def candidates(values: Tensor, fixed: float | None, base: list[float]) -> Tensor:
-        if fixed is not None:
-            return torch.tensor([float(fixed)])
-        grid = torch.cat([torch.tensor(base), values.float().quantile(levels)])
-        return grid.sort().values
-
-    margins = candidates(gains, margin, [ACCEPT_ALL, 0.0])
-    floors = candidates(scores, floor, [ACCEPT_ALL])
-    accepted = (gains.float() > margins[:, None, None]) & (scores.float() > floors[None, :, None])
-    errors = torch.where(accepted, refined_error, start_error).mean(-1)  # [K, F]
-    best = int(errors.flatten().argmin())
-    return float(margins[best // len(floors)]), float(floors[best % len(floors)])
-
-
-def teacher_features(teacher: torch.nn.Module, layers: int) -> Any:
-    """The first ``layers`` modules of the teacher backbone's feature extractor, applied to
-    RGB images in [0, 1] (normalised as the teacher's inputs are)."""
-    features = teacher.backbone.features[:layers]
-
-    def extract(rgb: Tensor) -> Tensor:
-        return features(ImageTransform.normalize_batch(rgb))
-
-    return extract
 
 
 class RenderCompareCallback(L.Callback):
@@ -243,11 +199,7 @@ class RenderCompareCallback(L.Callback):
         the validation estimates [N, 7] against their true poses [N, 7]."""
         if self.step_from_val is None:
             return
-        pos, rot = pose_errors(estimate.float(), truth.float())
-        self.steps = {
-            "position_sigma_m": float(self.step_from_val["position"] * pos.quantile(0.5)),
-            "orientation_sigma_deg": float(self.step_from_val["orientation"] * rot.quantile(0.5)),
-        }
+        self.steps = steps_from_errors(estimate, truth, self.step_from_val)
 
     def decide_scenes(
         self,
@@ -336,74 +288,6 @@ class RenderCompareCallback(L.Callback):
                 ms = torch.tensor(1000 * seconds / len(pos))
                 figures[f"bench/{name}/ms_per_query"] = ms
         pl_module.log_dict(figures)
-
-
-QUERY_COLUMNS = (
-    "index",
-    "scene",
-    "start_pos_m",
-    "start_rot_deg",
-    "refined_pos_m",
-    "refined_rot_deg",
-    "start_score",
-    "refined_score",
-    "accepted",
-)
-
-
-def write_queries(
-    path: Path,
-    index: Tensor,
-    scenes: list[str],
-    start: tuple[Tensor, Tensor],
-    refined: tuple[Tensor, Tensor],
-    result: RenderCompareResult,
-    gated: Any,
-) -> None:
-    """One row per query [N] (``QUERY_COLUMNS``, in split order): its row ``index`` in the
-    split's label file, scene name, the position (m) and orientation (deg) errors of the
-    start and of the refined pose (before the gate), both scores and the gate's verdict;
-    written atomically."""
-    order = index.argsort()
-    columns = [
-        index,
-        *start,
-        *refined,
-        result.initial_score,
-        result.score,
-        gated.accepted.int(),
-    ]
-    values = [c[order].tolist() for c in columns]
-    with atomic_write(path, newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(QUERY_COLUMNS)
-        for i, row in enumerate(zip(*values, strict=True)):
-            name = scenes[int(order[i])]
-            numbers = [f"{v:.5f}" for v in row[1:-1]]
-            writer.writerow([int(row[0]), name, *numbers, int(row[-1])])
-
-
-def gate_figures(
-    prefix: str,
-    setting: tuple[float, float],
-    accepted: Tensor,
-    pos: Tensor,
-    refined_pos: Tensor,
-) -> dict[str, Tensor]:
-    """The acceptance gate's figures under ``prefix``: its margin and score floor
-    (``setting``), the share accepted, the median position error (m) of accepted and of
-    rejected queries (where there are any) after the gate [N], and of every refinement
-    accepted (``ungated``)."""
-    figures = {
-        f"{prefix}/accept_margin": torch.tensor(setting[0]),
-        f"{prefix}/accept_score": torch.tensor(setting[1]),
-        f"{prefix}/accepted_share": accepted.float().mean(),
-        f"{prefix}/ungated_pos_median_m": refined_pos.quantile(0.5),
-    }
-    for kind, rows in (("accepted", accepted), ("rejected", ~accepted)):
-        if rows.any():
-            figures[f"{prefix}/{kind}_pos_median_m"] = pos[rows].quantile(0.5)
-    return figures
 
 
 def oracle_scenes(data: Any) -> list[Any] | None:

@@ -1,0 +1,178 @@
+"""Starting poses from any APR (``pae-localize --init FILE``): a pae label file, or the
+field's result files (one line ``name x y z qw qx qy qz``, or ``name`` and a row-major 4×4
+camera-to-world matrix), matched to the queries by the longest common path suffix."""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path, PurePath
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from pae.core.errors import ConfigError, LabelError
+from pae.core.geometry import matrix_to_quaternion
+from pae.data.labels import LABEL_COLUMNS, read_labels
+
+AXES = ("pae", "opengl")
+"""The camera axes of a starts file: pae's (x right, y down, z forward) or OpenGL's (x right,
+y up, z backward: DFNet's and NeFeS's result files)."""
+SHOWN = 5
+"""How many unmatched names an error lists."""
+
+
+class Starts(NamedTuple):
+    """Poses [N, 7] (camera-to-world, pae's axes) by image name, and their scenes where the
+    file names them (else None)."""
+
+    names: list[str]
+    poses: np.ndarray
+    scenes: list[str] | None
+
+
+def opengl_to_pae(quaternions: np.ndarray) -> np.ndarray:
+    """Camera-to-world quaternions [N, 4] of cameras with OpenGL axes -> the same cameras with
+    pae's axes (the rotation turned by 180° about the camera's x axis: q ⊗ (0, 1, 0, 0))."""
+    w, x, y, z = quaternions.T
+    return np.stack([-x, w, z, -y], 1)
+
+
+def _line_pose(tokens: list[str], path: Path, line: int) -> np.ndarray:
+    try:
+        numbers = np.array([float(token) for token in tokens[1:]])
+    except ValueError as error:
+        raise LabelError(path, line, f"not a number: {error}") from None
+    if not np.isfinite(numbers).all():
+        raise LabelError(path, line, "a value is NaN or infinite")
+    if len(numbers) == 7:
+        pose = numbers
+    elif len(numbers) == 16:
+        matrix = numbers.reshape(4, 4)
+        rotation = torch.from_numpy(matrix[:3, :3])
+        pose = np.concatenate([matrix[:3, 3], matrix_to_quaternion(rotation).numpy()])
+    else:
+        raise LabelError(
+            path,
+            line,
+            f"expected 'NAME x y z qw qx qy qz' or 'NAME' and a 4x4 matrix (16 numbers), got "
+            f"{len(numbers)} numbers",
+        )
+    norm = float(np.linalg.norm(pose[3:]))
+    if norm < 1e-8 or not math.isfinite(norm):
+        raise LabelError(path, line, "zero quaternion")
+    pose[3:] /= norm
+    return pose
+
+
+def read_starts(path: str | Path, axes: str = "pae") -> Starts:
+    """The starting poses in ``path``: a pae label file (its ``img_path`` and ``scene``
+    columns), or result-file lines (``#`` comments and blank lines skipped); ``axes``: the
+    camera axes of the file's orientations (``AXES``)."""
+    path = Path(path)
+    if axes not in AXES:
+        raise ConfigError(f"--init-axes {axes!r}: choose one of {AXES}")
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such starts file")
+    first = path.read_text().lstrip().split("\n", 1)[0]
+    if first.replace(" ", "").startswith(",".join(LABEL_COLUMNS[:4])):
+        table = read_labels(path)
+        names, poses, scenes = list(table.img_path), table.poses.copy(), list(table.scene)
+    else:
+        names, rows = [], []
+        for line, text in enumerate(path.read_text().splitlines(), start=1):
+            tokens = text.split()
+            if not tokens or tokens[0].startswith("#"):
+                continue
+            names.append(tokens[0])
+            rows.append(_line_pose(tokens, path, line))
+        if not rows:
+            raise LabelError(path, None, "no poses")
+        poses, scenes = np.stack(rows), None
+    if axes == "opengl":
+        poses[:, 3:] = opengl_to_pae(poses[:, 3:])
+    return Starts(names, poses, scenes)
+
+
+def _parts(name: str) -> tuple[str, ...]:
+    return tuple(reversed(PurePath(name.replace("\\", "/")).parts))
+
+
+def _common(a: tuple[str, ...], b: tuple[str, ...]) -> int:
+    count = 0
+    for x, y in zip(a, b, strict=False):
+        if x != y:
+            break
+        count += 1
+    return count
+
+
+def match_starts(images: Sequence[str], starts: Starts, source: str) -> np.ndarray:
+    """Row of ``starts`` for each image path [N]: the start whose name shares the longest
+    path suffix with it (at least the file name; a start fitting several images goes to the
+    one it fits best); a ConfigError naming the first few images without a start, or starts
+    without an image, or images two starts fit equally well."""
+    by_file: dict[str, list[int]] = {}
+    keys = [_parts(name) for name in starts.names]
+    for row, key in enumerate(keys):
+        by_file.setdefault(key[0], []).append(row)
+    rows, lengths, ambiguous = [], [], []
+    for image in images:
+        key = _parts(image)
+        candidates = by_file.get(key[0], [])
+        common = [_common(key, keys[row]) for row in candidates]
+        best = max(common, default=0)
+        if common.count(best) > 1:
+            ambiguous.append(image)
+        rows.append(candidates[common.index(best)] if candidates else -1)
+        lengths.append(best)
+    # a start taken by several images belongs to the one it fits best; the others have none
+    best_fit: dict[int, int] = {}
+    for row, length in zip(rows, lengths, strict=True):
+        best_fit[row] = max(best_fit.get(row, 0), length)
+    missing, taken = [], Counter()
+    for image, row, length in zip(images, rows, lengths, strict=True):
+        if row < 0 or length < best_fit[row]:
+            missing.append(image)
+        else:
+            taken[row] += 1
+    ambiguous += [
+        image for image, row in zip(images, rows, strict=True) if row >= 0 and taken[row] > 1
+    ]
+    if missing:
+        raise ConfigError(
+            f"{source}: no start for {len(missing)} of {len(images)} images, e.g. "
+            + ", ".join(missing[:SHOWN])
+        )
+    if ambiguous:
+        raise ConfigError(
+            f"{source}: several starts fit {len(ambiguous)} images equally well, e.g. "
+            + ", ".join(ambiguous[:SHOWN])
+        )
+    unused = sorted(set(range(len(keys))) - set(rows))
+    if unused:
+        names = [starts.names[row] for row in unused[:SHOWN]]
+        raise ConfigError(
+            f"{source}: {len(unused)} starts match no image, e.g. " + ", ".join(names)
+        )
+    return np.asarray(rows)
+
+
+def starts_for(
+    images: Sequence[str], path: str | Path, scene_names: Sequence[str], axes: str = "pae"
+) -> tuple[Tensor, Tensor | None]:
+    """The starting poses [N, 7] of ``images`` from the file at ``path``, and their scene ids
+    [N] into ``scene_names`` where the file names scenes (None otherwise)."""
+    starts = read_starts(path, axes)
+    rows = match_starts(images, starts, str(path))
+    poses = torch.as_tensor(starts.poses[rows], dtype=torch.float32)
+    if starts.scenes is None:
+        return poses, None
+    unknown = sorted({starts.scenes[r] for r in rows} - set(scene_names))
+    if unknown:
+        raise ConfigError(f"{path}: scenes {unknown} are not the run's {list(scene_names)}")
+    scene = torch.as_tensor([list(scene_names).index(starts.scenes[r]) for r in rows])
+    return poses, scene

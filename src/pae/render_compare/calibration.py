@@ -1,0 +1,86 @@
+"""What render-and-compare chooses on validation queries, with their true poses, and applies
+at test: the acceptance gate (margin and score floor) and the search's first steps."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from pae.core.geometry import pose_errors
+from pae.data.transforms import ImageTransform
+from pae.render_compare.gate import ACCEPT_ALL
+
+MARGIN_QUANTILES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+"""Candidate acceptance margins besides accept-all and 0, and score floors besides none:
+these quantiles of the validation queries' score gains and refined scores."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Calibration:
+    """The gate (``accept_margin``: a ZNCC gain; ``accept_score``: a ZNCC floor) and the
+    search's first steps (``steps``: ``position_sigma_m``, ``orientation_sigma_deg``; empty:
+    the refiner's settings) applied to queries without true poses."""
+
+    accept_margin: float = 0.0
+    accept_score: float = ACCEPT_ALL
+    steps: Mapping[str, float] = dataclasses.field(default_factory=dict)
+
+
+def choose_gate(
+    gains: Tensor,
+    scores: Tensor,
+    refined_error: Tensor,
+    start_error: Tensor,
+    margin: float | None = None,
+    floor: float | None = None,
+) -> tuple[float, float]:
+    """The acceptance margin and score floor that minimise the mean position error over
+    queries with score gains [N] (refined minus start), refined scores [N] and position
+    errors [N] (m) of the refined poses and of the starts. Margins: accept-all
+    (``ACCEPT_ALL``), 0 and ``MARGIN_QUANTILES`` of the gains; floors: none (``ACCEPT_ALL``)
+    and those quantiles of the refined scores; a given ``margin`` or ``floor`` is kept as it
+    is. The smallest margin, then the smallest floor, wins ties."""
+    if not len(gains):
+        return (0.0 if margin is None else margin), (ACCEPT_ALL if floor is None else floor)
+    levels = gains.new_tensor(MARGIN_QUANTILES, dtype=torch.float)
+
+    def candidates(values: Tensor, fixed: float | None, base: list[float]) -> Tensor:
+        if fixed is not None:
+            return torch.tensor([float(fixed)])
+        grid = torch.cat([torch.tensor(base), values.float().quantile(levels)])
+        return grid.sort().values
+
+    margins = candidates(gains, margin, [ACCEPT_ALL, 0.0])
+    floors = candidates(scores, floor, [ACCEPT_ALL])
+    accepted = (gains.float() > margins[:, None, None]) & (scores.float() > floors[None, :, None])
+    errors = torch.where(accepted, refined_error, start_error).mean(-1)  # [K, F]
+    best = int(errors.flatten().argmin())
+    return float(margins[best // len(floors)]), float(floors[best % len(floors)])
+
+
+def steps_from_errors(
+    estimate: Tensor, truth: Tensor, fractions: Mapping[str, float]
+) -> dict[str, float]:
+    """The search's first steps from the starts' median errors: estimates [N, 7] against
+    their true poses [N, 7]; ``fractions``: ``position`` and ``orientation``, the steps as
+    shares of the median position (m) and orientation (deg) errors."""
+    pos, rot = pose_errors(estimate.float(), truth.float())
+    return {
+        "position_sigma_m": float(fractions["position"] * pos.quantile(0.5)),
+        "orientation_sigma_deg": float(fractions["orientation"] * rot.quantile(0.5)),
+    }
+
+
+def teacher_features(teacher: torch.nn.Module, layers: int) -> Any:
+    """The first ``layers`` modules of the teacher backbone's feature extractor, applied to
+    RGB images in [0, 1] (normalised as the teacher's inputs are)."""
+    features = teacher.backbone.features[:layers]
+
+    def extract(rgb: Tensor) -> Tensor:
+        return features(ImageTransform.normalize_batch(rgb))
+
+    return extract
