@@ -149,7 +149,7 @@ def match_starts(images: Sequence[str], starts: Starts, source: str) -> np.ndarr
         )
     if ambiguous:
         raise ConfigError(
-            f"{source}: several starts fit {len(ambiguous)} images equally well, e.g. "
+            f"{source}: {len(ambiguous)} images have no unique start (two fit equally well), e.g. "
             + ", ".join(ambiguous[:SHOWN])
         )
     unused = sorted(set(range(len(keys))) - set(rows))
