@@ -4,7 +4,6 @@ camera-to-world matrix), matched to the queries by the longest common path suffi
 
 from __future__ import annotations
 
-import math
 from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path, PurePath
@@ -62,7 +61,7 @@ def _line_pose(tokens: list[str], path: Path, line: int) -> np.ndarray:
             f"{len(numbers)} numbers",
         )
     norm = float(np.linalg.norm(pose[3:]))
-    if norm < 1e-8 or not math.isfinite(norm):
+    if norm < 1e-8:
         raise LabelError(path, line, "zero quaternion")
     pose[3:] /= norm
     return pose
@@ -77,14 +76,15 @@ def read_starts(path: str | Path, axes: str = "pae") -> Starts:
         raise ConfigError(f"--init-axes {axes!r}: choose one of {AXES}")
     if not path.is_file():
         raise ConfigError(f"{path}: no such starts file")
-    first = path.read_text().lstrip().split("\n", 1)[0]
+    text = path.read_text()
+    first = text.lstrip().split("\n", 1)[0]
     if first.replace(" ", "").startswith(",".join(LABEL_COLUMNS[:4])):
         table = read_labels(path)
         names, poses, scenes = list(table.img_path), table.poses.copy(), list(table.scene)
     else:
         names, rows = [], []
-        for line, text in enumerate(path.read_text().splitlines(), start=1):
-            tokens = text.split()
+        for line, row_text in enumerate(text.splitlines(), start=1):
+            tokens = row_text.split()
             if not tokens or tokens[0].startswith("#"):
                 continue
             names.append(tokens[0])

@@ -10,6 +10,7 @@ The refiner itself is :class:`pae.render_compare.refiner.RenderCompareRefiner`, 
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from typing import Any, NamedTuple
 
@@ -50,7 +51,7 @@ def _refiner(
     features: FeatureExtractor | None,
 ) -> RenderCompareRefiner:
     if isinstance(settings, RenderCompareSettings):
-        settings = settings.__dict__
+        settings = dataclasses.asdict(settings)
     return RenderCompareRefiner.configured(
         scene_model, features=features, **(dict(settings or {}) | dict(steps))
     )
