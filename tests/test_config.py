@@ -160,11 +160,11 @@ def test_python_defaults_are_the_yaml_defaults() -> None:
 
 
 def test_old_key_pae_ckpt_is_read_as_student_ckpt_with_one_warning(capsys) -> None:
-    import pae.config.validation
     from pae.config.validation import apply_renamed_keys
     from pae.core.errors import ConfigError
+    from pae.core.run_context import start_run
 
-    pae.config.validation._WARNED.clear()
+    start_run()
     for config in ("train", "eval"):
         cfg = _compose(config, ["pae_ckpt=/x.ckpt"])
         apply_renamed_keys(cfg, "pae-train")

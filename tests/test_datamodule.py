@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 import torch
 
-from pae.data import datamodule
 from pae.data.datamodule import PoseDataModule
 from pae.data.labels import LabelError, read_labels, write_labels
 from pae.models.backbones import Backbone
@@ -38,9 +37,11 @@ def test_splits_scene_ids_and_train_poses(tiny_root: Path) -> None:
 
 
 def test_val_sequences_null_validates_on_test_with_a_warning(
-    tiny_root: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+    tiny_root: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    monkeypatch.setattr(datamodule, "_WARNED", set())
+    from pae.core.run_context import start_run
+
+    start_run()
     data = _data(tiny_root, val_sequences=None)
     poses, _ = data.train_poses()
     assert len(poses) == 48 and data.datasets["val"] is data.datasets["test"]

@@ -755,8 +755,8 @@ def test_a_changed_helper_is_not_run_from_a_stale_cache(tmp_path: Path) -> None:
         "poses = torch.zeros(40, 7)\n"
         "poses[:, 0] = torch.arange(40.0)\n"
         "poses[:, 3] = 1\n"
-        "fused = PoseIndex(poses, engine='fused').query(poses[[3, 17]] + 0.1, k=3)[0]\n"
-        "batched = PoseIndex(poses, engine='batched').query(poses[[3, 17]] + 0.1, k=3)[0]\n"
+        "fused = PoseIndex(poses, engine='numba').query(poses[[3, 17]] + 0.1, k=3)[0]\n"
+        "batched = PoseIndex(poses, engine='torch').query(poses[[3, 17]] + 0.1, k=3)[0]\n"
         "print(fused.tolist(), batched.tolist())\n"
     )
     env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
@@ -838,15 +838,16 @@ def test_non_finite_figures_are_never_results(tmp_path: Path) -> None:
 
 
 def test_a_run_directory_holds_one_run_at_a_time(tiny_root: Path, tmp_path: Path) -> None:
-    from pae.core.run_lock import LOCK_FILE, lock_run_dir, release_run_dir
+    from pae.core.run_lock import LOCK_FILE, RunDirLock
 
     run_dir = tmp_path / "run"
     holder = subprocess.Popen(
         [
             sys.executable,
             "-c",
-            "import sys; from pathlib import Path; from pae.core.run_lock import lock_run_dir; "
-            "lock_run_dir(Path(sys.argv[1]), 'hydra.run.dir'); print('locked', flush=True); "
+            "import sys; from pathlib import Path; from pae.core.run_lock import RunDirLock; "
+            "lock = RunDirLock(Path(sys.argv[1]), 'hydra.run.dir'); lock.acquire(); "
+            "print('locked', flush=True); "
             "sys.stdin.read()",
             str(run_dir),
         ],
@@ -870,8 +871,9 @@ def test_a_run_directory_holds_one_run_at_a_time(tiny_root: Path, tmp_path: Path
     )
     assert line.endswith("): wait for it to end, or choose another directory")
     assert [p.name for p in run_dir.iterdir()] == [LOCK_FILE], "the other run's files are intact"
-    lock_run_dir(run_dir, "hydra.run.dir")
-    release_run_dir(run_dir)
+    lock = RunDirLock(run_dir, "hydra.run.dir")
+    lock.acquire()  # free again once the holder died
+    lock.release()
 
 
 def _ms_transformer_teacher(compose_train, path: Path) -> Path:

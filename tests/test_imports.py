@@ -114,14 +114,15 @@ def test_no_module_imports_itself_back() -> None:
 
 def test_steps_import_their_helpers_and_no_other_step() -> None:
     """A step's module (``pae.steps.<name>``) reaches no other step and not pae-eval's
-    evaluations; the helpers of ``pae.runs`` reach no step."""
+    evaluations; the helpers of ``pae.runs`` and pae-eval's evaluations reach no step."""
     graph = import_graph()
     steps = {module for module in graph if module.startswith("pae.steps.")}
     assert "pae.steps.teacher" in steps
     for step in steps:
         found = reachable(graph, step) & (steps | {"pae.apps.checkpoint_evaluation"})
         assert not found, f"{step} imports {sorted(found)}"
-    for helper in (module for module in graph if module.startswith("pae.runs")):
+    helpers = [m for m in graph if m.startswith("pae.runs")] + ["pae.apps.checkpoint_evaluation"]
+    for helper in helpers:
         found = reachable(graph, helper) & steps
         assert not found, f"{helper} imports {sorted(found)}"
 
@@ -192,3 +193,6 @@ def test_few_modules_at_the_top_and_none_too_long() -> None:
     assert len(top) <= 12, sorted(p.name for p in top)
     long = [str(p) for p in (SRC / "pae").rglob("*.py") if len(p.read_text().splitlines()) > 500]
     assert not long, long
+    callbacks = (SRC / "pae" / "callbacks").glob("*.py")
+    wide = [p.name for p in callbacks if len(p.read_text().splitlines()) > 150]
+    assert not wide, f"callbacks are adapters of at most 150 lines: {wide}"

@@ -495,7 +495,7 @@ def test_refine_groups_instantiate_their_callback(compose_train) -> None:
     assert refinement_callbacks(compose_train("refine=none")) == []
     (callback,) = refinement_callbacks(compose_train("refine=knn_closed_form", "refine.k=5"))
     assert isinstance(callback, TestTimeRefinement)
-    assert callback.options["weight_model"] == "closed_form" and callback.options["k"] == 5
+    assert callback.protocols.weight_model == "closed_form" and callback.protocols.k == 5
     assert sorted(callback.alternatives) == ["closed_form_k10", "latent_knn", "pose_descent"]
 
 

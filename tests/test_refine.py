@@ -84,7 +84,7 @@ def multi_scene_store() -> tuple[Tensor, Tensor]:
     return poses[order], scenes[order]
 
 
-@pytest.mark.parametrize("engine", ["fused", "batched"])
+@pytest.mark.parametrize("engine", ["numba", "torch"])
 @pytest.mark.parametrize("distance", ["normalized", "fixed"])
 def test_index_matches_brute_force(
     multi_scene_store: tuple[Tensor, Tensor], distance: str, engine: str
@@ -126,7 +126,7 @@ def test_index_engines_agree_on_a_dense_trajectory(distance: str) -> None:
     queries = stored[rows] + 0.05 * torch.randn(200, 7, generator=generator, dtype=torch.float64)
     found = [
         PoseIndex(stored, distance=distance, engine=engine).query(queries, k=5)
-        for engine in ("fused", "batched")
+        for engine in ("numba", "torch")
     ]
     assert torch.equal(found[0][0], found[1][0])
     torch.testing.assert_close(found[0][1], found[1][1], rtol=1e-6, atol=1e-7)
@@ -219,8 +219,8 @@ def test_closed_form_recovers_exact_affine_weights() -> None:
 @pytest.mark.parametrize(
     ("weight_model", "engine"),
     [
-        ("mlp", "fused"),
-        ("mlp", "batched"),
+        ("mlp", "numba"),
+        ("mlp", "torch"),
         ("softmax_logits", "auto"),
         ("closed_form", "auto"),
     ],
@@ -274,7 +274,7 @@ def test_fused_loop_equals_tensor_ops_on_drawn_regressors(hidden: tuple[int, ...
             engine=engine,
             generator=torch.Generator().manual_seed(3),
         )
-        for engine in ("fused", "batched")
+        for engine in ("numba", "torch")
     ]
     torch.testing.assert_close(fits[0].weights, fits[1].weights, atol=1e-9, rtol=0)
     assert float((fits[0].weights - 1 / 3).abs().max()) > 1e-2  # the fit moved the weights
@@ -286,7 +286,7 @@ def test_fused_loop_equals_tensor_ops_on_drawn_regressors(hidden: tuple[int, ...
         refine_affine(
             query, neighbours, poses, engine=engine, generator=torch.Generator().manual_seed(4)
         )
-        for engine in ("fused", "batched")
+        for engine in ("numba", "torch")
     )
     assert fused.weights.dtype == torch.float32
     torch.testing.assert_close(fused.weights, tensor_ops.weights, atol=2e-4, rtol=0)
@@ -324,7 +324,7 @@ def test_fused_loop_follows_units_that_switch_off_and_on() -> None:
     # units off at the first step and on later, and units that switch off
     assert sum(int(((~steps[0]) & steps[1:].any(dim=0)).sum()) for steps in history) > 0
     assert sum(int((steps[:-1] & ~steps[1:]).sum()) for steps in history) > 0
-    fused = refine_affine(query, neighbours, poses, engine="fused", **options)
+    fused = refine_affine(query, neighbours, poses, engine="numba", **options)
     torch.testing.assert_close(fused.weights, reference.weights, atol=1e-10, rtol=0)
 
 
@@ -344,7 +344,7 @@ def test_an_activation_the_kernel_lacks_takes_the_tensor_path(activation: str) -
     options = {"init": init, "lr": 0.05, "iterations": 4}
     auto = refine_affine(query, neighbours, poses, activation=activation, **options)
     batched = refine_affine(
-        query, neighbours, poses, activation=activation, engine="batched", **options
+        query, neighbours, poses, activation=activation, engine="torch", **options
     )
     oracle = refine_affine_per_query(query, neighbours, poses, activation=activation, **options)
     relu = refine_affine(query, neighbours, poses, **options)
@@ -352,7 +352,7 @@ def test_an_activation_the_kernel_lacks_takes_the_tensor_path(activation: str) -
     torch.testing.assert_close(auto.weights, oracle.weights, atol=1e-10, rtol=0)
     assert float((auto.weights - relu.weights).abs().max()) > 1e-4
     with pytest.raises(ValueError, match=f"implements activation relu, not '{activation}'"):
-        refine_affine(query, neighbours, poses, activation=activation, engine="fused", **options)
+        refine_affine(query, neighbours, poses, activation=activation, engine="numba", **options)
     assert activation not in FUSED_KERNEL.activations and "relu" in FUSED_KERNEL.activations
 
 
@@ -367,7 +367,7 @@ def test_refine_affine_rejects_an_unknown_engine() -> None:
     with pytest.raises(ValueError, match="engine must be one of"):
         refine_affine(query, neighbours, torch.zeros(2, 3, 7), engine="gpu")
     with pytest.raises(ValueError, match="float32 or float64 CPU tensors"):
-        refine_affine(query.bfloat16(), neighbours, torch.zeros(2, 3, 7), engine="fused")
+        refine_affine(query.bfloat16(), neighbours, torch.zeros(2, 3, 7), engine="numba")
 
 
 def test_first_layer_gain_matches_direct_sum() -> None:

@@ -18,6 +18,7 @@ from pae.config.validation import apply_renamed_keys, validate_eval_config
 from pae.core.atomic import write_json_atomic
 from pae.core.error_reporting import reporting_errors
 from pae.core.provenance import save_corrected_config
+from pae.core.run_context import start_run
 from pae.report.tables import format_results_table
 
 
@@ -33,14 +34,14 @@ def main(cfg: DictConfig) -> float | None:
         from pae.apps.checkpoint_evaluation import evaluate_checkpoints, evaluate_methods
         from pae.core.checkpoints import check_checkpoint_kinds
         from pae.core.console import say
-        from pae.runs.inputs import other_data_record, record_dataset, start_data_checks
+        from pae.runs.inputs import other_data_record, record_dataset
 
         apply_renamed_keys(cfg, "pae-eval")
         validate_eval_config(cfg)
         check_checkpoint_kinds(
             {key: cfg.get(key) for key in ("student_ckpt", "teacher_ckpt", "scene_model_ckpt")}
         )
-        start_data_checks()
+        start_run()
         L.seed_everything(cfg.seed, verbose=False)
         run_dir = Path(HydraConfig.get().runtime.output_dir)
         if rank_zero_only.rank == 0:

@@ -19,6 +19,7 @@ from pae.config.validation import apply_renamed_keys, validate_train_config
 from pae.core.atomic import write_json_atomic
 from pae.core.error_reporting import reporting_errors
 from pae.core.provenance import save_corrected_config
+from pae.core.run_context import start_run
 from pae.report.tables import format_results_table, step_figures
 from pae.steps import CHECKPOINTS, steps_of
 
@@ -33,13 +34,13 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, float | int | str]:
     from lightning.pytorch.utilities import rank_zero_only
 
     from pae.core.console import duration, quiet_third_party, say
-    from pae.runs.inputs import other_data_record, record_dataset, start_data_checks
+    from pae.runs.inputs import other_data_record, record_dataset
 
     quiet_third_party()
     apply_renamed_keys(cfg, "pae-train")
     overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
     validate_train_config(cfg, overrides)
-    start_data_checks()
+    start_run()
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     if rank_zero_only.rank == 0:
         save_corrected_config(cfg, run_dir)

@@ -33,8 +33,8 @@ from pae.relative.refiners import ImageRPR, IterativeAPRRefiner, TrainImages, Vi
 from pae.runs import Metrics
 from pae.runs.hparams import log_hparams
 from pae.runs.inputs import build_data, check_data
+from pae.runs.scene import evaluate_scene_model
 from pae.runs.trainer import build_trainer, refinement_callbacks, validate_and_test
-from pae.steps.scene_model import evaluate_scene_model
 
 
 def evaluate_checkpoints(cfg: DictConfig, run_dir: Path) -> Metrics:

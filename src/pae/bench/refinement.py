@@ -135,7 +135,7 @@ def bench_refinement(
     batched path, its tensor-operation path and the public loop each take the least time of
     ``repeats`` runs, so that a busy moment on a shared machine does not decide the ratio.
     "batched" is ``refine_affine``'s default on the CPU (``engine="auto"``: the fused
-    compiled loop); ``tensor_ops`` is its ``engine="batched"`` path. ``speedup`` is public
+    compiled loop); ``tensor_ops`` is its ``engine="torch"`` path. ``speedup`` is public
     loop / batched. Two figures against the measured matrix-product speed: ``roofline_fraction``
     is the time the arithmetic the fused loop actually does (``fused_flops_per_query``,
     ``mflop_done_per_query``) needs at that speed, over the batched time (a fraction of the
@@ -156,12 +156,12 @@ def bench_refinement(
     options = {"iterations": iterations, "generator": generator}
 
     refine_affine(query[warm], neighbours[warm], poses[warm], **options)
-    refine_affine(query[warm], neighbours[warm], poses[warm], engine="batched", **options)
+    refine_affine(query[warm], neighbours[warm], poses[warm], engine="torch", **options)
     refine_affine_per_query(query[warm], neighbours[warm], poses[warm], **options)
     refine_public_loop(query[warm], neighbours[warm], poses[warm], iterations)
     batched = _seconds(lambda: refine_affine(query, neighbours, poses, **options), repeats)
     tensor_ops = _seconds(
-        lambda: refine_affine(query, neighbours, poses, engine="batched", **options), repeats
+        lambda: refine_affine(query, neighbours, poses, engine="torch", **options), repeats
     )
     per_query = _seconds(lambda: refine_affine_per_query(query, neighbours, poses, **options))
     loop = _seconds(
@@ -243,7 +243,7 @@ def bench_index(label_files: Sequence[Path], n_queries: int = 1000, k: int = 3) 
 
     label_files are ``*_train.csv`` label files; the queries are ``n_queries`` poses drawn
     (fixed seed) from the matching ``*_test.csv`` files, each searched within its scene.
-    Times the default (compiled) search and the tensor search (``engine="batched"``) and
+    Times the default (compiled) search and the tensor search (``engine="torch"``) and
     reports whether they return the same neighbours (1.0).
     """
     if not label_files:
@@ -252,7 +252,7 @@ def bench_index(label_files: Sequence[Path], n_queries: int = 1000, k: int = 3) 
     test = LabelTable.concat(read_labels(_test_file(Path(path))) for path in label_files)
     names = train.scene_names
     index = PoseIndex(train.poses, train.scene_ids(names))
-    tensor_index = PoseIndex(train.poses, train.scene_ids(names), engine="batched")
+    tensor_index = PoseIndex(train.poses, train.scene_ids(names), engine="torch")
     rows = np.random.default_rng(0).choice(len(test), size=min(n_queries, len(test)), replace=False)
     queries = torch.from_numpy(test.poses[rows]).float()
     scenes = torch.from_numpy(test.scene_ids(names)[rows])

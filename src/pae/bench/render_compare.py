@@ -128,17 +128,17 @@ def bench_render_compare(
                 images[few], intrinsics[few], start[few], scene_ids[few]
             )
         )
-        for engine in ("compiled", "torch")
+        for engine in ("numba", "torch")
     )
     figures[f"{prefix}/compiled_engine_speedup"] = tensor / compiled
     grid = model.grids[0]
     rays = torch.randn(20_000, 3)
     origins = torch.zeros(20_000, 3) + torch.tensor([0.0, 0.0, 1.4])
     with torch.no_grad():
-        grid.composite(origins[:10], rays[:10], 48, 0.05, False, True)
+        grid.composite(origins[:10], rays[:10], 48, 0.05, False, "numba")
         fast, slow = (
-            _seconds(lambda c=c: grid.composite(origins, rays, 48, 0.05, False, c))
-            for c in (True, False)
+            _seconds(lambda e=e: grid.composite(origins, rays, 48, 0.05, False, e))
+            for e in ("numba", "torch")
         )
     figures[f"{prefix}/compiled_render_speedup"] = slow / fast
     figures["bench/deploy/render_compare/scene_model_bytes"] = sum(

@@ -7,10 +7,13 @@ import math
 from collections.abc import Mapping
 
 import cv2
+import lightning as L
 import numpy as np
 from torch import Tensor
 
+from pae.callbacks.tensorboard import log_figure, tensorboard_loggers
 from pae.callbacks.trajectory import METHOD_RGB, draw_text, nice_step
+from pae.core.geometry import pose_errors
 from pae.core.metrics import summarise_errors
 
 MARGIN = {"left": 56, "right": 240, "top": 36, "bottom": 46}
@@ -106,3 +109,27 @@ def error_curves_figure(
             ),
         ]
     )
+
+
+def log_error_curves(
+    trainer: L.Trainer,
+    split: str,
+    methods: Mapping[str, Tensor],
+    truth: Tensor,
+    scene: Tensor,
+    names: list[str],
+) -> None:
+    """Cumulative error curves of ``methods`` (name -> poses [N, 7]) against the true poses
+    [N, 7] of scenes ``scene`` [N]: TensorBoard image ``{split}/cumulative_errors``."""
+    loggers = tensorboard_loggers(trainer)
+    if not loggers:
+        return
+    errors = {m: pose_errors(p.float(), truth.float()) for m, p in methods.items()}
+    image = error_curves_figure(
+        f"{split} split, {len(truth)} queries",
+        {m: e[0] for m, e in errors.items()},
+        {m: e[1] for m, e in errors.items()},
+        scene,
+        names,
+    )
+    log_figure(loggers, f"{split}/cumulative_errors", image, trainer.global_step)

@@ -4,12 +4,9 @@ their errors; and the cumulative error curves of the teacher and render-and-comp
 
 from __future__ import annotations
 
-import csv
 from pathlib import Path
 
-import cv2
 import lightning as L
-import numpy as np
 import torch
 from lightning.pytorch.loggers import TensorBoardLogger
 from torch import Tensor, nn
@@ -21,36 +18,9 @@ from pae.callbacks.trajectory import log_trajectories
 from pae.core.camera import scale_intrinsics
 from pae.core.geometry import pose_errors
 from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
-from pae.render_compare.refiner import ACCEPT_ALL, gate
-
-FONT = cv2.FONT_HERSHEY_SIMPLEX
-LABEL_PX = 30
-"""Height (px) of the two text lines above each panel."""
-
-
-def gallery_figure(
-    title: str, panels: Tensor, labels: list[list[str]], panel_px: int
-) -> np.ndarray:
-    """Rows of RGB panels [R, C, 3, h, w] in [0, 1], each scaled to ``panel_px`` px wide and
-    captioned with its two lines of ``labels`` [R][C] ('first line|second line'), under a
-    ``title`` -> uint8 image [H, W, 3]."""
-    rows, columns, _, h, w = panels.shape
-    height = round(panel_px * h / w)
-    scaled = nn.functional.interpolate(
-        panels.flatten(0, 1), size=(height, panel_px), mode="nearest"
-    )
-    cells = (scaled.clamp(0, 1) * 255).byte().permute(0, 2, 3, 1).cpu().numpy()
-    cell_h, cell_w = height + LABEL_PX, panel_px + 6
-    image = np.full((24 + rows * cell_h, columns * cell_w, 3), 255, np.uint8)
-    cv2.putText(image, title, (4, 16), FONT, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-    for r in range(rows):
-        for c in range(columns):
-            top, left = 24 + r * cell_h, c * cell_w + 3
-            image[top + LABEL_PX : top + cell_h, left : left + panel_px] = cells[r * columns + c]
-            for line, text in enumerate(labels[r][c].split("|")):
-                at = (left, top + 11 + 12 * line)
-                cv2.putText(image, text, at, FONT, 0.36, (0, 0, 0), 1, cv2.LINE_AA)
-    return image
+from pae.render_compare import build_refiner
+from pae.render_compare.gate import gate
+from pae.report.gallery import gallery_figure, gallery_labels, read_query_errors
 
 
 class RenderCompareGallery(L.Callback):
@@ -109,7 +79,9 @@ class RenderCompareGallery(L.Callback):
             return
         rows = self.picked(outputs[EVAL.scene].cpu())
         model = pl_module.scene_model
-        refiner = self.refinement.refiner(model, pl_module.teacher)
+        calibration = self.refinement.calibration(HONEST)
+        features = self.refinement.features(pl_module.teacher)
+        refiner = build_refiner(model, self.refinement.settings, calibration.steps, features)
         draws = refiner.draws(len(outputs[EVAL.index]))[rows]
         picked = {key: value[rows.to(value.device)] for key, value in outputs.items()}
         estimate = picked[EVAL.estimate].float()
@@ -120,8 +92,7 @@ class RenderCompareGallery(L.Callback):
             picked[EVAL.scene_estimate],
             draws=draws,
         )
-        margin, floor = getattr(self.refinement, "gates", {}).get(HONEST, (0.0, ACCEPT_ALL))
-        gated = gate(result, estimate, margin, floor)
+        gated = gate(result, estimate, calibration.accept_margin, calibration.accept_score)
         images = picked[EVAL.image]
         h, w = images.shape[-2:]
         scale = self.panel_px / w
@@ -135,7 +106,7 @@ class RenderCompareGallery(L.Callback):
         panels = torch.stack([query, *(r.to(query) for r in renders)], 1)  # [K, 3, 3, h, w]
         truth = picked[EVAL.pose].float()
         errors = [pose_errors(p.float(), truth) for p in (estimate, gated.poses)]
-        labels = self._labels(picked[EVAL.index], errors, gated.accepted)
+        labels = gallery_labels(picked[EVAL.index], errors, gated.accepted)
         self.curves(trainer, loggers, split)
         refined = self.refinement.refined.get(split)
         if refined is not None:
@@ -162,29 +133,8 @@ class RenderCompareGallery(L.Callback):
         """Cumulative error curves of the teacher and of each render-and-compare method,
         from the per-query files the refinement callback wrote (after its gate), as the
         image ``{split}/cumulative_errors``."""
-        position: dict[str, Tensor] = {}
-        orientation: dict[str, Tensor] = {}
-        scenes: list[str] = []
-        for name in (HONEST, ORACLE):
-            path = Path(trainer.log_dir or "") / f"queries_{split}_{name}.csv"
-            if not path.is_file():
-                continue
-            with path.open(newline="") as handle:
-                rows = list(csv.DictReader(handle))
-            if not rows:
-                continue
-
-            def column(key: str, rows: list[dict[str, str]] = rows) -> Tensor:
-                return torch.tensor([float(row[key]) for row in rows])
-
-            scenes = [row["scene"] for row in rows]
-            accepted = column("accepted") > 0
-            position.setdefault("teacher", column("start_pos_m"))
-            orientation.setdefault("teacher", column("start_rot_deg"))
-            position[name] = torch.where(accepted, column("refined_pos_m"), position["teacher"])
-            orientation[name] = torch.where(
-                accepted, column("refined_rot_deg"), orientation["teacher"]
-            )
+        folder = Path(trainer.log_dir or "")
+        position, orientation, scenes = read_query_errors(folder, split, (HONEST, ORACLE))
         if not position:
             return
         names = sorted(set(scenes))
@@ -192,21 +142,3 @@ class RenderCompareGallery(L.Callback):
         title = f"{split} split, {len(ids)} queries"
         image = error_curves_figure(title, position, orientation, ids, names)
         log_figure(loggers, f"{split}/cumulative_errors", image, trainer.global_step)
-
-    @staticmethod
-    def _labels(
-        index: Tensor, errors: list[tuple[Tensor, Tensor]], accepted: Tensor
-    ) -> list[list[str]]:
-        """Each picked query's captions: its row, the teacher's errors, the refined pose's."""
-        (start_pos, start_rot), (pos, rot) = errors
-        verdict = ["kept", "rejected"]
-        return [
-            [
-                f"query|row {int(i)}",
-                f"teacher|{float(sp):.2f} m {float(sr):.1f} deg",
-                f"refined: {verdict[0 if a else 1]}|{float(p):.2f} m {float(r):.1f} deg",
-            ]
-            for i, sp, sr, p, r, a in zip(
-                index.tolist(), start_pos, start_rot, pos, rot, accepted.tolist(), strict=True
-            )
-        ]

@@ -16,7 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 from pae.config.validation import apply_renamed_keys, validate_eval_config, validate_train_config
 from pae.core.error_reporting import reporting_errors
 from pae.core.errors import ConfigError
-from pae.core.run_lock import lock_if_used, lock_run_dir, release_run_dir
+from pae.core.run_lock import RunDirLock
 from pae.steps import RESUMABLE_CHANGES
 
 
@@ -105,6 +105,8 @@ class Preflight(Callback):
 
     def __init__(self, program: str) -> None:
         self.program = program
+        self.locks: dict[Path, RunDirLock] = {}
+        """Run (or sweep) directory -> its lock, held from the checks to the run's end."""
 
     def _validate(self, config: DictConfig) -> None:
         if self.program == "pae-train":
@@ -119,10 +121,15 @@ class Preflight(Callback):
         self._check(config, Path(config.hydra.sweep.dir), "hydra.sweep.dir", sweep=True)
 
     def on_run_end(self, config: DictConfig, **kwargs: Any) -> None:
-        release_run_dir(Path(config.hydra.run.dir))
+        self._release(Path(config.hydra.run.dir))
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        release_run_dir(Path(config.hydra.sweep.dir))
+        self._release(Path(config.hydra.sweep.dir))
+
+    def _release(self, folder: Path) -> None:
+        lock = self.locks.pop(Path(os.path.abspath(folder)), None)
+        if lock is not None:
+            lock.release()
 
     def _check(self, config: DictConfig, folder: Path, key: str, sweep: bool) -> None:
         """The run (or sweep) directory `folder` can be written, is not in use by another run
@@ -134,7 +141,8 @@ class Preflight(Callback):
             with reporting_errors(self.program):
                 apply_renamed_keys(config, self.program)
                 check_writable_dir(folder, key)
-                lock_if_used(folder, key)
+                lock = self.locks.setdefault(Path(os.path.abspath(folder)), RunDirLock(folder, key))
+                lock.acquire_if_used()
                 if not config.get("resume"):
                     check_fresh(folder, key, self.program)
                 if not sweep:  # sweep jobs check their own settings when they start
@@ -142,7 +150,7 @@ class Preflight(Callback):
                 if config.get("resume") and not sweep:
                     check_resume(config, folder)
                 _check_latent_cache(config)
-                lock_run_dir(folder, key)
+                lock.acquire()
         except Exception:
             traceback.print_exc()
             raise SystemExit(1) from None

@@ -25,6 +25,7 @@ from pae.core.checks import (
     setting,
 )
 from pae.core.errors import ConfigError
+from pae.core.run_context import current_run
 from pae.data.labels import read_labels
 from pae.steps import CHECKPOINTS, GROUPS, MODELS, missing_checkpoints, steps_of
 
@@ -47,12 +48,11 @@ SYNTHETIC_NUISANCE_BOUNDS = {
 RENAMED_KEYS = {"pae_ckpt": "student_ckpt"}
 """Old key -> its new name. The old key is still read for one more release, with a one-line
 deprecation warning."""
-_WARNED: set[str] = set()
 
 
 def apply_renamed_keys(cfg: DictConfig, program: str | None = None) -> None:
     """Move a value given under an old key (RENAMED_KEYS) to its new name; with `program`,
-    say once per process that the old name is deprecated. Both names with different values
+    say once per run that the old name is deprecated. Both names with different values
     are a ConfigError."""
     for old, new in RENAMED_KEYS.items():
         value = OmegaConf.select(cfg, old, default=None, throw_on_missing=False)
@@ -63,8 +63,7 @@ def apply_renamed_keys(cfg: DictConfig, program: str | None = None) -> None:
             raise ConfigError(f"{old}={value} and {new}={current}: {old} is the old name of {new}")
         with open_dict(cfg):
             cfg[new], cfg[old] = value, None
-        if program is not None and old not in _WARNED:
-            _WARNED.add(old)
+        if program is not None and current_run().first_time(f"renamed {old}"):
             print(
                 f"{program}: warning: {old} is deprecated, use {new} (the old name is read "
                 "for one more release)",

@@ -25,12 +25,18 @@ import warnings
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 import numba
 import numpy as np
 import torch
 from numba.core.caching import CompileResultCacheImpl, FunctionCache, _CacheLocator
+
+Engine = Literal["auto", "numba", "torch"]
+ENGINES: tuple[str, ...] = ("auto", "numba", "torch")
+"""pae's one engine vocabulary for every kernel with a compiled loop beside its tensor
+reference: ``numba`` the compiled loop (CPU tensors; an error where it cannot run), ``torch``
+the tensor operations (any device), ``auto`` the compiled loop where it can run."""
 
 
 class CompileCacheWarning(UserWarning):

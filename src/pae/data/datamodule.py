@@ -17,6 +17,7 @@ from torch.utils.data import DataLoader, WeightedRandomSampler
 
 from pae.core.camera import Intrinsics, resized_size
 from pae.core.errors import ConfigError, LabelError
+from pae.core.run_context import current_run
 from pae.data.dataset import PoseDataset, collate_batch
 from pae.data.fingerprint import images_sha256
 from pae.data.holdout import HeldOut, held_out_rows, scenes_short_of_sequences
@@ -361,14 +362,10 @@ class PoseDataModule(L.LightningDataModule):
         return batch
 
 
-_WARNED: set[str] = set()
-
-
 @rank_zero_only
 def _warn_val_is_test() -> None:
-    """Say once per process that the val split is the test split."""
-    if "val_is_test" not in _WARNED:
-        _WARNED.add("val_is_test")
+    """Say once per run that the val split is the test split."""
+    if current_run().first_time("val_is_test"):
         print(
             "pae: warning: data.val_sequences=null: validation reads the test split, so val/ "
             "figures are test figures",

@@ -8,17 +8,16 @@ file is rebuilt, never used.
 
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import json
 import os
 from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 import torch
+from filelock import FileLock, Timeout
 from lightning.pytorch.utilities import rank_zero_info
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
@@ -123,28 +122,22 @@ def latent_cache_key(teacher_ckpt: str | Path, images: PoseDataModule) -> dict[s
     }
 
 
-@contextmanager
-def _locked(path: Path) -> Iterator[None]:
-    """An exclusive lock on `path` (created if needed), held while the block runs."""
+def _lock(path: Path) -> FileLock:
+    """An exclusive OS lock on `path` (``filelock``; the file kept after release)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("a") as handle:
-        fcntl.flock(handle.fileno(), fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(handle.fileno(), fcntl.LOCK_UN)
+    return FileLock(path, thread_local=False, preserve_lock_file=True)
 
 
 def _held_by_another(path: Path) -> bool:
-    """Whether another process (or another open of this one) holds the lock on `path`."""
+    """Whether another process (or another lock object of this one) holds the lock on `path`."""
     if not path.is_file():
         return False
-    with path.open("a") as handle:
-        try:
-            fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            return True
-        fcntl.flock(handle.fileno(), fcntl.LOCK_UN)
+    lock = _lock(path)
+    try:
+        lock.acquire(timeout=0)
+    except Timeout:
+        return True
+    lock.release()
     return False
 
 
@@ -195,7 +188,7 @@ class LatentCache:
         """(latents, whether they came from the cache). One job computes and writes while the
         others wait on the lock, then read its file."""
         path = self.path(key)
-        with _locked(path.with_suffix(".lock")):
+        with _lock(path.with_suffix(".lock")):
             self._remove_dead_writes(path)
             cached = self._read(path, key, rows)
             if cached is not None:

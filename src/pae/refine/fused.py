@@ -30,7 +30,7 @@ from pae.refine.regressor import ADAM_BETAS, ADAM_EPS, SERIES_RATIO, SMALLEST_IN
 class CompiledKernel:
     """What a compiled fit implements of the weight regressor ``pae.refine.regressor``
     defines: ``engine="auto"`` runs it only for a configured model it implements (the others
-    take the tensor path), and ``engine="fused"`` on any other is an error.
+    take the tensor path), and ``engine="numba"`` on any other is an error.
 
     activations: the hidden activations (keys of ``regressor.ACTIVATIONS``); objectives: the
     matching losses; min_hidden_layers: the fewest hidden layers it takes (any number above);

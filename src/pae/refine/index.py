@@ -9,12 +9,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pae.core.compiled import insert_sorted, jit, run_in_parts
+from pae.core.compiled import ENGINES, Engine, insert_sorted, jit, run_in_parts
 from pae.core.geometry import canonicalize_quaternion
 
 PoseDistance = Literal["normalized", "fixed"]
-SearchEngine = Literal["auto", "fused", "batched"]
-SEARCH_ENGINES: tuple[str, ...] = ("auto", "fused", "batched")
 _DEGREES_PER_HALF_TURN = 360.0 / math.pi
 """Rotation angle in degrees per radian of acos(|q·q'|) (the angle is twice that)."""
 
@@ -148,8 +146,8 @@ class PoseIndex:
       which measures orientation by ‖q − q'‖ instead, a distance that depends on the signs);
     - ``"fixed"``: ``‖Δx‖ + rot_weight · angle`` with ``rot_weight`` in metres per degree.
 
-    Distances are computed in float64. ``engine``: ``"fused"`` searches with a compiled loop
-    per query that skips most arc cosines (``_nearest``; CPU only), ``"batched"`` with tensor
+    Distances are computed in float64. ``engine``: ``"numba"`` searches with a compiled loop
+    per query that skips most arc cosines (``_nearest``; CPU only), ``"torch"`` with tensor
     operations over ``chunk_size`` queries at a time (memory bounded by ``chunk_size ×
     (largest scene)``); ``"auto"`` takes the first on the CPU and the second elsewhere.
     """
@@ -162,12 +160,12 @@ class PoseIndex:
         distance: PoseDistance = "normalized",
         rot_weight: float = 0.01,
         chunk_size: int = 256,
-        engine: SearchEngine = "auto",
+        engine: Engine = "auto",
     ) -> None:
         if distance not in ("normalized", "fixed"):
             raise ValueError(f"distance must be 'normalized' or 'fixed', got {distance!r}")
-        if engine not in SEARCH_ENGINES:
-            raise ValueError(f"engine must be one of {SEARCH_ENGINES}, got {engine!r}")
+        if engine not in ENGINES:
+            raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
         if not (math.isfinite(rot_weight) and rot_weight >= 0):
             raise ValueError(f"rot_weight must be a finite number >= 0, got {rot_weight}")
         if chunk_size < 1:
@@ -190,9 +188,9 @@ class PoseIndex:
         self.distance: PoseDistance = distance
         self.rot_weight = float(rot_weight)
         self.chunk_size = int(chunk_size)
-        self.engine: SearchEngine = engine
-        if engine == "fused" and poses_t.device.type != "cpu":
-            raise ValueError(f"engine 'fused' searches on the CPU only, got {poses_t.device} poses")
+        self.engine: Engine = engine
+        if engine == "numba" and poses_t.device.type != "cpu":
+            raise ValueError(f"engine 'numba' searches on the CPU only, got {poses_t.device} poses")
         # One float32 copy, each scene's poses contiguous (kept in the given order when they
         # are already; else stably sorted by scene, keeping that permutation as int32).
         run_ids, run_counts = torch.unique_consecutive(scenes_t, return_counts=True)
@@ -258,7 +256,7 @@ class PoseIndex:
             distance=self.distance,
             rot_weight=self.rot_weight,
             chunk_size=self.chunk_size,
-            engine=self.engine if torch.device(device).type == "cpu" else "batched",
+            engine=self.engine if torch.device(device).type == "cpu" else "torch",
         )
 
     def query(
@@ -300,7 +298,7 @@ class PoseIndex:
                 raise ValueError(f"scene {scene} has no stored poses (stored: {self.scene_ids})")
             if size < k:
                 raise ValueError(f"scene {scene} holds {size} stored poses, fewer than k={k}")
-        if self.device.type == "cpu" and self.engine != "batched":
+        if self.device.type == "cpu" and self.engine != "torch":
             found, best = self._search_fused(query_positions, query_quaternions, scenes_t, k)
             found = found if self._order is None else self._order[found].long()
             return found.to(out_device), best.float().to(out_device)

@@ -26,6 +26,7 @@ from typing import Literal, NamedTuple
 import torch
 from torch import Tensor
 
+from pae.core.compiled import ENGINES, Engine
 from pae.refine.fused import FUSED_KERNEL, fit_mlp_weights_fused
 from pae.refine.regressor import (
     ADAM_BETAS,
@@ -37,8 +38,6 @@ from pae.refine.regressor import (
 
 WeightModel = Literal["softmax_logits", "mlp", "closed_form"]
 Objective = Literal["l2", "mse"]
-Engine = Literal["auto", "fused", "batched"]
-ENGINES: tuple[str, ...] = ("auto", "fused", "batched")
 InitParams = Tensor | Sequence[LayerParams]
 """Initial parameters: logits [B, k] for ``softmax_logits``, the MLP layers for ``mlp``."""
 WEIGHT_MODELS: tuple[str, ...] = ("softmax_logits", "mlp", "closed_form")
@@ -172,14 +171,14 @@ def refine_affine(
     layer's bias per query and the later layers once per call, shared as starting values,
     as ``nn.Linear`` does (U(±1/√fan_in)); the first layer's weights per query as
     N(0, 1/(3·fan_in)), the same variance, which lets x·W₁ be drawn directly (see
-    ``pae.refine.regressor``). ``engine`` picks how the MLP is fitted: ``"fused"``, one
+    ``pae.refine.regressor``). ``engine`` picks how the MLP is fitted: ``"numba"``, one
     compiled loop per query (``pae.refine.fused``, float32 or float64 CPU tensors), or
-    ``"batched"``, tensor operations over ``chunk_size`` queries at a time (their optimiser
+    ``"torch"``, tensor operations over ``chunk_size`` queries at a time (their optimiser
     state then stays in cache: 64 is fastest on CPU); ``"auto"`` takes the fused loop where
     it can run and the batched path elsewhere. ``activation`` is the MLP's hidden activation
     (a key of ``pae.refine.regressor.ACTIVATIONS``); the fused loop implements only what
     ``pae.refine.fused.FUSED_KERNEL`` declares, so ``"auto"`` takes the batched path for any
-    other model and ``"fused"`` refuses it. The engines give the same result up to rounding.
+    other model and ``"numba"`` refuses it. The engines give the same result up to rounding.
     Works under ``torch.no_grad`` and ``torch.inference_mode``; the outputs carry no autograd
     graph.
     """
@@ -190,9 +189,9 @@ def refine_affine(
         raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
     on_cpu = query_latent.device.type == "cpu"
     compilable = on_cpu and query_latent.dtype in (torch.float32, torch.float64)
-    if engine == "fused" and not compilable:
+    if engine == "numba" and not compilable:
         raise ValueError(
-            "engine 'fused' runs on float32 or float64 CPU tensors, got "
+            "engine 'numba' runs on float32 or float64 CPU tensors, got "
             f"{query_latent.dtype} on {query_latent.device}"
         )
     batch, k, _ = neighbour_latents.shape
@@ -200,10 +199,10 @@ def refine_affine(
     if weight_model == "mlp":
         layers = len(init) - 1 if init is not None else len(hidden or regressor_hidden_sizes(k))
         mismatch = FUSED_KERNEL.mismatch(activation, objective, layers)
-        if engine == "fused" and mismatch:
-            raise ValueError(f"engine 'fused' cannot fit this weight regressor: {mismatch}")
+        if engine == "numba" and mismatch:
+            raise ValueError(f"engine 'numba' cannot fit this weight regressor: {mismatch}")
     loss = functools.partial(matching_loss, objective=objective)
-    fused = weight_model == "mlp" and compilable and engine != "batched" and mismatch is None
+    fused = weight_model == "mlp" and compilable and engine != "torch" and mismatch is None
     with torch.inference_mode(False), torch.enable_grad():
         query = query_latent.detach()
         neighbours = neighbour_latents.detach().to(query.dtype)

@@ -21,13 +21,77 @@ these quantiles of the validation queries' score gains and refined scores."""
 
 @dataclasses.dataclass(frozen=True)
 class Calibration:
-    """The gate (``accept_margin``: a ZNCC gain; ``accept_score``: a ZNCC floor) and the
+    """The gate (``accept_margin``: a ZNCC gain; ``accept_score``: a ZNCC floor), the
     search's first steps (``steps``: ``position_sigma_m``, ``orientation_sigma_deg``; empty:
-    the refiner's settings) applied to queries without true poses."""
+    the refiner's settings) and the score below which a multi-scene query is checked in the
+    other scenes (``scene_check_below``, a ZNCC; ``ACCEPT_ALL``: never), applied to queries
+    without true poses."""
 
     accept_margin: float = 0.0
     accept_score: float = ACCEPT_ALL
     steps: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    scene_check_below: float = ACCEPT_ALL
+
+
+AUTO = "auto"
+
+
+def _number_or_auto(key: str, value: float | str) -> float | None:
+    if value == AUTO:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ValueError(f"render_compare.{key} must be a number or auto, not {value!r}")
+    return float(value)
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrationOptions:
+    """What :func:`pae.render_compare.calibrate` chooses on validation and what it keeps:
+    ``accept_margin``, ``accept_score`` and ``scene_check_below`` a number (kept) or
+    ``auto`` (chosen); ``step_from_val``: ``{"position": a, "orientation": b}``, the first
+    steps as shares of the starts' median val errors (None: the refiner's own)."""
+
+    accept_margin: float | str = AUTO
+    accept_score: float | str = ACCEPT_ALL
+    step_from_val: Mapping[str, float] | None = None
+    scene_check_below: float | str = AUTO
+
+    def __post_init__(self) -> None:
+        for key in ("accept_margin", "accept_score", "scene_check_below"):
+            _number_or_auto(key, getattr(self, key))
+        steps = self.step_from_val
+        if steps is not None and (
+            set(steps) != {"position", "orientation"} or min(steps.values()) <= 0
+        ):
+            raise ValueError(
+                "render_compare.step_from_val needs position and orientation fractions > 0, "
+                f"got {dict(steps)!r}"
+            )
+
+    def fixed(self, key: str) -> float | None:
+        """The option ``key`` as a number, None where it is ``auto``."""
+        return _number_or_auto(key, getattr(self, key))
+
+    def arguments(self) -> dict[str, Any]:
+        """These options as :func:`pae.render_compare.calibrate`'s keyword arguments."""
+        return {
+            "step_fractions": self.step_from_val,
+            "accept_margin": self.fixed("accept_margin"),
+            "accept_score": self.fixed("accept_score"),
+            "scene_check_below": self.fixed("scene_check_below"),
+        }
+
+    def uncalibrated(self) -> Calibration:
+        """The calibration where no validation ran: the fixed options, else margin 0, no
+        floor, the refiner's steps and no scene check."""
+        margin, floor = self.fixed("accept_margin"), self.fixed("accept_score")
+        below = self.fixed("scene_check_below")
+        return Calibration(
+            0.0 if margin is None else margin,
+            ACCEPT_ALL if floor is None else floor,
+            {},
+            ACCEPT_ALL if below is None else below,
+        )
 
 
 def choose_gate(

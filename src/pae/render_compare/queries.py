@@ -11,7 +11,8 @@ import torch
 from torch import Tensor
 
 from pae.core.atomic import atomic_write
-from pae.render_compare.gate import RenderCompareResult
+from pae.core.geometry import pose_errors
+from pae.core.metrics import summarise_errors
 
 QUERY_COLUMNS = (
     "index",
@@ -32,21 +33,20 @@ def write_queries(
     scenes: list[str],
     start: tuple[Tensor, Tensor],
     refined: tuple[Tensor, Tensor],
-    result: RenderCompareResult,
-    gated: Any,
+    refinement: Any,
 ) -> None:
     """One row per query [N] (``QUERY_COLUMNS``, in split order): its row ``index`` in the
     split's label file, scene name, the position (m) and orientation (deg) errors of the
-    start and of the refined pose (before the gate), both scores and the gate's verdict;
-    written atomically."""
+    start and of the refined pose (before the gate), both scores and the gate's verdict
+    (:class:`pae.render_compare.Refinement`); written atomically."""
     order = index.argsort()
     columns = [
         index,
         *start,
         *refined,
-        result.initial_score,
-        result.score,
-        gated.accepted.int(),
+        refinement.result.initial_score,
+        refinement.result.score,
+        refinement.accepted.int(),
     ]
     values = [c[order].tolist() for c in columns]
     with atomic_write(path, newline="") as handle:
@@ -79,3 +79,34 @@ def gate_figures(
         if rows.any():
             figures[f"{prefix}/{kind}_pos_median_m"] = pos[rows].quantile(0.5)
     return figures
+
+
+def refinement_figures(
+    prefix: str,
+    refinement: Any,
+    calibration: Any,
+    starts: Tensor,
+    truth: Tensor,
+    scenes: Tensor,
+    scene_names: list[str],
+    decided: bool = False,
+) -> tuple[dict[str, Tensor], tuple[Tensor, Tensor], tuple[Tensor, Tensor]]:
+    """Figures under ``prefix`` of a :class:`pae.render_compare.Refinement` of ``starts``
+    [N, 7] under ``calibration`` against the true poses [N, 7] and scenes [N]: the error
+    summary after the gate, the gate's figures (:func:`gate_figures`),
+    ``worse_than_start_share`` and, where scenes were ``decided``, ``scene_accuracy``,
+    ``scene_check_below`` and ``scene_checked_share`` -> the figures and the position (m)
+    and orientation (deg) errors [N] of the starts and of the refined poses before the gate."""
+    start_errors = pose_errors(starts.float(), truth.float())
+    refined_errors = pose_errors(refinement.result.poses.float(), truth.float())
+    pos, rot = pose_errors(refinement.poses.float(), truth.float())
+    summary = summarise_errors(pos, rot, scenes, scene_names)
+    figures = {f"{prefix}/{key}": value for key, value in summary.items()}
+    setting = (calibration.accept_margin, calibration.accept_score)
+    figures |= gate_figures(prefix, setting, refinement.accepted, pos, refined_errors[0])
+    figures[f"{prefix}/worse_than_start_share"] = (pos > start_errors[0]).float().mean()
+    if decided:
+        figures[f"{prefix}/scene_accuracy"] = (refinement.scenes == scenes).float().mean()
+        figures[f"{prefix}/scene_check_below"] = torch.tensor(calibration.scene_check_below)
+        figures[f"{prefix}/scene_checked_share"] = refinement.checked.float().mean()
+    return figures, start_errors, refined_errors

@@ -183,7 +183,7 @@ class RenderCompareRefiner:
         return self.draw_stream()(n_queries).to(device)
 
     def _compiled(self, device: torch.device) -> bool:
-        return self.engine == "compiled" or (
+        return self.engine == "numba" or (
             self.engine == "auto" and self.score == "zncc" and device.type == "cpu"
         )
 

@@ -7,11 +7,13 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+from pae.core.compiled import ENGINES
+
 SCORES = ("zncc", "features")
-ENGINES = ("auto", "compiled", "torch")
-"""auto: compiled loops (``pae.render_compare.score``, ``pae.render_compare.polish_kernel``)
-for CPU tensors and the ZNCC score, tensor operations otherwise; compiled: always (ZNCC only);
-torch: always tensor operations (any device)."""
+"""``engine`` (:data:`pae.core.compiled.ENGINES`): auto, the compiled loops
+(``pae.render_compare.score``, ``pae.render_compare.polish_kernel``) for CPU tensors and the
+ZNCC score, tensor operations otherwise; numba: always (ZNCC only); torch: always tensor
+operations (any device)."""
 
 BUILD_KEYS = ("_target_", "_partial_")
 
@@ -79,8 +81,8 @@ def check_settings(
         raise ValueError(f"unknown render_compare.score {score!r}; choose one of {SCORES}")
     if engine not in ENGINES:
         raise ValueError(f"unknown render_compare.engine {engine!r}; choose one of {ENGINES}")
-    if engine == "compiled" and score != "zncc":
-        raise ValueError("render_compare.engine=compiled scores zncc only; use auto or torch")
+    if engine == "numba" and score != "zncc":
+        raise ValueError("render_compare.engine=numba scores zncc only; use auto or torch")
     if score == "features" and polish_steps:
         raise ValueError(
             "render_compare.polish_steps align the zncc score only; set "

@@ -15,6 +15,7 @@ from pae.core.checkpoints import CheckpointError, LoadedModel, load_scene_model
 from pae.core.console import say
 from pae.core.errors import ConfigError
 from pae.core.provenance import dataset_line, flat_record, save_record
+from pae.core.run_context import current_run
 from pae.data.datamodule import PoseDataModule
 from pae.scene_model.base import SceneModel
 from pae.scene_model.novel_views import NovelViewSettings
@@ -70,17 +71,6 @@ IDENTITY = (
     ("train_images_sha256", "train images"),
 )
 """The entries of a data fingerprint (PoseDataModule.fingerprint) and what each names."""
-_OTHER_DATA: dict[str, str] = {}
-"""With allow_other_data=true: the checkpoints this run read that were trained on other data
--> what differs (other_data_record)."""
-_UNCHECKED: set[str] = set()
-"""Checkpoints already said to record no train images."""
-
-
-def start_data_checks() -> None:
-    """Forget the checkpoints an earlier run in this process read (a run starts with this)."""
-    _OTHER_DATA.clear()
-    _UNCHECKED.clear()
 
 
 def other_data_record(cfg: DictConfig) -> dict[str, int]:
@@ -88,7 +78,7 @@ def other_data_record(cfg: DictConfig) -> dict[str, int]:
     run read were trained on other data than its own (0: none); no key otherwise."""
     if not cfg.get("allow_other_data"):
         return {}
-    return {"data/other_data_checkpoints": len(_OTHER_DATA)}
+    return {"data/other_data_checkpoints": len(current_run().other_data)}
 
 
 def check_fingerprint(
@@ -110,11 +100,12 @@ def check_fingerprint(
             raise CheckpointError(
                 f"{path}: trained on {what} (allow_other_data=true uses it anyway)"
             )
-        if str(path) not in _OTHER_DATA:
-            _OTHER_DATA[str(path)] = what
+        other_data = current_run().other_data
+        if str(path) not in other_data:
+            other_data[str(path)] = what
             say(f"data: warning: allow_other_data=true: {path} was trained on {what}; used anyway")
-    if "train_images_sha256" not in trained and str(path) not in _UNCHECKED:
-        _UNCHECKED.add(str(path))
+    unchecked = "train_images_sha256" not in trained
+    if unchecked and current_run().first_time(f"no train images fingerprint {path}"):
         say(
             f"data: warning: {path} records no fingerprint of its train images (written before pae "
             f"recorded one): its images are not checked against those of the data at {root}"

@@ -1,6 +1,7 @@
 """What the scene_fit and scene_model steps (and pae-eval) share: the scene model a config
 names, built from the run's data and checkpoints; the module that fits it to the train
-images' rays; the render-and-compare callback."""
+images' rays; the render-and-compare callback; the test of a fitted scene model's checkpoint
+(the scene_model step given one, pae-eval)."""
 
 from __future__ import annotations
 
@@ -8,15 +9,32 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import torch
 from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 
-from pae.core.checkpoints import LoadedModel, load_decoder, load_pae, load_teacher
+from pae.callbacks.render_compare_gallery import RenderCompareGallery
+from pae.callbacks.scene_quality import SceneModelQuality
+from pae.core.checkpoints import (
+    LoadedModel,
+    load_decoder,
+    load_pae,
+    load_scene_model,
+    load_teacher,
+)
 from pae.core.errors import ConfigError
 from pae.lit.scene_model import SceneModelModule
 from pae.models.base import PoseRegressor
+from pae.runs import Metrics
+from pae.runs.hparams import log_hparams
 from pae.runs.inputs import check_data
-from pae.runs.trainer import optimisation
+from pae.runs.trainer import (
+    build_trainer,
+    collect_metrics,
+    optimisation,
+    render_compare_callback,
+    validate_and_test,
+)
 from pae.scene_model.base import SceneModel, SceneModelInputs
 from pae.scene_model.rays import RayLoader
 
@@ -82,3 +100,35 @@ def fitting_module(
         appearance_lr=settings.appearance_lr,
         query_width=query_width,
     )
+
+
+def evaluate_scene_model(
+    cfg: DictConfig,
+    out_dir: Path,
+    path: str | Path,
+    teacher: LoadedModel,
+    data: Any,
+    quality: SceneModelQuality | None = None,
+    step: str = "eval",
+) -> Metrics:
+    """Test render-and-compare (the `render_compare` group's settings) with the scene model
+    of checkpoint ``path`` from ``teacher``'s estimates on ``data``, writing into ``out_dir``
+    (the scene_model step, pae-eval); ``quality``: the scene model's quality callback
+    (None: its defaults)."""
+    loaded = load_scene_model(path, "scene_model_ckpt")
+    check_data(cfg, path, loaded, data)
+    callback = render_compare_callback(cfg)
+    module = SceneModelModule(
+        loaded.model,
+        teacher.model,
+        optimizer=torch.optim.Adam,
+        scene_names=data.scene_names,
+        configs={"teacher_config": teacher.config, "scene_model_config": loaded.config},
+        query_width=callback.query_width,
+    )
+    callbacks = [callback, RenderCompareGallery(callback), quality or SceneModelQuality()]
+    trainer = build_trainer(cfg, out_dir, 0, callbacks, step=step)
+    metrics = validate_and_test(trainer, module, data)
+    metrics |= collect_metrics(trainer, ("bench/",))
+    log_hparams(trainer, cfg, metrics)
+    return metrics

@@ -22,6 +22,7 @@ from torch import Tensor, nn
 
 from pae.core.camera import camera_rays
 from pae.core.checks import boolean, integer, is_int, number, setting
+from pae.core.compiled import ENGINES, Engine
 from pae.core.errors import ConfigError
 from pae.scene_model.base import SceneModel, SceneModelInputs, SceneRendering
 from pae.scene_model.voxel_render import CompiledComposite, GridGeometry, RaySegments, channels_last
@@ -165,12 +166,13 @@ class VoxelGrid(nn.Module):
         samples: int,
         near_m: float,
         jitter: bool,
-        compiled: bool = True,
+        engine: Engine = "auto",
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Volume rendering of rays [R, 3] -> rgb [R, 3] in [0, 1], depth [R] (along the
-        directions, in their units), opacity [R]. ``compiled``: the numba renderer (CPU
-        float32 tensors), which stops each ray once its light is spent; otherwise
-        ``grid_sample`` over every sample (any device)."""
+        directions, in their units), opacity [R]. ``engine``
+        (:data:`pae.core.compiled.ENGINES`): ``numba`` the compiled renderer (CPU float32
+        tensors), which stops each ray once its light is spent; ``torch`` ``grid_sample`` over
+        every sample (any device); ``auto`` the first where it can run."""
         rays = self.ray_bounds(origins, directions, near_m)
         shape = (len(origins), samples)
         if jitter:
@@ -178,7 +180,12 @@ class VoxelGrid(nn.Module):
         else:
             offsets = origins.new_full(shape, 0.5)
         background = torch.sigmoid(self.background)
-        if compiled and self.grid.device.type == "cpu" and self.grid.dtype == torch.float32:
+        if engine not in ENGINES:
+            raise ValueError(f"unknown engine {engine!r}; choose one of {ENGINES}")
+        runs = self.grid.device.type == "cpu" and self.grid.dtype == torch.float32
+        if engine == "numba" and not runs:
+            raise ValueError("engine 'numba' renders CPU float32 grids only; use auto or torch")
+        if engine != "torch" and runs:
             geometry = GridGeometry(
                 self.lo.double().numpy(),
                 self.hi.double().numpy(),

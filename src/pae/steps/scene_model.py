@@ -6,19 +6,16 @@ test. And pae-eval's test of a scene-model checkpoint."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
-import torch
 from omegaconf import DictConfig
 
 from pae.callbacks.render_compare_gallery import RenderCompareGallery
 from pae.callbacks.scene_quality import SceneModelQuality
-from pae.core.checkpoints import LoadedModel, load_scene_model, load_teacher
-from pae.lit.scene_model import SceneModelModule
+from pae.core.checkpoints import load_teacher
 from pae.runs import Metrics
 from pae.runs.hparams import log_hparams
 from pae.runs.inputs import build_data, check_data, required
-from pae.runs.scene import build_scene_model, fitting_module
+from pae.runs.scene import build_scene_model, evaluate_scene_model, fitting_module
 from pae.runs.trainer import (
     build_trainer,
     collect_metrics,
@@ -71,35 +68,3 @@ def fit_scene_model(
     metrics |= collect_metrics(trainer, ("bench/",))
     log_hparams(trainer, cfg, metrics)
     return metrics, None
-
-
-def evaluate_scene_model(
-    cfg: DictConfig,
-    out_dir: Path,
-    path: str | Path,
-    teacher: LoadedModel,
-    data: Any,
-    quality: SceneModelQuality | None = None,
-    step: str = "eval",
-) -> Metrics:
-    """Test render-and-compare (the `render_compare` group's settings) with the scene model
-    of checkpoint ``path`` from ``teacher``'s estimates on ``data``, writing into ``out_dir``
-    (the scene_model step, pae-eval); ``quality``: the scene model's quality callback
-    (None: its defaults)."""
-    loaded = load_scene_model(path, "scene_model_ckpt")
-    check_data(cfg, path, loaded, data)
-    callback = render_compare_callback(cfg)
-    module = SceneModelModule(
-        loaded.model,
-        teacher.model,
-        optimizer=torch.optim.Adam,
-        scene_names=data.scene_names,
-        configs={"teacher_config": teacher.config, "scene_model_config": loaded.config},
-        query_width=callback.query_width,
-    )
-    callbacks = [callback, RenderCompareGallery(callback), quality or SceneModelQuality()]
-    trainer = build_trainer(cfg, out_dir, 0, callbacks, step=step)
-    metrics = validate_and_test(trainer, module, data)
-    metrics |= collect_metrics(trainer, ("bench/",))
-    log_hparams(trainer, cfg, metrics)
-    return metrics

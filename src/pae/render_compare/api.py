@@ -1,0 +1,167 @@
+"""Render-and-compare's two public calls, without a Trainer: :func:`refine` any starts, and
+:func:`calibrate` the gate, the search's first steps and the scene decision on validation
+queries with their true poses."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from typing import Any, NamedTuple
+
+import torch
+from torch import Tensor
+
+from pae.core.geometry import pose_errors
+from pae.core.shapes import check_shape
+from pae.render_compare.calibration import Calibration, choose_gate, steps_from_errors
+from pae.render_compare.gate import ACCEPT_ALL, RenderCompareResult, gate
+from pae.render_compare.refiner import FeatureExtractor, RenderCompareRefiner
+from pae.render_compare.scene_decision import (
+    ALWAYS,
+    choose_scene_check,
+    decide_scenes,
+    narrow,
+)
+from pae.render_compare.settings import RenderCompareSettings
+from pae.scene_model.base import SceneModel
+
+Settings = RenderCompareSettings | Mapping[str, Any] | None
+
+
+class Refinement(NamedTuple):
+    """poses [B, 7]: refined where the gate accepted, else the start; accepted [B] bool;
+    result: the refiner's output before the gate (poses, scores) in the decided scenes;
+    scenes [B]: the decided scene (the given one unless the scene decision moved it);
+    checked [B] bool: queries also refined in the other scenes."""
+
+    poses: Tensor
+    accepted: Tensor
+    result: RenderCompareResult
+    scenes: Tensor
+    checked: Tensor
+
+
+def build_refiner(
+    scene_model: SceneModel,
+    settings: Settings = None,
+    steps: Mapping[str, float] | None = None,
+    features: FeatureExtractor | None = None,
+) -> RenderCompareRefiner:
+    """The refiner against ``scene_model``: the defaults, replaced by ``settings``, then by
+    the calibrated first ``steps``."""
+    if isinstance(settings, RenderCompareSettings):
+        settings = dataclasses.asdict(settings)
+    merged = dict(settings or {}) | dict(steps or {})
+    return RenderCompareRefiner.configured(scene_model, features=features, **merged)
+
+
+def _check(
+    images: Tensor, intrinsics: Tensor, starts: Tensor, scenes: Tensor, scene_poses: Tensor | None
+) -> None:
+    n = check_shape(images, "images", "B 3 H W")["B"]
+    check_shape(intrinsics, "intrinsics", f"{n} 4")
+    check_shape(starts, "starts", f"{n} 7")
+    check_shape(scenes, "scenes", f"{n}")
+    if scene_poses is not None:
+        check_shape(scene_poses, "scene_poses", f"{n} S 7")
+
+
+def _refine_in_scenes(
+    refiner: RenderCompareRefiner,
+    images: Tensor,
+    intrinsics: Tensor,
+    starts: Tensor,
+    scenes: Tensor,
+    scene_poses: Tensor | None,
+    below: float,
+) -> tuple[RenderCompareResult, Tensor, Tensor]:
+    first = refiner(images, intrinsics, starts, scenes)
+    if scene_poses is None:
+        return first, scenes, torch.zeros_like(scenes, dtype=torch.bool)
+    decision = decide_scenes(refiner, images, intrinsics, scene_poses, scenes, first, below)
+    return decision.result, decision.scene, decision.checked
+
+
+def refine(
+    scene_model: SceneModel,
+    images: Tensor,
+    intrinsics: Tensor,
+    starts: Tensor,
+    scenes: Tensor,
+    settings: Settings = None,
+    calibration: Calibration | None = None,
+    features: FeatureExtractor | None = None,
+    scene_poses: Tensor | None = None,
+) -> Refinement:
+    """Refine starts [B, 7] (camera-to-world, unit quaternions) of query images [B, 3, H, W]
+    (RGB in [0, 1]) with intrinsics [B, 4] (fx, fy, cx, cy in px at the images' size) in
+    scenes [B] against ``scene_model``; ``settings`` replace the defaults
+    (:class:`RenderCompareSettings`), ``calibration`` gives the gate, first steps and scene
+    check chosen on validation (:func:`calibrate`; default: margin 0, no floor, the
+    settings' steps, no scene check). With a multi-scene APR's poses for every scene
+    ``scene_poses`` [B, S, 7], queries scoring below the calibration's
+    ``scene_check_below`` are also refined in the other scenes and moved to the one that
+    explains them best (:mod:`pae.render_compare.scene_decision`)."""
+    _check(images, intrinsics, starts, scenes, scene_poses)
+    calibration = calibration or Calibration()
+    refiner = build_refiner(scene_model, settings, calibration.steps, features)
+    result, decided, checked = _refine_in_scenes(
+        refiner, images, intrinsics, starts, scenes, scene_poses, calibration.scene_check_below
+    )
+    gated = gate(result, starts, calibration.accept_margin, calibration.accept_score)
+    return Refinement(gated.poses, gated.accepted, result, decided, checked)
+
+
+def calibrate(
+    scene_model: SceneModel,
+    images: Tensor,
+    intrinsics: Tensor,
+    starts: Tensor,
+    scenes: Tensor,
+    truth: Tensor,
+    settings: Settings = None,
+    step_fractions: Mapping[str, float] | None = None,
+    accept_margin: float | None = None,
+    accept_score: float | None = ACCEPT_ALL,
+    features: FeatureExtractor | None = None,
+    scene_poses: Tensor | None = None,
+    true_scenes: Tensor | None = None,
+    scene_check_below: float | None = None,
+) -> tuple[Calibration, Refinement]:
+    """The calibration chosen on validation queries (as :func:`refine`'s arguments, with
+    their true poses ``truth`` [B, 7]): the search's first steps as ``step_fractions`` of the
+    starts' median errors (None: the settings' own); with ``scene_poses``, the score below
+    which a query is checked in the other scenes that maximises accuracy against
+    ``true_scenes`` [B] (None: chosen; a number: kept); then the gate's margin and floor that
+    minimise the mean position error (None: chosen, :func:`choose_gate`; a number: kept) ->
+    the calibration and the validation queries' refinement under it."""
+    _check(images, intrinsics, starts, scenes, scene_poses)
+    check_shape(truth, "truth", f"{len(starts)} 7")
+    steps = {} if step_fractions is None else steps_from_errors(starts, truth, step_fractions)
+    refiner = build_refiner(scene_model, settings, steps, features)
+    below = Calibration.scene_check_below if scene_check_below is None else scene_check_below
+    if scene_poses is not None and scene_check_below is None:
+        if true_scenes is None:
+            raise ValueError("calibrate: choosing scene_check_below needs true_scenes")
+        first = refiner(images, intrinsics, starts, scenes)
+        every = decide_scenes(refiner, images, intrinsics, scene_poses, scenes, first, ALWAYS)
+        below = choose_scene_check(first.score, scenes, every.scene, true_scenes)
+        decision = narrow(every, first, scenes, first.score < below)
+        result, decided, checked = decision.result, decision.scene, decision.checked
+    else:
+        result, decided, checked = _refine_in_scenes(
+            refiner, images, intrinsics, starts, scenes, scene_poses, below
+        )
+    refined_pos, _ = pose_errors(result.poses.float(), truth.float())
+    start_pos, _ = pose_errors(starts.float(), truth.float())
+    margin, floor = choose_gate(
+        result.score - result.initial_score,
+        result.score,
+        refined_pos,
+        start_pos,
+        margin=accept_margin,
+        floor=accept_score,
+    )
+    calibration = Calibration(margin, floor, steps, below)
+    gated = gate(result, starts, margin, floor)
+    return calibration, Refinement(gated.poses, gated.accepted, result, decided, checked)
