@@ -269,7 +269,7 @@ def test_convert_cambridge_conjugates_the_world_to_camera_quaternions(
     for split in ("train", "test"):
         with open(out / f"ShopFacade_{split}.csv", newline="") as handle:
             written = list(csv.reader(handle))
-        assert written[0] == list(LABEL_COLUMNS)
+        assert written[0] == [*LABEL_COLUMNS, "orientation"]
         assert len(written) == len(raw_rows[split]) + 1
         for fields, (img, numbers) in zip(written[1:], raw_rows[split], strict=True):
             assert fields[:4] == ["ShopFacade", split, img.split("/")[0], f"ShopFacade/{img}"]
@@ -277,7 +277,7 @@ def test_convert_cambridge_conjugates_the_world_to_camera_quaternions(
             flip = numbers[3].startswith("-")
             negated = [n[1:] if n.startswith("-") else "-" + n for n in numbers[3:]]
             expected = [negated[0], *numbers[4:]] if flip else [numbers[3], *negated[1:]]
-            assert fields[4:] == numbers[:3] + expected
+            assert fields[4:] == [*numbers[:3], *expected, "camera_to_world"]
         assert (out / f"all_{split}.csv").read_text() == (
             out / f"ShopFacade_{split}.csv"
         ).read_text()

@@ -248,3 +248,32 @@ def test_one_sign_convention_for_numpy_and_torch() -> None:
     np.testing.assert_array_equal(canonical_sign(np.array(q)), expected)  # norms kept
     assert torch.equal(canonical_sign(torch.tensor(q)), torch.tensor(expected))
     assert torch.equal(canonicalize_quaternion(torch.tensor(q))[2], torch.tensor([1.0, 0, 0, 0]))
+
+
+def test_transfer_error_keeps_the_error_in_the_camera_frame() -> None:
+    """transfer_error: the same cameras in two world frames (one turned and moved rigidly);
+    an estimate's error applied in the second frame is the estimate moved by that transform,
+    with the position and orientation error it had in the first."""
+    from pae.core.geometry import quaternion_apply, quaternion_multiply, transfer_error
+
+    generator = torch.Generator().manual_seed(0)
+
+    def unit(q: torch.Tensor) -> torch.Tensor:
+        return q / q.norm(dim=-1, keepdim=True)
+
+    truth = torch.cat([torch.randn(5, 3, generator=generator), unit(torch.randn(5, 4))], 1)
+    estimate = truth + torch.cat([0.1 * torch.randn(5, 3), 0.05 * torch.randn(5, 4)], 1)
+    estimate[:, 3:] = unit(estimate[:, 3:])
+    shift, turn = torch.tensor([1.0, -2.0, 0.5]), unit(torch.tensor([0.8, 0.2, -0.5, 0.26]))
+
+    def moved(poses: torch.Tensor) -> torch.Tensor:
+        q = quaternion_multiply(turn.expand(5, 4), poses[:, 3:])
+        return torch.cat([shift + quaternion_apply(turn.expand(5, 4), poses[:, :3]), q], 1)
+
+    target = moved(truth.double())
+    result = transfer_error(truth.double(), estimate.double(), target)
+    expected = moved(estimate.double())
+    torch.testing.assert_close(result[:, :3], expected[:, :3], atol=1e-6, rtol=0)
+    errors = pose_errors(result, target), pose_errors(estimate.double(), truth.double())
+    for a, b in zip(*errors, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=0)

@@ -218,3 +218,18 @@ def average_quaternions(q: Tensor, weights: Tensor | None = None) -> Tensor:
         scatter = (q * weights[..., None]).transpose(-1, -2) @ q
     _, eigenvectors = torch.linalg.eigh(scatter)  # eigenvalues ascending
     return canonicalize_quaternion(eigenvectors[..., -1])
+
+
+def transfer_error(truth: Tensor, estimate: Tensor, target: Tensor) -> Tensor:
+    """An estimate's error moved to another world frame: ``estimate`` [..., 7] of a camera whose
+    true pose is ``truth`` [..., 7] has the error ``dt = R^T (t_est - t)``, ``dR = R^T R_est``
+    in the true camera's frame, which no world frame changes; applied to the same camera's pose
+    ``target`` [..., 7] in another frame it gives the estimate there (camera-to-world, unit
+    quaternions)."""
+    q_inverse = quaternion_conjugate(normalize_quaternion(truth[..., 3:]))
+    dt = quaternion_apply(q_inverse, estimate[..., :3] - truth[..., :3])
+    dq = quaternion_multiply(q_inverse, normalize_quaternion(estimate[..., 3:]))
+    q_target = normalize_quaternion(target[..., 3:])
+    t = target[..., :3] + quaternion_apply(q_target, dt)
+    q = canonicalize_quaternion(normalize_quaternion(quaternion_multiply(q_target, dq)))
+    return torch.cat([t, q], dim=-1)

@@ -27,20 +27,23 @@ def perturb(poses: Tensor, steps: Tensor) -> Tensor:
 
 def perturb_poses(
     poses: Tensor,
-    position_m: float,
-    orientation_deg: float,
+    position_m: float | Tensor,
+    orientation_deg: float | Tensor,
     generator: torch.Generator | None = None,
 ) -> Tensor:
     """Starting poses around poses [B, 7] (unit q): each moved by a distance uniform in
     [0, 2·position_m] (median position_m) in a uniformly random direction, and rotated by an
-    angle uniform in [0, 2·orientation_deg] about a uniformly random axis -> [B, 7], qw >= 0."""
+    angle uniform in [0, 2·orientation_deg] about a uniformly random axis -> [B, 7], qw >= 0.
+    ``position_m`` and ``orientation_deg``: one for all, or one per pose [B]."""
     b, device, dtype = poses.shape[0], poses.device, poses.dtype
 
     def directions() -> Tensor:
         v = torch.randn(b, 3, generator=generator, dtype=dtype).to(device)
         return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
-    def amounts(scale: float) -> Tensor:
+    def amounts(scale: float | Tensor) -> Tensor:
+        if isinstance(scale, Tensor):
+            scale = scale.to(dtype).reshape(-1, 1).cpu()
         return (2 * scale * torch.rand(b, 1, generator=generator, dtype=dtype)).to(device)
 
     translation = amounts(position_m) * directions()

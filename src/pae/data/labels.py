@@ -9,8 +9,12 @@ The format is the one of the public MS-Transformer / PAE code::
 frame) and ``q1..q4`` the camera-to-world orientation as a quaternion with the scalar part
 first (``q1``). An optional ``focal`` column gives each image's focal length in px at the
 resolution of the data's camera (``data.camera``; e.g. Cambridge's per-image focal
-lengths). Columns are found by name, so their order does not matter and other extra columns
-are ignored.
+lengths). An optional ``orientation`` column records each row's convention,
+``camera_to_world`` (what pae writes) or ``world_to_camera`` (conjugated on reading); a file
+without it whose orientations look world-to-camera (``pae.data.orientation``: cameras far
+more upright conjugated) is read as it is, with a warning naming the command that converts
+it. Columns are found by name, so their order does not matter and other extra columns are
+ignored.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ import numpy as np
 from pae.core.atomic import atomic_write
 from pae.core.errors import LabelError, LabelWarning
 from pae.core.quaternion_sign import canonical_sign
+from pae.data.orientation import conjugate, looks_world_to_camera
 
 __all__ = [
     "LABEL_COLUMNS",
@@ -60,6 +65,8 @@ LABEL_COLUMNS: tuple[str, ...] = (
 TEXT_COLUMNS = LABEL_COLUMNS[:4]
 POSE_COLUMNS = LABEL_COLUMNS[4:]
 FOCAL_COLUMN = "focal"
+ORIENTATION_COLUMN = "orientation"
+CAMERA_TO_WORLD, WORLD_TO_CAMERA = "camera_to_world", "world_to_camera"
 FOCAL_WIDTH_RANGE = (0.1, 10.0)
 """Plausible focal lengths, as multiples of the width (px) of the images they refer to."""
 REQUIRED_TEXT_COLUMNS = ("scene", "split", "img_path")
@@ -220,6 +227,10 @@ def read_labels_lenient(path: str | os.PathLike[str]) -> tuple[LabelTable, list[
             pose_at = [names.index(c) for c in POSE_COLUMNS]
             if FOCAL_COLUMN in names:
                 pose_at.append(names.index(FOCAL_COLUMN))
+            orientation_at = (
+                names.index(ORIENTATION_COLUMN) if ORIENTATION_COLUMN in names else None
+            )
+            inverse: list[bool] = []
             texts: list[list[str]] = []
             values: list[list[float]] = []
             lines: list[int] = []
@@ -230,9 +241,16 @@ def read_labels_lenient(path: str | os.PathLike[str]) -> tuple[LabelTable, list[
                     continue
                 try:
                     text, pose = _parse_row(row, len(names), text_at, pose_at)
+                    convention = CAMERA_TO_WORLD if orientation_at is None else row[orientation_at]
+                    if convention.strip() not in (CAMERA_TO_WORLD, WORLD_TO_CAMERA):
+                        raise ValueError(
+                            f"column {ORIENTATION_COLUMN} must be {CAMERA_TO_WORLD} or "
+                            f"{WORLD_TO_CAMERA}: {convention!r}"
+                        )
                 except ValueError as error:
                     errors.append(LabelError(path_text, line, str(error)))
                     continue
+                inverse.append(convention.strip() == WORLD_TO_CAMERA)
                 texts.append(text)
                 values.append(pose)
                 lines.append(line)
@@ -247,7 +265,20 @@ def read_labels_lenient(path: str | os.PathLike[str]) -> tuple[LabelTable, list[
     poses, focal = numbers[:, :7].copy().reshape(-1, 7), None
     if FOCAL_COLUMN in names:
         focal = numbers[:, 7] if len(values) else np.zeros(0)
+    flip = np.asarray(inverse, dtype=bool)
+    poses[flip, 3:] = conjugate(poses[flip, 3:])
     poses[:, 3:], non_unit = _unit_canonical_quaternions(poses[:, 3:])
+    if ORIENTATION_COLUMN not in names and len(poses) >= 2:
+        flipped, plain, conjugated = looks_world_to_camera(poses[:, 3:])
+        if flipped:
+            warnings.warn(
+                f"{path_text}: its orientations look world-to-camera (camera y axes spread "
+                f"{plain:.1f} deg, conjugated {conjugated:.1f} deg) and it has no "
+                f"{ORIENTATION_COLUMN} column; pae reads camera-to-world: pae-data convert "
+                f"authors-csv {path_text} OUT_DIR",
+                LabelWarning,
+                stacklevel=3,
+            )
     if non_unit:
         warnings.warn(
             f"{non_unit} quaternions in {path_text} were not unit norm and were normalised",
@@ -334,12 +365,14 @@ def write_labels(path: str | os.PathLike[str], table: LabelTable) -> None:
     """Write ``table`` to ``path`` atomically, creating parent folders.
 
     Numbers are written with Python's shortest round-trip representation, so reading the file
-    gives back exactly ``table.poses``. Values are written as they are (no normalisation).
+    gives back exactly ``table.poses``. Values are written as they are (no normalisation);
+    every row records its convention (``orientation``: camera_to_world).
     """
     with atomic_write(path, newline="", encoding="utf-8") as handle:
         writer = csv.writer(handle, lineterminator="\n")
         focal = None if table.focal is None else table.focal.tolist()
-        writer.writerow([*LABEL_COLUMNS, *([FOCAL_COLUMN] if focal is not None else [])])
+        focal_column = [FOCAL_COLUMN] if focal is not None else []
+        writer.writerow([*LABEL_COLUMNS, *focal_column, ORIENTATION_COLUMN])
         poses = table.poses.tolist()
         for i in range(len(table)):
             writer.writerow(
@@ -350,6 +383,7 @@ def write_labels(path: str | os.PathLike[str], table: LabelTable) -> None:
                     table.img_path[i],
                     *(repr(v + 0.0) for v in poses[i]),
                     *([repr(focal[i] + 0.0)] if focal is not None else []),
+                    CAMERA_TO_WORLD,
                 ]
             )
 

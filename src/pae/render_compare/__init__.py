@@ -3,14 +3,22 @@ callable without a Trainer:
 
 - :func:`refine`: from any starts (an APR's estimates), the refined poses through the gate;
 - :func:`calibrate`: the gate, the search's first steps and the scene decision chosen on
-  validation queries with their true poses, for :func:`refine` to apply at test.
+  validation queries with their true poses, for :func:`refine` to apply at test;
+- :func:`calibrate_any_start`: the same for another APR's starts, whose error scale is
+  unknown: chosen on validation starts at every scale.
 
 The refiner itself is :class:`pae.render_compare.refiner.RenderCompareRefiner`, its settings
 :class:`pae.render_compare.settings.RenderCompareSettings`."""
 
 from __future__ import annotations
 
-from pae.render_compare.api import Refinement, build_refiner, calibrate, refine
+from pae.render_compare.api import (
+    Refinement,
+    build_refiner,
+    calibrate,
+    calibrate_any_start,
+    refine,
+)
 from pae.render_compare.calibration import Calibration, CalibrationOptions
 from pae.render_compare.gate import ACCEPT_ALL, RenderCompareResult
 from pae.render_compare.settings import RenderCompareSettings
@@ -24,5 +32,6 @@ __all__ = [
     "RenderCompareSettings",
     "build_refiner",
     "calibrate",
+    "calibrate_any_start",
     "refine",
 ]

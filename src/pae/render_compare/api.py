@@ -13,7 +13,15 @@ from torch import Tensor
 
 from pae.core.geometry import pose_errors
 from pae.core.shapes import check_shape
-from pae.render_compare.calibration import Calibration, choose_gate, steps_from_errors
+from pae.render_compare.calibration import (
+    LADDER,
+    LADDER_DEG,
+    STEP_SHARES,
+    Calibration,
+    choose_gate,
+    ladder_starts,
+    steps_from_errors,
+)
 from pae.render_compare.gate import ACCEPT_ALL, RenderCompareResult, gate
 from pae.render_compare.refiner import FeatureExtractor, RenderCompareRefiner
 from pae.render_compare.scene_decision import (
@@ -165,3 +173,48 @@ def calibrate(
     calibration = Calibration(margin, floor, steps, below)
     gated = gate(result, starts, margin, floor)
     return calibration, Refinement(gated.poses, gated.accepted, result, decided, checked)
+
+
+def calibrate_any_start(
+    scene_model: SceneModel,
+    images: Tensor,
+    intrinsics: Tensor,
+    scenes: Tensor,
+    truth: Tensor,
+    size_m: float,
+    settings: Settings = None,
+    features: FeatureExtractor | None = None,
+    seed: int = 0,
+) -> tuple[Calibration, Refinement, Tensor]:
+    """The calibration for starts from any APR, whose error scale the run cannot know: on
+    validation queries (as :func:`calibrate`'s) with starts at every scale of the ladder
+    (:func:`pae.render_compare.calibration.ladder_starts`, ``size_m``: the scene's size, m),
+    the first steps among ``STEP_SHARES`` of the size and the gate that minimise the mean log
+    of each query's error over its start's (``choose_gate(objective="log_ratio")``), so that a
+    good start is kept rather than refined to the refiner's floor -> the calibration, the
+    validation refinement under it and its starts [N, 7]."""
+    _check(images, intrinsics, truth, scenes, None)
+    starts = ladder_starts(truth, size_m, torch.Generator().manual_seed(seed))
+    start_pos, _ = pose_errors(starts.float(), truth.float())
+    deg_per_share = LADDER_DEG[0] / LADDER[0]
+    best: tuple[float, Calibration, Refinement] | None = None
+    for share in STEP_SHARES:
+        steps = {"position_sigma_m": share * size_m, "orientation_sigma_deg": share * deg_per_share}
+        result = build_refiner(scene_model, settings, steps, features)(
+            images, intrinsics, starts, scenes
+        )
+        refined_pos, _ = pose_errors(result.poses.float(), truth.float())
+        gains = result.score - result.initial_score
+        margin, floor = choose_gate(
+            gains, result.score, refined_pos, start_pos, objective="log_ratio"
+        )
+        gated = gate(result, starts, margin, floor)
+        final, _ = pose_errors(gated.poses.float(), truth.float())
+        value = float(((final + 1e-3) / (start_pos + 1e-3)).log().mean())
+        if best is None or value < best[0]:
+            refinement = Refinement(
+                gated.poses, gated.accepted, result, scenes, gated.accepted & False
+            )
+            best = (value, Calibration(margin, floor, steps), refinement)
+    assert best is not None
+    return best[1], best[2], starts

@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 
 from pae.core.geometry import pose_errors
+from pae.core.pose_sampling import perturb_poses
 from pae.data.transforms import ImageTransform
 from pae.render_compare.gate import ACCEPT_ALL
 
@@ -31,6 +32,35 @@ class Calibration:
     accept_score: float = ACCEPT_ALL
     steps: Mapping[str, float] = dataclasses.field(default_factory=dict)
     scene_check_below: float = ACCEPT_ALL
+
+
+OBJECTIVES = ("mean", "log_ratio")
+RATIO_EPS_M = 1e-3
+"""Added to both errors (m) of a ``log_ratio``: below a millimetre no start is improved."""
+LADDER = (0.01, 0.02, 0.04, 0.08, 0.16, 0.32)
+"""The error scales of :func:`ladder_starts`, as shares of the scene's size."""
+LADDER_DEG = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
+"""Their orientation errors (deg), paired scale by scale."""
+STEP_SHARES = (0.02, 0.05, 0.1, 0.2)
+"""Candidate first position steps of :func:`pae.render_compare.calibrate_any_start`, as
+shares of the scene's size (orientation steps in proportion: LADDER_DEG / LADDER)."""
+
+
+def scene_size(train_positions: Tensor) -> float:
+    """A scene's size (m) from its train camera positions [N, 3]: twice the 90th percentile
+    of their distances to the median position."""
+    centre = train_positions.median(0).values
+    return 2 * float((train_positions - centre).norm(dim=-1).quantile(0.9))
+
+
+def ladder_starts(truth: Tensor, size_m: float, generator: torch.Generator | None = None) -> Tensor:
+    """Validation starts at every error scale an APR may bring: query i of true poses [N, 7]
+    moved by about ``LADDER[i % K]`` x ``size_m`` (m) and ``LADDER_DEG[i % K]`` deg
+    (:func:`pae.core.pose_sampling.perturb_poses`) -> [N, 7]."""
+    k = torch.arange(len(truth)) % len(LADDER)
+    position = torch.tensor(LADDER, dtype=torch.float64)[k] * size_m
+    orientation = torch.tensor(LADDER_DEG, dtype=torch.float64)[k]
+    return perturb_poses(truth.double(), position, orientation, generator).to(truth)
 
 
 AUTO = "auto"
@@ -101,10 +131,13 @@ def choose_gate(
     start_error: Tensor,
     margin: float | None = None,
     floor: float | None = None,
+    objective: str = "mean",
 ) -> tuple[float, float]:
-    """The acceptance margin and score floor that minimise the mean position error over
-    queries with score gains [N] (refined minus start), refined scores [N] and position
-    errors [N] (m) of the refined poses and of the starts. Margins: accept-all
+    """The acceptance margin and score floor that minimise the ``objective`` over queries
+    with score gains [N] (refined minus start), refined scores [N] and position errors [N]
+    (m) of the refined poses and of the starts: ``mean`` the mean position error, ``log_ratio``
+    the mean log of each query's error over its start's (every start scale counts alike: a
+    good start made worse costs as much as a bad one made better gains). Margins: accept-all
     (``ACCEPT_ALL``), 0 and ``MARGIN_QUANTILES`` of the gains; floors: none (``ACCEPT_ALL``)
     and those quantiles of the refined scores; a given ``margin`` or ``floor`` is kept as it
     is. The smallest margin, then the smallest floor, wins ties."""
@@ -121,6 +154,11 @@ def choose_gate(
     margins = candidates(gains, margin, [ACCEPT_ALL, 0.0])
     floors = candidates(scores, floor, [ACCEPT_ALL])
     accepted = (gains.float() > margins[:, None, None]) & (scores.float() > floors[None, :, None])
+    if objective not in OBJECTIVES:
+        raise ValueError(f"unknown gate objective {objective!r}; choose one of {OBJECTIVES}")
+    if objective == "log_ratio":
+        ratio = (refined_error.float() + RATIO_EPS_M) / (start_error.float() + RATIO_EPS_M)
+        refined_error, start_error = ratio.log(), torch.zeros_like(ratio)
     errors = torch.where(accepted, refined_error, start_error).mean(-1)  # [K, F]
     best = int(errors.flatten().argmin())
     return float(margins[best // len(floors)]), float(floors[best % len(floors)])
