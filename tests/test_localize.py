@@ -255,3 +255,33 @@ def test_render_compare_from_a_file_of_the_teachers_estimates_is_the_runs(
     assert len(errors) == 1 and "no start for 1 of 24 images" in errors[0], errors
     assert Path(table.img_path[0]).name in errors[0]
     assert not (tmp_path / "c.csv").exists()
+
+
+def test_another_apr_s_starts_get_the_gate_chosen_for_any_start(
+    finished_run: Path, tiny_root: Path, tmp_path: Path, capsys
+) -> None:
+    """--init with starts that are not the teacher's takes the gate chosen on the run's
+    validation split for starts of any scale (--init-gate auto -> any); --init-gate run keeps
+    the run's own."""
+    import numpy as np
+
+    labels = tiny_root / "labels" / "all_test.csv"
+    teacher = tmp_path / "teacher.csv"
+    assert main([str(finished_run), str(labels), "--out", str(teacher)]) == 0
+    table = read_labels(teacher)
+    moved = table.poses.copy()
+    moved[:, :3] += np.random.default_rng(0).normal(0.0, 0.05, (len(moved), 3))
+    starts = tmp_path / "other.txt"
+    starts.write_text(
+        "".join(
+            f"{name} {' '.join(f'{v:.9f}' for v in pose)}\n"
+            for name, pose in zip(table.img_path, moved, strict=True)
+        )
+    )
+    capsys.readouterr()
+    for gate, expected in (("auto", "any"), ("run", "run")):
+        out = tmp_path / f"{gate}.csv"
+        argv = [str(finished_run), str(labels), "--out", str(out), "--refine", "render_compare"]
+        assert main([*argv, "--init", str(starts), "--init-gate", gate]) == 0
+        assert f"(render_compare gate: {expected})" in capsys.readouterr().err
+        assert read_labels(out).poses.shape == moved.shape

@@ -27,14 +27,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pae.apps.localization import data_module, read_run, scene_model_path
+from pae.apps.localization import data_module, read_run, scene_model_path, split_queries
 from pae.apps.starts import match_starts, read_starts
 from pae.core.atomic import atomic_write
 from pae.core.checkpoints import load_scene_model
 from pae.core.geometry import pose_errors, transfer_error
 from pae.data.labels import LabelTable, read_labels
-from pae.data.transforms import ImageTransform
-from pae.lit.scene_model import compare_queries
 from pae.render_compare import calibrate_any_start, refine
 from pae.render_compare.calibration import scene_size
 from pae.render_compare.settings import RenderCompareSettings
@@ -77,22 +75,6 @@ def fit(scene: str, files: list[Path], args: argparse.Namespace, overrides: list
         with (args.out / f"{scene}.log").open("w") as log:
             subprocess.run(command, stdout=log, stderr=subprocess.STDOUT, check=True)
     return run
-
-
-@torch.no_grad()
-def queries(data: object, split: str, width: int) -> dict[str, torch.Tensor]:
-    """The split's images at the compare ``width``, intrinsics, true poses and scenes."""
-    loader = data.val_dataloader() if split == "val" else data.test_dataloader()
-    intrinsics = data.intrinsics(split)
-    parts: dict[str, list[torch.Tensor]] = {"image": [], "intrinsics": [], "pose": [], "scene": []}
-    for batch in loader:
-        rgb = ImageTransform.unnormalize_batch(data.preprocess(batch["image"], False))
-        small, vectors = compare_queries(rgb, intrinsics[batch["index"]], width)
-        parts["image"].append(small)
-        parts["intrinsics"].append(vectors)
-        parts["pose"].append(batch["pose"].float())
-        parts["scene"].append(batch["scene"])
-    return {key: torch.cat(value) for key, value in parts.items()}
 
 
 def real_starts(
@@ -146,8 +128,8 @@ def refine_scene(
     loaded = load_scene_model(scene_model_path(run), "scene_model_ckpt")
     model = loaded.model.eval()
     settings = RenderCompareSettings()
-    val = queries(data, "val", settings.resolution)
-    test = queries(data, "test", settings.resolution)
+    val = split_queries(data, "val", settings.resolution)
+    test = split_queries(data, "test", settings.resolution)
     train_positions, _ = data.train_poses()
     size = scene_size(train_positions[:, :3].double()).__float__()
     start = time.perf_counter()

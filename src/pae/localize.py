@@ -15,7 +15,8 @@ INPUT: image files, folders of images (searched recursively) or label files (the
 read under --root, by default the run's data root; their poses only give the printed errors).
 The teacher's estimates by default, or another APR's with --init FILE; --refine
 render_compare refines them against the run's scene model (with the gate and steps the run
-chose on val), --refine refined (knn_mean, student, or an entry of the run's
+chose on val for its teacher; another APR's starts with those chosen on val for starts of any
+error scale: --init-gate), --refine refined (knn_mean, student, or an entry of the run's
 refine.alternatives) with its student."""
 
 
@@ -49,6 +50,15 @@ def parser() -> argparse.ArgumentParser:
         choices=("pae", "opengl"),
         help="camera axes of --init's orientations: pae (x right, y down, z forward) or "
         "opengl (y up, z backward: DFNet's and NeFeS's result files)",
+    )
+    parse.add_argument(
+        "--init-gate",
+        default="auto",
+        choices=("auto", "run", "any"),
+        help="render_compare from --init: run, the gate and steps the run chose on val for its "
+        "own teacher; any, those chosen on the run's validation split for starts of any error "
+        "scale (another APR's: a start is refined only where that helps); auto: run where "
+        "FILE holds the teacher's own estimates, else any",
     )
     return parse
 
@@ -116,12 +126,15 @@ def localize(args: argparse.Namespace) -> None:
         device,
         Progress(f"pae-localize: {method}", "images", emit),
     )
+    gate = "run"
     if args.init is not None:
         from pae.apps.starts import starts_for
 
         pose, scene = starts_for(queries.shown, args.init, teacher.scene_names, args.init_axes)
+        own = loc.are_estimates_of(pose, found.pose)
+        gate = args.init_gate if args.init_gate != "auto" else ("run" if own else "any")
         found = found._replace(pose=pose, scene=found.scene if scene is None else scene)
-        emit(f"pae-localize: {len(pose)} starts from {args.init}")
+        emit(f"pae-localize: {len(pose)} starts from {args.init} (render_compare gate: {gate})")
     if method == loc.TEACHER:
         poses = found.pose
     elif method == loc.RENDER_COMPARE:
@@ -131,7 +144,7 @@ def localize(args: argparse.Namespace) -> None:
                 "render_compare gate or steps: the configured ones are used"
             )
         emit(f"pae-localize: render_compare of {len(found.pose)} images")
-        poses = loc.render_compare(run, teacher.model.to(device), found, device)
+        poses = loc.render_compare(run, teacher.model.to(device), found, device, gate)
     else:
         poses = loc.student_poses(run, method, teacher.model.cpu(), found)
     table = loc.output_table(queries, poses, found.scene, teacher.scene_names)

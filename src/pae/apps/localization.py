@@ -28,9 +28,10 @@ from pae.data.transforms import ImageTransform
 from pae.lit.eval_outputs import EVAL
 from pae.lit.scene_model import compare_queries
 from pae.models.base import Latents
-from pae.render_compare import Calibration, refine
-from pae.render_compare.calibration import teacher_features
+from pae.render_compare import Calibration, calibrate_any_start, refine
+from pae.render_compare.calibration import scene_size, teacher_features
 from pae.render_compare.refiner import ACCEPT_ALL, BUILD_KEYS, refiner_defaults
+from pae.scene_model.base import SceneModel
 
 TEACHER = "teacher"
 RENDER_COMPARE = "render_compare"
@@ -38,6 +39,10 @@ STUDENT_METHODS = ("student", "refined", "knn_mean")
 """Methods of the student step's checkpoint besides the ``refine.alternatives`` by name."""
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 QUERY_SPLIT = "query"
+SAME_START_M = 2e-3
+SAME_START_DEG = 0.2
+"""Starts within these of the teacher's estimates are its estimates (a label file's rounding)."""
+
 """The ``split`` column of the rows written for images given without a label file."""
 
 
@@ -280,25 +285,80 @@ def scene_model_path(run: Run) -> Path:
     return run.checkpoint(step, RENDER_COMPARE)
 
 
+@torch.no_grad()
+def split_queries(data: PoseDataModule, split: str, width: int | None) -> dict[str, Tensor]:
+    """A labelled split's queries as render-and-compare takes them: ``image`` [N, 3, h, w]
+    (RGB in [0, 1], pre-processed as evaluated, area-resized to ``width`` px wide),
+    ``intrinsics`` [N, 4] at that size, the true ``pose`` [N, 7] and ``scene`` [N], in the
+    split's order (``data`` set up)."""
+    loader = data.val_dataloader() if split == "val" else data.test_dataloader()
+    intrinsics = data.intrinsics(split)
+    parts: dict[str, list[Tensor]] = {"image": [], "intrinsics": [], "pose": [], "scene": []}
+    for batch in loader:
+        rgb = ImageTransform.unnormalize_batch(data.preprocess(batch["image"], False))
+        small, vectors = compare_queries(rgb, intrinsics[batch["index"]], width)
+        parts["image"].append(small)
+        parts["intrinsics"].append(vectors)
+        parts["pose"].append(batch["pose"].float())
+        parts["scene"].append(batch["scene"])
+    return {key: torch.cat(value) for key, value in parts.items()}
+
+
+def any_start_calibration(
+    run: Run, model: SceneModel, settings: dict[str, Any], features: Any, device: torch.device
+) -> Calibration:
+    """The gate and first steps for starts from another APR, chosen on the run's validation
+    split (:func:`pae.render_compare.calibrate_any_start`: starts at every error scale of the
+    scene's size, from its train cameras)."""
+    data = data_module(run, cache_images=False)
+    data.setup()
+    val = split_queries(data, "val", compare_width(settings))
+    positions, _ = data.train_poses()
+    size = scene_size(positions[:, :3].double())
+    calibration, _, _ = calibrate_any_start(
+        model, val["image"].to(device), val["intrinsics"].to(device), val["scene"].to(device),
+        val["pose"].to(device), size, settings, features,
+    )  # fmt: skip
+    return calibration
+
+
+def are_estimates_of(starts: Tensor, estimates: Tensor) -> bool:
+    """Whether starts [N, 7] are the estimates [N, 7] as a label file keeps them (within
+    ``SAME_START_M`` and ``SAME_START_DEG``)."""
+    position, orientation = pose_errors(starts.double(), estimates.double())
+    return bool((position <= SAME_START_M).all() and (orientation <= SAME_START_DEG).all())
+
+
 def render_compare(
-    run: Run, teacher: torch.nn.Module, found: Estimates, device: torch.device
+    run: Run,
+    teacher: torch.nn.Module,
+    found: Estimates,
+    device: torch.device,
+    gate: str = "run",
 ) -> Tensor:
-    """The render-and-compare poses [N, 7] of the queries against the run's scene model,
-    from the teacher's estimates, through the gate the run applied at test."""
+    """The render-and-compare poses [N, 7] of the queries against the run's scene model, from
+    ``found.pose`` (the teacher's estimates, or another APR's), through ``gate``: ``run`` the
+    gate and steps the run chose on val for its teacher and applied at test, ``any`` those
+    chosen on the run's validation split for starts of any error scale
+    (:func:`any_start_calibration`)."""
     loaded = load_scene_model(scene_model_path(run), "scene_model_ckpt")
     settings, margin, floor = render_compare_settings(run)
     features = None
     if settings.get("score") == "features":
         features = teacher_features(teacher, run.config.render_compare.feature_layers)
+    model = loaded.model.to(device)
+    calibration = Calibration(margin, floor)
+    if gate == "any":
+        calibration = any_start_calibration(run, model, settings, features, device)
     assert found.images is not None and found.intrinsics is not None
     refined = refine(
-        loaded.model.to(device),
+        model,
         found.images.to(device),
         found.intrinsics.to(device),
         found.pose.to(device),
         found.scene.to(device),
         settings,
-        Calibration(margin, floor),
+        calibration,
         features,
     )
     return refined.poses.cpu()

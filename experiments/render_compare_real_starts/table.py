@@ -1,0 +1,92 @@
+"""The tables of experiments/render_compare_real_starts: one per APR (DFNet, PoseNet), a row per
+scene and the mean over each dataset, from ``OUT/<scene>/real_starts_<APR>.json``.
+
+    python experiments/render_compare_real_starts/table.py outputs/render_compare_real_starts
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+COLUMNS = (
+    "scene",
+    "start cm / deg",
+    "render_compare cm / deg",
+    "NeFeS50 (real images) cm / deg",
+    "ratio pae / NeFeS50",
+    "within 5 cm, 5° start → pae",
+    "accepted",
+    "PSNR dB",
+    "fit s",
+    "ms / query",
+)
+
+
+def cell(figures: dict[str, float]) -> str:
+    return f"{100 * figures['pos_median_m']:.1f} / {figures['rot_median_deg']:.2f}"
+
+
+def row(record: dict) -> list[str]:
+    start, pae, nefes = record["start"], record["render_compare"], record["nefes50"]
+    ratio = pae["pos_median_m"] / start["pos_median_m"]
+    nefes_ratio = nefes["pos_median_m"] / start["pos_median_m"]
+    return [
+        record["scene"],
+        cell(start),
+        cell(pae),
+        cell(nefes),
+        f"{ratio:.2f}× / {nefes_ratio:.2f}×",
+        f"{100 * start['within_5cm_5deg']:.0f} % → {100 * pae['within_5cm_5deg']:.0f} %",
+        f"{100 * record['accepted_share']:.0f} %",
+        f"{record['psnr_db']:.1f}" if record.get("psnr_db") is not None else "",
+        f"{record['fit_s']:.0f}" if record.get("fit_s") is not None else "",
+        f"{record['ms_per_query']:.1f}",
+    ]
+
+
+def mean_row(dataset: str, records: list[dict]) -> list[str]:
+    def mean(method: str, key: str) -> float:
+        return sum(r[method][key] for r in records) / len(records)
+
+    figures = {
+        method: {k: mean(method, k) for k in ("pos_median_m", "rot_median_deg")}
+        for method in ("start", "render_compare", "nefes50")
+    }
+    ratio = figures["render_compare"]["pos_median_m"] / figures["start"]["pos_median_m"]
+    nefes = figures["nefes50"]["pos_median_m"] / figures["start"]["pos_median_m"]
+    return [
+        f"**{dataset} mean ({len(records)})**",
+        cell(figures["start"]),
+        cell(figures["render_compare"]),
+        cell(figures["nefes50"]),
+        f"{ratio:.2f}× / {nefes:.2f}×",
+        "",
+        "",
+        "",
+        "",
+        "",
+    ]
+
+
+def main(argv: list[str]) -> int:
+    out = Path(argv[0] if argv else "outputs/render_compare_real_starts")
+    for apr in ("DFNet", "PoseNet"):
+        records = [json.loads(p.read_text()) for p in sorted(out.glob(f"*/real_starts_{apr}.json"))]
+        if not records:
+            continue
+        print(f"\n{apr} starts (median cm / deg over each scene's test images)\n")
+        print("| " + " | ".join(COLUMNS) + " |")
+        print("|" + "---|" * len(COLUMNS))
+        for dataset in ("7Scenes", "Cambridge"):
+            members = [r for r in records if r["dataset"] == dataset]
+            for record in members:
+                print("| " + " | ".join(row(record)) + " |")
+            if members:
+                print("| " + " | ".join(mean_row(dataset, members)) + " |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))
