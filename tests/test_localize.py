@@ -13,6 +13,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from pae import CONFIG_DIR
+from pae.core.errors import ConfigError
 from pae.core.geometry import pose_errors
 from pae.core.metrics import summarise_errors
 from pae.data.labels import read_labels
@@ -285,3 +286,38 @@ def test_another_apr_s_starts_get_the_gate_chosen_for_any_start(
         assert main([*argv, "--init", str(starts), "--init-gate", gate]) == 0
         assert f"(render_compare gate: {expected})" in capsys.readouterr().err
         assert read_labels(out).poses.shape == moved.shape
+
+
+def test_pae_eval_refines_another_apr_s_starts_beside_the_teachers(
+    finished_run: Path, tiny_root: Path, tmp_path: Path
+) -> None:
+    """pae-eval render_compare.init=FILE: the file's starts of the test images (here the
+    teacher's own estimates, as pae-localize writes them) get their own method,
+    test/render_compare_from_<stem>/..., and the starts' figures, test/start_from_<stem>/...,
+    equal to the teacher's; the gate comes from val (val/<method>/accept_margin)."""
+    from pae.apps.checkpoint_evaluation import evaluate_checkpoints
+
+    starts = tmp_path / "apr.csv"
+    labels = tiny_root / "labels" / "all_test.csv"
+    assert main([str(finished_run), str(labels), "--out", str(starts)]) == 0
+    overrides = [
+        *tiny_data_overrides(tiny_root),
+        *RENDER_COMPARE,
+        f"student_ckpt={finished_run / 'student' / 'checkpoints' / 'last.ckpt'}",
+        f"scene_model_ckpt={finished_run / 'scene_model' / 'checkpoints' / 'last.ckpt'}",
+        f"render_compare.init={starts}",
+        "logger={}",
+    ]
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("eval", overrides=overrides)
+    evaluated = evaluate_checkpoints(cfg, tmp_path / "eval")
+    assert evaluated["test/start_from_apr/pos_median_m"] == pytest.approx(
+        evaluated["test/teacher/pos_median_m"], abs=2e-3
+    )
+    for key in ("pos_median_m", "accepted_share", "worse_than_start_share"):
+        assert math.isfinite(evaluated[f"test/render_compare_from_apr/{key}"]), key
+    assert "val/render_compare_from_apr/accept_margin" in evaluated
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("eval", overrides=[*overrides[:-2], "render_compare.init=/no/such.txt"])
+    with pytest.raises(ConfigError, match=r"render_compare.init=/no/such.txt: no such starts"):
+        evaluate_checkpoints(cfg, tmp_path / "missing")

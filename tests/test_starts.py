@@ -1,4 +1,4 @@
-"""Starting poses from other APRs' files (pae.apps.starts)."""
+"""Starting poses from other APRs' files (pae.data.starts)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pae.apps.starts import match_starts, opengl_to_pae, read_starts
 from pae.core.errors import ConfigError, LabelError
+from pae.data.starts import match_starts, opengl_to_pae, read_starts
 
 
 def test_result_lines_and_matrices_read_alike(tmp_path: Path) -> None:

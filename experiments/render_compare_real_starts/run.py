@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from pae.apps.localization import data_module, read_run, scene_model_path, split_queries
-from pae.apps.starts import match_starts, read_starts
+from pae.data.starts import match_starts, read_starts
 from pae.core.atomic import atomic_write
 from pae.core.checkpoints import load_scene_model
 from pae.core.geometry import pose_errors, transfer_error

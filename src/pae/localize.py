@@ -128,7 +128,7 @@ def localize(args: argparse.Namespace) -> None:
     )
     gate = "run"
     if args.init is not None:
-        from pae.apps.starts import starts_for
+        from pae.data.starts import starts_for
 
         pose, scene = starts_for(queries.shown, args.init, teacher.scene_names, args.init_axes)
         own = loc.are_estimates_of(pose, found.pose)

@@ -41,7 +41,8 @@ class RenderCompareCallback(L.Callback):
 
     ``refiner``: the partial Hydra makes of ``render_compare.refiner`` or a mapping of
     settings replacing the defaults; ``feature_layers``: modules of the teacher backbone that
-    make the features of ``refiner.score=features``."""
+    make the features of ``refiner.score=features``; ``init``, ``init_axes``: another APR's
+    starts file, for :class:`pae.callbacks.render_compare_init.RenderCompareFromFile`."""
 
     def __init__(
         self,
@@ -53,25 +54,25 @@ class RenderCompareCallback(L.Callback):
         accept_score: float | str = ACCEPT_ALL,
         step_from_val: dict[str, float] | None = None,
         scene_check_below: float | str = "auto",
+        init: str | None = None,
+        init_axes: str = "pae",
     ) -> None:
         super().__init__()
         settings = refiner.keywords if isinstance(refiner, functools.partial) else refiner
         self.settings = refiner_defaults() | dict(settings or {})
         self.oracle = oracle
         self.every_n_val_epochs = max(1, every_n_val_epochs)
-        self.feature_layers = feature_layers
+        self.feature_layers, self.init, self.init_axes = feature_layers, init, init_axes
         self.options = CalibrationOptions(
             accept_margin, accept_score, step_from_val, scene_check_below
         )
         self.calibrations: dict[str, Calibration] = {}  # method -> the last chosen on val
-        # split -> method (and "teacher": the starts) -> the poses [N, 7] kept, in split order
-        self.refined: dict[str, dict[str, Tensor]] = {}
+        self.refined: dict[str, dict[str, Tensor]] = {}  # split -> method -> poses kept
         self._val_runs = 0
         RenderCompareRefiner(SceneModel(), features=lambda x: x, **self.settings)  # checks
 
     @property
-    def query_width(self) -> int:
-        """The width (px) at which the refiner compares queries: what evaluation keeps."""
+    def query_width(self) -> int:  # the refiner's compare width: what evaluation keeps (px)
         return int(self.settings["resolution"])
 
     def calibration(self, name: str) -> Calibration:

@@ -14,6 +14,7 @@ from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 
 from pae.callbacks.render_compare_gallery import RenderCompareGallery
+from pae.callbacks.render_compare_init import RenderCompareFromFile
 from pae.callbacks.scene_quality import SceneModelQuality
 from pae.core.checkpoints import (
     LoadedModel,
@@ -126,7 +127,12 @@ def evaluate_scene_model(
         configs={"teacher_config": teacher.config, "scene_model_config": loaded.config},
         query_width=callback.query_width,
     )
-    callbacks = [callback, RenderCompareGallery(callback), quality or SceneModelQuality()]
+    callbacks = [
+        callback,
+        RenderCompareFromFile(callback),
+        RenderCompareGallery(callback),
+        quality or SceneModelQuality(),
+    ]
     trainer = build_trainer(cfg, out_dir, 0, callbacks, step=step)
     metrics = validate_and_test(trainer, module, data)
     metrics |= collect_metrics(trainer, ("bench/",))

@@ -1,6 +1,7 @@
-"""Starting poses from any APR (``pae-localize --init FILE``): a pae label file, or the
-field's result files (one line ``name x y z qw qx qy qz``, or ``name`` and a row-major 4×4
-camera-to-world matrix), matched to the queries by the longest common path suffix."""
+"""Starting poses from any APR (``pae-localize --init FILE``, ``pae-eval
+render_compare.init=FILE``): a pae label file, or the field's result files (one line
+``name x y z qw qx qy qz``, or ``name`` and a row-major 4×4 camera-to-world matrix), matched
+to the queries by the longest common path suffix."""
 
 from __future__ import annotations
 

@@ -1,0 +1,82 @@
+"""Render-and-compare from another APR's starts in a scene-model evaluation
+(``render_compare.init=FILE``): an adapter that calibrates on validation for starts of any
+error scale (:func:`pae.render_compare.calibrate_any_start`) and refines the file's starts of
+the test images (:func:`pae.render_compare.refine`), beside the teacher's own."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import lightning as L
+import torch
+
+from pae.callbacks.render_compare import HONEST, RenderCompareCallback
+from pae.core.errors import ConfigError
+from pae.data.starts import starts_for
+from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
+from pae.render_compare import Calibration, calibrate_any_start, refine
+from pae.render_compare.calibration import scene_size
+from pae.render_compare.queries import method_from, refinement_figures, start_figures
+
+
+class RenderCompareFromFile(L.Callback):
+    """With ``refinement.init`` (a starts file: a pae label file or ``name x y z qw qx qy
+    qz`` lines, ``refinement.init_axes``; every test image needs one, matched by path), logs
+    ``test/<method>/...`` for ``<method>`` = ``render_compare_from_<file stem>`` (the gate's
+    figures and ``worse_than_start_share`` too) and the starts' own figures under
+    ``test/start_from_<file stem>/...``, with the gate and first steps chosen on each validation run for
+    starts of any scale (``val/<method>/accept_margin`` ...); the scene model is the
+    evaluated module's, the settings ``refinement``'s."""
+
+    def __init__(self, refinement: RenderCompareCallback) -> None:
+        super().__init__()
+        self.refinement = refinement
+        self.calibration: Calibration | None = None
+        if refinement.init is not None and not Path(refinement.init).is_file():
+            raise ConfigError(f"render_compare.init={refinement.init}: no such starts file")
+
+    @property
+    def method(self) -> str:
+        return method_from(self.refinement.init or "")
+
+    def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: SceneModelEvaluation) -> None:
+        outputs = collect_outputs(trainer, pl_module)
+        if self.refinement.init is None or outputs is None:
+            return
+        positions, _ = trainer.datamodule.train_poses()
+        self.calibration, _, _ = calibrate_any_start(
+            pl_module.scene_model, outputs[EVAL.image], outputs[EVAL.intrinsics],
+            outputs[EVAL.scene_estimate], outputs[EVAL.pose].float(),
+            scene_size(positions[:, :3].double()), self.refinement.settings,
+            self.refinement.features(pl_module.teacher),
+        )  # fmt: skip
+        gate = (self.calibration.accept_margin, self.calibration.accept_score)
+        figures = dict(zip(("accept_margin", "accept_score"), gate, strict=True))
+        figures |= dict(self.calibration.steps)
+        pl_module.log_dict({f"val/{self.method}/{k}": torch.tensor(v) for k, v in figures.items()})
+
+    def on_test_epoch_end(self, trainer: L.Trainer, pl_module: SceneModelEvaluation) -> None:
+        outputs = collect_outputs(trainer, pl_module)
+        if self.refinement.init is None or outputs is None:
+            return
+        data, names = trainer.datamodule, pl_module.scene_names
+        images = [data.tables["test"].img_path[i] for i in outputs[EVAL.index].tolist()]
+        starts, scenes = starts_for(images, self.refinement.init, names, self.refinement.init_axes)
+        scenes = outputs[EVAL.scene_estimate] if scenes is None else scenes
+        calibration = self.calibration or self.refinement.calibration(HONEST)
+        begin = time.perf_counter()
+        refinement = refine(
+            pl_module.scene_model, outputs[EVAL.image], outputs[EVAL.intrinsics], starts,
+            scenes.to(starts.device), self.refinement.settings, calibration,
+            self.refinement.features(pl_module.teacher),
+        )  # fmt: skip
+        seconds = time.perf_counter() - begin
+        truth, scene = outputs[EVAL.pose].float(), outputs[EVAL.scene]
+        figures, _, _ = refinement_figures(
+            f"test/{self.method}", refinement, calibration, starts, truth, scene, names
+        )
+        start = self.method.replace("render_compare_from_", "start_from_")
+        figures |= start_figures(f"test/{start}", starts, truth, scene, names)
+        figures[f"bench/{self.method}/ms_per_query"] = torch.tensor(1000 * seconds / len(truth))
+        pl_module.log_dict(figures)
