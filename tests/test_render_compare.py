@@ -310,6 +310,49 @@ def test_the_auto_floor_rejects_refinements_the_scene_model_does_not_explain() -
     assert margin == ACCEPT_ALL and 0.45 <= floor < 0.5  # the grid point above the bad ones
 
 
+def test_the_log_ratio_gate_keeps_good_starts_that_the_refiner_would_make_worse() -> None:
+    """Half the starts are 1 cm off and refined to 3 cm, half 1 m off and refined to 3 cm,
+    the gains alike: the mean error prefers accepting all (it is dominated by the far
+    starts), the mean log ratio weighs both halves alike; where every refinement makes its
+    start worse, the gate keeps every start."""
+    from pae.render_compare.calibration import ACCEPT_ALL, KEEP_ALL, choose_gate
+
+    gains = torch.rand(100, generator=torch.Generator().manual_seed(1))
+    scores = torch.full((100,), 0.9)
+    start = torch.cat([torch.full((50,), 0.01), torch.full((50,), 1.0)])
+    refined = torch.full((100,), 0.03)
+    assert choose_gate(gains, scores, refined, start)[0] == ACCEPT_ALL
+    worse = torch.full((100,), 0.05)
+    good = torch.full((100,), 0.01)
+    margin, floor = choose_gate(gains, scores, worse, good, objective="log_ratio")
+    assert not ((gains > margin) & (scores > floor)).any()
+    gains = torch.linspace(0.1, 0.3, 100)  # above every margin quantile but KEEP_ALL's
+    spread = torch.linspace(0.5, 0.95, 100).flip(0)
+    margin, floor = choose_gate(gains, spread, worse, good, objective="log_ratio")
+    assert not ((gains > margin) & (spread > floor)).any() and gains.max() < KEEP_ALL
+    with pytest.raises(ValueError, match="unknown gate objective"):
+        choose_gate(gains, scores, refined, start, objective="median")
+
+
+def test_calibrating_for_any_start_never_makes_the_val_starts_worse_on_average() -> None:
+    """calibrate_any_start on a tiny scene: starts at every scale of the ladder, the steps and
+    gate chosen so that the mean log error ratio over those val starts is at most 0."""
+    from pae.render_compare import calibrate_any_start
+
+    model, images, intrinsics, truth, _ = _oracle_queries(12)
+    scenes = torch.zeros(len(truth), dtype=torch.long)
+    settings = {"rounds": 3, "candidates": 8, "resolution": 16, "reference_size": 12}
+    calibration, refinement, starts = calibrate_any_start(
+        model, images, intrinsics, scenes, truth, 2.0, settings
+    )
+    before = pose_errors(starts, truth)[0]
+    after = pose_errors(refinement.poses, truth)[0]
+    assert float(((after + 1e-3) / (before + 1e-3)).log().mean()) <= 1e-6
+    assert set(calibration.steps) == {"position_sigma_m", "orientation_sigma_deg"}
+    kept = ~refinement.accepted
+    torch.testing.assert_close(refinement.poses[kept], starts[kept].to(refinement.poses))
+
+
 def test_the_search_draws_the_same_numbers_chunk_by_chunk() -> None:
     refiner = RenderCompareRefiner.configured(OracleSceneModel([]), rounds=3, candidates=5, seed=3)
     stream = refiner.draw_stream()

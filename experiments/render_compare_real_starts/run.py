@@ -28,11 +28,11 @@ import numpy as np
 import torch
 
 from pae.apps.localization import data_module, read_run, scene_model_path, split_queries
-from pae.data.starts import match_starts, read_starts
 from pae.core.atomic import atomic_write
 from pae.core.checkpoints import load_scene_model
 from pae.core.geometry import pose_errors, transfer_error
 from pae.data.labels import LabelTable, read_labels
+from pae.data.starts import match_starts, read_starts
 from pae.render_compare import calibrate_any_start, refine
 from pae.render_compare.calibration import scene_size
 from pae.render_compare.settings import RenderCompareSettings
@@ -53,7 +53,8 @@ def label_files(dataset: str, scene: str, args: argparse.Namespace) -> list[Path
     out = args.out / "labels"
     for source in files:
         if not (out / source.name).is_file():
-            command = ["pae-data", "convert", "authors-csv", str(source), str(out)]
+            command = [sys.executable, "-m", "pae.data_cli", "convert", "authors-csv"]
+            command += [str(source), str(out)]
             subprocess.run(command, check=True)
     return [out / f.name for f in files]
 

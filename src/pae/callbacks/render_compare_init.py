@@ -25,9 +25,9 @@ class RenderCompareFromFile(L.Callback):
     qz`` lines, ``refinement.init_axes``; every test image needs one, matched by path), logs
     ``test/<method>/...`` for ``<method>`` = ``render_compare_from_<file stem>`` (the gate's
     figures and ``worse_than_start_share`` too) and the starts' own figures under
-    ``test/start_from_<file stem>/...``, with the gate and first steps chosen on each validation run for
-    starts of any scale (``val/<method>/accept_margin`` ...); the scene model is the
-    evaluated module's, the settings ``refinement``'s."""
+    ``test/start_from_<file stem>/...``, with the gate and first steps chosen on each
+    validation run for starts of any scale (``val/<method>/accept_margin`` ...); the scene
+    model is the evaluated module's, the settings ``refinement``'s."""
 
     def __init__(self, refinement: RenderCompareCallback) -> None:
         super().__init__()

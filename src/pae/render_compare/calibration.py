@@ -34,6 +34,8 @@ class Calibration:
     scene_check_below: float = ACCEPT_ALL
 
 
+KEEP_ALL = 4.0
+"""A margin above every possible score gain: every start kept (the refiner does not help)."""
 OBJECTIVES = ("mean", "log_ratio")
 RATIO_EPS_M = 1e-3
 """Added to both errors (m) of a ``log_ratio``: below a millimetre no start is improved."""
@@ -138,9 +140,10 @@ def choose_gate(
     (m) of the refined poses and of the starts: ``mean`` the mean position error, ``log_ratio``
     the mean log of each query's error over its start's (every start scale counts alike: a
     good start made worse costs as much as a bad one made better gains). Margins: accept-all
-    (``ACCEPT_ALL``), 0 and ``MARGIN_QUANTILES`` of the gains; floors: none (``ACCEPT_ALL``)
-    and those quantiles of the refined scores; a given ``margin`` or ``floor`` is kept as it
-    is. The smallest margin, then the smallest floor, wins ties."""
+    (``ACCEPT_ALL``), 0, keep every start (``KEEP_ALL``) and ``MARGIN_QUANTILES`` of the
+    gains; floors: none (``ACCEPT_ALL``) and those quantiles of the refined scores; a given
+    ``margin`` or ``floor`` is kept as it is. The smallest margin, then the smallest floor,
+    wins ties."""
     if not len(gains):
         return (0.0 if margin is None else margin), (ACCEPT_ALL if floor is None else floor)
     levels = gains.new_tensor(MARGIN_QUANTILES, dtype=torch.float)
@@ -151,7 +154,7 @@ def choose_gate(
         grid = torch.cat([torch.tensor(base), values.float().quantile(levels)])
         return grid.sort().values
 
-    margins = candidates(gains, margin, [ACCEPT_ALL, 0.0])
+    margins = candidates(gains, margin, [ACCEPT_ALL, 0.0, KEEP_ALL])
     floors = candidates(scores, floor, [ACCEPT_ALL])
     accepted = (gains.float() > margins[:, None, None]) & (scores.float() > floors[None, :, None])
     if objective not in OBJECTIVES:
