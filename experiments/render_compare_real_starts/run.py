@@ -70,6 +70,9 @@ def fit(scene: str, files: list[Path], args: argparse.Namespace, overrides: list
             "experiment=real_starts",
             f"data.poses=[{files[0]},{files[1]}]",
             f"hydra.run.dir={run}",
+            f"data.size={args.size}",
+            f"data.crop={args.size}",
+            f"scene_model.image_size={args.size}",
             *overrides,
         ]
         print(" ".join(command[2:]), flush=True)
@@ -124,18 +127,19 @@ def refine_scene(
         print(f"{scene}: done", flush=True)
         return
     run = read_run(run_dir)
-    data = data_module(run, cache_images=False)
+    size = int(run.config.data.size)
+    data = data_module(run, cache_images=False, crop=size)  # the whole image is compared
     data.setup()
     loaded = load_scene_model(scene_model_path(run), "scene_model_ckpt")
     model = loaded.model.eval()
-    settings = RenderCompareSettings()
+    settings = RenderCompareSettings(resolution=size)
     val = split_queries(data, "val", settings.resolution)
     test = split_queries(data, "test", settings.resolution)
     train_positions, _ = data.train_poses()
-    size = scene_size(train_positions[:, :3].double()).__float__()
+    extent = scene_size(train_positions[:, :3].double())
     start = time.perf_counter()
     calibration, val_refined, val_starts = calibrate_any_start(
-        model, val["image"], val["intrinsics"], val["scene"], val["pose"], size, settings
+        model, val["image"], val["intrinsics"], val["scene"], val["pose"], extent, settings
     )
     calibrate_s = time.perf_counter() - start
     metrics = json.loads((run_dir / "metrics.json").read_text())
@@ -155,7 +159,8 @@ def refine_scene(
             "apr": apr,
             "queries": len(test["pose"]),
             "val_queries": len(val["pose"]),
-            "scene_size_m": size,
+            "scene_size_m": extent,
+            "image_px": size,
             "calibration": {
                 "accept_margin": calibration.accept_margin,
                 "accept_score": calibration.accept_score,
@@ -198,6 +203,13 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--estimates", type=Path, required=True)
     parser.add_argument("--out", type=Path, default=Path("outputs/render_compare_real_starts"))
     parser.add_argument("--scenes", nargs="+", help="in this order (default: all eleven)")
+    parser.add_argument(
+        "--size",
+        type=int,
+        default=64,
+        help="px of the rendered images, the scene model's "
+        "train images and the comparison (default: 64)",
+    )
     args = parser.parse_args(own)
     dataset_of = {scene: dataset for dataset, names in SCENES.items() for scene in names}
     for scene in args.scenes or list(dataset_of):
