@@ -33,7 +33,7 @@ from pae.core.checkpoints import load_scene_model
 from pae.core.geometry import pose_errors, transfer_error
 from pae.data.labels import LabelTable, read_labels
 from pae.data.starts import match_starts, read_starts
-from pae.render_compare import calibrate_any_start, refine
+from pae.render_compare import ACCEPT_ALL, Calibration, calibrate_any_start, refine
 from pae.render_compare.calibration import scene_size
 from pae.render_compare.settings import RenderCompareSettings
 
@@ -118,12 +118,31 @@ def source_paths(rendered: LabelTable, source: Path) -> list[str]:
     return list(table.img_path)
 
 
+def truth_audit(
+    run_dir: Path, model: object, test: dict[str, torch.Tensor], settings: object
+) -> None:
+    """The scene model's floor, an audit reading the test labels as starts: the test images
+    refined from their true poses with the first steps chosen on val (every refinement
+    accepted) -> ``OUT/<scene>/truth_audit.json`` (``from_truth_oracle``)."""
+    chosen = json.loads((run_dir / f"real_starts_{APRS[0]}.json").read_text())["calibration"]
+    steps = {key: chosen[key] for key in ("position_sigma_m", "orientation_sigma_deg")}
+    calibration = Calibration(ACCEPT_ALL, ACCEPT_ALL, steps)
+    truth = test["pose"]
+    refined = refine(
+        model, test["image"], test["intrinsics"], truth, test["scene"], settings, calibration
+    )
+    with atomic_write(run_dir / "truth_audit.json") as handle:
+        json.dump({"from_truth_oracle": figures(refined.poses, truth)}, handle, indent=1)
+
+
 def refine_scene(
     dataset: str, scene: str, run_dir: Path, files: list[Path], args: argparse.Namespace
 ) -> None:
-    """Calibrate on val, refine each APR's test starts, write one JSON per APR."""
+    """Calibrate on val, refine each APR's test starts, write one JSON per APR; then the
+    truth audit (:func:`truth_audit`)."""
     todo = [a for a in APRS if not (run_dir / f"real_starts_{a}.json").is_file()]
-    if not todo:
+    audit = not (run_dir / "truth_audit.json").is_file()
+    if not todo and not audit:
         print(f"{scene}: done", flush=True)
         return
     run = read_run(run_dir)
@@ -135,6 +154,9 @@ def refine_scene(
     settings = RenderCompareSettings(resolution=size)
     val = split_queries(data, "val", settings.resolution)
     test = split_queries(data, "test", settings.resolution)
+    if not todo:
+        truth_audit(run_dir, model, test, settings)
+        return
     train_positions, _ = data.train_poses()
     extent = scene_size(train_positions[:, :3].double())
     start = time.perf_counter()
@@ -192,6 +214,7 @@ def refine_scene(
             f"{record['nefes50']['pos_median_m']:.3f} m), accepted {record['accepted_share']:.2f}",
             flush=True,
         )
+    truth_audit(run_dir, model, test, settings)
 
 
 def main(argv: list[str]) -> int:

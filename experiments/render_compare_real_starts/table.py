@@ -1,5 +1,7 @@
 """The tables of experiments/render_compare_real_starts: one per APR (DFNet, PoseNet), a row per
-scene and the mean over each dataset, from ``OUT/<scene>/real_starts_<APR>.json``.
+scene and the mean over each dataset, from ``OUT/<scene>/real_starts_<APR>.json`` (and the
+truth audit, ``truth_audit.json``: refined from the true poses, a floor that reads the test
+labels).
 
     python experiments/render_compare_real_starts/table.py outputs/render_compare_real_starts
 """
@@ -16,6 +18,7 @@ COLUMNS = (
     "render_compare cm / deg",
     "NeFeS50 (real images) cm / deg",
     "ratio pae / NeFeS50",
+    "from truth (audit) cm / deg",
     "within 5 cm, 5° start → pae",
     "accepted",
     "PSNR dB",
@@ -38,6 +41,7 @@ def row(record: dict) -> list[str]:
         cell(pae),
         cell(nefes),
         f"{ratio:.2f}× / {nefes_ratio:.2f}×",
+        cell(record["audit"]) if "audit" in record else "",
         f"{100 * start['within_5cm_5deg']:.0f} % → {100 * pae['within_5cm_5deg']:.0f} %",
         f"{100 * record['accepted_share']:.0f} %",
         f"{record['psnr_db']:.1f}" if record.get("psnr_db") is not None else "",
@@ -67,13 +71,20 @@ def mean_row(dataset: str, records: list[dict]) -> list[str]:
         "",
         "",
         "",
+        "",
     ]
 
 
 def main(argv: list[str]) -> int:
     out = Path(argv[0] if argv else "outputs/render_compare_real_starts")
     for apr in ("DFNet", "PoseNet"):
-        records = [json.loads(p.read_text()) for p in sorted(out.glob(f"*/real_starts_{apr}.json"))]
+        records = []
+        for path in sorted(out.glob(f"*/real_starts_{apr}.json")):
+            record = json.loads(path.read_text())
+            audit = path.parent / "truth_audit.json"
+            if audit.is_file():
+                record["audit"] = json.loads(audit.read_text())["from_truth_oracle"]
+            records.append(record)
         if not records:
             continue
         print(f"\n{apr} starts (median cm / deg over each scene's test images)\n")
