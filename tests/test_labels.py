@@ -9,12 +9,12 @@ import cv2
 import numpy as np
 import pytest
 
+from pae.data.label_images import find_image_problems
 from pae.data.labels import (
     LABEL_COLUMNS,
     LabelError,
     LabelTable,
     LabelWarning,
-    find_image_problems,
     read_labels,
     read_labels_lenient,
     write_labels,

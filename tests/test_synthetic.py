@@ -59,7 +59,7 @@ def test_layout_and_labels(dataset: tuple[Path, SyntheticSummary]) -> None:
     assert summary.frames_per_second > 0 and summary.seconds > 0
     assert "scene00" in summary.summary() and len(summary.summary().splitlines()) >= 3
 
-    header = "scene,split,seq,img_path,t1,t2,t3,q1,q2,q3,q4"
+    header = "scene,split,seq,img_path,t1,t2,t3,q1,q2,q3,q4,orientation"
     for split, frames in (("train", 20), ("test", 10)):
         per_scene = []
         for scene in SCENES:

@@ -29,10 +29,10 @@ import numpy as np
 from pae.core.console import Progress
 from pae.core.errors import LabelError, LabelWarning
 from pae.core.quaternion_sign import canonical_sign
+from pae.data.label_images import find_image_problems
 from pae.data.labels import (
     FOCAL_COLUMN,
     LabelTable,
-    find_image_problems,
     focal_column_mismatch,
     read_labels,
     read_labels_lenient,

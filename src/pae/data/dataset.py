@@ -12,7 +12,8 @@ from torch import Tensor
 from torch.utils.data import Dataset, default_collate
 
 from pae.core.errors import ImageError, LabelError
-from pae.data.labels import LabelTable, odd_sizes, outside_root
+from pae.data.label_images import odd_sizes, outside_root
+from pae.data.labels import LabelTable
 from pae.data.transforms import image_size, load_image, load_sized_image
 
 
