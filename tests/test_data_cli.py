@@ -458,3 +458,19 @@ def test_synth_passes_arguments_and_prints_summary(
     assert "--poses renders the given rows only: drop --scenes" in capsys.readouterr().err
     assert main(["synth", str(tmp_path / "c"), "--poses", "x.csv", "--motion-blur", "2"]) == 1
     assert "--poses renders the given rows only: drop --motion-blur" in capsys.readouterr().err
+
+
+def test_convert_into_a_file_is_one_line_before_any_work(tmp_path: Path, capsys) -> None:
+    """OUT_DIR that is a file: one line naming it, and the file is left as it was."""
+    from pae.data_cli import main
+
+    blocker = tmp_path / "labels"
+    blocker.write_text("a file\n")
+    source = tmp_path / "w2c.csv"
+    source.write_text(
+        "scene,split,seq,img_path,t1,t2,t3,q1,q2,q3,q4\na,train,s,a/1.png,0,0,0,1,0,0,0\n"
+    )
+    assert main(["convert", "authors-csv", str(source), str(blocker)]) == 1
+    errors = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
+    assert len(errors) == 1 and "OUT_DIR" in errors[0] and "is a file" in errors[0], errors
+    assert blocker.read_text() == "a file\n"

@@ -321,3 +321,22 @@ def test_pae_eval_refines_another_apr_s_starts_beside_the_teachers(
         cfg = compose("eval", overrides=[*overrides[:-2], "render_compare.init=/no/such.txt"])
     with pytest.raises(ConfigError, match=r"render_compare.init=/no/such.txt: no such starts"):
         evaluate_checkpoints(cfg, tmp_path / "missing")
+
+
+def test_an_unwritable_out_is_one_line_before_any_work(
+    finished_run: Path, tiny_root: Path, tmp_path: Path, capsys
+) -> None:
+    """--out under a file (a file where a folder should be) or naming a folder: one line
+    naming it, before the teacher runs, and nothing written."""
+    blocker = tmp_path / "some_file"
+    blocker.write_text("not a folder\n")
+    labels = tiny_root / "labels" / "all_test.csv"
+    for out, says in ((blocker / "out.csv", "is a file, not a folder"), (tmp_path, "is a folder")):
+        capsys.readouterr()
+        with pytest.raises(SystemExit):
+            main([str(finished_run), str(labels), "--out", str(out)])
+        err = capsys.readouterr().err
+        errors = [line for line in err.splitlines() if "error:" in line]
+        assert len(errors) == 1 and says in errors[0] and "--out" in errors[0], err
+        assert "Traceback" not in err and "pae-localize: teacher" not in err
+    assert blocker.read_text() == "not a folder\n"

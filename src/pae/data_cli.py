@@ -127,8 +127,10 @@ def _convert_authors_csv(source: Path, out_dir: Path) -> int:
 
 
 def _convert(args: argparse.Namespace) -> int:
+    from pae.core.atomic import check_writable_dir
     from pae.data.raw import convert_raw
 
+    check_writable_dir(args.out_dir, "OUT_DIR")
     if args.dataset == "authors-csv":
         return _convert_authors_csv(args.raw_root, args.out_dir)
 

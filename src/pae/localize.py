@@ -80,11 +80,13 @@ def localize(args: argparse.Namespace) -> None:
     import torch
 
     from pae.apps import localization as loc
+    from pae.core.atomic import check_writable_file
     from pae.core.checkpoints import load_teacher
     from pae.core.console import Progress
     from pae.core.errors import ConfigError
     from pae.data.labels import write_labels
 
+    check_writable_file(args.out, "--out")  # before any work: a finished run is never lost
     run = loc.read_run(args.run_dir)
     methods = loc.methods_of(run)
     method = args.refine

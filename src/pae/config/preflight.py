@@ -14,21 +14,11 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from pae.config.validation import apply_renamed_keys, validate_eval_config, validate_train_config
+from pae.core.atomic import check_writable_dir
 from pae.core.error_reporting import reporting_errors
 from pae.core.errors import ConfigError
 from pae.core.run_lock import RunDirLock
 from pae.steps import RESUMABLE_CHANGES
-
-
-def check_writable_dir(path: Path, key: str) -> None:
-    """`path` exists as a writable folder or can be created; else ConfigError naming `key`."""
-    existing = path
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
-    if not existing.is_dir():
-        raise ConfigError(f"{key}={path}: cannot be created ({existing} is not a directory)")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise ConfigError(f"{key}={path}: cannot be written ({existing} is not writable)")
 
 
 def _check_latent_cache(config: DictConfig) -> None:

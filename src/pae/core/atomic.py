@@ -103,3 +103,37 @@ def write_json_atomic(path: str | Path, payload: Mapping[str, object]) -> None:
     JSON: a NaN or infinite value is a ValueError, never written."""
     text = json.dumps(dict(payload), indent=2, sort_keys=True, allow_nan=False)
     write_text_atomic(path, text + "\n")
+
+
+def check_writable_dir(path: str | Path, key: str) -> None:
+    """``path`` exists as a writable folder or can be created; else ConfigError naming ``key``
+    (checked before any work, so that a finished computation is never lost to its output)."""
+    from pae.core.errors import ConfigError
+
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"{key}={path}: is a file, not a folder")
+    existing = path
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ConfigError(f"{key}={path}: cannot be created ({existing} is not a directory)")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ConfigError(f"{key}={path}: cannot be written ({existing} is not writable)")
+
+
+def check_writable_file(path: str | Path, key: str) -> None:
+    """``path`` can be written as a file: not a folder, its folder writable or creatable;
+    else ConfigError naming ``key``."""
+    from pae.core.errors import ConfigError
+
+    path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"{key} {path}: is a folder, not a file")
+    existing = path.parent
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ConfigError(f"{key} {path}: cannot be written ({existing} is a file, not a folder)")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ConfigError(f"{key} {path}: cannot be written ({existing} is not writable)")
