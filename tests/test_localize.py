@@ -321,6 +321,10 @@ def test_pae_eval_refines_another_apr_s_starts_beside_the_teachers(
         cfg = compose("eval", overrides=[*overrides[:-2], "render_compare.init=/no/such.txt"])
     with pytest.raises(ConfigError, match=r"render_compare.init=/no/such.txt: no such starts"):
         evaluate_checkpoints(cfg, tmp_path / "missing")
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("eval", overrides=[*overrides, "render_compare.init_axes=gl"])
+    with pytest.raises(ConfigError, match=r"render_compare.init_axes=gl: choose"):
+        evaluate_checkpoints(cfg, tmp_path / "axes")
 
 
 def test_an_unwritable_out_is_one_line_before_any_work(

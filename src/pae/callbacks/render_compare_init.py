@@ -13,7 +13,7 @@ import torch
 
 from pae.callbacks.render_compare import HONEST, RenderCompareCallback
 from pae.core.errors import ConfigError
-from pae.data.starts import starts_for
+from pae.data.starts import AXES, starts_for
 from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
 from pae.render_compare import Calibration, calibrate_any_start, refine
 from pae.render_compare.calibration import scene_size
@@ -35,6 +35,8 @@ class RenderCompareFromFile(L.Callback):
         self.calibration: Calibration | None = None
         if refinement.init is not None and not Path(refinement.init).is_file():
             raise ConfigError(f"render_compare.init={refinement.init}: no such starts file")
+        if refinement.init_axes not in AXES:
+            raise ConfigError(f"render_compare.init_axes={refinement.init_axes}: choose {AXES}")
 
     @property
     def method(self) -> str:
