@@ -437,8 +437,8 @@ def test_run_dir_and_checkpoint_files_fail_in_one_line(tiny_root: Path, tmp_path
     )
     assert result.returncode == 1 and "Traceback" not in result.stderr
     assert error_lines(result.stderr) == [
-        f"pae-train: error: hydra.run.dir={tmp_path}/file/run: cannot be created "
-        f"({tmp_path}/file is not a directory)"
+        f"pae-train: error: hydra.run.dir={tmp_path}/file/run: cannot be written "
+        f"({tmp_path}/file is a file, not a folder)"
     ]
     with pytest.raises(CheckpointError, match=r"file: not a readable checkpoint \(not a complete"):
         read_checkpoint(tmp_path / "file")

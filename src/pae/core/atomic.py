@@ -105,6 +105,20 @@ def write_json_atomic(path: str | Path, payload: Mapping[str, object]) -> None:
     write_text_atomic(path, text + "\n")
 
 
+def _creatable_in(path: Path, name: str) -> None:
+    """ConfigError (``name``: how to call ``path``) unless the nearest existing folder of
+    ``path`` or above it is a writable directory."""
+    from pae.core.errors import ConfigError
+
+    existing = path
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ConfigError(f"{name}: cannot be written ({existing} is a file, not a folder)")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ConfigError(f"{name}: cannot be written ({existing} is not writable)")
+
+
 def check_writable_dir(path: str | Path, key: str) -> None:
     """``path`` exists as a writable folder or can be created; else ConfigError naming ``key``
     (checked before any work, so that a finished computation is never lost to its output)."""
@@ -113,13 +127,7 @@ def check_writable_dir(path: str | Path, key: str) -> None:
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise ConfigError(f"{key}={path}: is a file, not a folder")
-    existing = path
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
-    if not existing.is_dir():
-        raise ConfigError(f"{key}={path}: cannot be created ({existing} is not a directory)")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise ConfigError(f"{key}={path}: cannot be written ({existing} is not writable)")
+    _creatable_in(path, f"{key}={path}")
 
 
 def check_writable_file(path: str | Path, key: str) -> None:
@@ -130,10 +138,4 @@ def check_writable_file(path: str | Path, key: str) -> None:
     path = Path(path)
     if path.is_dir():
         raise ConfigError(f"{key} {path}: is a folder, not a file")
-    existing = path.parent
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
-    if not existing.is_dir():
-        raise ConfigError(f"{key} {path}: cannot be written ({existing} is a file, not a folder)")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise ConfigError(f"{key} {path}: cannot be written ({existing} is not writable)")
+    _creatable_in(path.parent, f"{key} {path}")
