@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from pae.core.console import Progress
-from pae.core.errors import LabelError, LabelWarning
+from pae.core.errors import LabelError, LabelWarning, OrientationWarning
 from pae.core.quaternion_sign import canonical_sign
 from pae.data.label_images import find_image_problems
 from pae.data.labels import (
@@ -180,7 +180,7 @@ def _read_tables(paths: Sequence[Path], world_to_camera: bool = False) -> LabelT
         warnings.simplefilter("always", LabelWarning)
         table = LabelTable.concat(read_labels(path) for path in paths)
     for warning in caught:
-        if world_to_camera and "look world-to-camera" in str(warning.message):
+        if world_to_camera and issubclass(warning.category, OrientationWarning):
             continue
         print(f"{PROG}: warning: {warning.message}", file=sys.stderr)
     return table

@@ -312,6 +312,12 @@ def any_start_calibration(
     scene's size, from its train cameras)."""
     data = data_module(run, cache_images=False)
     data.setup()
+    if data.datasets["val"] is data.datasets["test"] or not len(data.datasets["val"]):
+        raise ConfigError(
+            f"{run.folder}: the run has no validation split held out of its train data "
+            "(data.val_sequences), so no gate can be chosen for another APR's starts without "
+            "reading test labels: --init-gate run keeps the run's own"
+        )
     val = split_queries(data, "val", compare_width(settings))
     positions, _ = data.train_poses()
     size = scene_size(positions[:, :3].double())

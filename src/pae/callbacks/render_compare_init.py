@@ -13,11 +13,12 @@ import torch
 
 from pae.callbacks.render_compare import HONEST, RenderCompareCallback
 from pae.core.errors import ConfigError
+from pae.core.metrics import summarise_errors
 from pae.data.starts import AXES, starts_for
 from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
 from pae.render_compare import Calibration, calibrate_any_start, refine
 from pae.render_compare.calibration import scene_size
-from pae.render_compare.queries import method_from, refinement_figures, start_figures
+from pae.render_compare.queries import method_from, refinement_figures
 
 
 class RenderCompareFromFile(L.Callback):
@@ -75,10 +76,11 @@ class RenderCompareFromFile(L.Callback):
         )  # fmt: skip
         seconds = time.perf_counter() - begin
         truth, scene = outputs[EVAL.pose].float(), outputs[EVAL.scene]
-        figures, _, _ = refinement_figures(
+        figures, start_errors, _ = refinement_figures(
             f"test/{self.method}", refinement, calibration, starts, truth, scene, names
         )
         start = self.method.replace("render_compare_from_", "start_from_")
-        figures |= start_figures(f"test/{start}", starts, truth, scene, names)
+        summary = summarise_errors(*start_errors, scene, names)
+        figures |= {f"test/{start}/{key}": value for key, value in summary.items()}
         figures[f"bench/{self.method}/ms_per_query"] = torch.tensor(1000 * seconds / len(truth))
         pl_module.log_dict(figures)

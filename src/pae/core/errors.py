@@ -26,6 +26,10 @@ class LabelWarning(UserWarning):
     """Label values that were repaired while reading (e.g. quaternions normalised)."""
 
 
+class OrientationWarning(LabelWarning):
+    """A label file without an orientation column whose orientations look world-to-camera."""
+
+
 class ImageError(OSError):
     """A missing or unreadable image; the message names the file."""
 

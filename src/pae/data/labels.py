@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pae.core.atomic import atomic_write
-from pae.core.errors import LabelError, LabelWarning
+from pae.core.errors import LabelError, LabelWarning, OrientationWarning
 from pae.core.quaternion_sign import canonical_sign
 from pae.data.orientation import conjugate, looks_world_to_camera
 
@@ -271,7 +271,7 @@ def read_labels_lenient(path: str | os.PathLike[str]) -> tuple[LabelTable, list[
                 f"{plain:.1f} deg, conjugated {conjugated:.1f} deg) and it has no "
                 f"{ORIENTATION_COLUMN} column; pae reads camera-to-world: pae-data convert "
                 f"authors-csv {path_text} OUT_DIR",
-                LabelWarning,
+                OrientationWarning,
                 stacklevel=3,
             )
     if non_unit:

@@ -16,6 +16,7 @@ from pae.core.shapes import check_shape
 from pae.render_compare.calibration import (
     LADDER,
     LADDER_DEG,
+    RATIO_EPS_M,
     STEP_SHARES,
     Calibration,
     choose_gate,
@@ -209,8 +210,8 @@ def calibrate_any_start(
             gains, result.score, refined_pos, start_pos, objective="log_ratio"
         )
         gated = gate(result, starts, margin, floor)
-        final, _ = pose_errors(gated.poses.float(), truth.float())
-        value = float(((final + 1e-3) / (start_pos + 1e-3)).log().mean())
+        final = torch.where(gated.accepted, refined_pos, start_pos)
+        value = float(((final + RATIO_EPS_M) / (start_pos + RATIO_EPS_M)).log().mean())
         if best is None or value < best[0]:
             refinement = Refinement(
                 gated.poses, gated.accepted, result, scenes, gated.accepted & False

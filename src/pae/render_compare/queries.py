@@ -13,7 +13,6 @@ from torch import Tensor
 from pae.core.atomic import atomic_write
 from pae.core.geometry import pose_errors
 from pae.core.metrics import summarise_errors
-from pae.core.shapes import check_shape
 
 QUERY_COLUMNS = (
     "index",
@@ -119,12 +118,3 @@ def method_from(path: str | Path) -> str:
     replaced by ``_``)."""
     stem = "".join(c if c.isalnum() or c == "_" else "_" for c in Path(path).stem)
     return f"render_compare_from_{stem}"
-
-
-def start_figures(
-    prefix: str, starts: Tensor, truth: Tensor, scenes: Tensor, names: list[str]
-) -> dict[str, Tensor]:
-    """The error summary under ``prefix`` of starts [N, 7] against the true poses [N, 7]."""
-    check_shape(starts, "starts", f"{len(truth)} 7")
-    summary = summarise_errors(*pose_errors(starts.float(), truth.float()), scenes, names)
-    return {f"{prefix}/{key}": value for key, value in summary.items()}
