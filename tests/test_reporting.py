@@ -119,3 +119,28 @@ def test_the_best_refinement_is_chosen_on_validation_and_reported_on_test() -> N
     # never a method worse than the teacher where it is chosen
     assert best_refinement(metrics | {"val/teacher/pos_median_m": 0.5}) == "render_compare"
     assert best_refinement(metrics | {"val/teacher/pos_median_m": 0.3}) is None
+
+
+def test_report_out_is_checked_before_any_work_and_written_whole(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from pae.report import tables
+
+    write_json_atomic(tmp_path / "run" / "metrics.json", _metrics(0.5, 0.45))
+    blocker = tmp_path / "file"
+    blocker.write_text("in the way\n")
+    with monkeypatch.context() as patched:
+        patched.setattr(tables, "seed_report", lambda *a, **k: pytest.fail("read the runs"))
+        for out, says in ((blocker / "out.md", "is a file, not a folder"), (tmp_path, "folder")):
+            assert tables.main([str(tmp_path / "run"), "--out", str(out)]) == 1
+            captured = capsys.readouterr()
+            assert captured.out == ""
+            assert captured.err.startswith(f"pae-report: error: --out {out}: ")
+            assert says in captured.err and captured.err.count("\n") == 1
+    out = tmp_path / "reports" / "run.md"
+    out.parent.mkdir()
+    out.write_text("an older report\n")
+    assert tables.main([str(tmp_path / "run"), "--out", str(out)]) == 0
+    assert out.read_text() == capsys.readouterr().out
+    assert "| 0.500 / 5.00 | 0.450 / 5.00 |" in out.read_text()
+    assert [p.name for p in out.parent.iterdir()] == ["run.md"]

@@ -12,7 +12,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from pae.core.atomic import write_text_atomic
+from pae.core.atomic import check_writable_file, write_text_atomic
 from pae.core.error_reporting import ERROR_FILE, first_line
 from pae.report.method_rows import (
     ORACLE_SUFFIX,
@@ -402,8 +402,9 @@ def main(argv: list[str] | None = None) -> int:
     """`pae-report DIR`: the results of a run or a sweep as a markdown table (and, for jobs
     that differ only by seed, mean ± sd per variant); `pae-report DIR --compare`: paired
     differences between the sweep's variants over their seeds; `pae-report --compare RUN
-    [RUN ...] --names A,B,...`: methods × runs (runs that are seed sweeps: paired). Exit
-    status 1 when a job failed or is missing."""
+    [RUN ...] --names A,B,...`: methods × runs (runs that are seed sweeps: paired); `--out
+    FILE` also writes what is printed to FILE, whole or not at all. Exit status 1 when a job
+    failed or is missing."""
     parser = argparse.ArgumentParser(prog="pae-report", description=sweep_table.__doc__)
     parser.add_argument("directory", type=Path, nargs="?")
     parser.add_argument("--split", default="test", choices=("test", "val"))
@@ -416,22 +417,32 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--names", help="comma-separated column names for --compare")
     parser.add_argument("--baseline", help="DIR --compare: the variant to compare against")
+    parser.add_argument(
+        "--out", type=Path, metavar="FILE", help="also write the report to FILE (markdown)"
+    )
     args = parser.parse_args(argv)
     if (args.directory is None) == (not args.compare):  # DIR [--compare] or --compare RUN...
         parser.error("give DIR, DIR --compare, or --compare RUN [RUN ...]")
     try:
+        if args.out is not None:
+            check_writable_file(args.out, "--out")
         names = args.names.split(",") if args.names else [p.name for p in args.compare or ()]
         seeds = seed_report(
             args.directory, args.compare, names, split=args.split, baseline=args.baseline
         )
+        parts = []
         if args.compare and seeds is None:
-            print(compare_table(args.compare, names, args.split))
+            parts.append(compare_table(args.compare, names, args.split))
         problems = 0
         if args.directory is not None and args.compare is None:
             table, problems = sweep_report(args.directory, args.split)
-            print(table)
+            parts.append(table)
         if seeds is not None:
-            print(("\n" if args.compare is None else "") + seeds)
+            parts.append(("\n" if args.compare is None else "") + seeds)
+        report = "\n".join(parts)
+        print(report)
+        if args.out is not None:
+            write_text_atomic(args.out, report + "\n")
         if problems:
             return 1
     except (OSError, ValueError) as err:
