@@ -201,3 +201,18 @@ def test_pae_bench_runs_the_scale_bench_only_when_asked(
     cli.main([*argv, "--scale-scenes", "2", "--scale-size", "64", "48"])
     assert calls == [((60, 20, 2, 64, 48), {"root": None})]
     assert '"bench/x": 1.0' in capsys.readouterr().out
+
+
+def test_bench_fingerprint_measures_both_hashes_on_the_same_images(tiny_root: Path) -> None:
+    from pae.bench.fingerprint import PREFIX, bench_fingerprint
+    from pae.data.labels import read_labels
+
+    figures = bench_fingerprint(tiny_root, repeats=2)
+    names = ("images", "mb", "full_ms", "sampled_ms", "full_over_sampled", "full_mb_per_s")
+    assert set(figures) == {f"{PREFIX}/{name}" for name in names}
+    table = read_labels(tiny_root / "labels" / "all_train.csv")
+    assert figures[f"{PREFIX}/images"] == len(table.img_path)
+    size = sum((tiny_root / path).stat().st_size for path in table.img_path)
+    assert figures[f"{PREFIX}/mb"] == size / 1e6
+    ratio = figures[f"{PREFIX}/full_ms"] / figures[f"{PREFIX}/sampled_ms"]
+    assert figures[f"{PREFIX}/full_over_sampled"] == pytest.approx(ratio)

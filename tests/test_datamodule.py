@@ -108,3 +108,54 @@ def test_teacher_latents_are_cached_once_in_train_order(tiny_root: Path) -> None
     assert torch.allclose(latents.tensors["teacher_pose"][:4], pose, atol=1e-5)
     batch = next(iter(cached.train_dataloader()))
     assert set(batch) == {"pose", "scene", "z_x", "z_q", "teacher_pose"} and len(batch["pose"]) == 8
+
+
+def test_the_image_fingerprint_sees_an_edit_the_sampled_hash_missed(
+    tiny_root: Path, tmp_path: Path
+) -> None:
+    """An edit that keeps an image's size and lies outside the middle 4 KiB the older hash
+    read changes the fingerprint of every byte."""
+    import shutil
+
+    from pae.data.fingerprint import SAMPLE_BYTES, images_blake2b, sampled_images_sha256
+
+    root = tmp_path / "copy"
+    shutil.copytree(tiny_root, root)
+    table = read_labels(root / "labels" / "all_train.csv")
+    image = root / table.img_path[3]
+    image.write_bytes(bytes(range(256)) * 48)  # 12 KiB: larger than the sample
+    before = images_blake2b(table, root), sampled_images_sha256(table, root)
+    edited = bytearray(image.read_bytes())
+    assert len(edited) // 2 - SAMPLE_BYTES // 2 > 100
+    edited[100] ^= 0xFF
+    image.write_bytes(bytes(edited))
+    assert sampled_images_sha256(table, root) == before[1]
+    assert images_blake2b(table, root) != before[0]
+
+
+def test_a_checkpoint_with_the_sampled_fingerprint_is_checked_by_it_with_a_warning(
+    tiny_root: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    from omegaconf import OmegaConf
+
+    from pae.core.errors import CheckpointError
+    from pae.core.run_context import start_run
+    from pae.runs.inputs import check_fingerprint
+
+    data = _data(tiny_root)
+    older = data.fingerprint()
+    del older["train_images_blake2b"]
+    older["train_images_sha256"] = data.sampled_images_sha256()
+    cfg = OmegaConf.create({})
+    start_run()
+    with caplog.at_level("INFO"):
+        check_fingerprint(cfg, "old.ckpt", older, data)
+        check_fingerprint(cfg, "old.ckpt", older, data)
+    warnings = [m for m in caplog.messages if m.startswith("data: warning: old.ckpt")]
+    assert warnings == [
+        "data: warning: old.ckpt records an older fingerprint of its train images (4 KiB of each "
+        "file): its images are checked by that sample only, an edit elsewhere is not seen"
+    ]
+    older["train_images_sha256"] = "0" * 64
+    with pytest.raises(CheckpointError, match=r"^old\.ckpt: trained on other train images than"):
+        check_fingerprint(cfg, "old.ckpt", older, data)

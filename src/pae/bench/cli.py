@@ -10,7 +10,8 @@ deploy (what each method keeps and its time per query), render_compare (the refi
 per query and its compiled paths), render_compare_scale (the scene-model step run as
 `pae-train stage=render_compare` on a dataset of 7-Scenes' size, 26,000 train and 17,000
 test images of 640x480: its peak resident memory, fit and refinement seconds; minutes, so
-only with --only; the --scale-* options shrink it).
+only with --only; the --scale-* options shrink it), fingerprint (the train images'
+fingerprint on the demo's train split: every byte against the older 4 KiB sample per file).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from pathlib import Path
 import torch
 from torch.utils.data import DataLoader
 
+from pae.bench.fingerprint import bench_fingerprint, demo_train_root
 from pae.bench.methods import bench_methods
 from pae.bench.refinement import bench_first_layer_gain, bench_index, bench_refinement
 from pae.bench.render_compare import bench_render_compare
@@ -230,6 +232,7 @@ BENCHMARKS = (
     "deploy",
     "render_compare",
     "render_compare_scale",
+    "fingerprint",
 )
 """The benchmarks pae-bench runs (``--only`` picks some)."""
 DEFAULT_BENCHMARKS = tuple(name for name in BENCHMARKS if name != "render_compare_scale")
@@ -301,6 +304,10 @@ def main(argv: list[str] | None = None) -> int:
             figures |= bench_student_cache(small, "efficientnet_b0", 256, 224, repeats=1)
         if "sweep" in chosen:
             figures |= bench_sweep(root, 2, args.train_frames, 20, 64)
+        if "fingerprint" in chosen:
+            demo = root / "demo"
+            demo.mkdir()
+            figures |= bench_fingerprint(demo_train_root(demo))
     if "refine" in chosen:
         figures |= bench_refinement(n_queries=args.queries)
         figures |= bench_first_layer_gain()

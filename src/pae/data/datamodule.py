@@ -19,7 +19,7 @@ from pae.core.camera import Intrinsics, resized_size
 from pae.core.errors import ConfigError, LabelError
 from pae.core.run_context import current_run
 from pae.data.dataset import PoseDataset, collate_batch
-from pae.data.fingerprint import images_sha256
+from pae.data.fingerprint import images_blake2b, sampled_images_sha256
 from pae.data.holdout import HeldOut, held_out_rows, scenes_short_of_sequences
 from pae.data.labels import LabelTable, focal_column_mismatch, focal_problems, read_labels
 from pae.data.transforms import ImageTransform, image_size
@@ -278,18 +278,23 @@ class PoseDataModule(L.LightningDataModule):
 
     def fingerprint(self) -> dict[str, Any]:
         """What identifies the training data: its scene names, a SHA-256 of its train poses
-        (float64 [N, 7], as read from the train label file) and one of its train images
-        (:func:`pae.data.fingerprint.images_sha256`: paths, sizes, a sample of each file's
-        bytes), computed once. Checkpoints record it."""
+        (float64 [N, 7], as read from the train label file) and a BLAKE2b of its train images
+        (:func:`pae.data.fingerprint.images_blake2b`: paths, sizes, every byte of each file),
+        computed once. Checkpoints record it."""
         if self._fingerprint is None:
             train = self.tables["train"]
             poses = np.ascontiguousarray(train.poses, dtype=np.float64)
             self._fingerprint = {
                 "scenes": list(self.scene_names),
                 "train_poses_sha256": hashlib.sha256(poses.tobytes()).hexdigest(),
-                "train_images_sha256": images_sha256(train, self.root),
+                "train_images_blake2b": images_blake2b(train, self.root),
             }
         return dict(self._fingerprint)
+
+    def sampled_images_sha256(self) -> str:
+        """The older hash of the train images that checkpoints written before recorded
+        (:func:`pae.data.fingerprint.sampled_images_sha256`: 4 KiB of each file)."""
+        return sampled_images_sha256(self.tables["train"], self.root)
 
     def describe(self) -> dict[str, Any]:
         """What this module reads: ``root``, ``scenes`` and, per split, its label file, the

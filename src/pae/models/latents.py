@@ -289,6 +289,9 @@ class TeacherLatentDataModule(L.LightningDataModule):
     def fingerprint(self) -> dict[str, Any]:
         return self.images.fingerprint()
 
+    def sampled_images_sha256(self) -> str:
+        return self.images.sampled_images_sha256()
+
     @property
     def root(self) -> Path:
         return self.images.root

@@ -65,12 +65,16 @@ def load_frozen(
     return path, loaded, data
 
 
+SAMPLED_IMAGES_KEY = "train_images_sha256"
+"""The fingerprint entry of older checkpoints: a hash of 4 KiB of each train image."""
 IDENTITY = (
     ("scenes", "scenes"),
     ("train_poses_sha256", "train poses"),
-    ("train_images_sha256", "train images"),
+    ("train_images_blake2b", "train images"),
+    (SAMPLED_IMAGES_KEY, "train images"),
 )
-"""The entries of a data fingerprint (PoseDataModule.fingerprint) and what each names."""
+"""The entries of a data fingerprint (PoseDataModule.fingerprint, and the sampled hash of older
+checkpoints) and what each names."""
 
 
 def other_data_record(cfg: DictConfig) -> dict[str, int]:
@@ -87,10 +91,18 @@ def check_fingerprint(
     """A checkpoint trained on other data than ``data`` (a data module: its scene names, train
     poses and train images, those the checkpoint records) is an error naming the checkpoint and
     the data root, unless allow_other_data=true: then a warning line says so and
-    other_data_record counts it. A checkpoint that records no train images (written before
-    pae did) is used with a warning line."""
+    other_data_record counts it. A checkpoint that records only the older, sampled hash of its
+    train images is checked by that hash, with a warning line; one that records no train images
+    (written before pae did) is used with a warning line."""
     current, root = data.fingerprint(), data.root.resolve()
-    differs = [name for key, name in IDENTITY if trained.get(key, current[key]) != current[key]]
+    sampled_only = SAMPLED_IMAGES_KEY in trained and "train_images_blake2b" not in trained
+    if sampled_only:
+        current[SAMPLED_IMAGES_KEY] = data.sampled_images_sha256()
+    differs = [
+        name
+        for key, name in IDENTITY
+        if key in trained and key in current and trained[key] != current[key]
+    ]
     if differs:
         if differs[0] == "scenes":
             what = f"scenes {trained['scenes']}, but the data at {root} has {current['scenes']}"
@@ -104,7 +116,12 @@ def check_fingerprint(
         if str(path) not in other_data:
             other_data[str(path)] = what
             say(f"data: warning: allow_other_data=true: {path} was trained on {what}; used anyway")
-    unchecked = "train_images_sha256" not in trained
+    if sampled_only and current_run().first_time(f"sampled train images fingerprint {path}"):
+        say(
+            f"data: warning: {path} records an older fingerprint of its train images (4 KiB of "
+            "each file): its images are checked by that sample only, an edit elsewhere is not seen"
+        )
+    unchecked = not any(key in trained for key, name in IDENTITY if name == "train images")
     if unchecked and current_run().first_time(f"no train images fingerprint {path}"):
         say(
             f"data: warning: {path} records no fingerprint of its train images (written before pae "
