@@ -11,15 +11,17 @@ from pae.core.geometry import (
     rotation_vector_to_quaternion,
 )
 from pae.core.pose_sampling import perturb
-from pae.render_compare.polish import (
+from pae.render_compare.kernels.numba_polish import polish_compiled
+from pae.render_compare.kernels.numba_score import compiled_zncc_scores
+from pae.render_compare.kernels.reference import (
+    PolishProblem,
+    PolishSettings,
     image_gradients,
     polish_tensor,
     rotation_vector_to_matrix,
     score_tensor,
 )
-from pae.render_compare.polish_kernel import polish_compiled
 from pae.render_compare.refiner import RenderCompareRefiner, pyramid_widths
-from pae.render_compare.score import compiled_zncc_scores
 from tests.test_render_compare import _oracle_queries
 
 
@@ -45,7 +47,7 @@ def test_pyramid_widths_halve_from_the_finest_never_above_the_query() -> None:
     assert pyramid_widths(16, 4, 64) == [8, 8, 8, 16]
 
 
-def _polish_inputs(n: int = 4) -> tuple:
+def _polish_inputs(n: int = 4) -> tuple[PolishProblem, torch.Tensor]:
     """The polish's inputs at the finest level for oracle queries moved off their truth."""
     model, images, intrinsics, truth, start = _oracle_queries(n)
     refiner = RenderCompareRefiner.configured(
@@ -55,7 +57,7 @@ def _polish_inputs(n: int = 4) -> tuple:
     surface = refiner.surface(refiner.reference(start, level, 32, 1.3), level)
     hypotheses = torch.stack([start, perturb(start, torch.full((n, 6), 0.02))], 1)
     scores = refiner.score_poses(hypotheses, level, surface)
-    inputs = (
+    inputs = PolishProblem(
         surface.points,
         surface.values[:, 0],
         surface.valid,
@@ -71,8 +73,9 @@ def _polish_inputs(n: int = 4) -> tuple:
 def test_compiled_and_tensor_polish_take_the_same_steps() -> None:
     inputs, _ = _polish_inputs()
     for trim_sigma in (0.0, 2.0):
-        compiled = polish_compiled(*inputs, 6, 1e-3, 0.4, trim_sigma)
-        tensor = polish_tensor(*inputs, 6, 1e-3, 0.4, trim_sigma)
+        settings = PolishSettings(6, 1e-3, 0.4, trim_sigma)
+        compiled = polish_compiled(inputs, settings)
+        tensor = polish_tensor(inputs, settings)
         for a, b in zip(compiled, tensor, strict=True):
             torch.testing.assert_close(a, b.to(a.dtype), atol=2e-4, rtol=0)
         assert (compiled[2] > inputs[5]).any()  # the steps moved something
@@ -95,7 +98,7 @@ def test_the_polish_raises_every_score_and_moves_towards_the_truth() -> None:
     """Every hypothesis's score rises by a clear step, the score returned is that of the pose
     returned, and the median position error halves."""
     inputs, truth = _polish_inputs(6)
-    rotation, position, scores = polish_compiled(*inputs, 10, 1e-3, 0.4)
+    rotation, position, scores = polish_compiled(inputs, PolishSettings(10, 1e-3, 0.4))
     assert (scores > inputs[5] + 0.1).all(), (inputs[5], scores)
     points, values, valid, _, _, _, intrinsics, target = inputs
     rescored = compiled_zncc_scores(

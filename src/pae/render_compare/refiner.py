@@ -9,7 +9,7 @@ the next, the finest ``resolution`` px or the query's own width):
    start included); each chain then draws ``candidates`` perturbations around itself per
    round, keeps the best and shrinks its steps after a round without improvement.
 2. **Polish** at every level, coarse to fine: ``polish_steps`` Levenberg–Marquardt steps on
-   each hypothesis's image residual (``pae.render_compare.polish``); after each level but the
+   each hypothesis's image residual (:mod:`pae.render_compare.kernels`); after each level but the
    last, the better half of the hypotheses goes on. Before the finest level the scene model is
    rendered again at the best hypothesis (``final_reference_size``) so that the final alignment
    sees the surface densely, from where the camera now is.
@@ -42,10 +42,16 @@ from pae.core.geometry import matrix_to_quaternion, normalize_quaternion, quater
 from pae.core.pose_sampling import perturb
 from pae.render_compare.gate import ACCEPT_ALL, GatedPoses, RenderCompareResult, gate
 from pae.render_compare.images import band_pass, grey, pyramid_widths, trimmed_zncc
-from pae.render_compare.polish import polish_tensor
-from pae.render_compare.polish_kernel import polish_compiled
+from pae.render_compare.kernels.numba_polish import polish_compiled
+from pae.render_compare.kernels.numba_score import compiled_zncc_scores
+from pae.render_compare.kernels.reference import (
+    MIN_DEPTH_M,
+    NOT_SEEN_SCORE,
+    PolishProblem,
+    PolishSettings,
+    polish_tensor,
+)
 from pae.render_compare.records import Hypotheses, Level, Reference, Surface
-from pae.render_compare.score import MIN_DEPTH_M, NOT_SEEN_SCORE, compiled_zncc_scores
 from pae.render_compare.settings import (
     BUILD_KEYS,
     ENGINES,
@@ -383,7 +389,7 @@ class RenderCompareRefiner:
             int(surface.valid.sum()) * hypothesis_count * self.polish_steps
         )
         with self.work.timed("polish"):
-            rotation, position, scores = run(
+            problem = PolishProblem(
                 surface.points,
                 surface.values[:, 0],
                 surface.valid,
@@ -392,12 +398,15 @@ class RenderCompareRefiner:
                 hypotheses.scores,
                 level.intrinsics,
                 level.target[:, 0],
+            )
+            settings = PolishSettings(
                 self.polish_steps,
                 self.polish_damping,
                 self.min_overlap,
                 self.trim_sigma,
                 self.trim_passes,
             )
+            rotation, position, scores = run(problem, settings)
         dtype = hypotheses.poses.dtype
         quaternion = matrix_to_quaternion(rotation.to(dtype))
         return Hypotheses(torch.cat([position.to(dtype), quaternion], -1), scores.to(dtype))

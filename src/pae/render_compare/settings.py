@@ -11,7 +11,7 @@ from pae.core.compiled import ENGINES
 
 SCORES = ("zncc", "features")
 """``engine`` (:data:`pae.core.compiled.ENGINES`): auto, the compiled loops
-(``pae.render_compare.score``, ``pae.render_compare.polish_kernel``) for CPU tensors and the
+(:mod:`pae.render_compare.kernels`) for CPU tensors and the
 ZNCC score, tensor operations otherwise; numba: always (ZNCC only); torch: always tensor
 operations (any device)."""
 

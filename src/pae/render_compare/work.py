@@ -8,8 +8,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
-from pae.render_compare.polish import FLOPS_PER_POINT_STEP
-from pae.render_compare.score import FLOPS_PER_POINT_SCORE
+from pae.render_compare.kernels.numba_score import FLOPS_PER_POINT_SCORE
+from pae.render_compare.kernels.reference import FLOPS_PER_POINT_STEP
 
 
 @dataclass

@@ -147,18 +147,22 @@ MAX_DRAWS = 16
 """Rounds of candidate cameras drawn to find views ``min_distance_m`` from the train cameras."""
 
 
+class _TrainCameras(NamedTuple):
+    """The train cameras the views are drawn around: poses [N, 7] (float64), scene and
+    sequence ids [N], and each one's nearest camera of another sequence [N] (the partner
+    when ``between_radius_m`` is None; else None)."""
+
+    poses: Tensor
+    scenes: Tensor
+    sequences: Tensor
+    neighbours: Tensor | None
+
+
 def _draw_cameras(
-    poses: Tensor,
-    scenes: Tensor,
-    sequences: Tensor,
-    count: int,
-    settings: NovelViewSettings,
-    generator: torch.Generator,
-    neighbours: Tensor | None,
+    train: _TrainCameras, count: int, settings: NovelViewSettings, generator: torch.Generator
 ) -> NovelPoses:
-    """``count`` candidate cameras of :func:`sample_novel_poses`, wherever they fall
-    (``neighbours`` [N]: each train camera's nearest of another sequence, the partner when
-    ``settings.between_radius_m`` is None)."""
+    """``count`` candidate cameras of :func:`sample_novel_poses`, wherever they fall."""
+    poses, scenes, sequences, neighbours = train
     source = torch.randint(len(poses), (count,), generator=generator)
     start = poses[source]
     if settings.between:
@@ -217,11 +221,12 @@ def sample_novel_poses(
     neighbours = None
     if settings.between and settings.between_radius_m is None:
         neighbours = other_sequence_neighbours(poses[:, :3], scenes, sequences)
+    train = _TrainCameras(poses, scenes, sequences, neighbours)
     rounds: list[NovelPoses] = []
     clearances: list[Tensor] = []
     found = 0
     for _ in range(MAX_DRAWS if settings.min_distance_m > 0 else 1):
-        drawn = _draw_cameras(poses, scenes, sequences, count, settings, generator, neighbours)
+        drawn = _draw_cameras(train, count, settings, generator)
         rounds.append(drawn)
         clearances.append((drawn.poses[:, :3] - poses[drawn.nearest, :3]).norm(dim=-1))
         found += int((clearances[-1] >= settings.min_distance_m).sum())

@@ -4,11 +4,14 @@ For each query and candidate camera, the reference surface points are projected 
 candidate, the band-passed grey query image is sampled bilinearly where they land, and the
 weighted ZNCC of the sampled values with the points' rendered values is returned (optionally
 trimmed of the points the rendering cannot explain): the score
-:meth:`RenderCompareRefiner._score_projected` computes with tensor operations (tested equal),
+:meth:`RenderCompareRefiner._score_projected` and
+:func:`pae.render_compare.kernels.reference.score_tensor` compute with tensor operations
+(tested equal),
 in one pass per candidate instead of some twenty passes over every point.
 
 The per-point helpers (:func:`project_point`, :func:`project_and_sample`,
-:func:`sampled_score`) are shared with the compiled polish (``pae.render_compare.polish_kernel``).
+:func:`sampled_score`) are shared with the compiled polish
+(:mod:`pae.render_compare.kernels.numba_polish`).
 Work buffers are allocated once per query, never per candidate or per point.
 """
 
@@ -22,11 +25,8 @@ import torch
 from torch import Tensor
 
 from pae.core.compiled import jit
+from pae.render_compare.kernels.reference import MIN_DEPTH_M, NOT_SEEN_SCORE
 
-MIN_DEPTH_M = 0.05
-"""Points nearer than this to a candidate camera (or behind it) are not seen."""
-NOT_SEEN_SCORE = -2.0
-"""The score of a candidate that sees too few of the reference points."""
 FLOPS_PER_POINT_SCORE = 40
 """Floating-point operations per reference point and candidate of the score (projection 21,
 bilinear sample 11, moments 8), counted from :func:`project_and_sample` and

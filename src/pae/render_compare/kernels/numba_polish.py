@@ -1,6 +1,7 @@
 """The polish of render-and-compare compiled (numba, CPU): one loop per query runs
-:func:`pae.render_compare.polish.polish_tensor`'s Levenberg–Marquardt steps (tested equal),
-with its work buffers allocated once per query, never per hypothesis, step or point."""
+:func:`pae.render_compare.kernels.reference.polish_tensor`'s Levenberg–Marquardt steps
+(tested equal), with its work buffers allocated once per query, never per hypothesis, step
+or point."""
 
 from __future__ import annotations
 
@@ -13,21 +14,23 @@ import torch
 from torch import Tensor
 
 from pae.core.compiled import jit
-from pae.render_compare.polish import (
-    DAMPING_DOWN,
-    DAMPING_RANGE,
-    DAMPING_UP,
-    N_PARAMS,
-    image_gradients,
-)
-from pae.render_compare.score import (
-    NOT_SEEN_SCORE,
+from pae.render_compare.kernels.numba_score import (
     add_moments,
     as_array,
     bilinear,
     project_and_sample,
     project_point,
     sampled_score,
+)
+from pae.render_compare.kernels.reference import (
+    DAMPING_DOWN,
+    DAMPING_RANGE,
+    DAMPING_UP,
+    N_PARAMS,
+    NOT_SEEN_SCORE,
+    PolishProblem,
+    PolishSettings,
+    image_gradients,
 )
 
 
@@ -43,16 +46,6 @@ class _Query(NamedTuple):
     target: np.ndarray
     grad_u: np.ndarray
     grad_v: np.ndarray
-
-
-class _Settings(NamedTuple):
-    """The polish's settings (:func:`polish_tensor`'s arguments of the same names)."""
-
-    iterations: int
-    damping: float
-    min_overlap: float
-    trim_sigma: float
-    trim_passes: int
 
 
 class _Workspace(NamedTuple):
@@ -136,7 +129,7 @@ def _polish_one(
     rotation: np.ndarray,
     position: np.ndarray,
     score: float,
-    settings: _Settings,
+    settings: PolishSettings,
     space: _Workspace,
 ) -> float:
     """The steps of :func:`polish_tensor` for one hypothesis of ``query``: rotation [3, 3]
@@ -244,7 +237,7 @@ def _polish(
     target: np.ndarray,
     grad_u: np.ndarray,
     grad_v: np.ndarray,
-    settings: _Settings,
+    settings: PolishSettings,
 ) -> None:
     """:func:`_polish_one` on every hypothesis of every query, in place: rotations [B, K, 3,
     3], positions [B, K, 3], scores [B, K]; one query per task, its work space made once."""
@@ -275,41 +268,34 @@ def _polish(
 
 
 def polish_compiled(
-    points: Tensor,
-    values: Tensor,
-    valid: Tensor,
-    rotations: Tensor,
-    positions: Tensor,
-    scores: Tensor,
-    intrinsics: Tensor,
-    target: Tensor,
-    iterations: int,
-    damping: float,
-    min_overlap: float,
-    trim_sigma: float = 0.0,
-    trim_passes: int = 2,
+    problem: PolishProblem, settings: PolishSettings
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`polish_tensor`'s steps compiled, on CPU (same arguments and results)."""
-    grad_u, grad_v = image_gradients(target)
-    rotation = as_array(rotations).copy()
-    position = as_array(positions).copy()
-    score = as_array(scores).copy()
+    """:func:`pae.render_compare.kernels.reference.polish_tensor`'s steps compiled, on CPU
+    (same arguments and results)."""
+    grad_u, grad_v = image_gradients(problem.target)
+    rotation = as_array(problem.rotations).copy()
+    position = as_array(problem.positions).copy()
+    score = as_array(problem.scores).copy()
     _polish(
-        as_array(points),
-        as_array(values),
-        as_array(valid),
+        as_array(problem.points),
+        as_array(problem.values),
+        as_array(problem.valid),
         rotation,
         position,
         score,
-        as_array(intrinsics),
-        as_array(target),
+        as_array(problem.intrinsics),
+        as_array(problem.target),
         as_array(grad_u),
         as_array(grad_v),
-        _Settings(
-            int(iterations), float(damping), float(min_overlap), float(trim_sigma), int(trim_passes)
+        PolishSettings(
+            int(settings.iterations),
+            float(settings.damping),
+            float(settings.min_overlap),
+            float(settings.trim_sigma),
+            int(settings.trim_passes),
         ),
     )
-    device = points.device
+    device = problem.points.device
     return (
         torch.from_numpy(rotation).to(device),
         torch.from_numpy(position).to(device),

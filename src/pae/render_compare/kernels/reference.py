@@ -17,22 +17,29 @@ trimmed if configured) rises, and λ shrinks, else λ grows.
 
 Two engines run the same steps on the same inputs (tested equal): :func:`polish_tensor`,
 tensor operations on any torch device (the reference, and the GPU path), and
-:func:`pae.render_compare.polish_kernel.polish_compiled`, one compiled loop per query
-(numba, CPU).
+:func:`pae.render_compare.kernels.numba_polish.polish_compiled`, one compiled loop per query
+(numba, CPU); likewise the score, :func:`score_tensor` beside
+:func:`pae.render_compare.kernels.numba_score.compiled_zncc_scores`.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from pae.render_compare.images import trimmed_zncc
-from pae.render_compare.score import MIN_DEPTH_M, NOT_SEEN_SCORE
+
+MIN_DEPTH_M = 0.05
+"""Points nearer than this to a candidate camera (or behind it) are not seen."""
+NOT_SEEN_SCORE = -2.0
+"""The score of a candidate that sees too few of the reference points."""
 
 FLOPS_PER_POINT_STEP = 230
 """Floating-point operations per reference point and polish iteration (projection and three
 bilinear samples 54, moments 8, Jacobian 36, normal equations 88, the step's score 40),
-counted from ``render_polish_kernel._polish_one``: what ``bench/render_compare/mflop_per_query``
+counted from ``numba_polish._polish_one``: what ``bench/render_compare/mflop_per_query``
 adds up."""
 DAMPING_UP, DAMPING_DOWN = 5.0, 0.3
 """λ's factor after a rejected and after an accepted step."""
@@ -135,7 +142,8 @@ def score_tensor(
     trim_sigma: float,
     trim_passes: int,
 ) -> Tensor:
-    """The score [N] of :func:`pae.render_compare.score.sampled_score` for one camera per row:
+    """The score [N] of :func:`pae.render_compare.kernels.numba_score.sampled_score` for one
+    camera per row:
     points [N, P, 3], values, valid [N, P], rotation [N, 3, 3], position [N, 3], intrinsics
     [N, 4], target [N, h, w]."""
     h, w = target.shape[-2:]
@@ -188,26 +196,42 @@ def _normal_equations(
     )
 
 
+class PolishProblem(NamedTuple):
+    """What the polish aligns: surface points [B, P, 3] (world), their rendered values and
+    weights ``valid`` [B, P]; K hypotheses per query, rotations [B, K, 3, 3] (camera to
+    world), positions [B, K, 3] and their scores [B, K]; intrinsics [B, 4] and the
+    band-passed grey targets [B, h, w]."""
+
+    points: Tensor
+    values: Tensor
+    valid: Tensor
+    rotations: Tensor
+    positions: Tensor
+    scores: Tensor
+    intrinsics: Tensor
+    target: Tensor
+
+
+class PolishSettings(NamedTuple):
+    """The polish's ``iterations``, first λ (``damping``), the least share of the surface a
+    pose must see (``min_overlap``) and the score's trimming (``trim_sigma``,
+    ``trim_passes``: :func:`pae.render_compare.images.trimmed_zncc`)."""
+
+    iterations: int
+    damping: float
+    min_overlap: float
+    trim_sigma: float = 0.0
+    trim_passes: int = 2
+
+
 def polish_tensor(
-    points: Tensor,
-    values: Tensor,
-    valid: Tensor,
-    rotations: Tensor,
-    positions: Tensor,
-    scores: Tensor,
-    intrinsics: Tensor,
-    target: Tensor,
-    iterations: int,
-    damping: float,
-    min_overlap: float,
-    trim_sigma: float = 0.0,
-    trim_passes: int = 2,
+    problem: PolishProblem, settings: PolishSettings
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """``iterations`` Levenberg–Marquardt steps (see the module docstring) on each of K
-    hypotheses of B queries, with tensor operations on their device: surface points [B, P,
-    3], values, valid [B, P]; rotations [B, K, 3, 3] (camera to world), positions [B, K, 3]
-    and their scores [B, K]; intrinsics [B, 4], band-passed grey targets [B, h, w]; damping:
-    the first λ -> (rotations, positions, scores) after the steps."""
+    """``iterations`` Levenberg–Marquardt steps (see the module docstring) on each hypothesis
+    of ``problem``, with tensor operations on its device -> (rotations, positions, scores)
+    after the steps, shaped as the problem's."""
+    points, values, valid, rotations, positions, scores, intrinsics, target = problem
+    iterations, damping, min_overlap, trim_sigma, trim_passes = settings
     b, k = scores.shape
     rows = torch.arange(b, device=points.device).repeat_interleave(k)
     grad_u, grad_v = image_gradients(target)
