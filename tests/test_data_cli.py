@@ -377,6 +377,44 @@ def test_convert_reports_malformed_raw_lines(
     assert "no 7scenes scene folders" in capsys.readouterr().err
 
 
+def test_convert_refuses_repeated_images_and_non_rigid_matrices(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    """A Cambridge image listed twice, a 7-Scenes sequence listed twice and a 7-Scenes pose
+    that is not a rigid transform (a scaled rotation, a shear of determinant 1): one line
+    naming the file (and line), nothing written."""
+    scene = tmp_path / "raw" / "KingsCollege"
+    scene.mkdir(parents=True)
+    rows = "seq1/frame00001.png 1 2 3 1 0 0 0\nseq1/frame00002.png 1 2 3 1 0 0 0\n"
+    (scene / "dataset_train.txt").write_text(CAMBRIDGE_HEADER + rows + rows.split("\n")[0])
+    (scene / "dataset_test.txt").write_text(CAMBRIDGE_HEADER + "seq2/f.png 1 2 3 1 0 0 0\n")
+    out = tmp_path / "out"
+    assert main(["convert", "cambridge", str(tmp_path / "raw"), str(out)]) == 1
+    err = capsys.readouterr().err
+    assert err.endswith("dataset_train.txt:6: image seq1/frame00001.png repeats line 4\n")
+    assert err.count("\n") == 1 and not out.exists()
+
+    raw = tmp_path / "7scenes"
+    build_seven_scenes(raw)
+    (raw / "chess" / "TrainSplit.txt").write_text("sequence2\nsequence1\nsequence2\n")
+    assert main(["convert", "7scenes", str(raw), str(out)]) == 1
+    err = capsys.readouterr().err
+    assert err.endswith("TrainSplit.txt:3: sequence2 repeats line 1\n") and not out.exists()
+    (raw / "chess" / "TrainSplit.txt").write_text("sequence2\nsequence1\n")
+    pose_file = raw / "fire" / "seq-02" / "frame-000001.pose.txt"
+    for linear, says in (
+        (np.diag([1.1, 1.1, 1.1]), "not orthonormal"),
+        (np.array([[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]), "not orthonormal"),
+    ):
+        matrix = np.eye(4)
+        matrix[:3, :3] = linear
+        write_pose_file(pose_file, matrix)
+        assert main(["convert", "7scenes", str(raw), str(out)]) == 1
+        err = capsys.readouterr().err
+        assert f"error: {pose_file}: not a rigid transform: " in err and says in err
+        assert err.count("\n") == 1 and not out.exists()
+
+
 def test_synth_passes_arguments_and_prints_summary(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:

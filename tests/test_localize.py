@@ -344,3 +344,25 @@ def test_an_unwritable_out_is_one_line_before_any_work(
         assert len(errors) == 1 and says in errors[0] and "--out" in errors[0], err
         assert "Traceback" not in err and "pae-localize: teacher" not in err
     assert blocker.read_text() == "not a folder\n"
+
+
+def test_a_bad_starts_file_is_one_line_before_any_work(
+    finished_run: Path, tiny_root: Path, tmp_path: Path, capsys
+) -> None:
+    """--init FILE with an image named twice: one line naming the file's line, before the
+    teacher runs, and nothing written."""
+    labels = tiny_root / "labels" / "all_test.csv"
+    table = read_labels(labels)
+    rows = [f"{name} 0 0 0 1 0 0 0" for name in [*table.img_path, table.img_path[0]]]
+    starts = tmp_path / "starts.txt"
+    starts.write_text("\n".join(rows) + "\n")
+    out = tmp_path / "out.csv"
+    argv = [str(finished_run), str(labels), "--out", str(out), "--refine", "render_compare"]
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        main([*argv, "--init", str(starts)])
+    err = capsys.readouterr().err
+    errors = [line for line in err.splitlines() if "error:" in line]
+    message = f"{starts}:{len(rows)}: image {table.img_path[0]} repeats line 1"
+    assert errors == [f"pae-localize: error: {message}"], err
+    assert "pae-localize: render_compare" not in err and not out.exists()

@@ -45,7 +45,7 @@ def test_matching_by_the_longest_path_suffix(tmp_path: Path) -> None:
         match_starts(["/a/seq-01/f.png", "/b/seq-01/f.png", "seq-02/f.png"], starts, "r")
     with pytest.raises(ConfigError, match=r"no start for 1 of 2 images, e\.g\. /x/g\.png"):
         match_starts(["/x/seq-01/f.png", "/x/g.png"], starts, "r")
-    with pytest.raises(ConfigError, match=r"1 starts match no image, e\.g\. seq-02/f\.png"):
+    with pytest.raises(ConfigError, match=r"^r:2: 1 starts match no image, e\.g\. seq-02/f\.png$"):
         match_starts(["/x/seq-01/f.png"], starts, "r")
 
 
@@ -63,3 +63,75 @@ def test_bad_lines_are_named(tmp_path: Path, text: str, message: str) -> None:
     path.write_text(text)
     with pytest.raises(LabelError, match=message):
         read_starts(path)
+
+
+def _matrix_line(matrix: np.ndarray) -> str:
+    return "a.png " + " ".join(f"{value:.9g}" for value in matrix.ravel()) + "\n"
+
+
+def _rigid(scale: float = 1.0, shear: float = 0.0, last: float = 1.0) -> np.ndarray:
+    matrix = np.eye(4)
+    matrix[:3, :3] = Rotation.from_euler("xyz", [10, -20, 30], degrees=True).as_matrix()
+    matrix[:3, :3] = matrix[:3, :3] @ np.array([[scale, shear, 0], [0, 1, 0], [0, 0, 1]])
+    matrix[3, 3] = last
+    return matrix
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        (_matrix_line(_rigid(scale=1.2)), r"r.txt:1: not a rigid transform: .* not orthonormal"),
+        (_matrix_line(_rigid(shear=0.3)), r"r.txt:1: not a rigid transform: .* not orthonormal"),
+        (_matrix_line(_rigid() @ np.diag([1.0, 1.0, -1.0, 1.0])), r"r.txt:1: .* determinant -1"),
+        (_matrix_line(_rigid(last=2.0)), r"r.txt:1: .* its last row is 0 0 0 2, not 0 0 0 1"),
+        (
+            "a.png 0 0 0 1 0 0 0\nb.png 1 0 0 1 0 0 0\na.png 2 0 0 1 0 0 0\n",
+            r"r.txt:3: image a.png repeats line 1",
+        ),
+    ],
+)
+def test_non_rigid_matrices_and_repeated_images_are_named(
+    tmp_path: Path, text: str, message: str
+) -> None:
+    path = tmp_path / "r.txt"
+    path.write_text(text)
+    with pytest.raises(LabelError, match=f"^{tmp_path}/{message}"):
+        read_starts(path)
+
+
+LABEL_HEADER = "scene,split,seq,img_path,t1,t2,t3,q1,q2,q3,q4\n"
+
+
+def _label_row(name: str, quaternion: str = "1,0,0,0") -> str:
+    return f"s,test,seq-01,seq-01/{name},0,0,0,{quaternion}\n"
+
+
+@pytest.mark.parametrize(
+    ("second_row", "message"),
+    [
+        (_label_row("a.png"), r":3: image seq-01/a\.png repeats line 2$"),
+        (_label_row("c.png", "nan,0,0,1"), r":3: column q1 is not finite"),
+        (_label_row("c.png", "0,0,0,0"), r":3: quaternion \(q1\.\.q4\) has zero norm"),
+    ],
+)
+def test_a_label_file_of_starts_names_its_bad_rows(
+    tmp_path: Path, second_row: str, message: str
+) -> None:
+    """A starts file in pae's label format: a repeated image is an error (not the training
+    data's warning), as is a NaN or zero quaternion, each naming the file's line."""
+    import warnings
+
+    path = tmp_path / "starts.csv"
+    path.write_text(LABEL_HEADER + _label_row("a.png") + second_row)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(LabelError, match=f"^{path}{message}"):
+            read_starts(path)
+
+
+def test_a_start_for_no_query_names_its_line(tmp_path: Path) -> None:
+    path = tmp_path / "starts.csv"
+    path.write_text(LABEL_HEADER + _label_row("a.png") + _label_row("b.png"))
+    message = rf"^{path}:3: 1 starts match no image, e\.g\. seq-01/b\.png$"
+    with pytest.raises(ConfigError, match=message):
+        match_starts(["/q/seq-01/a.png"], read_starts(path), str(path))

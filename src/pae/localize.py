@@ -116,6 +116,11 @@ def localize(args: argparse.Namespace) -> None:
                 data.camera, size, data.shorter_edge, data.crop, focal, args.focal
             )
 
+    starts = None
+    if args.init is not None:  # read before any work: a bad row is one line, nothing run
+        from pae.data.starts import starts_for
+
+        starts = starts_for(queries.shown, args.init, teacher.scene_names, args.init_axes)
     device = torch.device(args.device)
     emit = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
     found = loc.estimate(
@@ -129,10 +134,8 @@ def localize(args: argparse.Namespace) -> None:
         Progress(f"pae-localize: {method}", "images", emit),
     )
     gate = "run"
-    if args.init is not None:
-        from pae.data.starts import starts_for
-
-        pose, scene = starts_for(queries.shown, args.init, teacher.scene_names, args.init_axes)
+    if starts is not None:
+        pose, scene = starts
         own = loc.are_estimates_of(pose, found.pose)
         gate = args.init_gate if args.init_gate != "auto" else ("run" if own else "any")
         found = found._replace(pose=pose, scene=found.scene if scene is None else scene)

@@ -30,6 +30,10 @@ class OrientationWarning(LabelWarning):
     """A label file without an orientation column whose orientations look world-to-camera."""
 
 
+class RepeatedImageWarning(LabelWarning):
+    """Label file rows whose image an earlier row already has."""
+
+
 class ImageError(OSError):
     """A missing or unreadable image; the message names the file."""
 

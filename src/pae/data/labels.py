@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pae.core.atomic import atomic_write
-from pae.core.errors import LabelError, LabelWarning, OrientationWarning
+from pae.core.errors import LabelError, LabelWarning, OrientationWarning, RepeatedImageWarning
 from pae.core.quaternion_sign import canonical_sign
 from pae.data.orientation import conjugate, looks_world_to_camera
 
@@ -310,7 +310,7 @@ def _warn_repeated_images(img_paths: Sequence[str], lines: Sequence[int], source
         warnings.warn(
             f"{source}: {len(repeats)} rows repeat an earlier row's image "
             f"({', '.join(repeats[:5])}{more}): an epoch sees those images more than once",
-            LabelWarning,
+            RepeatedImageWarning,
             stacklevel=4,
         )
 

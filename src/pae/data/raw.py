@@ -48,6 +48,29 @@ CAMBRIDGE_SPLIT_FILES = {"train": "dataset_train.txt", "test": "dataset_test.txt
 SEVEN_SCENES_SPLIT_FILES = {"train": "TrainSplit.txt", "test": "TestSplit.txt"}
 CAMBRIDGE_HEADER_LINES = 3
 _SEQUENCE_NAME = re.compile(r"sequence\s*(\d+)", re.IGNORECASE)
+RIGID_TOLERANCE = 0.01
+"""How far a camera-to-world matrix may be from rigid: the largest entry of R^T R - I (R its
+3×3 rotation part) and of its last row minus 0 0 0 1; printed digits, never a scale or shear."""
+
+
+def rigid_problem(matrix: np.ndarray) -> str | None:
+    """Why a 4×4 camera-to-world matrix is not a rigid transform (rotation part orthonormal
+    with determinant +1, last row 0 0 0 1, within ``RIGID_TOLERANCE``), or None if it is."""
+    last = matrix[3]
+    if np.abs(last - np.array([0.0, 0.0, 0.0, 1.0])).max() > RIGID_TOLERANCE:
+        shown = " ".join(f"{value:g}" for value in last)
+        return f"not a rigid transform: its last row is {shown}, not 0 0 0 1"
+    rotation = matrix[:3, :3]
+    deviation = float(np.abs(rotation.T @ rotation - np.eye(3)).max())
+    if deviation > RIGID_TOLERANCE:
+        return (
+            "not a rigid transform: its rotation part is not orthonormal (R^T R is off the "
+            f"identity by up to {deviation:.3g}: a scale or shear)"
+        )
+    determinant = float(np.linalg.det(rotation))
+    if determinant < 0:
+        return f"not a rigid transform: its rotation part has determinant {determinant:.3g}"
+    return None
 
 
 def _split_file(scene_dir: Path, split: str, files: dict[str, str]) -> Path:
@@ -115,6 +138,7 @@ def read_cambridge_scene(scene_dir: str | os.PathLike[str], split: str) -> Label
     img_paths: list[str] = []
     poses: list[list[float]] = []
     lines: list[int] = []
+    first_line: dict[str, int] = {}
     for line, text in enumerate(_read_lines(path), start=1):
         tokens = text.split()
         if line <= CAMBRIDGE_HEADER_LINES or not tokens:
@@ -129,6 +153,9 @@ def read_cambridge_scene(scene_dir: str | os.PathLike[str], split: str) -> Label
         pose = _parse_numbers(tokens[1:], path, line)
         if np.linalg.norm(pose[3:]) < ZERO_QUATERNION_NORM:
             raise LabelError(path, line, "quaternion (W P Q R) has zero norm")
+        if frame in first_line:
+            raise LabelError(path, line, f"image {frame} repeats line {first_line[frame]}")
+        first_line[frame] = line
         seqs.append(Path(frame).parts[0] if len(Path(frame).parts) > 1 else "")
         img_paths.append(f"{scene}/{frame}")
         poses.append(pose)
@@ -151,6 +178,9 @@ def _read_pose_matrix(path: Path) -> np.ndarray:
         if len(tokens) != 4:
             raise LabelError(path, line, f"expected 4 numbers, got {len(tokens)}")
         matrix.append(_parse_numbers(tokens, path, line))
+    problem = rigid_problem(np.asarray(matrix, dtype=np.float64))
+    if problem is not None:
+        raise LabelError(path, None, problem)
     return np.asarray(matrix, dtype=np.float64)
 
 
@@ -170,8 +200,8 @@ def read_seven_scenes_scene(scene_dir: str | os.PathLike[str], split: str) -> La
     split_path = _split_file(scene_dir, split, SEVEN_SCENES_SPLIT_FILES)
     seqs: list[str] = []
     img_paths: list[str] = []
-    pose_files: list[Path] = []
     matrices: list[np.ndarray] = []
+    listed: dict[str, int] = {}
     for line, text in enumerate(_read_lines(split_path), start=1):
         name = text.strip()
         if not name:
@@ -180,6 +210,9 @@ def read_seven_scenes_scene(scene_dir: str | os.PathLike[str], split: str) -> La
         if match is None:
             raise LabelError(split_path, line, f"expected 'sequenceN', got {name!r}")
         seq = f"seq-{int(match.group(1)):02d}"
+        if seq in listed:
+            raise LabelError(split_path, line, f"{name} repeats line {listed[seq]}")
+        listed[seq] = line
         seq_dir = scene_dir / seq
         if not seq_dir.is_dir():
             raise LabelError(split_path, line, f"sequence folder not found: {seq_dir}")
@@ -190,17 +223,10 @@ def read_seven_scenes_scene(scene_dir: str | os.PathLike[str], split: str) -> La
             stem = pose_file.name.removesuffix(".pose.txt")
             seqs.append(seq)
             img_paths.append(f"{scene}/{seq}/{stem}.color.png")
-            pose_files.append(pose_file)
             matrices.append(_read_pose_matrix(pose_file))
     if not matrices:
         raise LabelError(split_path, None, "no sequences listed")
     stacked = np.stack(matrices)
-    determinants = np.linalg.det(stacked[:, :3, :3])
-    bad = np.flatnonzero(np.abs(determinants - 1.0) > 0.01)
-    if bad.size:
-        raise LabelError(
-            pose_files[bad[0]], None, f"rotation part has determinant {determinants[bad[0]]:.4g}"
-        )
     quaternions = matrix_to_quaternion(torch.from_numpy(stacked[:, :3, :3])).numpy()
     poses = np.concatenate([stacked[:, :3, 3], quaternions], axis=1)
     return _scene_table(scene, split, seqs, img_paths, poses, split_path)

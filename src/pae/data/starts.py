@@ -5,6 +5,7 @@ to the queries by the longest common path suffix."""
 
 from __future__ import annotations
 
+import warnings
 from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path, PurePath
@@ -14,9 +15,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pae.core.errors import ConfigError, LabelError
+from pae.core.errors import ConfigError, LabelError, RepeatedImageWarning
 from pae.core.geometry import matrix_to_quaternion
 from pae.data.labels import LABEL_COLUMNS, read_labels
+from pae.data.raw import rigid_problem
 
 AXES = ("pae", "opengl")
 """The camera axes of a starts file: pae's (x right, y down, z forward) or OpenGL's (x right,
@@ -26,12 +28,13 @@ SHOWN = 5
 
 
 class Starts(NamedTuple):
-    """Poses [N, 7] (camera-to-world, pae's axes) by image name, and their scenes where the
-    file names them (else None)."""
+    """Poses [N, 7] (camera-to-world, pae's axes) by image name, their scenes where the file
+    names them (else None) and the file's line of each."""
 
     names: list[str]
     poses: np.ndarray
     scenes: list[str] | None
+    lines: list[int]
 
 
 def opengl_to_pae(quaternions: np.ndarray) -> np.ndarray:
@@ -52,6 +55,9 @@ def _line_pose(tokens: list[str], path: Path, line: int) -> np.ndarray:
         pose = numbers
     elif len(numbers) == 16:
         matrix = numbers.reshape(4, 4)
+        problem = rigid_problem(matrix)
+        if problem is not None:
+            raise LabelError(path, line, problem)
         rotation = torch.from_numpy(matrix[:3, :3])
         pose = np.concatenate([matrix[:3, 3], matrix_to_quaternion(rotation).numpy()])
     else:
@@ -71,7 +77,8 @@ def _line_pose(tokens: list[str], path: Path, line: int) -> np.ndarray:
 def read_starts(path: str | Path, axes: str = "pae") -> Starts:
     """The starting poses in ``path``: a pae label file (its ``img_path`` and ``scene``
     columns), or result-file lines (``#`` comments and blank lines skipped); ``axes``: the
-    camera axes of the file's orientations (``AXES``)."""
+    camera axes of the file's orientations (``AXES``). A NaN or zero quaternion, a matrix that
+    is not a rigid transform or an image named twice is a LabelError naming the file's line."""
     path = Path(path)
     if axes not in AXES:
         raise ConfigError(f"--init-axes {axes!r}: choose one of {AXES}")
@@ -80,22 +87,31 @@ def read_starts(path: str | Path, axes: str = "pae") -> Starts:
     text = path.read_text()
     first = text.lstrip().split("\n", 1)[0]
     if first.replace(" ", "").startswith(",".join(LABEL_COLUMNS[:4])):
-        table = read_labels(path)
+        with warnings.catch_warnings():  # a repeated image is an error here, not a warning
+            warnings.simplefilter("ignore", RepeatedImageWarning)
+            table = read_labels(path)
         names, poses, scenes = list(table.img_path), table.poses.copy(), list(table.scene)
+        lines = [table.file_line(row) for row in range(len(names))]
     else:
-        names, rows = [], []
+        names, rows, lines = [], [], []
         for line, row_text in enumerate(text.splitlines(), start=1):
             tokens = row_text.split()
             if not tokens or tokens[0].startswith("#"):
                 continue
             names.append(tokens[0])
             rows.append(_line_pose(tokens, path, line))
+            lines.append(line)
         if not rows:
             raise LabelError(path, None, "no poses")
         poses, scenes = np.stack(rows), None
+    first_line: dict[str, int] = {}
+    for name, line in zip(names, lines, strict=True):
+        if name in first_line:
+            raise LabelError(path, line, f"image {name} repeats line {first_line[name]}")
+        first_line[name] = line
     if axes == "opengl":
         poses[:, 3:] = opengl_to_pae(poses[:, 3:])
-    return Starts(names, poses, scenes)
+    return Starts(names, poses, scenes, lines)
 
 
 def _parts(name: str) -> tuple[str, ...]:
@@ -157,7 +173,8 @@ def match_starts(images: Sequence[str], starts: Starts, source: str) -> np.ndarr
     if unused:
         names = [starts.names[row] for row in unused[:SHOWN]]
         raise ConfigError(
-            f"{source}: {len(unused)} starts match no image, e.g. " + ", ".join(names)
+            f"{source}:{starts.lines[unused[0]]}: {len(unused)} starts match no image, e.g. "
+            + ", ".join(names)
         )
     return np.asarray(rows)
 
