@@ -270,6 +270,32 @@ def test_a_resumed_scene_model_run_gives_the_figures_of_an_uninterrupted_one(
     assert figures(resumed) == figures(whole)
 
 
+def test_a_resumed_teacher_and_student_give_the_figures_of_uninterrupted_ones(
+    compose_train, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Data order (scenes balanced), augmentation and dropout come from (seed, epoch, batch):
+    a teacher and a student stopped after their first epoch and resumed report every test/
+    figure of runs that were never stopped."""
+
+    def whole_and_resumed(*overrides: str, name: str) -> tuple[dict, dict]:
+        whole = run(compose_train(*overrides), tmp_path / name / "whole")
+        with monkeypatch.context() as patch:
+            interrupted_at(patch, 1)
+            with pytest.raises(RuntimeError, match="interrupted"):
+                run(compose_train(*overrides), tmp_path / name / "resumed")
+        resumed = run(compose_train(*overrides, "resume=true"), tmp_path / name / "resumed")
+        return tuple(
+            {k: v for k, v in m.items() if k.startswith("test/")} for m in (whole, resumed)
+        )
+
+    whole, resumed = whole_and_resumed("teacher.model.dropout=0.3", name="teacher")
+    assert "test/teacher/pos_median_m" in whole and resumed == whole
+    teacher_ckpt = tmp_path / "teacher" / "whole" / "checkpoints" / "last.ckpt"
+    student = ("stage=student", f"teacher_ckpt={teacher_ckpt}", "refine=none")
+    whole, resumed = whole_and_resumed(*student, name="student")
+    assert "test/student/pos_median_m" in whole and resumed == whole
+
+
 def test_resume_without_a_complete_checkpoint_says_so_and_clears_unfinished_files(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -31,3 +31,11 @@ def seeded_global(seed: int, device: torch.device) -> Iterator[None]:
     with torch.random.fork_rng(devices=devices):
         torch.manual_seed(seed)
         yield
+
+
+def seed_global_for_batch(seed: int, step: str, epoch: int, batch: int, rank: int = 0) -> None:
+    """Seed torch's global generators (the CPU's and every GPU's) for batch ``batch`` of
+    training epoch ``epoch`` of ``step`` on process ``rank`` (``batch`` -1: the epoch's start,
+    when its data order is drawn): what the batch then draws from them (augmentation,
+    dropout) depends on (``seed``, step, rank, epoch, batch) alone."""
+    torch.manual_seed(derived_seed(seed, f"{step}/rank{rank}/epoch{epoch}", batch))

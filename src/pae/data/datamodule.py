@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import sys
 from collections.abc import Callable, Iterable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -13,7 +14,7 @@ import numpy as np
 import torch
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 from torch import Tensor
-from torch.utils.data import DataLoader, WeightedRandomSampler
+from torch.utils.data import DataLoader
 
 from pae.core.camera import Intrinsics, resized_size
 from pae.core.errors import ConfigError, LabelError
@@ -22,6 +23,7 @@ from pae.data.dataset import PoseDataset, collate_batch
 from pae.data.fingerprint import images_blake2b, sampled_images_sha256
 from pae.data.holdout import HeldOut, held_out_rows, scenes_short_of_sequences
 from pae.data.labels import LabelTable, focal_column_mismatch, focal_problems, read_labels
+from pae.data.order import EpochOrder, trainer_epoch
 from pae.data.transforms import ImageTransform, image_size
 
 
@@ -40,7 +42,8 @@ class PoseDataModule(L.LightningDataModule):
     `crop_turns_camera` the random crop is the view of the camera turned towards the crop's
     centre instead (the homography of that pure rotation), its label turned with it: needs
     `camera`, one for every train row.
-    `balance_scenes` samples scenes equally often in multi-scene training.
+    `balance_scenes` samples scenes equally often in multi-scene training; each epoch's order
+    is drawn from (`order_seed`, epoch) alone (the run's `seed`).
     `pose_loss_init` records the initial s_x, s_q of the learned pose loss that suit the
     dataset's error scale (the configs of the pose losses read it). `camera` gives the
     intrinsics of the images as stored (`fx, fy, cx, cy` in px, `width`, `height`; see
@@ -74,8 +77,10 @@ class PoseDataModule(L.LightningDataModule):
         camera: dict[str, float] | None = None,
         val_sequences: HeldOut = 1,
         val_fraction: float | None = 0.1,
+        order_seed: int = 0,
     ) -> None:
         super().__init__()
+        self.order_seed = order_seed
         self.camera = Intrinsics(**camera) if camera else None
         self.crop = crop
         self.root = Path(root)
@@ -318,6 +323,8 @@ class PoseDataModule(L.LightningDataModule):
         }
 
     def _loader(self, dataset: PoseDataset, batch_size: int, **kwargs: Any) -> DataLoader:
+        """A loader of ``dataset`` with its own generator (for its workers' seeds): making one
+        draws nothing from torch's global generators."""
         dataset.load()  # here, once: loader workers get the decoded images
         return DataLoader(
             dataset,
@@ -325,19 +332,24 @@ class PoseDataModule(L.LightningDataModule):
             num_workers=self.num_workers,
             collate_fn=collate_batch,
             persistent_workers=self.num_workers > 0,
+            generator=torch.Generator(),
             **kwargs,
         )
 
     def train_dataloader(self) -> DataLoader:
+        """The train batches: the rows in the order of the epoch under way drawn from
+        (``order_seed``, epoch) alone (:class:`pae.data.order.EpochOrder`; scenes drawn
+        equally often with ``balance_scenes``), the last partial batch dropped."""
         if self.train_batches is not None:
             return self.train_batches(self)
         dataset = self.datasets["train"]
+        weights = None
         if self.balance_scenes and self.n_scenes > 1:
             counts = torch.bincount(dataset.scenes, minlength=self.n_scenes).float()
             weights = (1.0 / counts)[dataset.scenes]
-            sampler = WeightedRandomSampler(weights, num_samples=len(dataset))
-            return self._loader(dataset, self.batch_size, sampler=sampler, drop_last=True)
-        return self._loader(dataset, self.batch_size, shuffle=True, drop_last=True)
+        epoch = partial(trainer_epoch, self)
+        sampler = EpochOrder(len(dataset), self.order_seed, epoch, weights)
+        return self._loader(dataset, self.batch_size, sampler=sampler, drop_last=True)
 
     def val_dataloader(self) -> DataLoader:
         return self._loader(self.datasets["val"], self.eval_batch_size)

@@ -12,6 +12,7 @@ import hashlib
 import json
 import os
 from collections.abc import Callable, Iterable, Iterator
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,7 @@ from torch.utils.data import DataLoader, Dataset
 from pae.core.atomic import atomic_write
 from pae.data.datamodule import PoseDataModule
 from pae.data.dataset import collate_batch
+from pae.data.order import EpochOrder, trainer_epoch
 from pae.models.base import PoseRegressor
 
 
@@ -298,12 +300,14 @@ class TeacherLatentDataModule(L.LightningDataModule):
 
     def train_dataloader(self) -> DataLoader:
         assert self.latents is not None
+        order = EpochOrder(len(self.latents), self.images.order_seed, partial(trainer_epoch, self))
         return DataLoader(
             self.latents,
             batch_size=self.batch_size,
-            shuffle=True,
+            sampler=order,
             drop_last=True,
             collate_fn=collate_batch,
+            generator=torch.Generator(),
         )
 
     def val_dataloader(self) -> DataLoader:

@@ -22,8 +22,9 @@ from pae.scene_model.novel_views import NovelViewSettings
 
 
 def build_data(cfg: DictConfig, **overrides: Any) -> PoseDataModule:
-    """Instantiate and set up the configured data module (renders synthetic data if needed)."""
-    data = instantiate(cfg.data, **overrides)
+    """Instantiate and set up the configured data module (renders synthetic data if needed);
+    its train order is drawn from the run's ``seed``."""
+    data = instantiate(cfg.data, order_seed=cfg.get("seed", 0), **overrides)
     data.setup()
     return data
 

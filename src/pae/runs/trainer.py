@@ -18,6 +18,7 @@ from lightning.pytorch.utilities import rank_zero_info
 from omegaconf import DictConfig, OmegaConf
 
 from pae.callbacks.finite_loss import StopOnNonFiniteLoss
+from pae.callbacks.seeded_batches import SeededBatches
 from pae.core.checkpoints import (
     DATA_FINGERPRINT_KEY,
     AtomicCheckpointIO,
@@ -168,7 +169,8 @@ def fit_and_test(
     group = STEPS[name].group if name in STEPS else name
     lr_setting = f"{group}.optimizer.lr={OmegaConf.select(cfg, f'{group}.optimizer.lr')}"
     finite = StopOnNonFiniteLoss(name, lr_setting)
-    trainer = build_trainer(cfg, step_dir, epochs, [*(callbacks or []), finite], step=name)
+    seeded = SeededBatches(cfg.seed, name)
+    trainer = build_trainer(cfg, step_dir, epochs, [*(callbacks or []), finite, seeded], step=name)
     start = time.perf_counter()
     resume_from = _resume_path(cfg, step_dir, data)
     trainer.fit(module, datamodule=data, ckpt_path=resume_from, weights_only=True)

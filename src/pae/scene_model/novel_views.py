@@ -28,8 +28,8 @@ from pae.core.camera import resized_size, scale_intrinsics
 from pae.core.geometry import canonicalize_quaternion
 from pae.core.pose_sampling import perturb_poses
 from pae.data.datamodule import PoseDataModule
+from pae.data.order import trainer_epoch
 from pae.scene_model.base import SceneModel
-from pae.scene_model.rays import trainer_epoch
 
 CHUNK_ROWS = 1024
 """Cameras compared at a time in the nearest-camera searches (memory: CHUNK_ROWS × N)."""
@@ -426,6 +426,5 @@ class NovelViewLoader:
         pool = NovelViewPool(data, self.scene_model, self.settings, self.appearance_per, self.seed)
         self.pools.append(pool)
         epoch = partial(trainer_epoch, data)
-        return DataLoader(
-            NovelViewBatches(data, pool, self.settings.ratio, self.seed, epoch), batch_size=None
-        )
+        batches = NovelViewBatches(data, pool, self.settings.ratio, self.seed, epoch)
+        return DataLoader(batches, batch_size=None, generator=torch.Generator())

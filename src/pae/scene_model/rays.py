@@ -15,6 +15,7 @@ from pae.core import streams
 from pae.core.camera import directions_through, scale_intrinsics
 from pae.core.geometry import quaternion_to_matrix
 from pae.data.datamodule import PoseDataModule
+from pae.data.order import trainer_epoch
 
 READ_ROWS = 256
 """Train images read (and resized) at a time when the ray store is filled."""
@@ -139,9 +140,3 @@ class RayLoader:
             lambda: trainer_epoch(data),
         )
         return DataLoader(rays, batch_size=None)
-
-
-def trainer_epoch(data: PoseDataModule) -> int:
-    """The training epoch under way in ``data``'s trainer (0 without one)."""
-    trainer = data.trainer
-    return trainer.current_epoch if trainer is not None else 0
