@@ -9,6 +9,8 @@
                         --motion-blur PX] [--overwrite]
     pae-data synth OUT --poses LABELS.csv [LABELS.csv ...] [--size PX --seed S] [--overwrite]
     pae-data convert {cambridge,7scenes} RAW_ROOT OUT_DIR
+    pae-data convert authors-csv LABELS.csv OUT_DIR
+    pae-data convert ace ROOT OUT_DIR [--scene NAME]
     pae-data check LABELS.csv [LABELS.csv ...] ROOT
     pae-data audit-guess --test TEST.csv [...] --train TRAIN.csv [...] [--sigma M --k K --seed S]
 
@@ -23,6 +25,7 @@ import sys
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -39,6 +42,9 @@ from pae.data.labels import (
     write_labels,
 )
 from pae.data.orientation import conjugate
+
+if TYPE_CHECKING:
+    from pae.data.converted import SceneFrames
 
 PROG = "pae-data"
 
@@ -142,6 +148,48 @@ def _convert(args: argparse.Namespace) -> int:
     for name, rows in written.items():
         print(f"  {name:<{width}}  {rows:>7} rows")
     print(f"img_path is relative to {args.raw_root}: use it as data.root")
+    return 0
+
+
+def _convert_ace(args: argparse.Namespace) -> int:
+    from pae.core.atomic import check_writable_dir
+    from pae.data.ace import read_ace_scene
+
+    check_writable_dir(args.out_dir, "OUT_DIR")
+    frames = read_ace_scene(args.root)
+    return _write_converted(frames, args.scene or args.root.resolve().name, args.root, args)
+
+
+def _write_converted(frames: SceneFrames, scene: str, root: Path, args: argparse.Namespace) -> int:
+    """Write a converted scene's label files and print what they hold, its scale and up
+    direction, its camera and the overrides that train on it."""
+    from pae.data.converted import camera_of, camera_override, scene_shape, write_scene
+
+    if scene == "all" or "/" in scene or not scene:
+        raise ValueError(f"--scene {scene!r}: a scene name is not empty, 'all' or a path")
+    camera = camera_of(frames)
+    written = write_scene(args.out_dir, scene, frames)
+    print(f"wrote {len(written)} label files for scene {scene} to {args.out_dir}:")
+    width = max(len(name) for name in written)
+    for name, rows in written.items():
+        print(f"  {name:<{width}}  {rows:>7} rows")
+    for line in scene_shape(frames.poses):
+        print(line)
+    low, high = float(frames.focal.min()), float(frames.focal.max())
+    print(
+        f"camera: {camera.width}x{camera.height} px, principal point ({camera.cx:g}, "
+        f"{camera.cy:g}), focal lengths {low:g} to {high:g} px (each row's own: focal column)"
+    )
+    overrides = [f"data.root={root}", f"'{camera_override(camera)}'"]
+    if args.out_dir.resolve() != (root / "labels").resolve():
+        overrides[1:1] = [
+            f"data.train_labels={args.out_dir / 'all_train.csv'}",
+            f"data.test_labels={args.out_dir / 'all_test.csv'}",
+        ]
+    print(
+        f"img_path is relative to {root}; train on it: pae-train data=converted "
+        + " ".join(overrides)
+    )
     return 0
 
 
@@ -296,20 +344,42 @@ def build_parser() -> argparse.ArgumentParser:
 
     convert = commands.add_parser(
         "convert",
-        help="write label files from a raw Cambridge / 7-Scenes download",
-        description="Write OUT_DIR/<scene>_{train,test}.csv and OUT_DIR/all_{train,test}.csv "
-        "from the scene folders under RAW_ROOT; img_path is relative to RAW_ROOT.",
+        help="write label files from a raw download or an ACE-layout folder",
+        description="Write label files (OUT_DIR/<scene>_{train,test}.csv and "
+        "OUT_DIR/all_{train,test}.csv) from another layout.",
     )
-    convert.add_argument(
-        "dataset",
-        choices=("cambridge", "7scenes", "authors-csv"),
-        help="cambridge: dataset_{train,test}.txt (world-to-camera quaternions, conjugated); "
-        "7scenes: frame-*.pose.txt; authors-csv: RAW_ROOT is one label file whose "
-        "orientations are world-to-camera, written to OUT_DIR camera-to-world",
+    formats = convert.add_subparsers(dest="dataset", required=True, metavar="FORMAT")
+    every_scene = "; every scene folder under RAW_ROOT, img_path relative to it"
+    for name, about, where in (
+        (
+            "cambridge",
+            "dataset_{train,test}.txt (world-to-camera quaternions, conjugated)",
+            every_scene,
+        ),
+        ("7scenes", "TrainSplit.txt / TestSplit.txt with frame-*.pose.txt", every_scene),
+        (
+            "authors-csv",
+            "RAW_ROOT is one label file whose orientations are world-to-camera, written to "
+            "OUT_DIR camera-to-world",
+            "",
+        ),
+    ):
+        raw = formats.add_parser(name, help=about, description=f"{about}{where}.")
+        raw.add_argument("raw_root", type=Path, metavar="RAW_ROOT")
+        raw.add_argument("out_dir", type=Path, metavar="OUT_DIR")
+        raw.set_defaults(run=_convert)
+
+    ace = formats.add_parser(
+        "ace",
+        help="the ACE / DSAC* layout: {train,test}/{rgb,poses,calibration}",
+        description="One scene in the ACE / DSAC* layout: ROOT/{train,test}/rgb/* images, "
+        "poses/*.txt 4x4 camera-to-world matrices, calibration/*.txt focal lengths (px) or "
+        "3x3 matrices; img_path relative to ROOT, each row with its own focal length.",
     )
-    convert.add_argument("raw_root", type=Path, metavar="RAW_ROOT")
-    convert.add_argument("out_dir", type=Path, metavar="OUT_DIR")
-    convert.set_defaults(run=_convert)
+    ace.add_argument("root", type=Path, metavar="ROOT")
+    ace.add_argument("out_dir", type=Path, metavar="OUT_DIR")
+    ace.add_argument("--scene", metavar="NAME", help="the scene's name (default: ROOT's name)")
+    ace.set_defaults(run=_convert_ace)
 
     check = commands.add_parser(
         "check",
