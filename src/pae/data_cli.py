@@ -11,6 +11,8 @@
     pae-data convert {cambridge,7scenes} RAW_ROOT OUT_DIR
     pae-data convert authors-csv LABELS.csv OUT_DIR
     pae-data convert ace ROOT OUT_DIR [--scene NAME]
+    pae-data convert colmap MODEL_DIR IMAGE_DIR OUT_DIR [--split-list FILE | --every K |
+                            --test-folders NAME ...] [--scale S] [--scene NAME]
     pae-data check LABELS.csv [LABELS.csv ...] ROOT
     pae-data audit-guess --test TEST.csv [...] --train TRAIN.csv [...] [--sigma M --k K --seed S]
 
@@ -158,6 +160,27 @@ def _convert_ace(args: argparse.Namespace) -> int:
     check_writable_dir(args.out_dir, "OUT_DIR")
     frames = read_ace_scene(args.root)
     return _write_converted(frames, args.scene or args.root.resolve().name, args.root, args)
+
+
+def _convert_colmap(args: argparse.Namespace) -> int:
+    from pae.core.atomic import check_writable_dir
+    from pae.data.colmap import read_colmap_scene
+
+    check_writable_dir(args.out_dir, "OUT_DIR")
+    frames = read_colmap_scene(
+        args.model_dir,
+        args.image_dir,
+        scale=args.scale,
+        split_list=args.split_list,
+        every=args.every,
+        test_folders=args.test_folders,
+    )
+    print(
+        f"COLMAP's units are arbitrary: positions were multiplied by {args.scale:g} and pae "
+        "reads them as metres (--scale S makes one unit S metres)"
+    )
+    scene = args.scene or args.image_dir.resolve().name
+    return _write_converted(frames, scene, args.image_dir, args)
 
 
 def _write_converted(frames: SceneFrames, scene: str, root: Path, args: argparse.Namespace) -> int:
@@ -344,7 +367,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     convert = commands.add_parser(
         "convert",
-        help="write label files from a raw download or an ACE-layout folder",
+        help="write label files from a raw download, an ACE-layout folder or a COLMAP model",
         description="Write label files (OUT_DIR/<scene>_{train,test}.csv and "
         "OUT_DIR/all_{train,test}.csv) from another layout.",
     )
@@ -380,6 +403,47 @@ def build_parser() -> argparse.ArgumentParser:
     ace.add_argument("out_dir", type=Path, metavar="OUT_DIR")
     ace.add_argument("--scene", metavar="NAME", help="the scene's name (default: ROOT's name)")
     ace.set_defaults(run=_convert_ace)
+
+    colmap = formats.add_parser(
+        "colmap",
+        help="a COLMAP model (cameras, images; text or binary) and its images",
+        description="A COLMAP sparse model (MODEL_DIR: cameras and images, .bin or .txt) of "
+        "the images under IMAGE_DIR: camera-to-world poses, each image's focal length, "
+        "img_path relative to IMAGE_DIR. Pinhole cameras only (a distorted one is refused "
+        "with the colmap image_undistorter command). Test images: those under test/ (the "
+        "rest under train/), or as an option says.",
+    )
+    colmap.add_argument("model_dir", type=Path, metavar="MODEL_DIR")
+    colmap.add_argument("image_dir", type=Path, metavar="IMAGE_DIR")
+    colmap.add_argument("out_dir", type=Path, metavar="OUT_DIR")
+    split = colmap.add_mutually_exclusive_group()
+    split.add_argument(
+        "--split-list",
+        type=Path,
+        metavar="FILE",
+        help="the test images, one name per line as in the model; the rest are train",
+    )
+    split.add_argument(
+        "--every", type=int, metavar="K", help="every K-th image in name order is a test image"
+    )
+    split.add_argument(
+        "--test-folders",
+        nargs="+",
+        metavar="NAME",
+        help="the images under these top folders of IMAGE_DIR (held-out sequences) are test",
+    )
+    colmap.add_argument(
+        "--scale",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="multiply positions by S: COLMAP's units are arbitrary and pae reads metres "
+        "(S = a known distance in metres / the same distance in the model; default: 1)",
+    )
+    colmap.add_argument(
+        "--scene", metavar="NAME", help="the scene's name (default: IMAGE_DIR's name)"
+    )
+    colmap.set_defaults(run=_convert_colmap)
 
     check = commands.add_parser(
         "check",
