@@ -78,6 +78,8 @@ def test_stage_table_lists_each_stage_s_steps() -> None:
 COMMANDS = [
     "pae-data convert 7scenes /data/7Scenes /data/7Scenes/labels",
     "pae-data convert cambridge /data/CambridgeLandmarks /data/CambridgeLandmarks/labels",
+    "pae-data convert colmap scene/undistorted/sparse scene/undistorted/images "
+    "scene/undistorted/images/labels --scale 0.37",
 ]
 OVERRIDES = {
     "seven_scenes_default": (
@@ -108,6 +110,18 @@ OVERRIDES = {
         {
             "stage.steps": ["scene_model"],
             "scene_model.model._target_": ("pae.scene_model.voxel_grid.VoxelGridSceneModel"),
+        },
+    ),
+    "own_scene_teacher": (
+        "stage=teacher data=converted data.root=scene/undistorted/images "
+        "'data.camera={fx: 1210.4, fy: 1210.4, cx: 960, cy: 540, width: 1920, height: 1080}' "
+        "backbone=efficientnet_b0 backbone.pretrained=true trainer=gpu "
+        "hydra.run.dir=outputs/scene/teacher",
+        {
+            "data.train_labels": "scene/undistorted/images/labels/all_train.csv",
+            "data.camera.fx": 1210.4,
+            "data.scenes": None,
+            "stage.steps": ["teacher"],
         },
     ),
     "all_scenes": (
