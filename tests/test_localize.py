@@ -366,3 +366,34 @@ def test_a_bad_starts_file_is_one_line_before_any_work(
     message = f"{starts}:{len(rows)}: image {table.img_path[0]} repeats line 1"
     assert errors == [f"pae-localize: error: {message}"], err
     assert "pae-localize: render_compare" not in err and not out.exists()
+
+
+def test_each_output_format_round_trips_the_same_poses(
+    finished_run: Path, tiny_root: Path, tmp_path: Path
+) -> None:
+    """--format lines is read back by --init's reader and --format ace holds each image's
+    4x4 matrix: both give the poses of the label file written by --format csv."""
+    import numpy as np
+
+    from pae.core.geometry import quaternion_to_matrix
+    from pae.data.pose_files import LINES_HEADER, ace_pose_name
+    from pae.data.starts import read_starts
+
+    labels = tiny_root / "labels" / "all_test.csv"
+    written = {}
+    for form, out in (("csv", "poses.csv"), ("lines", "poses.txt"), ("ace", "ace")):
+        written[form] = tmp_path / out
+        argv = [str(finished_run), str(labels), "--out", str(tmp_path / out), "--format", form]
+        assert main(argv) == 0
+    table = read_labels(written["csv"])
+    assert written["lines"].read_text().startswith(LINES_HEADER)
+    lines = read_starts(written["lines"])
+    assert lines.names == table.img_path
+    np.testing.assert_allclose(lines.poses, table.poses, atol=1e-12)
+    rotations = quaternion_to_matrix(torch.from_numpy(table.poses[:, 3:])).numpy()
+    for row, image in enumerate(table.img_path):
+        matrix = np.loadtxt(written["ace"] / "poses" / ace_pose_name(image))
+        np.testing.assert_allclose(matrix[:3, :3], rotations[row], atol=1e-12)
+        np.testing.assert_allclose(matrix[:3, 3], table.poses[row, :3], atol=1e-12)
+        assert matrix[3].tolist() == [0.0, 0.0, 0.0, 1.0]
+    assert len(list((written["ace"] / "poses").iterdir())) == len(table.img_path)

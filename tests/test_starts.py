@@ -135,3 +135,22 @@ def test_a_start_for_no_query_names_its_line(tmp_path: Path) -> None:
     message = rf"^{path}:3: 1 starts match no image, e\.g\. seq-01/b\.png$"
     with pytest.raises(ConfigError, match=message):
         match_starts(["/q/seq-01/a.png"], read_starts(path), str(path))
+
+
+def test_pose_files_name_ace_poses_as_the_layout_does_and_refuse_what_they_cannot_hold(
+    tmp_path: Path,
+) -> None:
+    from pae.data.labels import LabelTable
+    from pae.data.pose_files import ace_pose_name, write_poses
+
+    assert ace_pose_name("seq-01/frame-000000.color.png") == "seq-01-frame-000000.pose.txt"
+    poses = np.tile([0.0, 0, 0, 1, 0, 0, 0], (2, 1))
+
+    def table(paths: list[str]) -> LabelTable:
+        return LabelTable(["s"] * 2, ["test"] * 2, ["q"] * 2, paths, poses)
+
+    with pytest.raises(ConfigError, match="holds whitespace"):
+        write_poses(tmp_path / "out.txt", table(["a b.png", "c.png"]), "lines")
+    with pytest.raises(ConfigError, match=r"would both write poses/x-f\.pose\.txt"):
+        write_poses(tmp_path / "ace", table(["x/f.png", "x/f.jpg"]), "ace")
+    assert not (tmp_path / "out.txt").exists() and not (tmp_path / "ace").exists()

@@ -30,7 +30,19 @@ def parser() -> argparse.ArgumentParser:
     )
     parse.add_argument("run_dir", type=Path, help="a finished run directory (e.g. outputs/demo)")
     parse.add_argument("inputs", nargs="+", help="image files, folders or label files")
-    parse.add_argument("--out", type=Path, required=True, help="the label file to write")
+    parse.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="the file to write (--format ace: the folder that gets poses/)",
+    )
+    parse.add_argument(
+        "--format",
+        default="csv",
+        choices=("csv", "lines", "ace"),
+        help="csv: a pae label file; lines: 'NAME x y z qw qx qy qz' per image; ace: "
+        "OUT/poses/<name>.pose.txt, a 4x4 matrix per image (all camera-to-world, pae's axes)",
+    )
     parse.add_argument("--refine", default="teacher", help="the method (default: teacher)")
     parse.add_argument("--root", type=Path, help="dataset root of a label file's img_path")
     parse.add_argument("--focal", type=float, help="focal length (px) of the images on disk")
@@ -80,13 +92,17 @@ def localize(args: argparse.Namespace) -> None:
     import torch
 
     from pae.apps import localization as loc
-    from pae.core.atomic import check_writable_file
+    from pae.core.atomic import check_writable_dir, check_writable_file
     from pae.core.checkpoints import load_teacher
     from pae.core.console import Progress
     from pae.core.errors import ConfigError
-    from pae.data.labels import write_labels
+    from pae.data.pose_files import write_poses
 
-    check_writable_file(args.out, "--out")  # before any work: a finished run is never lost
+    # before any work: a finished run is never lost to its output
+    if args.format == "ace":
+        check_writable_dir(args.out, "--out")
+    else:
+        check_writable_file(args.out, "--out")
     run = loc.read_run(args.run_dir)
     methods = loc.methods_of(run)
     method = args.refine
@@ -153,10 +169,10 @@ def localize(args: argparse.Namespace) -> None:
     else:
         poses = loc.student_poses(run, method, teacher.model.cpu(), found)
     table = loc.output_table(queries, poses, found.scene, teacher.scene_names)
-    write_labels(args.out, table)
+    write_poses(args.out, table, args.format)
     if queries.labelled:
         print(loc.summary_line(method, poses, queries, teacher.scene_names))
-    print(f"poses: {args.out} ({len(table)} images, {method})")
+    print(f"poses: {args.out} ({len(table)} images, {method}, {args.format})")
 
 
 if __name__ == "__main__":
