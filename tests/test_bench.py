@@ -216,3 +216,15 @@ def test_bench_fingerprint_measures_both_hashes_on_the_same_images(tiny_root: Pa
     assert figures[f"{PREFIX}/mb"] == size / 1e6
     ratio = figures[f"{PREFIX}/full_ms"] / figures[f"{PREFIX}/sampled_ms"]
     assert figures[f"{PREFIX}/full_over_sampled"] == pytest.approx(ratio)
+
+
+def test_bench_fingerprint_at_seven_scenes_size_scales_the_per_image_cost(tmp_path: Path) -> None:
+    from pae.bench.fingerprint import SEVEN_SCENES_IMAGES, bench_fingerprint_seven_scenes_size
+
+    figures = bench_fingerprint_seven_scenes_size(tmp_path, count=4)
+    prefix = "bench/fingerprint_7scenes_size"
+    assert figures[f"{prefix}/images"] == 4
+    assert figures[f"{prefix}/mb"] > 4 * 0.3  # photograph-like PNGs, not flat ones
+    per_image_s = figures[f"{prefix}/full_ms"] / 4 / 1000
+    expected = per_image_s * SEVEN_SCENES_IMAGES
+    assert figures[f"{prefix}/full_s_for_7scenes"] == pytest.approx(expected)

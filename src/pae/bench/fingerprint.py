@@ -1,6 +1,7 @@
 """What the train images' fingerprint costs (``pae.data.fingerprint``), side by side in one run:
 every byte of each image hashed (BLAKE2b, what checkpoints record) against 4 KiB from the
-middle of each file (SHA-256, what older checkpoints recorded), on the demo's train images."""
+middle of each file (SHA-256, what older checkpoints recorded), on the demo's train images and
+on images of 7-Scenes' size (640x480 PNG), whose per-image cost gives 7-Scenes' 43,000."""
 
 from __future__ import annotations
 
@@ -8,15 +9,19 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import cv2
+import numpy as np
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from pae import CONFIG_DIR
 from pae.data.fingerprint import images_blake2b, sampled_images_sha256
-from pae.data.labels import LabelTable, read_labels
+from pae.data.labels import LabelTable, read_labels, write_labels
 from pae.synthetic import write_synthetic_dataset
 
 PREFIX = "bench/fingerprint"
+SEVEN_SCENES_IMAGES = 43_000
+"""7-Scenes' train and test images (26,000 + 17,000 colour frames of 640x480)."""
 
 
 def demo_train_root(spare: Path) -> Path:
@@ -62,3 +67,40 @@ def bench_fingerprint(root: Path, repeats: int = 5) -> dict[str, float]:
         f"{PREFIX}/full_over_sampled": min(full) / min(sampled),
         f"{PREFIX}/full_mb_per_s": total_bytes / 1e6 / (min(full) / 1000),
     }
+
+
+def seven_scenes_sized_root(folder: Path, count: int, seed: int = 0) -> Path:
+    """``count`` 640x480 PNG images with a photograph's entropy (smooth shading, texture and
+    sensor noise; about 7-Scenes' frame size on disk) and their labels/all_train.csv, written
+    into ``folder``."""
+    generator = np.random.default_rng(seed)
+    v, u = np.mgrid[0:480, 0:640].astype(np.float32)
+    paths = []
+    for index in range(count):
+        phase = generator.uniform(0, 2 * np.pi, 3).astype(np.float32)
+        shading = 110 + 60 * np.sin(u / 97 + phase[:, None, None]) * np.cos(v / 71 + phase[0])
+        texture = generator.normal(0, 18, (3, 480, 640)).astype(np.float32)
+        image = np.clip(shading + texture, 0, 255).astype(np.uint8).transpose(1, 2, 0)
+        relative = f"seq-01/frame-{index:06d}.color.png"
+        (folder / "seq-01").mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(folder / relative), image)
+        paths.append(relative)
+    poses = np.zeros((count, 7))
+    poses[:, 3] = 1.0
+    table = LabelTable(["sized"] * count, ["train"] * count, ["seq-01"] * count, paths, poses)
+    write_labels(folder / "labels" / "all_train.csv", table)
+    return folder
+
+
+def bench_fingerprint_seven_scenes_size(folder: Path, count: int = 200) -> dict[str, float]:
+    """:func:`bench_fingerprint` on ``count`` images of 7-Scenes' size written into
+    ``folder`` (:func:`seven_scenes_sized_root`), under ``bench/fingerprint_7scenes_size``,
+    with ``full_s_for_7scenes`` and ``sampled_s_for_7scenes``: the per-image cost times
+    7-Scenes' ``SEVEN_SCENES_IMAGES`` (s)."""
+    figures = bench_fingerprint(seven_scenes_sized_root(folder, count), repeats=3)
+    prefix = f"{PREFIX}_7scenes_size"
+    sized = {key.replace(PREFIX, prefix): value for key, value in figures.items()}
+    per_image = SEVEN_SCENES_IMAGES / count / 1000
+    sized[f"{prefix}/full_s_for_7scenes"] = figures[f"{PREFIX}/full_ms"] * per_image
+    sized[f"{prefix}/sampled_s_for_7scenes"] = figures[f"{PREFIX}/sampled_ms"] * per_image
+    return sized
