@@ -34,6 +34,7 @@ import numpy as np
 from pae.core.console import Progress
 from pae.core.errors import LabelError, LabelWarning, OrientationWarning
 from pae.core.quaternion_sign import canonical_sign
+from pae.core.threads import configure_threads
 from pae.data.label_images import find_image_problems
 from pae.data.labels import (
     FOCAL_COLUMN,
@@ -477,6 +478,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run ``pae-data``; returns the exit status (argparse usage errors exit with 2)."""
     args = build_parser().parse_args(argv)
     try:
+        budget = configure_threads(load_libraries=False)
+        if args.run is _synth:  # the command whose work runs on those threads: the renderer
+            print(budget.summary(), file=sys.stderr)
         return args.run(args)
     except (LabelError, OSError, ValueError) as error:
         message = " ".join(str(error).split()) or type(error).__name__

@@ -34,8 +34,10 @@ def main(cfg: DictConfig) -> float | None:
         from pae.apps.checkpoint_evaluation import evaluate_checkpoints, evaluate_methods
         from pae.core.checkpoints import check_checkpoint_kinds
         from pae.core.console import say
+        from pae.core.threads import configure_threads
         from pae.runs.inputs import other_data_record, record_dataset
 
+        say(configure_threads().summary())
         apply_renamed_keys(cfg, "pae-eval")
         validate_eval_config(cfg)
         check_checkpoint_kinds(

@@ -80,9 +80,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     from pae.core.console import quiet_third_party
     from pae.core.error_reporting import reporting_errors
+    from pae.core.threads import configure_threads
 
     quiet_third_party()
     with reporting_errors("pae-localize"):
+        print(configure_threads().summary(), file=sys.stderr)
         localize(args)
     return 0
 

@@ -34,9 +34,11 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, float | int | str]:
     from lightning.pytorch.utilities import rank_zero_only
 
     from pae.core.console import duration, quiet_third_party, say
+    from pae.core.threads import configure_threads
     from pae.runs.inputs import other_data_record, record_dataset
 
     quiet_third_party()
+    say(configure_threads().summary())
     apply_renamed_keys(cfg, "pae-train")
     overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
     validate_train_config(cfg, overrides)

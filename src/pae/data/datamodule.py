@@ -19,6 +19,7 @@ from torch.utils.data import DataLoader
 from pae.core.camera import Intrinsics, resized_size
 from pae.core.errors import ConfigError, LabelError
 from pae.core.run_context import current_run
+from pae.core.threads import loader_workers
 from pae.data.dataset import PoseDataset, collate_batch
 from pae.data.fingerprint import images_blake2b, sampled_images_sha256
 from pae.data.holdout import HeldOut, held_out_rows, scenes_short_of_sequences
@@ -324,14 +325,16 @@ class PoseDataModule(L.LightningDataModule):
 
     def _loader(self, dataset: PoseDataset, batch_size: int, **kwargs: Any) -> DataLoader:
         """A loader of ``dataset`` with its own generator (for its workers' seeds): making one
-        draws nothing from torch's global generators."""
+        draws nothing from torch's global generators; ``num_workers`` workers, at most the
+        threads pae uses (pae.core.threads)."""
         dataset.load()  # here, once: loader workers get the decoded images
+        workers = loader_workers(self.num_workers)
         return DataLoader(
             dataset,
             batch_size=batch_size,
-            num_workers=self.num_workers,
+            num_workers=workers,
             collate_fn=collate_batch,
-            persistent_workers=self.num_workers > 0,
+            persistent_workers=workers > 0,
             generator=torch.Generator(),
             **kwargs,
         )
