@@ -444,6 +444,8 @@ def test_synth_passes_arguments_and_prints_summary(
     nuisances += ["--sensor-noise", "0.02", "--motion-blur", "3"]
     b = ["synth", str(tmp_path / "b"), "--test-offset", "0", "--train-lane", "0.5", *nuisances]
     b += ["--val-lane", "-0.25", "--val-walks", "2"]
+    b += ["--plain-surfaces", "0.3", "--repeated-surfaces", "0.2", "--glossy-surfaces", "0.4"]
+    b += ["--camera-pipeline", "1", "--jpeg-quality", "75", "--render-scale", "4"]
     assert main(b) == 0
     written = capsys.readouterr()
     assert written.out == "synthetic summary\n" * 2
@@ -467,6 +469,12 @@ def test_synth_passes_arguments_and_prints_summary(
                 occluder_fraction=0.0,
                 sensor_noise_std=0.0,
                 motion_blur_px=0.0,
+                plain_surface_share=0.0,
+                repeated_surface_share=0.0,
+                glossy_surface_share=0.0,
+                camera_pipeline=0.0,
+                jpeg_quality=0,
+                render_scale=1,
                 overwrite=False,
             ),
         ),
@@ -488,6 +496,12 @@ def test_synth_passes_arguments_and_prints_summary(
                 occluder_fraction=0.3,
                 sensor_noise_std=0.02,
                 motion_blur_px=3.0,
+                plain_surface_share=0.3,
+                repeated_surface_share=0.2,
+                glossy_surface_share=0.4,
+                camera_pipeline=1.0,
+                jpeg_quality=75,
+                render_scale=4,
                 overwrite=False,
             ),
         ),
@@ -496,6 +510,8 @@ def test_synth_passes_arguments_and_prints_summary(
     assert "--poses renders the given rows only: drop --scenes" in capsys.readouterr().err
     assert main(["synth", str(tmp_path / "c"), "--poses", "x.csv", "--motion-blur", "2"]) == 1
     assert "--poses renders the given rows only: drop --motion-blur" in capsys.readouterr().err
+    assert main(["synth", str(tmp_path / "c"), "--poses", "x.csv", "--render-scale", "2"]) == 1
+    assert "--poses renders the given rows only: drop --render-scale" in capsys.readouterr().err
 
 
 def test_convert_into_a_file_is_one_line_before_any_work(tmp_path: Path, capsys) -> None:

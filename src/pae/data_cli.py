@@ -6,7 +6,9 @@
                         --train-lane M --val-lane M --yaw-stray RAD --stray M --size PX
                         --seed S]
                        [--lighting-change S --occluder-fraction F --sensor-noise STD
-                        --motion-blur PX] [--overwrite]
+                        --motion-blur PX]
+                       [--plain-surfaces F --repeated-surfaces F --glossy-surfaces F
+                        --camera-pipeline S --jpeg-quality Q --render-scale K] [--overwrite]
     pae-data synth OUT --poses LABELS.csv [LABELS.csv ...] [--size PX --seed S] [--overwrite]
     pae-data convert {cambridge,7scenes} RAW_ROOT OUT_DIR
     pae-data convert authors-csv LABELS.csv OUT_DIR
@@ -80,6 +82,12 @@ def _synth(args: argparse.Namespace) -> int:
                 ("--occluder-fraction", args.occluder_fraction),
                 ("--sensor-noise", args.sensor_noise),
                 ("--motion-blur", args.motion_blur),
+                ("--plain-surfaces", args.plain_surfaces),
+                ("--repeated-surfaces", args.repeated_surfaces),
+                ("--glossy-surfaces", args.glossy_surfaces),
+                ("--camera-pipeline", args.camera_pipeline),
+                ("--jpeg-quality", args.jpeg_quality),
+                ("--render-scale", args.render_scale),
             )
             if value is not None
         ]
@@ -113,6 +121,12 @@ def _synth(args: argparse.Namespace) -> int:
             occluder_fraction=chosen(args.occluder_fraction, 0.0),
             sensor_noise_std=chosen(args.sensor_noise, 0.0),
             motion_blur_px=chosen(args.motion_blur, 0.0),
+            plain_surface_share=chosen(args.plain_surfaces, 0.0),
+            repeated_surface_share=chosen(args.repeated_surfaces, 0.0),
+            glossy_surface_share=chosen(args.glossy_surfaces, 0.0),
+            camera_pipeline=chosen(args.camera_pipeline, 0.0),
+            jpeg_quality=chosen(args.jpeg_quality, 0),
+            render_scale=chosen(args.render_scale, 1),
             overwrite=args.overwrite,
             progress=_render_progress(args.out),
         )
@@ -348,6 +362,48 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         metavar="PX",
         help="longest motion blur in pixels, each frame's random up to it (default: 0, off)",
+    )
+    synth.add_argument(
+        "--plain-surfaces",
+        type=float,
+        metavar="F",
+        help="share in [0, 1] of the surfaces (walls, floor, ceiling, boxes) plain-painted, "
+        "no texture (default: 0, off)",
+    )
+    synth.add_argument(
+        "--repeated-surfaces",
+        type=float,
+        metavar="F",
+        help="share in [0, 1] of the surfaces covered by stair-, window- or tile-like periodic "
+        "patterns of period 0.15-0.3 m (default: 0, off; with --plain-surfaces at most 1)",
+    )
+    synth.add_argument(
+        "--glossy-surfaces",
+        type=float,
+        metavar="F",
+        help="share in [0, 1] of the surfaces glossy, with highlights that move with the "
+        "camera (default: 0, off)",
+    )
+    synth.add_argument(
+        "--camera-pipeline",
+        type=float,
+        metavar="S",
+        help="strength in [0, 1] of vignetting, gamma, auto-exposure and exposure and white "
+        "balance drifting within each sequence (default: 0, off)",
+    )
+    synth.add_argument(
+        "--jpeg-quality",
+        type=int,
+        metavar="Q",
+        help="compress each image as JPEG at quality Q in [1, 100] and store the decoded "
+        "pixels (default: 0, off)",
+    )
+    synth.add_argument(
+        "--render-scale",
+        type=int,
+        metavar="K",
+        help="render and store images K times the size, K in [1, 8], for the loaders to "
+        "downsample (default: 1)",
     )
     synth.add_argument(
         "--poses",

@@ -44,6 +44,14 @@ SYNTHETIC_NUISANCE_BOUNDS = {
 }
 """Upper bounds of the synthetic nuisances' settings (all >= 0, 0: off), as rendering checks
 (``pae.synthetic.NUISANCE_BOUNDS``)."""
+SYNTHETIC_SURFACE_BOUNDS = {
+    "plain_surface_share": 1.0,
+    "repeated_surface_share": 1.0,
+    "glossy_surface_share": 1.0,
+    "camera_pipeline": 1.0,
+}
+"""Upper bounds of the synthetic surface and camera pipeline settings (all >= 0, 0: off), as
+rendering checks (``pae.synthetic.SURFACE_BOUNDS``, ``CaptureOptions``)."""
 
 RENAMED_KEYS = {"pae_ckpt": "student_ckpt"}
 """Old key -> its new name. The old key is still read for one more release, with a one-line
@@ -188,17 +196,48 @@ def _check_val_walks(cfg: DictConfig) -> None:
         )
 
 
+def _check_capture(cfg: DictConfig) -> None:
+    """data.jpeg_quality: 0 or an integer in [1, 100]; data.render_scale: an integer in
+    [1, 8] (``pae.synthetic.CaptureOptions``)."""
+    data = cfg.data
+    if "jpeg_quality" in data:
+        integer(cfg, "data.jpeg_quality", 0)
+        if data.jpeg_quality > 100:
+            raise ConfigError(
+                f"data.jpeg_quality must be 0 (off) or an integer in [1, 100], "
+                f"got {data.jpeg_quality!r}"
+            )
+    if "render_scale" in data:
+        integer(cfg, "data.render_scale", 1)
+        if data.render_scale > 8:
+            raise ConfigError(
+                f"data.render_scale must be an integer in [1, 8], got {data.render_scale!r}"
+            )
+
+
 def _train_set_size(cfg: DictConfig) -> int:
     """Rows of the train split: from the synthetic data's settings when it renders on first
     use (it may not be rendered yet), otherwise from the train label file (its chosen
     scenes)."""
     data = cfg.data
     if _is_synthetic(cfg):
-        for key, high in {**SYNTHETIC_LAYOUT_BOUNDS, **SYNTHETIC_NUISANCE_BOUNDS}.items():
+        bounds = {
+            **SYNTHETIC_LAYOUT_BOUNDS,
+            **SYNTHETIC_NUISANCE_BOUNDS,
+            **SYNTHETIC_SURFACE_BOUNDS,
+        }
+        for key, high in bounds.items():
             if key in data:
                 number(cfg, f"data.{key}", 0, strict=False)
                 if data[key] > high:
                     raise ConfigError(f"data.{key} must be <= {high:g}, got {data[key]!r}")
+        shares = [data.get(key, 0) for key in ("plain_surface_share", "repeated_surface_share")]
+        if sum(shares) > 1:
+            raise ConfigError(
+                "data.plain_surface_share + data.repeated_surface_share must be <= 1, got "
+                f"{shares[0]:g} + {shares[1]:g}"
+            )
+        _check_capture(cfg)
         val_lane, lane = data.get("val_lane_m"), data.get("train_lane_m", 0.5)
         if val_lane is not None and not (
             (is_int(val_lane) or isinstance(val_lane, float)) and abs(val_lane) <= lane
@@ -214,6 +253,15 @@ def _train_set_size(cfg: DictConfig) -> int:
         if data.get("poses") and on:
             raise ConfigError(
                 f"data.poses renders the given rows without nuisances: set {', '.join(on)} to 0"
+            )
+        dressed = [
+            f"data.{key}" for key in (*SYNTHETIC_SURFACE_BOUNDS, "jpeg_quality") if data.get(key)
+        ]
+        dressed += ["data.render_scale"] * (data.get("render_scale", 1) != 1)
+        if data.get("poses") and dressed:
+            raise ConfigError(
+                f"data.poses renders the given rows with the plain surfaces and capture: "
+                f"set {', '.join(dressed)} off"
             )
     if _renders(cfg):
         integer(cfg, "data.scenes", 1)

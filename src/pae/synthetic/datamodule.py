@@ -30,11 +30,14 @@ def default_root(
     nuisances: synthetic.Nuisances | None = None,
     val_lane_m: float | None = None,
     val_walks: int = 0,
+    surfaces: synthetic.SurfaceOptions | None = None,
+    capture: synthetic.CaptureOptions | None = None,
 ) -> str:
     """The folder a synthetic dataset renders into: named by its settings, or, for
     ``poses``, by a digest of the label files' contents (so edited files render anew).
-    ``nuisances`` that are on add a suffix naming them (``_light1_occl0.3…``), a
-    ``val_lane_m`` one naming it (``_val0``), validation walks their count (``_walks3``);
+    ``nuisances`` that are on add a suffix naming them (``_light1_occl0.3…``), so do
+    ``surfaces`` (``_plain0.3_repeat0.2_gloss0.3``) and ``capture`` (``_pipe1_jpeg75_x4``),
+    a ``val_lane_m`` one naming it (``_val0``), validation walks their count (``_walks3``);
     off, the name is the one without them."""
     if poses:
         digest = hashlib.sha256()
@@ -49,6 +52,8 @@ def default_root(
         f"_seed{render_seed}_offset{test_offset_m:g}_lane{train_lane_m:g}"
         f"_yaw{yaw_stray_rad:g}_stray{stray_m:g}"
         f"{nuisances.folder_suffix() if nuisances is not None else ''}"
+        f"{surfaces.folder_suffix() if surfaces is not None else ''}"
+        f"{capture.folder_suffix() if capture is not None else ''}"
         f"{'' if val_lane_m is None else f'_val{val_lane_m:g}'}"
         f"{f'_walks{val_walks}' if val_walks else ''}"
     )
@@ -70,7 +75,13 @@ class SyntheticDataModule(PoseDataModule):
     within sequences), ``occluder_fraction`` (share of frames with a person-sized box in front
     of the camera), ``sensor_noise_std`` (extra Gaussian noise, std of values in ``[0, 1]``)
     and ``motion_blur_px`` (longest motion blur, px); see
-    :mod:`pae.synthetic.nuisances`. With ``poses``
+    :mod:`pae.synthetic.nuisances`. Surfaces and capture of real data, all off by default:
+    ``plain_surface_share``, ``repeated_surface_share`` and ``glossy_surface_share`` (shares
+    of the surfaces plain-painted, periodic and glossy; :mod:`pae.synthetic.surfaces`),
+    ``camera_pipeline`` (strength in ``[0, 1]`` of vignetting, gamma, auto-exposure and
+    drifting exposure and white balance), ``jpeg_quality`` (0: off) and ``render_scale``
+    (images stored that many times ``size``, downsampled to ``shorter_edge`` by the loaders);
+    :mod:`pae.synthetic.capture`. With ``poses``
     (label files, e.g. a real dataset's train and test labels): one image per row at that
     row's pose, in a world built around them (``pae-data synth --poses``). ``root`` None
     picks a folder under ``data/synthetic`` named by these settings and renders into it when
@@ -101,16 +112,32 @@ class SyntheticDataModule(PoseDataModule):
         motion_blur_px: float = 0.0,
         val_lane_m: float | None = None,
         val_walks: int = 0,
+        plain_surface_share: float = 0.0,
+        repeated_surface_share: float = 0.0,
+        glossy_surface_share: float = 0.0,
+        camera_pipeline: float = 0.0,
+        jpeg_quality: int = 0,
+        render_scale: int = 1,
         **kwargs: Any,
     ) -> None:
         poses = [str(p) for p in poses] if poses else None
         nuisances = synthetic.Nuisances(
             lighting_change, occluder_fraction, sensor_noise_std, motion_blur_px
         )
+        surfaces = synthetic.SurfaceOptions(
+            plain_surface_share, repeated_surface_share, glossy_surface_share
+        )
+        capture = synthetic.CaptureOptions(camera_pipeline, jpeg_quality, render_scale)
         if poses and nuisances.active:
             raise ValueError(
                 "data.poses renders the given rows without nuisances: set lighting_change, "
                 "occluder_fraction, sensor_noise_std and motion_blur_px to 0"
+            )
+        if poses and (surfaces.active or capture.active):
+            raise ValueError(
+                "data.poses renders the given rows with the plain surfaces and capture: set "
+                "the *_surface_share settings, camera_pipeline and jpeg_quality to 0 and "
+                "render_scale to 1"
             )
         if val_walks:
             held = kwargs.get("val_sequences", 1)
@@ -137,12 +164,22 @@ class SyntheticDataModule(PoseDataModule):
                 nuisances,
                 val_lane_m,
                 val_walks,
+                surfaces,
+                capture,
             )
         labels = Path(root) / "labels"
         if kwargs.get("camera") is None:
-            camera = synthetic.PinholeCamera(size)
+            stored = size * render_scale
+            camera = synthetic.PinholeCamera(stored)
             f, c = camera.focal_px, camera.principal_point
-            kwargs["camera"] = {"fx": f, "fy": f, "cx": c, "cy": c, "width": size, "height": size}
+            kwargs["camera"] = {
+                "fx": f,
+                "fy": f,
+                "cx": c,
+                "cy": c,
+                "width": stored,
+                "height": stored,
+            }
         super().__init__(
             root=root,
             train_labels=str(labels / "all_train.csv"),
@@ -166,6 +203,12 @@ class SyntheticDataModule(PoseDataModule):
             "motion_blur_px": motion_blur_px,
             "val_lane_m": val_lane_m,
             "val_walks": val_walks,
+            "plain_surface_share": plain_surface_share,
+            "repeated_surface_share": repeated_surface_share,
+            "glossy_surface_share": glossy_surface_share,
+            "camera_pipeline": camera_pipeline,
+            "jpeg_quality": jpeg_quality,
+            "render_scale": render_scale,
         }
 
     def prepare_data(self) -> None:
@@ -219,9 +262,12 @@ class SyntheticDataModule(PoseDataModule):
             worlds = dict(zip(table.scene_names, scenes_at_poses(table, seed), strict=True))
         else:
             args = self.render_args
+            surfaces = synthetic.SurfaceOptions(*(args[key] for key in synthetic.SURFACE_BOUNDS))
             worlds = {
-                synthetic.scene_name(i): synthetic.make_scene(
-                    i, seed, args["test_offset_m"], args["train_lane_m"]
+                synthetic.scene_name(i): synthetic.dress_surfaces(
+                    synthetic.make_scene(i, seed, args["test_offset_m"], args["train_lane_m"]),
+                    surfaces,
+                    synthetic.surface_seed(seed, i),
                 )
                 for i in range(args["scenes"])
             }

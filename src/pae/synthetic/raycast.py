@@ -1,6 +1,8 @@
 """The synthetic benchmark's exact ray caster: face tables, a point light, 2×2 supersampling,
-each sequence's camera response (``Appearance``) and, optionally, each frame's nuisances
-(``FrameConditions``: exposure, light, an occluder, motion blur)."""
+highlights of glossy faces, each sequence's camera response (``Appearance``: gain, tint,
+gamma, noise and, optionally, vignetting, auto-exposure and JPEG compression) and,
+optionally, each frame's nuisances (``FrameConditions``: exposure, white balance, light, an
+occluder, motion blur)."""
 
 from __future__ import annotations
 
@@ -18,6 +20,10 @@ SUPERSAMPLE = 2
 """Rays per pixel along each image axis (``SUPERSAMPLE²`` rays are averaged per pixel)."""
 RAYS_PER_CHUNK = 1 << 17
 """Rays cast at once: bounds memory (about 100 bytes per ray) and keeps arrays cache-friendly."""
+AUTO_EXPOSURE_TARGET = 0.4
+"""Mean linear level (values in ``[0, 1]``) the auto-exposure brings each frame towards."""
+AUTO_EXPOSURE_RANGE = (0.25, 4.0)
+"""Range of the auto-exposure's factor on a frame's gain."""
 
 
 @dataclass(frozen=True)
@@ -25,7 +31,15 @@ class Appearance:
     """Lighting and camera response of one sequence.
 
     The shaded linear colour ``c`` becomes ``clip(c·tint·gain + bias)^gamma + noise``;
-    ``ambient`` is the share of light not coming from the scene's point light.
+    ``ambient`` is the share of light not coming from the scene's point light. Off by
+    default (0): ``vignetting``, the share of light lost at the image corners (``1 −
+    vignetting·r²``, ``r`` the distance from the image centre, 1 at the corners);
+    ``metering``, the auto-exposure's strength: each frame's gain times ``(target / level)^
+    metering`` (its mean linear level after the sequence's gain and tint and the vignetting,
+    before the frame's own exposure and white balance, which come on top as the
+    auto-exposure's wander; :data:`AUTO_EXPOSURE_TARGET`, within
+    :data:`AUTO_EXPOSURE_RANGE`); ``jpeg_quality`` (1–100), each image compressed as
+    JPEG (OpenCV, 4:2:0 chroma) and decoded again.
     """
 
     gain: float = 1.0
@@ -34,6 +48,9 @@ class Appearance:
     gamma: float = 1.0
     noise_std: float = 0.0
     ambient: float = 0.45
+    vignetting: float = 0.0
+    metering: float = 0.0
+    jpeg_quality: int = 0
 
     @classmethod
     def random(cls, rng: np.random.Generator) -> Appearance:
@@ -55,6 +72,7 @@ class FrameConditions:
     by :func:`pae.synthetic.nuisances.sequence_nuisances`).
 
     - ``exposure`` ``[n]``: factor on the sequence's ``Appearance.gain`` (1: none).
+    - ``white_balance`` ``[n, 3]``: factor on each colour channel (1: none).
     - ``light_position`` ``[n, 3]`` (m): the point light of each frame.
     - ``light_intensity`` ``[n]``: factor on the point light's direct term (1: the scene's).
     - ``occluders``: ``n`` boxes or None: a box standing in front of the camera that is no part
@@ -69,6 +87,7 @@ class FrameConditions:
     occluders: tuple[Box | None, ...]
     blur_px: np.ndarray
     blur_angle: np.ndarray
+    white_balance: np.ndarray
 
     @classmethod
     def plain(cls, scene: SyntheticScene, frames: int) -> FrameConditions:
@@ -80,6 +99,7 @@ class FrameConditions:
             occluders=(None,) * frames,
             blur_px=np.zeros(frames),
             blur_angle=np.zeros(frames),
+            white_balance=np.ones((frames, 3)),
         )
 
     def __len__(self) -> int:
@@ -94,6 +114,7 @@ class FrameConditions:
             self.occluders[frames],
             self.blur_px[frames],
             self.blur_angle[frames],
+            self.white_balance[frames],
         )
 
 
@@ -219,6 +240,50 @@ def _lit_texture(
     return colour * (ambient + (1.0 - ambient) * direct)[..., None]
 
 
+def _highlights(
+    tables: FaceTables,
+    face: np.ndarray,
+    points: Sequence[np.ndarray],
+    directions: Sequence[np.ndarray],
+    lights: Sequence[tuple[np.ndarray | Sequence[np.ndarray], np.ndarray | None]],
+    scale: float,
+) -> np.ndarray:
+    """Blinn–Phong highlights ``[...]`` float32 (white, on linear colour) at surface points
+    (3 arrays ``[...]``, m) on faces ``face`` ``[...]`` seen along ray ``directions`` (3 arrays
+    broadcasting to ``[...]``): per light ``(position, intensity)`` (as in :func:`_lit_texture`)
+    the face's ``specular · (n·h)^shininess`` where it faces the light, with the diffuse
+    term's fall-off; 0 on matte faces."""
+    highlight = np.zeros(face.shape, np.float32)
+    glossy = tables.specular[face] > 0
+    if not glossy.any():
+        return highlight
+    hit_face = face[glossy]
+    point = [np.broadcast_to(c, face.shape)[glossy] for c in points]
+    view = [-np.broadcast_to(c, face.shape)[glossy] for c in directions]
+    view_length = np.sqrt(view[0] ** 2 + view[1] ** 2 + view[2] ** 2)
+    view = [c / view_length for c in view]
+    axis = (hit_face % 6) // 2
+    sign = tables.normal_sign[hit_face]
+    shininess = tables.shininess[hit_face]
+    total = np.zeros(len(hit_face), np.float32)
+    for position, intensity in lights:
+        to_light = [np.broadcast_to(position[k], face.shape)[glossy] - point[k] for k in range(3)]
+        distance_sq = to_light[0] ** 2 + to_light[1] ** 2 + to_light[2] ** 2
+        distance = np.sqrt(distance_sq)
+        half = [to_light[k] / distance + view[k] for k in range(3)]
+        half_length = np.sqrt(half[0] ** 2 + half[1] ** 2 + half[2] ** 2).clip(min=1e-9)
+        facing = np.choose(axis, to_light) * sign > 0
+        cosine = np.maximum(np.choose(axis, half) * sign / half_length, 0.0)
+        lobe = (
+            np.where(facing, cosine**shininess, 0.0) * 2.2 / (1.0 + distance_sq / (6.0 * scale**2))
+        )
+        if intensity is not None:
+            lobe = lobe * np.broadcast_to(intensity, face.shape)[glossy]
+        total += lobe.astype(np.float32)
+    highlight[glossy] = tables.specular[hit_face] * total
+    return highlight
+
+
 def _shade(
     scene: SyntheticScene,
     origins: np.ndarray,
@@ -236,7 +301,12 @@ def _shade(
     x, y, z = (origins[k] + t * directions[k] for k in range(3))
     if light is None:
         light = scene.light_position.astype(np.float32)
-    colour = _lit_texture(scene.face_tables, face, x, y, z, light, intensity, ambient, scene.scale)
+    tables = scene.face_tables
+    colour = _lit_texture(tables, face, x, y, z, light, intensity, ambient, scene.scale)
+    if tables.glossy:
+        lights = [(light, intensity), *((lamp, None) for lamp in scene.lamps)]
+        shine = _highlights(tables, face, (x, y, z), directions, lights, scene.scale)
+        colour += shine[..., None]
     return colour, t
 
 
@@ -301,6 +371,24 @@ def shade_rays(
     return colour[:, 0], t[:, 0]
 
 
+def vignette(size: int, strength: float) -> np.ndarray:
+    """Vignetting factor ``[size, size]`` float32: ``1 − strength·r²``, ``r`` the distance of
+    each pixel centre from the image centre, 1 at the corner pixels' centres."""
+    centre = (size - 1) / 2
+    offset = (np.arange(size) - centre) / max(centre, 0.5)
+    radius_sq = (offset[None, :] ** 2 + offset[:, None] ** 2) / 2
+    return (1.0 - strength * radius_sq).astype(np.float32)
+
+
+def jpeg_roundtrip(image: np.ndarray, quality: int) -> np.ndarray:
+    """RGB image ``[H, W, 3]`` uint8 compressed as JPEG at ``quality`` (1–100) and decoded."""
+    bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    ok, encoded = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise OSError("could not encode an image as JPEG")
+    return cv2.cvtColor(cv2.imdecode(encoded, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+
+
 def render_batch(
     scene: SyntheticScene,
     poses: np.ndarray,
@@ -310,6 +398,7 @@ def render_batch(
     supersample: int = SUPERSAMPLE,
     conditions: FrameConditions | None = None,
     occluded: np.ndarray | None = None,
+    exposed: np.ndarray | None = None,
 ) -> np.ndarray:
     """Images ``[B, H, W, 3]`` uint8 RGB of ``scene`` from camera-to-world ``poses`` ``[B, 7]``.
 
@@ -318,7 +407,8 @@ def render_batch(
     with the scene, its motion blur (applied to the linear colour, before the camera response)
     and its exposure (a factor on the gain); without them the frames share the appearance's
     light. ``occluded`` ``[B]``, when given, receives the share (in ``[0, 1]``) of each image
-    that its occluder covers (0 without ``conditions``).
+    that its occluder covers (0 without ``conditions``); ``exposed`` ``[B]`` each frame's total
+    gain (the appearance's gain × its exposure × its auto-exposure).
     """
     appearance = appearance or Appearance()
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 7)
@@ -331,6 +421,8 @@ def render_batch(
     images = np.empty((len(poses), size, size, 3), dtype=np.uint8)
     shares = np.zeros(len(poses)) if occluded is None else occluded
     shares[:] = 0.0
+    gains = np.zeros(len(poses)) if exposed is None else exposed
+    shading = vignette(size, appearance.vignetting) if appearance.vignetting else None
     tint = np.asarray(appearance.tint, dtype=np.float32) * np.float32(appearance.gain)
     for start in range(0, len(poses), frames_per_chunk):
         stop = min(start + frames_per_chunk, len(poses))
@@ -339,6 +431,7 @@ def render_batch(
         if conditions is None:
             colour, _ = _shade(scene, origins, directions, appearance.ambient)
             gain = tint
+            frame_gain = np.ones(stop - start)
         else:
             frames = conditions[start:stop]
             light = frames.light_position.T[:, :, None].astype(np.float32)
@@ -347,8 +440,10 @@ def render_batch(
             shares[start:stop] = _shade_occluders(
                 scene, origins, directions, appearance.ambient, frames, colour, t
             )
+            frame_gain = frames.exposure.copy()
             exposure = frames.exposure.astype(np.float32)[:, None, None, None]
-            gain = tint * exposure
+            white_balance = frames.white_balance.astype(np.float32)[:, None, None, :]
+            gain = tint * exposure * white_balance
         colour = colour.reshape(stop - start, supersample * supersample, size, size, 3).mean(1)
         if conditions is not None:
             for frame in np.flatnonzero(frames.blur_px > 0):
@@ -356,13 +451,31 @@ def render_batch(
                 colour[frame] = cv2.filter2D(
                     colour[frame], -1, kernel, borderType=cv2.BORDER_REFLECT
                 )
-        colour = np.clip(colour * gain + np.float32(appearance.bias), 0.0, 1.0)
+        if appearance.metering:
+            measured = colour * tint
+            if shading is not None:
+                measured *= shading[:, :, None]
+            level = np.maximum(measured.mean(axis=(1, 2, 3)), 1e-4)
+            metered = np.clip(
+                (AUTO_EXPOSURE_TARGET / level) ** appearance.metering, *AUTO_EXPOSURE_RANGE
+            )
+        colour = colour * gain
+        if shading is not None:
+            colour *= shading[:, :, None]
+        if appearance.metering:
+            colour *= metered.astype(np.float32)[:, None, None, None]
+            frame_gain *= metered
+        gains[start:stop] = appearance.gain * frame_gain
+        colour = np.clip(colour + np.float32(appearance.bias), 0.0, 1.0)
         colour **= np.float32(appearance.gamma)
         if rng is not None and appearance.noise_std > 0:
             colour += np.float32(appearance.noise_std) * rng.standard_normal(
                 colour.shape, dtype=np.float32
             )
         images[start:stop] = np.clip(np.rint(colour * 255.0), 0, 255).astype(np.uint8)
+        if appearance.jpeg_quality:
+            for frame in range(start, stop):
+                images[frame] = jpeg_roundtrip(images[frame], appearance.jpeg_quality)
     return images
 
 

@@ -7,7 +7,7 @@ import colorsys
 import functools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -27,10 +27,14 @@ class FaceTexture:
     """Texture of one face: ``image`` ``[rows, cols, 3]`` float32 linear RGB in ``[0, 1]``.
 
     Row index grows with face coordinate ``b``, column index with ``a`` (see module doc).
+    ``specular`` (0: matte) is the weight of the face's Blinn–Phong highlights, of exponent
+    ``shininess``.
     """
 
     image: np.ndarray
     texel_size: float = TEXEL_SIZE_M
+    specular: float = 0.0
+    shininess: float = 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -140,7 +144,8 @@ class SyntheticScene:
     0.6 m (plus the test sequences' lateral offset) away from; sequences stray from the route
     by at most 0.35 m. ``route`` is None for a world built around given poses.
     ``scale`` is the world's size relative to a room (m per room metre): the point light's
-    fall-off distance grows with it."""
+    fall-off distance grows with it. ``lamps`` ``[L, 3]`` (m): more fixed lights that only
+    glossy faces show, as highlights (their diffuse light is part of the ambient term)."""
 
     name: str
     room: Box
@@ -148,6 +153,7 @@ class SyntheticScene:
     light_position: np.ndarray
     route: CameraRoute | None
     scale: float = 1.0
+    lamps: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     @functools.cached_property
     def face_tables(self) -> FaceTables:
@@ -158,7 +164,8 @@ class SyntheticScene:
 class FaceTables:
     """All face textures flattened into one ``[T, 3]`` array, with per-face lookup arrays
     ``[F]``. Face ``6·k + f`` is face ``f`` of box ``k`` (of a scene: box 0 is the room); its
-    normal, facing the free space, lies along axis ``f // 2`` with sign ``normal_sign``."""
+    normal, facing the free space, lies along axis ``f // 2`` with sign ``normal_sign``;
+    ``specular`` and ``shininess`` are its highlights' weight and exponent (all 0: matte)."""
 
     texels: np.ndarray
     offset: np.ndarray
@@ -168,6 +175,13 @@ class FaceTables:
     origin_a: np.ndarray
     origin_b: np.ndarray
     normal_sign: np.ndarray
+    specular: np.ndarray
+    shininess: np.ndarray
+
+    @property
+    def glossy(self) -> bool:
+        """Whether any face has highlights."""
+        return bool(np.any(self.specular > 0))
 
     @classmethod
     def build(cls, scene: SyntheticScene) -> FaceTables:
@@ -178,7 +192,7 @@ class FaceTables:
     def from_boxes(cls, boxes: Sequence[Box], room_first: bool) -> FaceTables:
         """The tables of ``boxes``, all seen from outside but the first if ``room_first``."""
         images, offset, cols, rows, inv_texel = [], [], [], [], []
-        origin_a, origin_b, normal_sign = [], [], []
+        origin_a, origin_b, normal_sign, specular, shininess = [], [], [], [], []
         start = 0
         for index, box in enumerate(boxes):
             for face, texture in enumerate(box.textures):
@@ -194,6 +208,8 @@ class FaceTables:
                 origin_b.append(box.lo[b_axis])
                 outward = 1.0 if face % 2 else -1.0
                 normal_sign.append(-outward if room_first and index == 0 else outward)
+                specular.append(texture.specular)
+                shininess.append(texture.shininess)
         return cls(
             texels=np.concatenate(images),
             offset=np.asarray(offset, dtype=np.int64),
@@ -203,6 +219,8 @@ class FaceTables:
             origin_a=np.asarray(origin_a, dtype=np.float32),
             origin_b=np.asarray(origin_b, dtype=np.float32),
             normal_sign=np.asarray(normal_sign, dtype=np.float32),
+            specular=np.asarray(specular, dtype=np.float32),
+            shininess=np.asarray(shininess, dtype=np.float32),
         )
 
 

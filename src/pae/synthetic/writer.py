@@ -1,7 +1,8 @@
 """Writing a synthetic dataset: images rendered in batches and written whole (atomically),
 label files in the format of ``pae.data.labels`` (``write_synthetic_dataset``), and, when a
-nuisance is on, ``labels/nuisances.csv`` (``NUISANCE_COLUMNS``): each frame's occluder share,
-blur and exposure, for analysis only (the label files stay as they are)."""
+nuisance or the camera pipeline is on, ``labels/nuisances.csv`` (``NUISANCE_COLUMNS``): each
+frame's occluder share, blur and exposure, for analysis only (the label files stay as they
+are)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ import numpy as np
 
 from pae.data.labels import LabelTable, write_labels
 from pae.synthetic.camera import DEFAULT_SIZE, PinholeCamera
+from pae.synthetic.capture import CaptureOptions, sequence_capture
 from pae.synthetic.nuisances import Nuisances, sequence_nuisances
 from pae.synthetic.raycast import Appearance, FrameConditions, render_batch
 from pae.synthetic.scene import (
@@ -28,9 +30,11 @@ from pae.synthetic.scene import (
     make_scene,
     scene_name,
 )
+from pae.synthetic.surfaces import SurfaceOptions, dress_surfaces
 from pae.synthetic.trajectories import (
     DEFAULT_STRAY_M,
     DEFAULT_YAW_STRAY_RAD,
+    CameraSequence,
     make_sequences,
     walk_frames,
 )
@@ -46,8 +50,8 @@ NUISANCE_FILE = "nuisances.csv"
 """Name of the per-frame nuisance table in ``labels/`` (only written when a nuisance is on)."""
 NUISANCE_COLUMNS = ("img_path", "occluder_share", "blur_px", "exposure_gain")
 """Its columns: the image (as in the label files), the share of the image its occluder covers
-(0–1, 0: none), its motion blur's length (px) and its total gain (the sequence's gain times
-the frame's exposure)."""
+(0–1, 0: none), its motion blur's length (px of the nominal size) and its total gain (the
+sequence's gain times the frame's exposure and auto-exposure)."""
 
 
 @dataclass(frozen=True)
@@ -61,6 +65,7 @@ class SyntheticSummary:
     test_frames: int
     """Test frames over all scenes."""
     size: int
+    """Side (px) of the stored images."""
     seconds: float
     frames_per_second: float
 
@@ -123,10 +128,12 @@ def render_frames(
     appearance: Appearance,
     noise: np.random.Generator,
     conditions: FrameConditions | None = None,
+    exposed: np.ndarray | None = None,
 ) -> np.ndarray:
     """Render ``poses`` ``[n, 7]`` of one sequence (with its frames' nuisances ``conditions``,
     if any) and write them as PNGs at ``out / paths[i]``, ``FRAMES_PER_WRITE`` frames at a
-    time: -> the share ``[n]`` of each image its occluder covers."""
+    time: -> the share ``[n]`` of each image its occluder covers (``exposed`` ``[n]``, when
+    given, receives each frame's total gain)."""
     for folder in sorted({(out / path).parent for path in paths}):
         folder.mkdir(parents=True, exist_ok=True)
     shares = np.zeros(len(poses))
@@ -140,6 +147,7 @@ def render_frames(
             noise,
             conditions=None if conditions is None else conditions[batch],
             occluded=shares[batch],
+            exposed=None if exposed is None else exposed[batch],
         )
         for path, image in zip(paths[batch], images, strict=True):
             _write_png(out / path, image)
@@ -209,6 +217,12 @@ def write_synthetic_dataset(
     motion_blur_px: float = 0.0,
     val_lane_m: float | None = None,
     val_walks: int = 0,
+    plain_surface_share: float = 0.0,
+    repeated_surface_share: float = 0.0,
+    glossy_surface_share: float = 0.0,
+    camera_pipeline: float = 0.0,
+    jpeg_quality: int = 0,
+    render_scale: int = 1,
 ) -> SyntheticSummary:
     """Render the benchmark into ``out`` (see :func:`write_whole`): images first, label files
     last.
@@ -222,9 +236,16 @@ def write_synthetic_dataset(
     sequence with the frames rendered so far. ``lighting_change``, ``occluder_fraction``,
     ``sensor_noise_std`` and ``motion_blur_px`` are the nuisances of train and test frames
     alike (:class:`~pae.synthetic.nuisances.Nuisances`; all 0: none, and no
-    ``labels/nuisances.csv``).
+    ``labels/nuisances.csv``). ``plain_surface_share``, ``repeated_surface_share`` and
+    ``glossy_surface_share`` dress the scenes' surfaces
+    (:class:`~pae.synthetic.surfaces.SurfaceOptions`), ``camera_pipeline``, ``jpeg_quality``
+    and ``render_scale`` capture the frames like a real camera
+    (:class:`~pae.synthetic.capture.CaptureOptions`; images of ``render_scale · size`` px);
+    all off by default.
     """
     nuisances = Nuisances(lighting_change, occluder_fraction, sensor_noise_std, motion_blur_px)
+    surfaces = SurfaceOptions(plain_surface_share, repeated_surface_share, glossy_surface_share)
+    capture = CaptureOptions(camera_pipeline, jpeg_quality, render_scale)
     for name, value, low in (
         ("scenes", scenes, 1),
         ("train_frames", train_frames, 1),
@@ -266,6 +287,8 @@ def write_synthetic_dataset(
             (test_offset_m, train_lane_m, yaw_stray_rad, stray_m, val_lane_m, val_walks),
             progress,
             nuisances,
+            surfaces,
+            capture,
         )
         seconds = time.perf_counter() - started
         return SyntheticSummary(
@@ -273,12 +296,44 @@ def write_synthetic_dataset(
             scenes=[scene_name(i) for i in range(scenes)],
             train_frames=scenes * train_and_walks,
             test_frames=scenes * test_frames,
-            size=size,
+            size=size * render_scale,
             seconds=seconds,
             frames_per_second=scenes * (train_and_walks + test_frames) / seconds,
         )
 
     return write_whole(out, overwrite, render)
+
+
+def surface_seed(seed: int, index: int) -> tuple[int, int, int]:
+    """Seed of scene ``index``'s surface draws (:func:`dress_surfaces`)."""
+    return (seed, index, 4)
+
+
+def sequence_conditions(
+    scene: SyntheticScene,
+    sequence: CameraSequence,
+    camera: PinholeCamera,
+    nuisances: Nuisances,
+    capture: CaptureOptions,
+) -> tuple[Appearance, FrameConditions | None]:
+    """The appearance and frame conditions ``sequence`` of ``scene`` is rendered with, seen
+    by ``camera`` at the nominal size (conditions None: no nuisance and no camera pipeline
+    on): its nuisances, then its capture; blur lengths in pixels of the nominal size
+    (:func:`scaled_blur` scales them to the stored images)."""
+    appearance, conditions = sequence.appearance, None
+    if nuisances.active or capture.camera_pipeline:
+        appearance, conditions = sequence_nuisances(
+            nuisances, scene, sequence.poses, camera, appearance, sequence.nuisance_seed
+        )
+    return sequence_capture(capture, appearance, conditions, sequence.nuisance_seed)
+
+
+def scaled_blur(conditions: FrameConditions | None, render_scale: int) -> FrameConditions | None:
+    """``conditions`` with their blur lengths in pixels of images ``render_scale`` times
+    larger (None: None)."""
+    if conditions is None or render_scale == 1:
+        return conditions
+    return dataclasses.replace(conditions, blur_px=conditions.blur_px * render_scale)
 
 
 def _render(
@@ -291,19 +346,28 @@ def _render(
     layout: tuple[float, float, float, float, float | None, int],
     progress: RenderProgress | None = None,
     nuisances: Nuisances | None = None,
+    surfaces: SurfaceOptions | None = None,
+    capture: CaptureOptions | None = None,
 ) -> None:
     """Render every scene into `out`: images first, label files last. ``layout``: the test
     offset, train lane (m), yaw stray (rad), stray (m), validation lane (m or None) and
     validation walks of :func:`make_sequences`;
-    ``nuisances`` on (not None or all 0): each sequence's, and ``labels/nuisances.csv``."""
+    ``nuisances`` on (not None or all 0): each sequence's, and ``labels/nuisances.csv``
+    (also written with the camera pipeline on); ``surfaces`` and ``capture`` (None: off)
+    dress the scenes and capture the frames."""
     test_offset_m, train_lane_m, yaw_stray_rad, stray_m, val_lane_m, val_walks = layout
     walks = val_walks * walk_frames(train_frames)
     total, done = scenes * (train_frames + walks + test_frames), 0
+    nuisances = nuisances or Nuisances()
+    capture = capture or CaptureOptions()
     camera = PinholeCamera(size)
+    stored = PinholeCamera(size * capture.render_scale)
     label_tables: dict[tuple[str, str], LabelTable] = {}
     nuisance_rows: list[tuple[str, float, float, float]] = []
     for index in range(scenes):
         scene = make_scene(index, seed, test_offset_m, train_lane_m)
+        if surfaces is not None:
+            scene = dress_surfaces(scene, surfaces, surface_seed(seed, index))
         rows: dict[str, list[tuple[str, str, np.ndarray]]] = {"train": [], "test": []}
         sequences = make_sequences(
             index,
@@ -324,20 +388,27 @@ def _render(
                 for frame in range(len(sequence.poses))
             ]
             noise = np.random.default_rng(list(sequence.noise_seed))
-            appearance, conditions = sequence.appearance, None
-            if nuisances is not None and nuisances.active:
-                appearance, conditions = sequence_nuisances(
-                    nuisances, scene, sequence.poses, camera, appearance, sequence.nuisance_seed
-                )
+            appearance, conditions = sequence_conditions(
+                scene, sequence, camera, nuisances, capture
+            )
+            exposed = np.zeros(len(paths))
             shares = render_frames(
-                out, paths, scene, sequence.poses, camera, appearance, noise, conditions
+                out,
+                paths,
+                scene,
+                sequence.poses,
+                stored,
+                appearance,
+                noise,
+                scaled_blur(conditions, capture.render_scale),
+                exposed,
             )
             if conditions is not None:
                 nuisance_rows += zip(
                     paths,
                     shares.tolist(),
                     conditions.blur_px.tolist(),
-                    (appearance.gain * conditions.exposure).tolist(),
+                    exposed.tolist(),
                     strict=True,
                 )
             done += len(paths)
