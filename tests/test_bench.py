@@ -228,3 +228,81 @@ def test_bench_fingerprint_at_seven_scenes_size_scales_the_per_image_cost(tmp_pa
     per_image_s = figures[f"{prefix}/full_ms"] / 4 / 1000
     expected = per_image_s * SEVEN_SCENES_IMAGES
     assert figures[f"{prefix}/full_s_for_7scenes"] == pytest.approx(expected)
+
+
+def test_contention_runs_the_work_alone_then_beside_a_busy_process_it_stops(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import subprocess
+
+    from pae.bench import contention
+
+    started: list[subprocess.Popen] = []
+    popen = subprocess.Popen
+
+    def start(*args, **kwargs) -> subprocess.Popen:
+        started.append(popen(*args, **kwargs))
+        return started[-1]
+
+    monkeypatch.setattr(contention.subprocess, "Popen", start)
+    busy_while_running = []
+    figures = contention.alone_and_beside_busy(
+        lambda: busy_while_running.append([p.poll() is None for p in started]), repeats=2
+    )
+    assert set(figures) == {"alone_s", "busy_s"}
+    # warm-up and first alone run: none; beside: one running; alone again: stopped
+    assert busy_while_running == [[], [], [True], [False], [False, True]]
+    assert all(p.poll() is not None for p in started)
+
+
+def test_contention_compares_pae_wait_with_openmp_default(monkeypatch: pytest.MonkeyPatch) -> None:
+    import json
+    import subprocess
+
+    from pae.bench import contention
+    from pae.core.threads import WAIT_VARIABLES
+
+    monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")
+    sleep, spin = contention.wait_environment("sleep"), contention.wait_environment("spin")
+    assert not set(WAIT_VARIABLES) & sleep.keys()  # pae's own setting in the child
+    assert spin["GOMP_SPINCOUNT"] == "300000" and "OMP_WAIT_POLICY" not in spin
+    seconds = {
+        "300000": {"teacher_epoch": {"alone_s": 2.0, "busy_s": 40.0}},
+        None: {"teacher_epoch": {"alone_s": 2.5, "busy_s": 4.0}},
+    }
+
+    def run(command, env, **kwargs) -> subprocess.CompletedProcess:
+        result = seconds[env.get("GOMP_SPINCOUNT")]
+        result["render_compare"] = {"alone_s": 1.0, "busy_s": 1.5}
+        return subprocess.CompletedProcess(command, 0, "the threads line\n" + json.dumps(result))
+
+    monkeypatch.setattr(contention.subprocess, "run", run)
+    figures = contention.bench_contention(repeats=1)
+    assert figures["bench/contention/teacher_epoch_slowdown"] == pytest.approx(1.6)
+    assert figures["bench/contention/spin/teacher_epoch_slowdown"] == pytest.approx(20.0)
+    assert figures["bench/contention/teacher_epoch_busy_speedup"] == pytest.approx(10.0)
+    assert figures["bench/contention/teacher_epoch_alone_ratio"] == pytest.approx(1.25)
+    assert figures["bench/contention/render_compare_slowdown"] == pytest.approx(1.5)
+
+
+def test_pae_bench_runs_the_contention_bench_only_when_asked(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from pae.bench import cli
+
+    monkeypatch.setattr(cli, "bench_contention", lambda: {"bench/contention/x": 1.0})
+    assert "contention" in cli.BENCHMARKS
+    assert "contention" not in cli.DEFAULT_BENCHMARKS
+    cli.main(["--only", "contention"])
+    printed = capsys.readouterr()
+    assert '"bench/contention/x": 1.0' in printed.out
+    assert printed.err.startswith("threads: ")
+
+
+@pytest.mark.slow
+def test_contention_measures_both_works_in_this_process() -> None:
+    from pae.bench.contention import WORKS, measure
+
+    figures = measure(repeats=1)
+    assert set(figures) == set(WORKS)
+    assert all(f["alone_s"] > 0 and f["busy_s"] > 0 for f in figures.values())

@@ -12,7 +12,9 @@ per query and its compiled paths), render_compare_scale (the scene-model step ru
 test images of 640x480: its peak resident memory, fit and refinement seconds; minutes, so
 only with --only; the --scale-* options shrink it), fingerprint (the train images'
 fingerprint on the demo's train split and on 640x480 PNGs, per image times 7-Scenes' 43,000:
-every byte against the older 4 KiB sample per file).
+every byte against the older 4 KiB sample per file), contention (a teacher epoch and a
+render-and-compare batch alone and beside one busy process, with pae's sleeping threads and
+with OpenMP's spinning ones; minutes, so only with --only).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from pathlib import Path
 import torch
 from torch.utils.data import DataLoader
 
+from pae.bench.contention import bench_contention
 from pae.bench.fingerprint import (
     bench_fingerprint,
     bench_fingerprint_seven_scenes_size,
@@ -44,6 +47,7 @@ from pae.bench.scale import (
     bench_render_compare_scale,
 )
 from pae.core.losses import LearnedPoseLoss
+from pae.core.threads import configure_threads
 from pae.data.datamodule import PoseDataModule
 from pae.lit.student import StudentModule
 from pae.models.backbones import Backbone
@@ -238,11 +242,14 @@ BENCHMARKS = (
     "render_compare",
     "render_compare_scale",
     "fingerprint",
+    "contention",
 )
 """The benchmarks pae-bench runs (``--only`` picks some)."""
-DEFAULT_BENCHMARKS = tuple(name for name in BENCHMARKS if name != "render_compare_scale")
+DEFAULT_BENCHMARKS = tuple(
+    name for name in BENCHMARKS if name not in ("render_compare_scale", "contention")
+)
 """What a plain `pae-bench` (`make bench`) runs: all but the minutes-long
-render_compare_scale."""
+render_compare_scale and contention."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -286,9 +293,10 @@ def main(argv: list[str] | None = None) -> int:
         "--only",
         nargs="+",
         choices=BENCHMARKS,
-        help="run only these benchmarks (default: all but render_compare_scale)",
+        help="run only these benchmarks (default: all but render_compare_scale and contention)",
     )
     args = parser.parse_args(argv)
+    print(configure_threads().summary(), file=sys.stderr)
     torch.manual_seed(0)
     chosen = set(args.only or DEFAULT_BENCHMARKS)
     figures: dict[str, float] = {}
@@ -323,6 +331,8 @@ def main(argv: list[str] | None = None) -> int:
         figures |= bench_methods()
     if "render_compare" in chosen:
         figures |= bench_render_compare(device=args.device)
+    if "contention" in chosen:
+        figures |= bench_contention()
     if "render_compare_scale" in chosen:
         figures |= bench_render_compare_scale(
             args.scale_train,
