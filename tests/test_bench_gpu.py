@@ -1,0 +1,62 @@
+"""The GPU check (experiments/bench/gpu.sh, pae.bench.gpu) on the CPU: its skip without a CUDA
+device, and its check of the torch engine's answers against the compiled engine's."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import pytest
+import torch
+
+from pae.bench import gpu
+from pae.render_compare.gate import RenderCompareResult
+
+SCRIPT = Path(__file__).resolve().parents[1] / "experiments" / "bench" / "gpu.sh"
+
+
+def test_without_cuda_the_module_says_skipped_and_writes_nothing(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert gpu.main(["--out", str(tmp_path / "gpu.json")]) == 0
+    assert capsys.readouterr().out == "no CUDA device: skipped\n"
+    assert not (tmp_path / "gpu.json").exists()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the skip path needs a machine without CUDA")
+def test_the_script_skips_in_one_line_and_exits_0_without_cuda(tmp_path: Path) -> None:
+    result = subprocess.run(
+        [str(SCRIPT), str(tmp_path / "gpu.json")], capture_output=True, text=True
+    )
+    assert (result.returncode, result.stdout) == (0, "no CUDA device: skipped\n")
+    assert not (tmp_path / "gpu.json").exists()
+
+
+@pytest.fixture(scope="module")
+def cpu_answers() -> tuple[RenderCompareResult, RenderCompareResult]:
+    """The compiled engine's and the torch engine's answers on the same queries, both on
+    the CPU (the check's logic; on a GPU the torch engine runs there)."""
+    return gpu.engine_answers(queries=16, device="cpu")
+
+
+def test_the_torch_and_compiled_engines_give_the_same_answers(cpu_answers) -> None:
+    figures = gpu.answers_agree(*cpu_answers)
+    assert figures["bench/gpu/engines/agree"] == 1.0
+    assert figures["bench/gpu/engines/queries"] == 16
+    assert figures["bench/gpu/engines/same_pose_share"] >= gpu.MIN_SAME_SHARE
+    assert figures["bench/gpu/engines/position_median_diff_m"] < 1e-4
+    assert figures["bench/gpu/engines/initial_score_max_diff"] <= gpu.SCORE_ATOL
+
+
+def test_the_check_fails_on_moved_poses_or_other_start_scores(cpu_answers) -> None:
+    compiled, tensor = cpu_answers
+    moved = tensor.poses.clone()
+    moved[:8, 0] += 2 * gpu.SAME_POSE_M  # half the queries a little elsewhere
+    figures = gpu.answers_agree(compiled, tensor._replace(poses=moved))
+    assert figures["bench/gpu/engines/same_pose_share"] <= 0.5
+    assert figures["bench/gpu/engines/agree"] == 0.0
+    shifted = tensor.initial_score + 2 * gpu.SCORE_ATOL
+    assert gpu.answers_agree(compiled, tensor._replace(initial_score=shifted))[
+        "bench/gpu/engines/agree"
+    ] == pytest.approx(0.0)
