@@ -338,6 +338,7 @@ def test_calibrating_for_any_start_never_makes_the_val_starts_worse_on_average()
     """calibrate_any_start on a tiny scene: starts at every scale of the ladder, the steps and
     gate chosen so that the mean log error ratio over those val starts is at most 0."""
     from pae.render_compare import calibrate_any_start
+    from pae.render_compare.calibration import HIGHPASS_PX
 
     model, images, intrinsics, truth, _ = _oracle_queries(12)
     scenes = torch.zeros(len(truth), dtype=torch.long)
@@ -348,7 +349,9 @@ def test_calibrating_for_any_start_never_makes_the_val_starts_worse_on_average()
     before = pose_errors(starts, truth)[0]
     after = pose_errors(refinement.poses, truth)[0]
     assert float(((after + 1e-3) / (before + 1e-3)).log().mean()) <= 1e-6
-    assert set(calibration.steps) == {"position_sigma_m", "orientation_sigma_deg"}
+    chosen = {"position_sigma_m", "orientation_sigma_deg", "highpass_sigma_px", "highpass_levels"}
+    assert set(calibration.steps) == chosen
+    assert calibration.steps["highpass_sigma_px"] in (0.0, HIGHPASS_PX)
     kept = ~refinement.accepted
     torch.testing.assert_close(refinement.poses[kept], starts[kept].to(refinement.poses))
 

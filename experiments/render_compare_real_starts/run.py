@@ -125,7 +125,8 @@ def truth_audit(
     refined from their true poses with the first steps chosen on val (every refinement
     accepted) -> ``OUT/<scene>/truth_audit.json`` (``from_truth_oracle``)."""
     chosen = json.loads((run_dir / f"real_starts_{APRS[0]}.json").read_text())["calibration"]
-    steps = {key: chosen[key] for key in ("position_sigma_m", "orientation_sigma_deg")}
+    keys = ("position_sigma_m", "orientation_sigma_deg", "highpass_sigma_px", "highpass_levels")
+    steps = {key: chosen[key] for key in keys if key in chosen}
     calibration = Calibration(ACCEPT_ALL, ACCEPT_ALL, steps)
     truth = test["pose"]
     refined = refine(

@@ -5,6 +5,7 @@ queries with their true poses."""
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from collections.abc import Mapping
 from typing import Any, NamedTuple
 
@@ -14,6 +15,7 @@ from torch import Tensor
 from pae.core.geometry import pose_errors
 from pae.core.shapes import check_shape
 from pae.render_compare.calibration import (
+    HIGHPASS_PX,
     LADDER,
     LADDER_DEG,
     RATIO_EPS_M,
@@ -190,17 +192,28 @@ def calibrate_any_start(
     """The calibration for starts from any APR, whose error scale the run cannot know: on
     validation queries (as :func:`calibrate`'s) with starts at every scale of the ladder
     (:func:`pae.render_compare.calibration.ladder_starts`, ``size_m``: the scene's size, m),
-    the first steps among ``STEP_SHARES`` of the size and the gate that minimise the mean log
-    of each query's error over its start's (``choose_gate(objective="log_ratio")``), so that a
-    good start is kept rather than refined to the refiner's floor -> the calibration, the
-    validation refinement under it and its starts [N, 7]."""
+    the first steps among ``STEP_SHARES`` of the size, the high-pass among the settings' own
+    and ``HIGHPASS_PX`` at every level or the finest only, and the gate that minimise the
+    mean log of each query's error over its start's (``choose_gate(objective="log_ratio")``),
+    so that a good start is kept rather than refined to the refiner's floor -> the
+    calibration (its ``steps`` holding the chosen steps and high-pass), the validation
+    refinement under it and its starts [N, 7]."""
     _check(images, intrinsics, truth, scenes, None)
     starts = ladder_starts(truth, size_m, torch.Generator().manual_seed(seed))
     start_pos, _ = pose_errors(starts.float(), truth.float())
     deg_per_share = LADDER_DEG[0] / LADDER[0]
+    own = build_refiner(scene_model, settings, None, features)
+    filters = dict.fromkeys(
+        [(own.highpass_sigma_px, own.highpass_levels), (HIGHPASS_PX, 0), (HIGHPASS_PX, 1)]
+    )
     best: tuple[float, Calibration, Refinement] | None = None
-    for share in STEP_SHARES:
-        steps = {"position_sigma_m": share * size_m, "orientation_sigma_deg": share * deg_per_share}
+    for (highpass, levels), share in itertools.product(filters, STEP_SHARES):
+        steps = {
+            "position_sigma_m": share * size_m,
+            "orientation_sigma_deg": share * deg_per_share,
+            "highpass_sigma_px": highpass,
+            "highpass_levels": levels,
+        }
         result = build_refiner(scene_model, settings, steps, features)(
             images, intrinsics, starts, scenes
         )

@@ -23,10 +23,11 @@ these quantiles of the validation queries' score gains and refined scores."""
 @dataclasses.dataclass(frozen=True)
 class Calibration:
     """The gate (``accept_margin``: a ZNCC gain; ``accept_score``: a ZNCC floor), the
-    search's first steps (``steps``: ``position_sigma_m``, ``orientation_sigma_deg``; empty:
-    the refiner's settings) and the score below which a multi-scene query is checked in the
-    other scenes (``scene_check_below``, a ZNCC; ``ACCEPT_ALL``: never), applied to queries
-    without true poses."""
+    search's first steps and any other refiner setting chosen on val (``steps``:
+    ``position_sigma_m``, ``orientation_sigma_deg``, ``highpass_sigma_px``,
+    ``highpass_levels``; empty: the refiner's settings) and the score below which a
+    multi-scene query is checked in the other scenes (``scene_check_below``, a ZNCC;
+    ``ACCEPT_ALL``: never), applied to queries without true poses."""
 
     accept_margin: float = 0.0
     accept_score: float = ACCEPT_ALL
@@ -47,6 +48,12 @@ LADDER_DEG = (0.125, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
 STEP_SHARES = (0.01, 0.02, 0.05, 0.1, 0.2)
 """Candidate first position steps of :func:`pae.render_compare.calibrate_any_start`, as
 shares of the scene's size (orientation steps in proportion: LADDER_DEG / LADDER)."""
+HIGHPASS_PX = 4.0
+"""The high-pass that :func:`pae.render_compare.calibrate_any_start` tries beside the
+settings' own (``highpass_sigma_px``, px at the compare resolution), at every level and at
+the finest only (``highpass_levels`` 0 and 1): it removes what varies slowly across the image
+(shading, a light's hot spot, exposure) that a scene model fitted under other light cannot
+explain, at the cost of the coarse levels' reach where it applies there too."""
 
 
 def scene_size(train_positions: Tensor) -> float:

@@ -89,7 +89,9 @@ class RenderCompareRefiner:
     chain's step factor after a round without improvement). Pyramid: resolution (the finest
     compare width, px), levels (how many, each half the next's width), blur_sigma_px (px of
     each level), highpass_sigma_px (px at ``resolution``: the blur subtracted from the
-    compared images, see :func:`band_pass`; 0: none). References: reference_size,
+    compared images, see :func:`band_pass`; 0: none), highpass_levels (the high-pass at the
+    finest that many levels only, the coarser ones compared whole so that the search keeps
+    its reach; 0: at every level). References: reference_size,
     reference_fov_scale (the start's rendering: width in px, field of view relative to the
     query's), final_reference_size, final_fov_scale (the rendering at the best hypothesis
     before the finest level; size 0: none). Polish: polish_steps (Levenberg–Marquardt steps
@@ -118,6 +120,7 @@ class RenderCompareRefiner:
         levels: int,
         blur_sigma_px: float,
         highpass_sigma_px: float,
+        highpass_levels: int,
         reference_size: int,
         reference_fov_scale: float,
         final_reference_size: int,
@@ -144,6 +147,7 @@ class RenderCompareRefiner:
         self.levels = levels
         self.blur_sigma_px = blur_sigma_px
         self.highpass_sigma_px = highpass_sigma_px
+        self.highpass_levels = highpass_levels
         self.reference_size = reference_size
         self.reference_fov_scale = reference_fov_scale
         self.final_reference_size = final_reference_size
@@ -200,7 +204,9 @@ class RenderCompareRefiner:
         h, w = images.shape[-2:]
         finest = min(self.resolution, w)
         levels = []
-        for width in pyramid_widths(self.resolution, self.levels, w):
+        widths = pyramid_widths(self.resolution, self.levels, w)
+        whole = len(widths) - self.highpass_levels if self.highpass_levels else 0
+        for index, width in enumerate(widths):
             height = max(4, round(h * width / w))
             small = F.interpolate(images, size=(height, width), mode="area")
             scaled = scale_intrinsics(intrinsics, width / w, height / h)
@@ -212,7 +218,8 @@ class RenderCompareRefiner:
                     Level(maps, scale_intrinsics(scaled, fw / width, fh / height), scenes, (0, 0))
                 )
                 continue
-            sigmas = (self.blur_sigma_px, self.highpass_sigma_px * width / finest)
+            highpass = 0.0 if index < whole else self.highpass_sigma_px * width / finest
+            sigmas = (self.blur_sigma_px, highpass)
             target = band_pass(grey(small), *sigmas)
             levels.append(Level(target, scaled, scenes, sigmas))
         return levels

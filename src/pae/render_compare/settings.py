@@ -33,6 +33,7 @@ class RenderCompareSettings:
     levels: int = 3
     blur_sigma_px: float = 0.3
     highpass_sigma_px: float = 0.0
+    highpass_levels: int = 0
     reference_size: int = 16
     reference_fov_scale: float = 1.3
     final_reference_size: int = 32
@@ -70,6 +71,7 @@ def check_settings(
     final_fov_scale: float,
     blur_sigma_px: float,
     highpass_sigma_px: float,
+    highpass_levels: int,
     polish_damping: float,
     trim_sigma: float,
     trim_passes: int,
@@ -114,6 +116,8 @@ def check_settings(
             f"polish_damping > 0, not {blur_sigma_px:g}, {highpass_sigma_px:g}, "
             f"{polish_damping:g}"
         )
+    if highpass_levels < 0:
+        raise ValueError(f"render_compare needs highpass_levels >= 0, not {highpass_levels}")
     if trim_sigma < 0 or trim_passes < 0:
         raise ValueError(
             f"render_compare needs trim_sigma >= 0 and trim_passes >= 0, not {trim_sigma} "
