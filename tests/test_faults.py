@@ -1288,3 +1288,37 @@ def test_scene_model_and_score_settings_are_checked_before_any_work(
     cfg = compose_train("stage=render_compare", override)
     with pytest.raises(ConfigError, match=message):
         validate_train_config(cfg)
+
+
+@pytest.mark.slow
+def test_a_teacher_killed_after_an_epoch_and_resumed_reports_the_uninterrupted_figures(
+    tiny_root: Path, tmp_path: Path
+) -> None:
+    """pae-train as a user runs it: one teacher never stopped; another SIGKILLed once its first
+    checkpoint exists, then run again with resume=true. Every test/teacher figure is equal."""
+    import time
+
+    from tests.conftest import tiny_overrides
+
+    def command(run_dir: Path, *extra: str) -> list[str]:
+        overrides = [*tiny_overrides(tiny_root), "teacher.max_epochs=4", "stage=teacher"]
+        return [sys.executable, "-m", "pae.train", *overrides, f"hydra.run.dir={run_dir}", *extra]
+
+    whole, killed = tmp_path / "whole", tmp_path / "killed"
+    subprocess.run(command(whole), check=True, capture_output=True)
+    process = subprocess.Popen(
+        command(killed), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    checkpoint = killed / "checkpoints" / "last.ckpt"
+    while process.poll() is None and not checkpoint.exists():
+        time.sleep(0.05)
+    process.kill()
+    process.wait()
+    assert process.returncode == -9, "the run ended before its first checkpoint was seen"
+    subprocess.run(command(killed, "resume=true"), check=True, capture_output=True)
+
+    def figures(run_dir: Path) -> dict[str, float]:
+        metrics = json.loads((run_dir / "metrics.json").read_text())
+        return {k: v for k, v in metrics.items() if k.startswith("test/teacher/")}
+
+    assert figures(whole) and figures(killed) == figures(whole)
