@@ -79,12 +79,14 @@ def teacher_run(tmp_path_factory: pytest.TempPathFactory, tiny_root: Path) -> Pa
 
 
 def test_a_batch_run_prints_progress_and_each_line_once(teacher_run: Path) -> None:
-    """callbacks=minimal, no progress bar (a batch run): the dataset, a line per epoch, a
-    summary; Lightning's lines once, without its advertisement or deprecation warnings."""
+    """callbacks=minimal, no progress bar (a batch run): the threads, the dataset, a line per
+    epoch, a summary; Lightning's lines once, without its advertisement or deprecation
+    warnings."""
     output = (teacher_run.parent / "output.txt").read_text()
     lines = output.splitlines()
+    assert lines[0].startswith("threads: ")
     assert (
-        lines[0].startswith("data: ") and "2 scenes (scene00, scene01); train 48 frames" in lines[0]
+        lines[1].startswith("data: ") and "2 scenes (scene00, scene01); train 48 frames" in lines[1]
     )
     epochs = [
         line for line in lines if line.startswith("teacher: epoch ") and ", batch " not in line

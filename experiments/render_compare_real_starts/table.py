@@ -21,6 +21,7 @@ COLUMNS = (
     "from truth (audit) cm / deg",
     "within 5 cm, 5° start → pae",
     "accepted",
+    "high-pass px / levels (val)",
     "PSNR dB",
     "fit s",
     "ms / query",
@@ -44,10 +45,21 @@ def row(record: dict) -> list[str]:
         cell(record["audit"]) if "audit" in record else "",
         f"{100 * start['within_5cm_5deg']:.0f} % → {100 * pae['within_5cm_5deg']:.0f} %",
         f"{100 * record['accepted_share']:.0f} %",
+        highpass(record["calibration"]),
         f"{record['psnr_db']:.1f}" if record.get("psnr_db") is not None else "",
         f"{record['fit_s']:.0f}" if record.get("fit_s") is not None else "",
         f"{record['ms_per_query']:.1f}",
     ]
+
+
+def highpass(calibration: dict[str, float]) -> str:
+    """The high-pass chosen on val: its sigma (px) and the finest levels it applies at (all:
+    every level), or none."""
+    sigma = calibration.get("highpass_sigma_px", 0.0)
+    if not sigma:
+        return "none"
+    levels = int(calibration.get("highpass_levels", 0))
+    return f"{sigma:g} / {levels or 'all'}"
 
 
 def mean_row(dataset: str, records: list[dict]) -> list[str]:
@@ -66,6 +78,7 @@ def mean_row(dataset: str, records: list[dict]) -> list[str]:
         cell(figures["render_compare"]),
         cell(figures["nefes50"]),
         f"{ratio:.2f}× / {nefes:.2f}×",
+        "",
         "",
         "",
         "",

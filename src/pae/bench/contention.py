@@ -86,11 +86,11 @@ def teacher_epoch(root: Path, train_frames: int = 320) -> Callable[[], None]:
 def render_compare_batch(queries: int = 96) -> Callable[[], None]:
     """The refiner at its default settings on ``queries`` queries of the render_compare
     benchmark's room (pae.bench.render_compare), batched as the callback runs it."""
-    from pae.bench.render_compare import _queries, room_grid
+    from pae.bench.render_compare import bench_queries, room_grid
     from pae.render_compare.refiner import RenderCompareRefiner
 
     model = room_grid(2)
-    images, intrinsics, start, scene_ids = _queries(queries, 2, 56, seed=0)
+    images, intrinsics, start, scene_ids = bench_queries(queries, 2, 56, seed=0)
     refiner = RenderCompareRefiner.configured(model)
     return lambda: refiner(images, intrinsics, start, scene_ids)
 

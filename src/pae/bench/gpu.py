@@ -80,11 +80,11 @@ def engine_queries(
     their intrinsics [B, 4], starts [B, 7] 0.15 m and 3 degrees (std) away from those
     poses, scene ids [B]: a score that peaks at the truth, so that the answer does not hang
     on rounding between candidates that score alike."""
-    from pae.bench.render_compare import _queries, room_grid
+    from pae.bench.render_compare import bench_queries, room_grid
     from pae.core.pose_sampling import perturb
 
     model = room_grid(scenes)
-    _, intrinsics, truth, scene_ids = _queries(queries, scenes, crop, seed=0)
+    _, intrinsics, truth, scene_ids = bench_queries(queries, scenes, crop, seed=0)
     with torch.no_grad():
         images = model.render(truth, scene_ids, intrinsics, crop, crop).rgb.clamp(0, 1)
     generator = torch.Generator().manual_seed(1)

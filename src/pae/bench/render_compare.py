@@ -53,7 +53,7 @@ def room_grid(scenes: int = 2, num_voxels: int | None = None) -> VoxelGridSceneM
     return model
 
 
-def _queries(n: int, scenes: int, size: int, seed: int) -> tuple[torch.Tensor, ...]:
+def bench_queries(n: int, scenes: int, size: int, seed: int) -> tuple[torch.Tensor, ...]:
     """Random query images [n, 3, size, size], their intrinsics, start poses inside the
     room (level cameras of random heading) and scene ids."""
     generator = torch.Generator().manual_seed(seed)
@@ -97,7 +97,7 @@ def bench_render_compare(
     scorer's and renderer's speed-ups over their tensor versions (same inputs)."""
     model = room_grid(scenes).to(device)
     images, intrinsics, start, scene_ids = (
-        t.to(device) for t in _queries(queries, scenes, crop, seed=0)
+        t.to(device) for t in bench_queries(queries, scenes, crop, seed=0)
     )
     RenderCompareRefiner.configured(model)(
         images[:4], intrinsics[:4], start[:4], scene_ids[:4]
