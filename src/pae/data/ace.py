@@ -30,7 +30,7 @@ import numpy as np
 from pae.core.errors import LabelError
 from pae.data.converted import SceneFrames, unequal_focal_lengths
 from pae.data.holdout import natural_key
-from pae.data.raw import rigid_problem
+from pae.data.raw import parse_numbers, rigid_problem
 
 __all__ = ["IMAGE_SUFFIXES", "read_ace_scene"]
 
@@ -58,16 +58,9 @@ def _files(folder: Path, suffixes: tuple[str, ...], inner: str) -> dict[str, Pat
 def _numbers(path: Path) -> np.ndarray:
     """The whitespace-separated numbers of a text file [K] float64; LabelError naming the
     file and line at a token that is not a finite number."""
-    values = []
+    values: list[float] = []
     for line, text in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
-        for token in text.split():
-            try:
-                value = float(token)
-            except ValueError:
-                raise LabelError(path, line, f"not a number: {token!r}") from None
-            if not np.isfinite(value):
-                raise LabelError(path, line, f"not a finite number: {token!r}")
-            values.append(value)
+        values += parse_numbers(text.split(), path, line)
     return np.asarray(values, dtype=np.float64)
 
 

@@ -87,7 +87,7 @@ def _read_lines(path: Path) -> list[str]:
     return path.read_text(encoding="utf-8", errors="replace").splitlines()
 
 
-def _parse_numbers(tokens: list[str], path: Path, line: int) -> list[float]:
+def parse_numbers(tokens: list[str], path: Path, line: int) -> list[float]:
     """Finite floats of ``tokens``; :class:`LabelError` naming ``path:line`` otherwise."""
     numbers = []
     for token in tokens:
@@ -150,7 +150,7 @@ def read_cambridge_scene(scene_dir: str | os.PathLike[str], split: str) -> Label
         frame = Path(tokens[0]).as_posix()
         if Path(frame).is_absolute() or ".." in Path(frame).parts:
             raise LabelError(path, line, f"image path must be relative to the scene: {frame!r}")
-        pose = _parse_numbers(tokens[1:], path, line)
+        pose = parse_numbers(tokens[1:], path, line)
         if np.linalg.norm(pose[3:]) < ZERO_QUATERNION_NORM:
             raise LabelError(path, line, "quaternion (W P Q R) has zero norm")
         if frame in first_line:
@@ -177,7 +177,7 @@ def _read_pose_matrix(path: Path) -> np.ndarray:
     for line, tokens in rows:
         if len(tokens) != 4:
             raise LabelError(path, line, f"expected 4 numbers, got {len(tokens)}")
-        matrix.append(_parse_numbers(tokens, path, line))
+        matrix.append(parse_numbers(tokens, path, line))
     problem = rigid_problem(np.asarray(matrix, dtype=np.float64))
     if problem is not None:
         raise LabelError(path, None, problem)
