@@ -1324,3 +1324,20 @@ def test_a_teacher_killed_after_an_epoch_and_resumed_reports_the_uninterrupted_f
         return {k: v for k, v in metrics.items() if k.startswith("test/teacher/")}
 
     assert figures(whole) and figures(killed) == figures(whole)
+
+
+def test_preflight_pickles_for_a_sweep_launcher_without_its_locks(tmp_path: Path) -> None:
+    """joblib and submitit pickle Hydra's callbacks for each job: Preflight goes without the
+    run-directory locks, which stay with the launching process."""
+    import pickle
+
+    from pae.config.preflight import Preflight
+    from pae.core.run_lock import RunDirLock
+
+    preflight = Preflight("pae-train")
+    lock = preflight.locks.setdefault(tmp_path, RunDirLock(tmp_path, "hydra.sweep.dir"))
+    lock.acquire()
+    sent = pickle.loads(pickle.dumps(preflight))
+    assert sent.program == "pae-train" and sent.locks == {}
+    assert preflight.locks[tmp_path] is lock
+    lock.release()

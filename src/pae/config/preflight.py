@@ -98,6 +98,11 @@ class Preflight(Callback):
         self.locks: dict[Path, RunDirLock] = {}
         """Run (or sweep) directory -> its lock, held from the checks to the run's end."""
 
+    def __getstate__(self) -> dict[str, Any]:
+        """What a launcher that pickles the callbacks (joblib, submitit) sends to the sweep's
+        job processes: the program, without the locks, which the launching process holds."""
+        return {"program": self.program, "locks": {}}
+
     def _validate(self, config: DictConfig) -> None:
         if self.program == "pae-train":
             validate_train_config(config)
