@@ -27,7 +27,7 @@ import argparse
 import dataclasses
 import sys
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -201,6 +201,24 @@ def _audit_guess(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_command(
+    commands: argparse._SubParsersAction,
+    name: str,
+    summary: str,
+    description: str,
+    run: Callable[[argparse.Namespace], int],
+    paths: Sequence[str] = (),
+) -> argparse.ArgumentParser:
+    """The sub-command ``name`` of ``commands`` (``summary`` in the list of commands,
+    ``description`` in its own help), which runs ``run`` on the parsed arguments; ``paths``
+    name its leading positional arguments, each a Path shown in upper case."""
+    command = commands.add_parser(name, help=summary, description=description)
+    for path in paths:
+        command.add_argument(path, type=Path, metavar=path.upper())
+    command.set_defaults(run=run)
+    return command
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``pae-data`` argument parser."""
     parser = argparse.ArgumentParser(prog=PROG, description="Make, convert and check label files.")
@@ -230,35 +248,32 @@ def build_parser() -> argparse.ArgumentParser:
             "",
         ),
     ):
-        raw = formats.add_parser(name, help=about, description=f"{about}{where}.")
-        raw.add_argument("raw_root", type=Path, metavar="RAW_ROOT")
-        raw.add_argument("out_dir", type=Path, metavar="OUT_DIR")
-        raw.set_defaults(run=_convert)
+        _add_command(formats, name, about, f"{about}{where}.", _convert, ("raw_root", "out_dir"))
 
-    ace = formats.add_parser(
+    ace = _add_command(
+        formats,
         "ace",
-        help="the ACE / DSAC* layout: {train,test}/{rgb,poses,calibration}",
-        description="One scene in the ACE / DSAC* layout: ROOT/{train,test}/rgb/* images, "
+        "the ACE / DSAC* layout: {train,test}/{rgb,poses,calibration}",
+        "One scene in the ACE / DSAC* layout: ROOT/{train,test}/rgb/* images, "
         "poses/*.txt 4x4 camera-to-world matrices, calibration/*.txt focal lengths (px) or "
         "3x3 matrices; img_path relative to ROOT, each row with its own focal length.",
+        _convert_ace,
+        ("root", "out_dir"),
     )
-    ace.add_argument("root", type=Path, metavar="ROOT")
-    ace.add_argument("out_dir", type=Path, metavar="OUT_DIR")
     ace.add_argument("--scene", metavar="NAME", help="the scene's name (default: ROOT's name)")
-    ace.set_defaults(run=_convert_ace)
 
-    colmap = formats.add_parser(
+    colmap = _add_command(
+        formats,
         "colmap",
-        help="a COLMAP model (cameras, images; text or binary) and its images",
-        description="A COLMAP sparse model (MODEL_DIR: cameras and images, .bin or .txt) of "
+        "a COLMAP model (cameras, images; text or binary) and its images",
+        "A COLMAP sparse model (MODEL_DIR: cameras and images, .bin or .txt) of "
         "the images under IMAGE_DIR: camera-to-world poses, each image's focal length, "
         "img_path relative to IMAGE_DIR. Pinhole cameras only (a distorted one is refused "
         "with the colmap image_undistorter command). Test images: those under test/ (the "
         "rest under train/), or as an option says.",
+        _convert_colmap,
+        ("model_dir", "image_dir", "out_dir"),
     )
-    colmap.add_argument("model_dir", type=Path, metavar="MODEL_DIR")
-    colmap.add_argument("image_dir", type=Path, metavar="IMAGE_DIR")
-    colmap.add_argument("out_dir", type=Path, metavar="OUT_DIR")
     split = colmap.add_mutually_exclusive_group()
     split.add_argument(
         "--split-list",
@@ -286,33 +301,34 @@ def build_parser() -> argparse.ArgumentParser:
     colmap.add_argument(
         "--scene", metavar="NAME", help="the scene's name (default: IMAGE_DIR's name)"
     )
-    colmap.set_defaults(run=_convert_colmap)
 
-    check = commands.add_parser(
+    check = _add_command(
+        commands,
         "check",
-        help="validate label files and their images",
-        description="Validate every row of each LABELS.csv (its focal length, if any, "
+        "validate label files and their images",
+        "Validate every row of each LABELS.csv (its focal length, if any, "
         "against the width of its images) and decode its image under ROOT; with the files of "
         "several splits, check that all or none have a focal column; exit 1 listing every "
         "problem.",
+        _check,
     )
     check.add_argument("labels", type=Path, nargs="+", metavar="LABELS.csv")
     check.add_argument("root", type=Path, metavar="ROOT", help="dataset root of img_path")
-    check.set_defaults(run=_check)
 
-    audit = commands.add_parser(
+    audit = _add_command(
+        commands,
         "audit-guess",
-        help="the random-guess check from label files alone (no images, no PAE)",
-        description="Per scene: a guess around each test pose (true position + Gaussian "
+        "the random-guess check from label files alone (no images, no PAE)",
+        "Per scene: a guess around each test pose (true position + Gaussian "
         "noise, true orientation) and the mean of its k nearest poses, retrieved from the test "
         "poses (the authors' public scripts) and from the train poses.",
+        _audit_guess,
     )
     audit.add_argument("--test", type=Path, nargs="+", required=True, metavar="TEST.csv")
     audit.add_argument("--train", type=Path, nargs="+", required=True, metavar="TRAIN.csv")
     audit.add_argument("--sigma", type=float, default=1.0, metavar="M", help="noise std (m)")
     audit.add_argument("--k", type=int, default=3, help="neighbours (default: 3)")
     audit.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
-    audit.set_defaults(run=_audit_guess)
     return parser
 
 
