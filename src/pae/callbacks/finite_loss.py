@@ -20,9 +20,9 @@ def batch_loss(outputs: Any) -> torch.Tensor | None:
     return loss if isinstance(loss, torch.Tensor) else None
 
 
-class TrainLossCallback(L.Callback, ABC):
-    """A callback that reads the loss of every training step: Lightning's batch-end hook
-    hands ``on_train_loss`` the step's loss (``batch_loss``)."""
+class TrainBatchEndCallback(L.Callback, ABC):
+    """A callback that acts after every training batch: Lightning's batch-end hook hands
+    ``after_train_batch`` the step's outputs and the batch's index."""
 
     def on_train_batch_end(
         self,
@@ -32,6 +32,18 @@ class TrainLossCallback(L.Callback, ABC):
         batch: Any,
         batch_idx: int,
     ) -> None:
+        self.after_train_batch(trainer, outputs, batch_idx)
+
+    @abstractmethod
+    def after_train_batch(self, trainer: L.Trainer, outputs: Any, batch_idx: int) -> None:
+        """After the training batch ``batch_idx``, whose step returned ``outputs``."""
+
+
+class TrainLossCallback(TrainBatchEndCallback):
+    """A callback that reads the loss of every training step: ``on_train_loss`` gets the
+    step's loss (``batch_loss``) after each batch."""
+
+    def after_train_batch(self, trainer: L.Trainer, outputs: Any, batch_idx: int) -> None:
         self.on_train_loss(trainer, batch_loss(outputs), batch_idx)
 
     @abstractmethod

@@ -7,10 +7,11 @@ from typing import Any
 
 import lightning as L
 
+from pae.callbacks.finite_loss import TrainBatchEndCallback
 from pae.core.streams import seed_global_for_batch
 
 
-class SeededBatches(L.Callback):
+class SeededBatches(TrainBatchEndCallback):
     """Seeds torch's global generators (:func:`pae.core.streams.seed_global_for_batch`) when a
     training epoch starts, before its loader draws the epoch's order, and after each batch for
     the next one, before the batch is fetched and augmented, so that nothing drawn before (an
@@ -29,12 +30,5 @@ class SeededBatches(L.Callback):
     def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._seed(trainer, -1)
 
-    def on_train_batch_end(
-        self,
-        trainer: L.Trainer,
-        pl_module: L.LightningModule,
-        outputs: Any,
-        batch: Any,
-        batch_idx: int,
-    ) -> None:
+    def after_train_batch(self, trainer: L.Trainer, outputs: Any, batch_idx: int) -> None:
         self._seed(trainer, batch_idx + 1)
