@@ -7,11 +7,12 @@
 #   bash experiments/ablation_teacher/ms_val_sweep.sh [OUT]
 set -uo pipefail
 OUT=${1:-outputs/ms_sweep}
+ONLY=${ONLY:-}  # a regular expression: run only the settings whose name matches
 BIN=${BIN:-.venv/bin}
 mkdir -p "$OUT"
 # name|overrides (each on top of experiment=demo_ms_transformer as it stands: 80 epochs,
-# channel_gain 0.15, the chosen settings); seeds 0-2 for the first six, seed 0 alone for the
-# rest
+# channel_gain 0.15, the chosen settings); seeds 0-2 for the first six and the last two
+# (the settings tried for every seed's mark), seed 0 alone for the rest
 settings=(
   "no_gain|teacher.max_epochs=40 data.channel_gain=0.0"
   "gain0.15|teacher.max_epochs=40"
@@ -26,13 +27,16 @@ settings=(
   "jitter0.5|teacher.max_epochs=40 data.channel_gain=0.0 data.color_jitter=[0.5,0.5,0.5,0.0]"
   "hue0.05|teacher.max_epochs=40 data.channel_gain=0.0 data.color_jitter=[0.7,0.7,0.7,0.05]"
   "lr4e-3|teacher.max_epochs=40 data.channel_gain=0.0 teacher.optimizer.lr=4e-3"
+  "gain0.15_e80_scene5|teacher.max_epochs=80 teacher.scene_loss_weight=5"
+  "gain0.15_e100|teacher.max_epochs=100"
 )
 jobs=()
 for i in "${!settings[@]}"; do
   name=${settings[$i]%%|*}
   overrides=${settings[$i]#*|}
+  [[ -n "$ONLY" && ! "$name" =~ $ONLY ]] && continue
   seeds=(0)
-  [ "$i" -lt 6 ] && seeds=(0 1 2)
+  [ "$i" -lt 6 ] || [ "$i" -ge 13 ] && seeds=(0 1 2)
   for seed in "${seeds[@]}"; do
     jobs+=("$name"_s"$seed|seed=$seed $overrides")
   done

@@ -24,6 +24,7 @@ from pae.scene_model.oracle import OracleSceneModel
 
 HONEST = "render_compare"
 ORACLE = "render_compare_oracle"
+TRUTH = "truth"
 
 
 class RenderCompareCallback(L.Callback):
@@ -32,12 +33,11 @@ class RenderCompareCallback(L.Callback):
     every ``every_n_val_epochs``-th validation (:func:`pae.render_compare.calibrate`: the
     gate, first steps and scene check chosen there, :class:`CalibrationOptions`) and every
     test (:func:`pae.render_compare.refine` under the last calibration). It logs
-    ``{split}/render_compare/...`` (the scene model learned from the train images; ``_oracle``
-    when it is the oracle) and, with ``oracle`` on data that knows its scenes,
+    ``{split}/render_compare/...`` (the scene model learned from the train images) and, with
+    ``oracle`` on data that knows its scenes (or an oracle scene model alone),
     ``{split}/render_compare_oracle/...`` (the benchmark's own renderer, a bound); the gate's
-    figures, ``worse_than_start_share`` (:func:`refinement_figures`), ``scene_accuracy`` for
-    teachers that predict the scene, ``bench/<method>/ms_per_query`` at test and
-    ``queries_{split}_{method}.csv`` in the log folder (:func:`write_queries`).
+    figures (:func:`refinement_figures`; the decided scenes of multi-scene teachers kept in
+    ``scenes``), ``bench/<method>/ms_per_query`` at test, ``queries_{split}_{method}.csv``.
 
     ``refiner``: the partial Hydra makes of ``render_compare.refiner`` or a mapping of
     settings replacing the defaults; ``feature_layers``: modules of the teacher backbone that
@@ -68,6 +68,7 @@ class RenderCompareCallback(L.Callback):
         )
         self.calibrations: dict[str, Calibration] = {}  # method -> the last chosen on val
         self.refined: dict[str, dict[str, Tensor]] = {}  # split -> method -> poses kept
+        self.scenes: dict[str, dict[str, Tensor]] = {}  # split -> method or TRUTH -> scenes
         self._val_runs = 0
         RenderCompareRefiner(SceneModel(), features=lambda x: x, **self.settings)  # checks
 
@@ -104,32 +105,31 @@ class RenderCompareCallback(L.Callback):
         elif self.oracle and (scenes := oracle_scenes(trainer.datamodule)) is not None:
             models[ORACLE] = OracleSceneModel(scenes)
         truth, estimate = outputs[EVAL.pose].float(), outputs[EVAL.estimate].float()
+        scene, predicted = outputs[EVAL.scene], outputs[EVAL.scene_estimate]
+        decided = predicted if EVAL.scene_poses in outputs else None
         queries = (outputs[EVAL.image], outputs[EVAL.intrinsics], estimate)
-        common = {
-            "settings": self.settings,
-            "features": self.features(pl_module.teacher),
-            "scene_poses": outputs.get(EVAL.scene_poses),
-        }
+        common = {"settings": self.settings, "features": self.features(pl_module.teacher)}
+        common |= {key: outputs.get(key) for key in (EVAL.scene_poses, EVAL.scene_logits)}
         figures: dict[str, Tensor] = {}
         self.refined[split] = {"teacher": estimate}
+        self.scenes[split] = {"teacher": predicted, TRUTH: scene}
         for name, model in models.items():
             start = time.perf_counter()
             if split == "val":
                 self.calibrations[name], refinement = calibrate(
-                    model, *queries, outputs[EVAL.scene_estimate], truth, **common,
-                    true_scenes=outputs[EVAL.scene], **self.options.arguments(),
+                    model, *queries, predicted, truth, **common, true_scenes=scene,
+                    **self.options.arguments(),
                 )  # fmt: skip
             else:
                 refinement = refine(
-                    model, *queries, outputs[EVAL.scene_estimate], **common,
-                    calibration=self.calibration(name),
+                    model, *queries, predicted, **common, calibration=self.calibration(name),
                 )  # fmt: skip
             seconds = time.perf_counter() - start
-            self.refined[split][name] = refinement.poses.float()
-            scene = outputs[EVAL.scene]
+            self.refined[split][name] = refinement.poses
+            self.scenes[split][name] = refinement.scenes
             found, starts, refined = refinement_figures(
                 f"{split}/{name}", refinement, self.calibration(name), estimate, truth, scene,
-                pl_module.scene_names, decided=EVAL.scene_poses in outputs,
+                pl_module.scene_names, decided,
             )  # fmt: skip
             figures |= found
             if getattr(trainer, "log_dir", None) is not None:

@@ -22,7 +22,8 @@ class EvalKeys:
     (RGB in [0, 1], at the compare width), its ``intrinsics`` [B, 4] (px, at that size), the
     teacher's pose ``estimate`` [B, 7] and ``scene_estimate`` [B], the true ``pose`` [B, 7]
     and ``scene`` [B], and the query's row ``index`` [B] in the split; for teachers that
-    classify the scene, their pose for every scene ``scene_poses`` [B, S, 7]."""
+    classify the scene, their pose for every scene ``scene_poses`` [B, S, 7] and their scene
+    logits ``scene_logits`` [B, S]."""
 
     image: str = "image"
     intrinsics: str = "intrinsics"
@@ -32,6 +33,7 @@ class EvalKeys:
     scene: str = "scene"
     index: str = "index"
     scene_poses: str = "scene_poses"
+    scene_logits: str = "scene_logits"
 
 
 EVAL = EvalKeys()

@@ -147,4 +147,5 @@ class SceneModelModule(PaeModule):
         scene_poses = self.teacher.scene_poses(batch["image"])
         if scene_poses is not None:
             outputs[EVAL.scene_poses] = scene_poses
+            outputs[EVAL.scene_logits] = answer.latents.scene_logits
         self.eval_outputs.append(outputs)

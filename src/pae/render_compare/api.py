@@ -5,6 +5,7 @@ queries with their true poses."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 from collections.abc import Mapping
 from typing import Any, NamedTuple
@@ -28,10 +29,13 @@ from pae.render_compare.calibration import (
 from pae.render_compare.gate import ACCEPT_ALL, RenderCompareResult, gate
 from pae.render_compare.refiner import FeatureExtractor, RenderCompareRefiner
 from pae.render_compare.scene_decision import (
-    ALWAYS,
-    choose_scene_check,
+    PROBE_SCALES,
+    SceneRule,
+    apply,
+    choose_scene_rule,
     decide_scenes,
-    narrow,
+    sharpness,
+    try_scenes,
 )
 from pae.render_compare.settings import RenderCompareSettings
 from pae.scene_model.base import SceneModel
@@ -67,14 +71,25 @@ def build_refiner(
 
 
 def _check(
-    images: Tensor, intrinsics: Tensor, starts: Tensor, scenes: Tensor, scene_poses: Tensor | None
+    images: Tensor,
+    intrinsics: Tensor,
+    starts: Tensor,
+    scenes: Tensor,
+    scene_poses: Tensor | None,
+    scene_logits: Tensor | None = None,
 ) -> None:
     n = check_shape(images, "images", "B 3 H W")["B"]
     check_shape(intrinsics, "intrinsics", f"{n} 4")
     check_shape(starts, "starts", f"{n} 7")
     check_shape(scenes, "scenes", f"{n}")
     if scene_poses is not None:
-        check_shape(scene_poses, "scene_poses", f"{n} S 7")
+        s = check_shape(scene_poses, "scene_poses", f"{n} S 7")["S"]
+        if scene_logits is not None:
+            check_shape(scene_logits, "scene_logits", f"{n} {s}")
+
+
+def _log_prior(scene_logits: Tensor | None) -> Tensor | None:
+    return None if scene_logits is None else scene_logits.float().log_softmax(-1)
 
 
 def _refine_in_scenes(
@@ -84,12 +99,17 @@ def _refine_in_scenes(
     starts: Tensor,
     scenes: Tensor,
     scene_poses: Tensor | None,
-    below: float,
+    scene_logits: Tensor | None,
+    rule: SceneRule,
 ) -> tuple[RenderCompareResult, Tensor, Tensor]:
     first = refiner(images, intrinsics, starts, scenes)
     if scene_poses is None:
         return first, scenes, torch.zeros_like(scenes, dtype=torch.bool)
-    decision = decide_scenes(refiner, images, intrinsics, scene_poses, scenes, first, below)
+    probe = functools.partial(sharpness, refiner)
+    decision = decide_scenes(
+        refiner, probe, images, intrinsics, scene_poses, scenes, first, rule,
+        _log_prior(scene_logits),
+    )  # fmt: skip
     return decision.result, decision.scene, decision.checked
 
 
@@ -103,6 +123,7 @@ def refine(
     calibration: Calibration | None = None,
     features: FeatureExtractor | None = None,
     scene_poses: Tensor | None = None,
+    scene_logits: Tensor | None = None,
 ) -> Refinement:
     """Refine starts [B, 7] (camera-to-world, unit quaternions) of query images [B, 3, H, W]
     (RGB in [0, 1]) with intrinsics [B, 4] (fx, fy, cx, cy in px at the images' size) in
@@ -110,15 +131,16 @@ def refine(
     (:class:`RenderCompareSettings`), ``calibration`` gives the gate, first steps and scene
     check chosen on validation (:func:`calibrate`; default: margin 0, no floor, the
     settings' steps, no scene check). With a multi-scene APR's poses for every scene
-    ``scene_poses`` [B, S, 7], queries scoring below the calibration's
-    ``scene_check_below`` are also refined in the other scenes and moved to the one that
-    explains them best (:mod:`pae.render_compare.scene_decision`)."""
-    _check(images, intrinsics, starts, scenes, scene_poses)
+    ``scene_poses`` [B, S, 7] (and its scene logits ``scene_logits`` [B, S], the prior),
+    the calibration's scene rule decides each query's scene
+    (:mod:`pae.render_compare.scene_decision`)."""
+    _check(images, intrinsics, starts, scenes, scene_poses, scene_logits)
     calibration = calibration or Calibration()
     refiner = build_refiner(scene_model, settings, calibration.steps, features)
     result, decided, checked = _refine_in_scenes(
-        refiner, images, intrinsics, starts, scenes, scene_poses, calibration.scene_check_below
-    )
+        refiner, images, intrinsics, starts, scenes, scene_poses, scene_logits,
+        calibration.scene,
+    )  # fmt: skip
     gated = gate(result, starts, calibration.accept_margin, calibration.accept_score)
     return Refinement(gated.poses, gated.accepted, result, decided, checked)
 
@@ -138,31 +160,36 @@ def calibrate(
     scene_poses: Tensor | None = None,
     true_scenes: Tensor | None = None,
     scene_check_below: float | None = None,
+    scene_logits: Tensor | None = None,
 ) -> tuple[Calibration, Refinement]:
     """The calibration chosen on validation queries (as :func:`refine`'s arguments, with
     their true poses ``truth`` [B, 7]): the search's first steps as ``step_fractions`` of the
-    starts' median errors (None: the settings' own); with ``scene_poses``, the score below
-    which a query is checked in the other scenes that maximises accuracy against
-    ``true_scenes`` [B] (None: chosen; a number: kept); then the gate's margin and floor that
-    minimise the mean position error (None: chosen, :func:`choose_gate`; a number: kept) ->
-    the calibration and the validation queries' refinement under it."""
-    _check(images, intrinsics, starts, scenes, scene_poses)
+    starts' median errors (None: the settings' own); with ``scene_poses``, every query tried
+    in every scene and the scene rule that maximises accuracy against ``true_scenes`` [B]
+    (:func:`pae.render_compare.scene_decision.choose_scene_rule`; its check floor
+    ``scene_check_below`` chosen where None, else kept); then the gate's margin and floor
+    that minimise the mean position error (None: chosen, :func:`choose_gate`; a number:
+    kept) -> the calibration and the validation queries' refinement under it."""
+    _check(images, intrinsics, starts, scenes, scene_poses, scene_logits)
     check_shape(truth, "truth", f"{len(starts)} 7")
     steps = {} if step_fractions is None else steps_from_errors(starts, truth, step_fractions)
     refiner = build_refiner(scene_model, settings, steps, features)
-    below = Calibration.scene_check_below if scene_check_below is None else scene_check_below
-    if scene_poses is not None and scene_check_below is None:
+    first = refiner(images, intrinsics, starts, scenes)
+    result, decided, checked = first, scenes, torch.zeros_like(scenes, dtype=torch.bool)
+    rule = SceneRule()
+    if scene_poses is not None and scene_poses.shape[1] > 1:
         if true_scenes is None:
-            raise ValueError("calibrate: choosing scene_check_below needs true_scenes")
-        first = refiner(images, intrinsics, starts, scenes)
-        every = decide_scenes(refiner, images, intrinsics, scene_poses, scenes, first, ALWAYS)
-        below = choose_scene_check(first.score, scenes, every.scene, true_scenes)
-        decision = narrow(every, first, scenes, first.score < below)
-        result, decided, checked = decision.result, decision.scene, decision.checked
-    else:
-        result, decided, checked = _refine_in_scenes(
-            refiner, images, intrinsics, starts, scenes, scene_poses, below
+            raise ValueError("calibrate: choosing the scene rule needs true_scenes")
+        every = torch.arange(len(scenes), device=scenes.device)
+        probe = functools.partial(sharpness, refiner)
+        trials = try_scenes(
+            refiner, probe, images, intrinsics, scene_poses, scenes, first, every, PROBE_SCALES
         )
+        prior = _log_prior(scene_logits)
+        rule = choose_scene_rule(trials, prior, scenes, true_scenes, scene_check_below)
+        keep = (first.score < rule.check_below).nonzero().flatten()
+        decision = apply(first, scenes, keep, trials.rows(keep), prior, rule)
+        result, decided, checked = decision.result, decision.scene, decision.checked
     refined_pos, _ = pose_errors(result.poses.float(), truth.float())
     start_pos, _ = pose_errors(starts.float(), truth.float())
     margin, floor = choose_gate(
@@ -173,7 +200,7 @@ def calibrate(
         margin=accept_margin,
         floor=accept_score,
     )
-    calibration = Calibration(margin, floor, steps, below)
+    calibration = Calibration(margin, floor, steps, rule)
     gated = gate(result, starts, margin, floor)
     return calibration, Refinement(gated.poses, gated.accepted, result, decided, checked)
 

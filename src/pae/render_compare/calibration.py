@@ -14,6 +14,7 @@ from pae.core.geometry import pose_errors
 from pae.core.pose_sampling import perturb_poses
 from pae.data.transforms import ImageTransform
 from pae.render_compare.gate import ACCEPT_ALL
+from pae.render_compare.scene_decision import SceneRule
 
 MARGIN_QUANTILES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
 """Candidate acceptance margins besides accept-all and 0, and score floors besides none:
@@ -25,14 +26,15 @@ class Calibration:
     """The gate (``accept_margin``: a ZNCC gain; ``accept_score``: a ZNCC floor), the
     search's first steps and any other refiner setting chosen on val (``steps``:
     ``position_sigma_m``, ``orientation_sigma_deg``, ``highpass_sigma_px``,
-    ``highpass_levels``; empty: the refiner's settings) and the score below which a
-    multi-scene query is checked in the other scenes (``scene_check_below``, a ZNCC;
-    ``ACCEPT_ALL``: never), applied to queries without true poses."""
+    ``highpass_levels``; empty: the refiner's settings) and how a multi-scene query's
+    scene is decided (``scene``: :class:`pae.render_compare.scene_decision.SceneRule`; by
+    default no query is checked in the other scenes), applied to queries without true
+    poses."""
 
     accept_margin: float = 0.0
     accept_score: float = ACCEPT_ALL
     steps: Mapping[str, float] = dataclasses.field(default_factory=dict)
-    scene_check_below: float = ACCEPT_ALL
+    scene: SceneRule = dataclasses.field(default_factory=SceneRule)
 
 
 KEEP_ALL = 4.0
@@ -123,14 +125,15 @@ class CalibrationOptions:
 
     def uncalibrated(self) -> Calibration:
         """The calibration where no validation ran: the fixed options, else margin 0, no
-        floor, the refiner's steps and no scene check."""
+        floor, the refiner's steps and no scene check (a fixed check floor: the refined
+        score decides, without prior or margin)."""
         margin, floor = self.fixed("accept_margin"), self.fixed("accept_score")
         below = self.fixed("scene_check_below")
         return Calibration(
             0.0 if margin is None else margin,
             ACCEPT_ALL if floor is None else floor,
             {},
-            ACCEPT_ALL if below is None else below,
+            SceneRule(ACCEPT_ALL if below is None else below),
         )
 
 

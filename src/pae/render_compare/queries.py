@@ -89,13 +89,15 @@ def refinement_figures(
     truth: Tensor,
     scenes: Tensor,
     scene_names: list[str],
-    decided: bool = False,
+    predicted: Tensor | None = None,
 ) -> tuple[dict[str, Tensor], tuple[Tensor, Tensor], tuple[Tensor, Tensor]]:
     """Figures under ``prefix`` of a :class:`pae.render_compare.Refinement` of ``starts``
     [N, 7] under ``calibration`` against the true poses [N, 7] and scenes [N]: the error
     summary after the gate, the gate's figures (:func:`gate_figures`),
-    ``worse_than_start_share`` and, where scenes were ``decided``, ``scene_accuracy``,
-    ``scene_check_below`` and ``scene_checked_share`` -> the figures and the position (m)
+    ``worse_than_start_share`` and, where scenes were decided from the teacher's
+    ``predicted`` scenes [N] (None: not), ``scene_accuracy``, the scene rule's settings
+    (:class:`pae.render_compare.scene_decision.SceneRule`), ``scene_checked_share`` and
+    ``scene_moved_share`` -> the figures and the position (m)
     and orientation (deg) errors [N] of the starts and of the refined poses before the gate."""
     start_errors = pose_errors(starts.float(), truth.float())
     refined_errors = pose_errors(refinement.result.poses.float(), truth.float())
@@ -105,10 +107,15 @@ def refinement_figures(
     setting = (calibration.accept_margin, calibration.accept_score)
     figures |= gate_figures(prefix, setting, refinement.accepted, pos, refined_errors[0])
     figures[f"{prefix}/worse_than_start_share"] = (pos > start_errors[0]).float().mean()
-    if decided:
+    if predicted is not None:
+        rule = calibration.scene
         figures[f"{prefix}/scene_accuracy"] = (refinement.scenes == scenes).float().mean()
-        figures[f"{prefix}/scene_check_below"] = torch.tensor(calibration.scene_check_below)
+        figures[f"{prefix}/scene_check_below"] = torch.tensor(rule.check_below)
+        figures[f"{prefix}/scene_probe_scale"] = torch.tensor(rule.probe_scale)
+        figures[f"{prefix}/scene_prior_weight"] = torch.tensor(rule.prior_weight)
+        figures[f"{prefix}/scene_move_margin"] = torch.tensor(rule.margin)
         figures[f"{prefix}/scene_checked_share"] = refinement.checked.float().mean()
+        figures[f"{prefix}/scene_moved_share"] = (refinement.scenes != predicted).float().mean()
     return figures, start_errors, refined_errors
 
 

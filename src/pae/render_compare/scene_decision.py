@@ -1,18 +1,27 @@
-"""Render-and-compare's scene decision for multi-scene teachers: a query refined in the scene
-the teacher predicted but explained poorly there (a low score) is refined in every other
-scene too, from the teacher's pose for that scene, and moved to the scene whose scene model
-explains it best. A wrong scene prediction is then not refined into a confident wrong pose
-unless no other scene explains the query better."""
+"""Render-and-compare's scene decision for multi-scene teachers. A query refined in the scene
+the teacher predicted but explained poorly there (its refined score below a floor) is refined
+in every other scene too, from the teacher's pose for that scene, and each scene's evidence
+is weighed: the refined score itself or how sharply the scene model determines the refined
+pose (its score minus the mean score of probe poses around it: a scene whose rendering only
+happens to correlate with the query scores about as well a few centimetres and a degree away),
+plus the teacher's own log-probability of the scene times a weight. The query moves to the
+scene with the most evidence only where that beats its predicted scene's by a margin >= 0, so
+no query moves to a scene with weaker evidence than its own. What the evidence is, the
+weight, the margin and the floor are chosen on validation (:func:`choose_scene_rule`)."""
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
+from pae.core.pose_sampling import perturb
 from pae.render_compare.gate import ACCEPT_ALL, RenderCompareResult
+from pae.render_compare.refiner import RenderCompareRefiner
 
 NEVER = ACCEPT_ALL
 """A score floor below every score (scores lie in [-2, 1]): no query is checked in the
@@ -20,11 +29,45 @@ other scenes."""
 ALWAYS = 2.0
 """A score floor above every score: every query is checked in every scene."""
 CHECK_QUANTILES = (0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9)
-"""Candidate floors of ``choose_scene_check`` besides NEVER and ALWAYS: these quantiles of
+"""Candidate floors of :func:`choose_scene_rule` besides NEVER and ALWAYS: these quantiles of
 the validation queries' scores in their predicted scenes."""
+PROBE_M = 0.05
+PROBE_DEG = 1.0
+"""The probe poses' unit steps: each probe moves the refined pose by ``scale x PROBE_M``
+(m) along one world axis or turns it by ``scale x PROBE_DEG`` (deg) about one camera axis,
+both signs: 12 probes per scale."""
+PROBE_SCALES = (1.0, 3.0)
+"""The probe scales :func:`choose_scene_rule` tries (0 stands for the refined score)."""
+PRIOR_WEIGHTS = (0.0, 0.01, 0.03, 0.1, 0.3)
+"""Candidate weights (score units per nat) of the teacher's scene log-probabilities."""
+MOVE_MARGINS = (0.0, 0.02, 0.05, 0.1, 0.2)
+"""Candidate margins (score units) by which another scene's evidence must beat the
+predicted scene's."""
 
 Refine = Callable[[Tensor, Tensor, Tensor, Tensor], RenderCompareResult]
 """``refine(images [B, 3, h, w], intrinsics [B, 4], starts [B, 7], scenes [B])``."""
+Probe = Callable[[Tensor, Tensor, Tensor, Tensor, tuple[float, ...]], Tensor]
+"""``probe(images, intrinsics, poses [B, 7], scenes [B], scales [K]) -> sharpness [B, K]``:
+the score at each pose minus the mean score of its probes at each scale
+(:func:`sharpness`)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneRule:
+    """How a query's scene is decided: queries whose refined score in the predicted scene is
+    below ``check_below`` (a ZNCC; ``NEVER``: none) are refined in the other scenes; a
+    scene's evidence is its refined score (``probe_scale`` 0) or its sharpness at that probe
+    scale, plus ``prior_weight`` x the teacher's log-probability of the scene; a query moves
+    where another scene's evidence beats its predicted scene's by more than ``margin``."""
+
+    check_below: float = NEVER
+    probe_scale: float = 0.0
+    prior_weight: float = 0.0
+    margin: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.probe_scale < 0 or self.prior_weight < 0 or self.margin < 0:
+            raise ValueError(f"a scene rule's scale, weight and margin must be >= 0: {self}")
 
 
 class SceneDecision(NamedTuple):
@@ -37,71 +80,233 @@ class SceneDecision(NamedTuple):
     checked: Tensor
 
 
-def decide_scenes(
+class SceneTrials(NamedTuple):
+    """Every query of a set refined in every scene: result fields [Q, S] (poses [Q, S, 7]);
+    sharpness [Q, S, K] at each probe scale of ``scales`` [K]."""
+
+    result: RenderCompareResult
+    sharpness: Tensor
+    scales: tuple[float, ...]
+
+    def rows(self, keep: Tensor) -> SceneTrials:
+        """The trials of the queries ``keep`` (indices or a mask over Q)."""
+        result = RenderCompareResult(*(field[keep] for field in self.result))
+        return SceneTrials(result, self.sharpness[keep], self.scales)
+
+
+def probe_steps(scale: float, device: torch.device | str = "cpu") -> Tensor:
+    """The 12 probe steps [12, 6] (:func:`pae.core.pose_sampling.perturb`'s: m, rad) at
+    ``scale``."""
+    eye = torch.eye(3, dtype=torch.float64)
+    move = torch.cat([eye, -eye]) * PROBE_M * scale
+    turn = torch.cat([eye, -eye]) * math.radians(PROBE_DEG * scale)
+    zeros = torch.zeros(6, 3, dtype=torch.float64)
+    steps = torch.cat([torch.cat([move, zeros], 1), torch.cat([zeros, turn], 1)])
+    return steps.to(device)
+
+
+def sharpness(
+    refiner: RenderCompareRefiner,
+    images: Tensor,
+    intrinsics: Tensor,
+    poses: Tensor,
+    scenes: Tensor,
+    scales: tuple[float, ...] = PROBE_SCALES,
+) -> Tensor:
+    """How sharply ``refiner``'s scene model determines poses [B, 7] of query images [B, 3,
+    h, w] (RGB in [0, 1], intrinsics [B, 4] px) in scenes [B]: at the finest pyramid level,
+    against a rendering at each pose, the score of the pose minus the mean score of its 12
+    probes at each of ``scales`` (:func:`probe_steps`) -> [B, K] (score units)."""
+    parts = []
+    poses = poses.float()
+    steps = torch.cat([probe_steps(s) for s in scales]).to(poses)  # [12 K, 6]
+    for rows in torch.arange(len(poses), device=poses.device).split(refiner.chunk):
+        level = refiner.pyramid(images[rows].float(), intrinsics[rows], scenes[rows])[-1]
+        surface = None
+        if refiner.scene_model.has_depth:
+            size = refiner.final_reference_size or refiner.reference_size
+            reference = refiner.reference(poses[rows], level, size, refiner.final_fov_scale)
+            surface = refiner.surface(reference, level)
+        centre = poses[rows, None]
+        probes = perturb(centre.expand(-1, len(steps), -1), steps.expand(len(rows), -1, -1))
+        scores = refiner.score_poses(torch.cat([centre, probes], 1), level, surface)
+        probe_mean = scores[:, 1:].view(len(rows), len(scales), -1).mean(-1)
+        parts.append(scores[:, :1] - probe_mean)
+    return torch.cat(parts)
+
+
+def _pairs(query: Tensor, scenes: int, exclude: Tensor | None) -> tuple[Tensor, Tensor]:
+    """Rows and scenes of every (query, scene) pair, scene-major within a query; without
+    each query's ``exclude`` scene where given."""
+    grid = torch.arange(scenes, device=query.device).expand(len(query), scenes)
+    if exclude is not None:
+        grid = grid[grid != exclude[:, None]].reshape(len(query), scenes - 1)
+    return query.repeat_interleave(grid.shape[1]), grid.flatten()
+
+
+def try_scenes(
     refine: Refine,
+    probe: Probe,
     images: Tensor,
     intrinsics: Tensor,
     scene_poses: Tensor,
     predicted: Tensor,
     first: RenderCompareResult,
-    below: float,
+    query: Tensor,
+    scales: tuple[float, ...],
+) -> SceneTrials:
+    """The queries ``query`` [Q] refined in every scene: their ``first`` refinement in the
+    ``predicted`` scene [N] kept, every other scene refined from the teacher's pose for it
+    (``scene_poses`` [N, S, 7]) in one batched call, and every scene's sharpness at
+    ``scales`` -> :class:`SceneTrials` of the Q queries."""
+    q, s = len(query), scene_poses.shape[1]
+    pair_query, pair_scene = _pairs(query, s, predicted[query])
+    pairs = refine(
+        images[pair_query],
+        intrinsics[pair_query],
+        scene_poses[pair_query, pair_scene],
+        pair_scene,
+    )
+    own = predicted[query]
+    fields = []
+    for mine, theirs in zip(first, pairs, strict=True):
+        whole = mine.new_zeros((q, s, *mine.shape[1:]))
+        whole[torch.arange(q, device=query.device), own] = mine[query]
+        others = torch.ones(q, s, dtype=torch.bool, device=query.device)
+        others[torch.arange(q, device=query.device), own] = False
+        whole[others] = theirs.to(whole).reshape(-1, *mine.shape[1:])
+        fields.append(whole)
+    trials = RenderCompareResult(*fields)
+    if not scales:
+        return SceneTrials(trials, trials.score.new_zeros(q, s, 0), scales)
+    every_query, every_scene = _pairs(query, s, None)
+    sharp = probe(
+        images[every_query],
+        intrinsics[every_query],
+        trials.poses.reshape(-1, 7),
+        every_scene,
+        scales,
+    )
+    return SceneTrials(trials, sharp.reshape(q, s, len(scales)), scales)
+
+
+def evidence(
+    trials: SceneTrials, log_prior: Tensor | None, probe_scale: float, prior_weight: float
+) -> Tensor:
+    """Every trial's evidence [Q, S]: its refined score (``probe_scale`` 0) or its sharpness
+    at ``probe_scale`` (one of those in ``trials``), plus ``prior_weight`` x the teacher's
+    scene log-probabilities ``log_prior`` [Q, S] (None: no prior)."""
+    if probe_scale == 0:
+        base = trials.result.score.float()
+    elif probe_scale in trials.scales:
+        base = trials.sharpness[..., trials.scales.index(probe_scale)].float()
+    else:
+        raise ValueError(f"probe scale {probe_scale} was not tried: {trials.scales}")
+    if log_prior is None or prior_weight == 0:
+        return base
+    return base + prior_weight * log_prior.float()
+
+
+def moves(values: Tensor, own: Tensor, margin: float) -> Tensor:
+    """Per query of evidence [Q, S] and predicted scene [Q]: the scene with the most evidence
+    where it beats the predicted scene's by more than ``margin``, else the predicted scene
+    [Q] (ties: the predicted scene)."""
+    rows = torch.arange(len(own), device=own.device)
+    mine = values[rows, own]
+    others = values.clone()
+    others[rows, own] = -math.inf
+    best, scene = others.max(1)
+    return torch.where(best > mine + margin, scene, own)
+
+
+def decide_scenes(
+    refine: Refine,
+    probe: Probe,
+    images: Tensor,
+    intrinsics: Tensor,
+    scene_poses: Tensor,
+    predicted: Tensor,
+    first: RenderCompareResult,
+    rule: SceneRule,
+    log_prior: Tensor | None = None,
 ) -> SceneDecision:
-    """Refine every query whose score in its ``predicted`` scene [N] (``first``, the
-    refinement there) is below ``below`` in each other scene too, from the teacher's poses
-    of every scene ``scene_poses`` [N, S, 7], in one batched call, and keep per query the
-    scene with the highest refined score."""
-    scenes = scene_poses.shape[1]
-    checked = first.score < below
-    if scenes < 2 or not bool(checked.any()):
+    """Decide the scene of every query under ``rule``: those whose score in their
+    ``predicted`` scene [N] (``first``, the refinement there) is below ``rule.check_below``
+    are tried in every scene (:func:`try_scenes`, from the teacher's poses of every scene
+    ``scene_poses`` [N, S, 7]) and moved where the evidence says (:func:`moves`; the
+    teacher's scene log-probabilities ``log_prior`` [N, S], None: no prior)."""
+    checked = first.score < rule.check_below
+    if scene_poses.shape[1] < 2 or not bool(checked.any()):
         return SceneDecision(first, predicted, checked)
     query = checked.nonzero().flatten()
-    others = torch.arange(scenes, device=predicted.device).expand(len(query), scenes)
-    others = others[others != predicted[query, None]].reshape(len(query), scenes - 1)
-    pair_query = query.repeat_interleave(scenes - 1)
-    pair_scene = others.flatten()
-    pair_start = scene_poses[pair_query, pair_scene]
-    pairs = refine(images[pair_query], intrinsics[pair_query], pair_start, pair_scene)
-    # per checked query: its predicted scene's refinement, then each other scene's
-    score = torch.cat([first.score[query, None], pairs.score.view(len(query), -1)], 1)
-    best = score.argmax(1)  # ties: the predicted scene
-    chosen = torch.where(best > 0, others.gather(1, (best - 1).clamp(min=0)[:, None])[:, 0], -1)
-    moved = chosen >= 0
-    pair_rows = torch.arange(len(query), device=query.device) * (scenes - 1) + best - 1
-    target = query[moved]
-    source = pair_rows[moved]
-    poses, final, initial = first.poses.clone(), first.score.clone(), first.initial_score.clone()
-    poses[target] = pairs.poses[source].to(poses)
-    final[target] = pairs.score[source].to(final)
-    initial[target] = pairs.initial_score[source].to(initial)
-    decided = predicted.clone()
-    decided[target] = chosen[moved]
-    return SceneDecision(RenderCompareResult(poses, final, initial), decided, checked)
+    scales = (rule.probe_scale,) if rule.probe_scale else ()
+    trials = try_scenes(
+        refine, probe, images, intrinsics, scene_poses, predicted, first, query, scales
+    )
+    return apply(first, predicted, query, trials, log_prior, rule)
 
 
-def narrow(
-    decision: SceneDecision, first: RenderCompareResult, predicted: Tensor, keep: Tensor
+def apply(
+    first: RenderCompareResult,
+    predicted: Tensor,
+    query: Tensor,
+    trials: SceneTrials,
+    log_prior: Tensor | None,
+    rule: SceneRule,
 ) -> SceneDecision:
-    """``decision`` (made with every query checked) for only the queries ``keep`` [N] bool
-    checked: the others keep ``first``, their refinement in their ``predicted`` scene [N]."""
-    poses = torch.where(keep[:, None], decision.result.poses, first.poses)
-    score = torch.where(keep, decision.result.score, first.score)
-    initial = torch.where(keep, decision.result.initial_score, first.initial_score)
-    scene = torch.where(keep, decision.scene, predicted)
-    return SceneDecision(RenderCompareResult(poses, score, initial), scene, keep)
+    """``first`` (the refinement in the ``predicted`` scenes [N]) with the queries ``query``
+    [Q] (tried in every scene: ``trials``; log-probabilities ``log_prior`` [N, S] or None)
+    taking their trial in the scene ``rule`` decides on."""
+    prior = None if log_prior is None else log_prior[query]
+    values = evidence(trials, prior, rule.probe_scale, rule.prior_weight)
+    decided = moves(values, predicted[query], rule.margin)
+    rows = torch.arange(len(query), device=query.device)
+    fields = [f.clone() for f in first]
+    for field, tried in zip(fields, trials.result, strict=True):
+        field[query] = tried[rows, decided].to(field)
+    scene = predicted.clone()
+    scene[query] = decided
+    checked = torch.zeros_like(predicted, dtype=torch.bool)
+    checked[query] = True
+    return SceneDecision(RenderCompareResult(*fields), scene, checked)
 
 
-def choose_scene_check(
-    scores: Tensor, predicted: Tensor, decided_if_checked: Tensor, truth: Tensor
-) -> float:
-    """The score floor below which queries are checked in the other scenes that maximises
-    scene accuracy over queries with scores [N] in their predicted scenes [N], the scenes
-    [N] they would be moved to if checked, and their true scenes [N]: NEVER, ALWAYS and
-    ``CHECK_QUANTILES`` of the scores; the lowest floor wins ties (the fewest checks)."""
-    if not len(scores):
-        return NEVER
-    quantiles = scores.float().quantile(scores.new_tensor(CHECK_QUANTILES, dtype=torch.float))
-    floors = torch.cat([torch.tensor([NEVER, ALWAYS]), quantiles.cpu()]).sort().values
-    checked = scores.float().cpu()[None, :] < floors[:, None]  # [F, N]
-    decided = torch.where(checked, decided_if_checked.cpu(), predicted.cpu())
-    accuracy = (decided == truth.cpu()).float().mean(1)
-    return float(floors[int(accuracy.argmax())])
+def choose_scene_rule(
+    trials: SceneTrials,
+    log_prior: Tensor | None,
+    predicted: Tensor,
+    truth: Tensor,
+    check_below: float | None = None,
+) -> SceneRule:
+    """The rule that maximises scene accuracy over validation queries tried in every scene
+    (``trials`` of all N queries; teacher's log-probabilities ``log_prior`` [N, S] or None;
+    predicted [N] and true scenes [N]): the evidence (score, or sharpness at each of
+    ``PROBE_SCALES``), ``PRIOR_WEIGHTS``, ``MOVE_MARGINS`` and floors (NEVER, ALWAYS and
+    ``CHECK_QUANTILES`` of the predicted scenes' scores; a given ``check_below`` is kept).
+    Ties: the fewest queries moved, then the lowest floor (the fewest checked), then the
+    largest margin."""
+    if not len(predicted):
+        return SceneRule(NEVER if check_below is None else check_below)
+    rows = torch.arange(len(predicted), device=predicted.device)
+    own_score = trials.result.score[rows, predicted].float().cpu()
+    quantiles = own_score.quantile(torch.tensor(CHECK_QUANTILES))
+    floors = torch.cat([torch.tensor([NEVER, ALWAYS]), quantiles]).sort().values
+    if check_below is not None:
+        floors = torch.tensor([float(check_below)])
+    checked = own_score[None, :] < floors[:, None]  # [F, N]
+    weights = PRIOR_WEIGHTS if log_prior is not None else (0.0,)
+    best: tuple[tuple[float, ...], SceneRule] | None = None
+    for scale in (0.0, *trials.scales):
+        for weight in weights:
+            values = evidence(trials, log_prior, scale, weight)
+            for margin in MOVE_MARGINS:
+                target = moves(values, predicted, margin).cpu()
+                decided = torch.where(checked, target, predicted.cpu())  # [F, N]
+                accuracy = (decided == truth.cpu()).float().mean(1)
+                moved = (decided != predicted.cpu()).sum(1).float()
+                for f in range(len(floors)):
+                    key = (-float(accuracy[f]), float(moved[f]), float(floors[f]), -margin)
+                    if best is None or key < best[0]:
+                        best = (key, SceneRule(float(floors[f]), scale, weight, margin))
+    assert best is not None
+    return best[1]

@@ -13,6 +13,7 @@ import torch
 from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 
+from pae.callbacks.render_compare_confusion import RenderCompareConfusion
 from pae.callbacks.render_compare_gallery import RenderCompareGallery
 from pae.callbacks.render_compare_init import RenderCompareFromFile
 from pae.callbacks.scene_quality import SceneModelQuality
@@ -129,6 +130,7 @@ def evaluate_scene_model(
     )
     callbacks = [
         callback,
+        RenderCompareConfusion(callback),
         RenderCompareFromFile(callback),
         RenderCompareGallery(callback),
         quality or SceneModelQuality(),

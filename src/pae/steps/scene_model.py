@@ -9,6 +9,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
+from pae.callbacks.render_compare_confusion import RenderCompareConfusion
 from pae.callbacks.render_compare_gallery import RenderCompareGallery
 from pae.callbacks.render_compare_init import RenderCompareFromFile
 from pae.callbacks.scene_quality import SceneModelQuality
@@ -58,7 +59,13 @@ def fit_scene_model(
     callback = render_compare_callback(cfg)
     configs = {"teacher_config": teacher.config, **configs}
     module = fitting_module(cfg, images, scene_model, teacher.model, configs, callback.query_width)
-    callbacks = [callback, RenderCompareFromFile(callback), RenderCompareGallery(callback), quality]
+    callbacks = [
+        callback,
+        RenderCompareConfusion(callback),
+        RenderCompareFromFile(callback),
+        RenderCompareGallery(callback),
+        quality,
+    ]
     if scene_model.trains:  # max_epochs=0: saved untrained
         metrics, last = fit_and_test(
             cfg, step_dir, "scene_model", module, images, settings.max_epochs, callbacks
