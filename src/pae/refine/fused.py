@@ -14,7 +14,6 @@ declares what they implement (``FUSED_KERNEL``) and drives them (``fit_mlp_weigh
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,7 +22,13 @@ from torch import Tensor
 
 from pae.core.compiled import run_in_parts
 from pae.refine.fused_kernels import fit_rows
-from pae.refine.regressor import ADAM_BETAS, ADAM_EPS, SERIES_RATIO, SMALLEST_INPUTS, LayerParams
+from pae.refine.regressor import (
+    ADAM_BETAS,
+    ADAM_EPS,
+    SERIES_RATIO,
+    SMALLEST_INPUTS,
+    RegressorBatch,
+)
 
 
 @dataclass(frozen=True)
@@ -71,22 +76,17 @@ def _numpy(tensor: Tensor) -> np.ndarray:
 
 
 def fit_mlp_weights_fused(
-    query: Tensor,
-    neighbours: Tensor,
-    first_preactivation: Tensor,
-    first_bias: Tensor,
-    layers: Sequence[LayerParams],
+    regressors: RegressorBatch,
     iterations: int,
     lr: float,
     weight_decay: float,
     mse: bool,
     macs: np.ndarray | None = None,
 ) -> Tensor:
-    """Final softmax weights [B, k] of the weight regressors, fitted on the CPU by
-    ``fit_rows``. query [B, D]; neighbours [B, k, D]; first_preactivation, first_bias
-    [B, h]; ``layers`` the later layers (weight [1 or B, in, out], bias [1 or B, out]; one
-    row is shared by every query). float32 or float64, as ``query``. ``macs`` [B] (int64),
-    when given, receives the multiply-adds each query's fit did (see ``fit_rows``)."""
+    """Final softmax weights [B, k] of the B weight regressors ``regressors``, fitted on the
+    CPU by ``fit_rows``; float32 or float64, as their query. ``macs`` [B] (int64), when given,
+    receives the multiply-adds each query's fit did (see ``fit_rows``)."""
+    query, neighbours, layers = regressors.query, regressors.neighbours, regressors.layers
     dtype = query.dtype
     batch, k, dim = neighbours.shape
     shared = all(weight.shape[0] == 1 or weight.stride(0) == 0 for weight, _ in layers)
@@ -110,8 +110,8 @@ def fit_mlp_weights_fused(
     arrays = [
         _numpy(query),
         _numpy(neighbours.reshape(batch, k * dim).to(dtype)),
-        _numpy(first_preactivation.to(dtype)),
-        _numpy(first_bias.to(dtype)),
+        _numpy(regressors.first_preactivation.to(dtype)),
+        _numpy(regressors.first_bias.to(dtype)),
     ]
     start_np = _numpy(start)
     out = np.empty((batch, k), dtype=arrays[0].dtype)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -124,6 +125,32 @@ def check_mlp_init(init: object, batch: int, k: int, dim: int) -> Sequence[Layer
     return init
 
 
+@dataclass(frozen=True, eq=False)
+class RegressorBatch:
+    """A batch of B weight regressors at the start of their fit: their inputs query [B, D]
+    and neighbours [B, k, D]; first_preactivation [B, h], the first layer's x·W₁ (W₁ is never
+    stored), and first_bias [B, h]; ``layers`` the later layers (weight [1 or B, in, out],
+    bias [1 or B, out]; one row is shared by every query)."""
+
+    query: Tensor
+    neighbours: Tensor
+    first_preactivation: Tensor
+    first_bias: Tensor
+    layers: Sequence[LayerParams]
+
+    def rows(self, rows: slice) -> RegressorBatch:
+        """The regressors of ``rows``, their biases and later layers in the query's dtype and
+        on its device."""
+        query = self.query
+        return RegressorBatch(
+            query[rows],
+            self.neighbours[rows],
+            self.first_preactivation[rows],
+            self.first_bias[rows].to(query),
+            [(weight[rows].to(query), bias[rows].to(query)) for weight, bias in self.layers],
+        )
+
+
 class _BatchedLinear(torch.autograd.Function):
     """[b, i] inputs through per-row weights [b, i, o] and biases [b, o] -> [b, o].
 
@@ -225,11 +252,7 @@ class FirstLayerGain:
 
 
 def _fit_chunk(
-    query: Tensor,
-    neighbours: Tensor,
-    first_preactivation: Tensor,
-    first_bias: Tensor,
-    layers: Sequence[LayerParams],
+    regressors: RegressorBatch,
     iterations: int,
     lr: float,
     weight_decay: float,
@@ -244,17 +267,22 @@ def _fit_chunk(
     same rules. One AdamW step therefore changes xW₁ to
     ``(1 − lr·wd)·xW₁ − lr/(1 − β₁ᵗ) · μ ⊙ S(√(ν/(1 − β₂ᵗ)))`` with ``S`` from
     ``FirstLayerGain``: the same arithmetic as a stored W₁, at O(b·h·n) per step instead
-    of the many passes over 4 tensors of that size. first_preactivation [b, h] is x·W₁ at
-    the start; the other parameters are ordinary tensors optimised by ``torch.optim.AdamW``.
+    of the many passes over 4 tensors of that size. ``regressors.first_preactivation`` is x·W₁
+    at the start; the other parameters are ordinary tensors optimised by ``torch.optim.AdamW``.
     """
     beta1, beta2 = ADAM_BETAS
+    query, neighbours = regressors.query, regressors.neighbours
     inputs = neighbours.reshape(neighbours.shape[0], -1)
     gain = FirstLayerGain(inputs.abs(), ADAM_EPS, SERIES_RATIO.get(query.dtype, 1e3))
-    projected = first_preactivation.detach().clone()
+    projected = regressors.first_preactivation.detach().clone()
     first_avg = torch.zeros_like(projected)
     first_avg_sq = torch.zeros_like(projected)
-    bias = first_bias.detach().clone().requires_grad_(True)
-    params = [tensor.detach().clone().requires_grad_(True) for layer in layers for tensor in layer]
+    bias = regressors.first_bias.detach().clone().requires_grad_(True)
+    params = [
+        tensor.detach().clone().requires_grad_(True)
+        for layer in regressors.layers
+        for tensor in layer
+    ]
     rest = list(zip(params[0::2], params[1::2], strict=True))
     fused = True if query.device.type in ("cpu", "cuda") else None
     optimiser = torch.optim.AdamW(
@@ -319,9 +347,9 @@ def fit_mlp_weights(
     """Final softmax weights [B, k] of the batched weight regressors, one per query, each
     fitted with ``iterations`` AdamW steps on ``loss`` (see ``refine_affine``, which calls it).
     query [B, D]; neighbours [B, k, D]; ``chunk_size`` queries at a time, or all of them by
-    ``fused(query, neighbours, first_preactivation, first_bias, layers, iterations, lr,
-    weight_decay)`` when given (``pae.refine.fused``, the same arithmetic compiled, for the
-    models its ``FUSED_KERNEL`` implements). ``activation``: a key of ``ACTIVATIONS``."""
+    ``fused(regressors, iterations, lr, weight_decay)`` (``regressors`` a ``RegressorBatch``)
+    when given (``pae.refine.fused``, the same arithmetic compiled, for the models its
+    ``FUSED_KERNEL`` implements). ``activation``: a key of ``ACTIVATIONS``."""
     if activation not in ACTIVATIONS:
         raise ValueError(f"unknown activation {activation!r}; choose one of {list(ACTIVATIONS)}")
     batch, k, dim = neighbours.shape
@@ -348,25 +376,18 @@ def fit_mlp_weights(
         first_preactivation = torch.einsum(
             "bi,bio->bo", neighbours.reshape(batch, -1), first_weight.to(query)
         )
+    regressors = RegressorBatch(query, neighbours, first_preactivation, first_bias, layers)
     if fused is not None:
-        return fused(
-            query, neighbours, first_preactivation, first_bias, layers, iterations, lr, weight_decay
+        return fused(regressors, iterations, lr, weight_decay)
+    chunks = [
+        _fit_chunk(
+            regressors.rows(slice(start, start + chunk_size)),
+            iterations,
+            lr,
+            weight_decay,
+            loss,
+            activation,
         )
-    chunks = []
-    for start in range(0, batch, chunk_size):
-        rows = slice(start, start + chunk_size)
-        chunks.append(
-            _fit_chunk(
-                query[rows],
-                neighbours[rows],
-                first_preactivation[rows],
-                first_bias[rows].to(query),
-                [(weight[rows].to(query), bias[rows].to(query)) for weight, bias in layers],
-                iterations,
-                lr,
-                weight_decay,
-                loss,
-                activation,
-            )
-        )
+        for start in range(0, batch, chunk_size)
+    ]
     return torch.cat(chunks, dim=0)
