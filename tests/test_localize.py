@@ -135,6 +135,7 @@ def test_render_compare_takes_the_gate_and_steps_the_run_applied_at_test(
     finished_run: Path,
 ) -> None:
     from pae.apps.localization import read_run, render_compare_settings
+    from pae.render_compare.scene_decision import SceneRule
 
     run = read_run(finished_run)
     recorded = {
@@ -142,13 +143,20 @@ def test_render_compare_takes_the_gate_and_steps_the_run_applied_at_test(
         "test/render_compare/accept_score": 0.5,
         "test/render_compare/position_sigma_m": 0.125,
         "test/render_compare/rounds": 3.0,
+        "test/render_compare/scene_check_below": 0.4,
+        "test/render_compare/scene_probe_scale": 3.0,
+        "test/render_compare/scene_prior_weight": 0.1,
+        "test/render_compare/scene_move_margin": 0.05,
     }
-    settings, margin, floor = render_compare_settings(run._replace(metrics=recorded))
-    assert (margin, floor) == (0.25, 0.5)
+    settings, calibration = render_compare_settings(run._replace(metrics=recorded))
+    assert (calibration.accept_margin, calibration.accept_score) == (0.25, 0.5)
+    assert calibration.scene == SceneRule(0.4, 3.0, 0.1, 0.05)
     assert settings["position_sigma_m"] == 0.125 and settings["rounds"] == 3
     assert isinstance(settings["rounds"], int) and settings["candidates"] == 4
-    settings, margin, floor = render_compare_settings(run._replace(metrics={}))
-    assert (margin, floor) == (-4.0, -4.0)  # as configured: accept every refinement
+    settings, calibration = render_compare_settings(run._replace(metrics={}))
+    # as configured: accept every refinement; no scene recorded: none checked
+    assert (calibration.accept_margin, calibration.accept_score) == (-4.0, -4.0)
+    assert calibration.scene == SceneRule()
 
 
 @pytest.mark.parametrize(

@@ -11,10 +11,11 @@ from pathlib import Path
 
 import pytest
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
 from pae.core.checkpoints import CheckpointError, load_teacher
+from pae.localize import main as localize
 from pae.models.backbones import Backbone
 from pae.models.base import Latents
 from pae.models.convert import (
@@ -349,7 +350,7 @@ def test_public_pae_state_dict_gives_the_same_latents(L: int, n_scenes: int) -> 
 
 
 def test_ms_transformer_pipeline_reports_scene_accuracy(
-    compose_train: Callable[..., DictConfig], tiny_root: Path, tmp_path: Path
+    compose_train: Callable[..., DictConfig], tiny_root: Path, tmp_path: Path, capsys
 ) -> None:
     cfg = compose_train(
         "stage=pipeline",
@@ -367,6 +368,9 @@ def test_ms_transformer_pipeline_reports_scene_accuracy(
         "render_compare.refiner.rounds=1",
         run_dir=tmp_path,
     )
+    (tmp_path / ".hydra").mkdir(parents=True, exist_ok=True)
+    saved = {key: value for key, value in cfg.items() if key != "hydra"}  # what Hydra saves
+    OmegaConf.save(OmegaConf.create(saved), tmp_path / ".hydra" / "config.yaml")
     run(cfg, tmp_path)
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert 0.0 <= metrics["test/teacher/scene_accuracy"] <= 1.0
@@ -374,8 +378,26 @@ def test_ms_transformer_pipeline_reports_scene_accuracy(
     for split in ("val", "test"):
         assert 0.0 <= metrics[f"{split}/render_compare/scene_accuracy"] <= 1.0
         assert 0.0 <= metrics[f"{split}/render_compare/scene_checked_share"] <= 1.0
-    floor = metrics["val/render_compare/scene_check_below"]
-    assert metrics["test/render_compare/scene_check_below"] == floor, "chosen on val"
+        for method in ("teacher", "render_compare"):  # the confusion tables count every query
+            counts = [
+                metrics[f"{split}/{method}/scene_confusion/{true}/{assigned}"]
+                for true in ("scene00", "scene01")
+                for assigned in ("scene00", "scene01")
+            ]
+            accuracy = (counts[0] + counts[3]) / sum(counts)
+            assert accuracy == pytest.approx(metrics[f"{split}/{method}/scene_accuracy"])
+    for key in ("check_below", "probe_scale", "prior_weight", "move_margin"):
+        chosen = metrics[f"val/render_compare/scene_{key}"]
+        assert metrics[f"test/render_compare/scene_{key}"] == chosen, "chosen on val"
+    # pae-localize runs the same scene decision: the run's test figures
+    out = tmp_path / "localized.csv"
+    labels = tiny_root / "labels" / "all_test.csv"
+    argv = [str(tmp_path), str(labels), "--out", str(out), "--refine", "render_compare"]
+    assert localize(argv) == 0
+    printed = capsys.readouterr().out
+    accuracy = 100 * metrics["test/render_compare/scene_accuracy"]
+    assert f"scene accuracy {accuracy:.1f} %" in printed
+    assert f"median {metrics['test/render_compare/pos_median_m']:.3f} m" in printed
     upper = WORSE_THAN_MEAN_POSE * label_reference(tiny_root, "test")["scene00/pos_median_m"]
     for method in ("teacher", "student", "refined", "render_compare"):
         assert_error_figure(metrics, f"test/{method}/scene00/pos_median_m", upper)

@@ -167,13 +167,14 @@ def localize(args: argparse.Namespace) -> None:
                 "render_compare gate or steps: the configured ones are used"
             )
         emit(f"pae-localize: render_compare of {len(found.pose)} images")
-        poses = loc.render_compare(run, teacher.model.to(device), found, device, gate)
+        poses, scenes = loc.render_compare(run, teacher.model.to(device), found, device, gate)
+        found = found._replace(scene=scenes)
     else:
         poses = loc.student_poses(run, method, teacher.model.cpu(), found)
     table = loc.output_table(queries, poses, found.scene, teacher.scene_names)
     write_poses(args.out, table, args.format)
     if queries.labelled:
-        print(loc.summary_line(method, poses, queries, teacher.scene_names))
+        print(loc.summary_line(method, poses, queries, teacher.scene_names, found.scene))
     print(f"poses: {args.out} ({len(table)} images, {method}, {args.format})")
 
 

@@ -31,6 +31,7 @@ from pae.models.base import Latents
 from pae.render_compare import Calibration, calibrate_any_start, refine
 from pae.render_compare.calibration import scene_size, teacher_features
 from pae.render_compare.refiner import ACCEPT_ALL, BUILD_KEYS, refiner_defaults
+from pae.render_compare.scene_decision import SceneRule
 from pae.scene_model.base import SceneModel
 
 TEACHER = "teacher"
@@ -185,13 +186,17 @@ def query_intrinsics(
 class Estimates(NamedTuple):
     """The teacher's answer for every query: pose [N, 7] (unit quaternion), scene [N] it
     assigns, latents [N, 2d] ([z_x, z_q]); for render-and-compare, the query images [N, 3,
-    h, w] in [0, 1] at its compare width and their intrinsics [N, 4] (else None)."""
+    h, w] in [0, 1] at its compare width and their intrinsics [N, 4] (else None), and for
+    teachers that classify the scene its pose for every scene [N, S, 7] and its scene logits
+    [N, S] (else None)."""
 
     pose: Tensor
     scene: Tensor
     latents: Tensor
     images: Tensor | None
     intrinsics: Tensor | None
+    scene_poses: Tensor | None = None
+    scene_logits: Tensor | None = None
 
 
 @torch.no_grad()
@@ -231,6 +236,10 @@ def estimate(
             vectors = intrinsics(dataset.image_size, focal).expand(len(rows), 4).to(device)
             small, vectors = compare_queries(rgb, vectors, compare_width)
             part |= {EVAL.image: small.cpu(), EVAL.intrinsics: vectors.cpu()}
+            scene_poses = teacher.scene_poses(images)
+            if scene_poses is not None:
+                part[EVAL.scene_poses] = scene_poses.cpu()
+                part[EVAL.scene_logits] = answer.latents.scene_logits.cpu()
         parts.append(part)
         progress(rows[-1] + 1, total)
     joined = {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
@@ -240,14 +249,16 @@ def estimate(
         joined["latents"],
         joined.get(EVAL.image),
         joined.get(EVAL.intrinsics),
+        joined.get(EVAL.scene_poses),
+        joined.get(EVAL.scene_logits),
     )
 
 
-def render_compare_settings(run: Run) -> tuple[dict[str, Any], float, float]:
+def render_compare_settings(run: Run) -> tuple[dict[str, Any], Calibration]:
     """RenderCompareRefiner's settings of the run (``render_compare.refiner``, with the
     steps it chose on val and applied at test where metrics.json records them) and the
-    acceptance gate it applied at test (margin, score floor; as configured where
-    unrecorded: ``auto`` then is margin 0, no floor)."""
+    acceptance gate and scene rule it applied at test (as configured where unrecorded:
+    ``auto`` then is margin 0, no floor, no scene check)."""
     config = run.config.render_compare
     configured = OmegaConf.to_container(config.refiner, resolve=True)
     assert isinstance(configured, dict)
@@ -267,7 +278,14 @@ def render_compare_settings(run: Run) -> tuple[dict[str, Any], float, float]:
         configured = config.get(name)
         return float(configured) if isinstance(configured, int | float) else fallback
 
-    return settings, chosen("accept_margin", 0.0), chosen("accept_score", ACCEPT_ALL)
+    rule = SceneRule(
+        chosen("scene_check_below", ACCEPT_ALL),
+        chosen("scene_probe_scale", 0.0),
+        chosen("scene_prior_weight", 0.0),
+        chosen("scene_move_margin", 0.0),
+    )
+    gate = chosen("accept_margin", 0.0), chosen("accept_score", ACCEPT_ALL)
+    return settings, Calibration(*gate, scene=rule)
 
 
 def compare_width(settings: dict[str, Any]) -> int:
@@ -341,21 +359,24 @@ def render_compare(
     found: Estimates,
     device: torch.device,
     gate: str = "run",
-) -> Tensor:
-    """The render-and-compare poses [N, 7] of the queries against the run's scene model, from
-    ``found.pose`` (the teacher's estimates, or another APR's), through ``gate``: ``run`` the
-    gate and steps the run chose on val for its teacher and applied at test, ``any`` those
-    chosen on the run's validation split for starts of any error scale
-    (:func:`any_start_calibration`)."""
+) -> tuple[Tensor, Tensor]:
+    """The render-and-compare poses [N, 7] of the queries against the run's scene model and
+    their scenes [N], from ``found.pose`` (the teacher's estimates, or another APR's),
+    through ``gate``: ``run`` the gate, steps and scene decision the run chose on val for its
+    teacher and applied at test (a multi-scene teacher's queries decided between scenes as
+    in the run), ``any`` those chosen on the run's validation split for starts of any error
+    scale (:func:`any_start_calibration`; in the scene given)."""
     loaded = load_scene_model(scene_model_path(run), "scene_model_ckpt")
-    settings, margin, floor = render_compare_settings(run)
+    settings, calibration = render_compare_settings(run)
     features = None
     if settings.get("score") == "features":
         features = teacher_features(teacher, run.config.render_compare.feature_layers)
     model = loaded.model.to(device)
-    calibration = Calibration(margin, floor)
+    scene_poses = scene_logits = None
     if gate == "any":
         calibration = any_start_calibration(run, model, settings, features, device)
+    elif found.scene_poses is not None and found.scene_logits is not None:
+        scene_poses, scene_logits = found.scene_poses.to(device), found.scene_logits.to(device)
     assert found.images is not None and found.intrinsics is not None
     refined = refine(
         model,
@@ -366,8 +387,10 @@ def render_compare(
         settings,
         calibration,
         features,
+        scene_poses=scene_poses,
+        scene_logits=scene_logits,
     )
-    return refined.poses.cpu()
+    return refined.poses.cpu(), refined.scenes.cpu()
 
 
 def student_poses(run: Run, method: str, teacher: torch.nn.Module, found: Estimates) -> Tensor:
@@ -408,9 +431,17 @@ def canonical(poses: Tensor) -> Tensor:
     return torch.cat([poses[:, :3], canonicalize_quaternion(poses[:, 3:])], -1)
 
 
-def summary_line(method: str, poses: Tensor, queries: Queries, scene_names: list[str]) -> str:
+def summary_line(
+    method: str,
+    poses: Tensor,
+    queries: Queries,
+    scene_names: list[str],
+    assigned: Tensor | None = None,
+) -> str:
     """The median errors of ``poses`` [N, 7] against the label file's poses (per scene,
-    averaged over scenes, as pae-eval's overall figures)."""
+    averaged over scenes, as pae-eval's overall figures) and, for a multi-scene teacher
+    whose scenes the label file names, the share of the scenes ``assigned`` [N] (ids into
+    ``scene_names``) that are the label file's."""
     table = queries.table
     truth = torch.as_tensor(table.poses, dtype=torch.float32)
     known = [s for s in table.scene_names if s in scene_names]
@@ -418,12 +449,16 @@ def summary_line(method: str, poses: Tensor, queries: Queries, scene_names: list
     scene = torch.as_tensor(table.scene_ids(names))
     pos, rot = pose_errors(poses.float(), truth)
     summary = summarise_errors(pos, rot, scene, names)
-    return (
+    line = (
         f"{method}: median {float(summary['pos_median_m']):.3f} m / "
         f"{float(summary['rot_median_deg']):.2f}° against the label file's poses "
         f"({len(table)} images; within 10 cm, 10°: "
-        f"{100 * float(summary['within_10cm_10deg']):.1f} %)"
+        f"{100 * float(summary['within_10cm_10deg']):.1f} %"
     )
+    if assigned is not None and len(scene_names) > 1 and set(table.scene) <= set(scene_names):
+        true = torch.as_tensor([scene_names.index(s) for s in table.scene])
+        line += f"; scene accuracy {100 * float((assigned == true).float().mean()):.1f} %"
+    return line + ")"
 
 
 def output_table(queries: Queries, poses: Tensor, scene: Tensor, names: list[str]) -> LabelTable:
