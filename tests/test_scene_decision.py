@@ -132,7 +132,13 @@ def test_sharpness_is_chosen_where_a_wrong_room_scores_higher_and_no_right_query
     assert torch.equal(decision.scene, truth)
     right = predicted == truth
     assert torch.equal(decision.scene[right], predicted[right]), "no right query moved"
-    assert choose_scene_rule(trials, None, truth, truth).check_below == NEVER, "nothing to fix"
+    # nothing to fix on these queries: the evidence that alone names every true scene
+    # (sharpness, not the lucky raw scores), checking every query, moving none of them
+    quiet = choose_scene_rule(trials, None, truth, truth)
+    assert quiet.probe_scale in PROBE_SCALES and quiet.check_below == ALWAYS
+    first_right = _first(refine, images, intrinsics, scene_poses, truth)
+    kept = decide_scenes(refine, probe, images, intrinsics, scene_poses, truth, first_right, quiet)
+    assert torch.equal(kept.scene, truth)
     fixed = choose_scene_rule(trials, None, predicted, truth, check_below=ALWAYS)
     assert fixed.check_below == ALWAYS, "a given floor is kept"
 

@@ -283,8 +283,10 @@ def choose_scene_rule(
     predicted [N] and true scenes [N]): the evidence (score, or sharpness at each of
     ``PROBE_SCALES``), ``PRIOR_WEIGHTS``, ``MOVE_MARGINS`` and floors (NEVER, ALWAYS and
     ``CHECK_QUANTILES`` of the predicted scenes' scores; a given ``check_below`` is kept).
-    Ties: the fewest queries moved, then the lowest floor (the fewest checked), then the
-    largest margin."""
+    Ties: the fewest queries moved; then the evidence and weight that alone (every query's
+    scene its argmax) name the most queries' true scene, over all N queries rather than the
+    few mispredicted ones; then the highest floor and the smallest margin, which fix the
+    most mispredictions among rules that move no more validation queries."""
     if not len(predicted):
         return SceneRule(NEVER if check_below is None else check_below)
     rows = torch.arange(len(predicted), device=predicted.device)
@@ -299,13 +301,14 @@ def choose_scene_rule(
     for scale in (0.0, *trials.scales):
         for weight in weights:
             values = evidence(trials, log_prior, scale, weight)
+            alone = float((values.argmax(1) == truth).float().mean())
             for margin in MOVE_MARGINS:
                 target = moves(values, predicted, margin).cpu()
                 decided = torch.where(checked, target, predicted.cpu())  # [F, N]
                 accuracy = (decided == truth.cpu()).float().mean(1)
                 moved = (decided != predicted.cpu()).sum(1).float()
                 for f in range(len(floors)):
-                    key = (-float(accuracy[f]), float(moved[f]), float(floors[f]), -margin)
+                    key = (-float(accuracy[f]), float(moved[f]), -alone, -float(floors[f]), margin)
                     if best is None or key < best[0]:
                         best = (key, SceneRule(float(floors[f]), scale, weight, margin))
     assert best is not None
