@@ -389,6 +389,13 @@ def test_ms_transformer_pipeline_reports_scene_accuracy(
     for key in ("check_below", "probe_scale", "prior_weight", "move_margin"):
         chosen = metrics[f"val/render_compare/scene_{key}"]
         assert metrics[f"test/render_compare/scene_{key}"] == chosen, "chosen on val"
+    # the tables in TensorBoard, beside the gallery of poses in the decided scenes
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(tmp_path / "scene_model"), size_guidance={"tensors": 0})
+    events.Reload()
+    assert "test/scene_confusion/text_summary" in events.Tags()["tensors"]
+    assert "test/render_compare/gallery/scene01" in events.Tags()["images"]
     # pae-localize runs the same scene decision: the run's test figures
     out = tmp_path / "localized.csv"
     labels = tiny_root / "labels" / "all_test.csv"

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
-from pae.render_compare import Calibration, CalibrationOptions, calibrate, refine
+from pae.render_compare import Calibration, CalibrationOptions, Refinement, calibrate, refine
 from pae.render_compare.calibration import teacher_features
 from pae.render_compare.queries import refinement_figures, write_queries
 from pae.render_compare.refiner import ACCEPT_ALL, RenderCompareRefiner, refiner_defaults
@@ -24,7 +24,6 @@ from pae.scene_model.oracle import OracleSceneModel
 
 HONEST = "render_compare"
 ORACLE = "render_compare_oracle"
-TRUTH = "truth"
 
 
 class RenderCompareCallback(L.Callback):
@@ -36,8 +35,8 @@ class RenderCompareCallback(L.Callback):
     ``{split}/render_compare/...`` (the scene model learned from the train images) and, with
     ``oracle`` on data that knows its scenes (or an oracle scene model alone),
     ``{split}/render_compare_oracle/...`` (the benchmark's own renderer, a bound); the gate's
-    figures (:func:`refinement_figures`; the decided scenes of multi-scene teachers kept in
-    ``scenes``), ``bench/<method>/ms_per_query`` at test, ``queries_{split}_{method}.csv``.
+    figures (:func:`refinement_figures`; each split's refinements kept in ``refinements``),
+    ``bench/<method>/ms_per_query`` at test and ``queries_{split}_{method}.csv``.
 
     ``refiner``: the partial Hydra makes of ``render_compare.refiner`` or a mapping of
     settings replacing the defaults; ``feature_layers``: modules of the teacher backbone that
@@ -68,7 +67,7 @@ class RenderCompareCallback(L.Callback):
         )
         self.calibrations: dict[str, Calibration] = {}  # method -> the last chosen on val
         self.refined: dict[str, dict[str, Tensor]] = {}  # split -> method -> poses kept
-        self.scenes: dict[str, dict[str, Tensor]] = {}  # split -> method or TRUTH -> scenes
+        self.refinements: dict[str, dict[str, Refinement]] = {}  # split -> method -> the last
         self._val_runs = 0
         RenderCompareRefiner(SceneModel(), features=lambda x: x, **self.settings)  # checks
 
@@ -112,7 +111,7 @@ class RenderCompareCallback(L.Callback):
         common |= {key: outputs.get(key) for key in (EVAL.scene_poses, EVAL.scene_logits)}
         figures: dict[str, Tensor] = {}
         self.refined[split] = {"teacher": estimate}
-        self.scenes[split] = {"teacher": predicted, TRUTH: scene}
+        self.refinements[split] = {}
         for name, model in models.items():
             start = time.perf_counter()
             if split == "val":
@@ -126,7 +125,7 @@ class RenderCompareCallback(L.Callback):
                 )  # fmt: skip
             seconds = time.perf_counter() - start
             self.refined[split][name] = refinement.poses
-            self.scenes[split][name] = refinement.scenes
+            self.refinements[split][name] = refinement
             found, starts, refined = refinement_figures(
                 f"{split}/{name}", refinement, self.calibration(name), estimate, truth, scene,
                 pl_module.scene_names, decided,

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import lightning as L
 
-from pae.callbacks.render_compare import TRUTH, RenderCompareCallback
+from pae.callbacks.render_compare import RenderCompareCallback
 from pae.callbacks.tensorboard import tensorboard_loggers
-from pae.lit.eval_outputs import SceneModelEvaluation
+from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
 from pae.render_compare.confusion import confusion_figures, confusion_markdown, scene_confusion
 
 
@@ -29,13 +29,16 @@ class RenderCompareConfusion(L.Callback):
         self.log_tables(trainer, pl_module, "test")
 
     def log_tables(self, trainer: L.Trainer, pl_module: SceneModelEvaluation, split: str) -> None:
-        """Log the split's tables where the refinement decided scenes this epoch."""
-        scenes = self.refinement.scenes.pop(split, None)
+        """Log the split's tables where its queries were refined."""
         names = pl_module.scene_names
-        if scenes is None or len(names) < 2:
+        refinements = self.refinement.refinements.get(split)
+        outputs = collect_outputs(trainer, pl_module)
+        if refinements is None or outputs is None or len(names) < 2:
             return
-        truth = scenes.pop(TRUTH)
-        tables = {method: scene_confusion(s, truth, len(names)) for method, s in scenes.items()}
+        assigned = {"teacher": outputs[EVAL.scene_estimate]}
+        assigned |= {method: found.scenes for method, found in refinements.items()}
+        truth = outputs[EVAL.scene]
+        tables = {method: scene_confusion(s, truth, len(names)) for method, s in assigned.items()}
         figures = {}
         for method, table in tables.items():
             figures |= confusion_figures(f"{split}/{method}", table, names)

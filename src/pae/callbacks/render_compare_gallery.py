@@ -18,8 +18,6 @@ from pae.callbacks.trajectory import log_trajectories
 from pae.core.camera import scale_intrinsics
 from pae.core.geometry import pose_errors
 from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
-from pae.render_compare import build_refiner
-from pae.render_compare.gate import gate
 from pae.report.gallery import gallery_figure, gallery_labels, read_query_errors
 
 
@@ -30,9 +28,9 @@ class RenderCompareGallery(L.Callback):
     kept), each labelled with its position (m) and orientation (deg) error; TensorBoard
     image ``{split}/render_compare/gallery/<scene>``, panels ``panel_px`` px wide.
 
-    The refined poses are those of ``refinement`` (its refiner with the steps and gate it
-    chose on val), refined again for these queries with the same random draws as in the
-    full split, so they are the poses its figures count. With them, ``{split}/cumulative_errors``:
+    The refined poses are those ``refinement`` kept (through the gate, in the scene its scene
+    decision chose, rendered there), so they are the poses its figures count. With them,
+    ``{split}/cumulative_errors``:
     the teacher's and each render-and-compare method's cumulative error curves over the
     whole split (:meth:`curves`), and per scene the trajectory figure
     ``{split}/trajectory/<scene>``: the true positions, the teacher's and each
@@ -70,49 +68,42 @@ class RenderCompareGallery(L.Callback):
 
     @torch.no_grad()
     def draw(self, trainer: L.Trainer, pl_module: SceneModelEvaluation, split: str) -> None:
-        """Refine the picked queries, render both poses and log one figure per scene."""
+        """Render the picked queries' poses and log one figure per scene."""
         loggers = tensorboard_loggers(trainer)
         if not loggers or trainer.world_size > 1:
             return
         outputs = collect_outputs(trainer, pl_module, gather=False)
-        if outputs is None:
+        kept = self.refinement.refinements.get(split, {})
+        refinement = kept.get(HONEST, kept.get(ORACLE))
+        if outputs is None or refinement is None:
             return
         rows = self.picked(outputs[EVAL.scene].cpu())
         model = pl_module.scene_model
-        calibration = self.refinement.calibration(HONEST)
-        features = self.refinement.features(pl_module.teacher)
-        refiner = build_refiner(model, self.refinement.settings, calibration.steps, features)
-        draws = refiner.draws(len(outputs[EVAL.index]))[rows]
         picked = {key: value[rows.to(value.device)] for key, value in outputs.items()}
         estimate = picked[EVAL.estimate].float()
-        result = refiner(
-            picked[EVAL.image],
-            picked[EVAL.intrinsics],
-            estimate,
-            picked[EVAL.scene_estimate],
-            draws=draws,
-        )
-        gated = gate(result, estimate, calibration.accept_margin, calibration.accept_score)
+        own = rows.to(refinement.poses.device)
+        refined, accepted = refinement.poses[own].float(), refinement.accepted[own]
+        decided = refinement.scenes[own].to(picked[EVAL.scene_estimate])
         images = picked[EVAL.image]
         h, w = images.shape[-2:]
         scale = self.panel_px / w
         size = (round(h * scale), self.panel_px)
         intrinsics = scale_intrinsics(picked[EVAL.intrinsics], scale, scale)
+        views = ((estimate, picked[EVAL.scene_estimate]), (refined.to(estimate), decided))
         renders = [
-            model.render(poses, picked[EVAL.scene_estimate], intrinsics, size[1], size[0]).rgb
-            for poses in (estimate, gated.poses)
+            model.render(poses, scenes, intrinsics, size[1], size[0]).rgb for poses, scenes in views
         ]
         query = nn.functional.interpolate(images, size=size, mode="nearest")
         panels = torch.stack([query, *(r.to(query) for r in renders)], 1)  # [K, 3, 3, h, w]
         truth = picked[EVAL.pose].float()
-        errors = [pose_errors(p.float(), truth) for p in (estimate, gated.poses)]
-        labels = gallery_labels(picked[EVAL.index], errors, gated.accepted)
+        errors = [pose_errors(p.float(), truth) for p in (estimate, refined.to(truth))]
+        labels = gallery_labels(picked[EVAL.index], errors, accepted.cpu())
         self.curves(trainer, loggers, split)
-        refined = self.refinement.refined.get(split)
-        if refined is not None:
+        methods = self.refinement.refined.get(split)
+        if methods is not None:
             truth_all = outputs[EVAL.pose].float()
             log_trajectories(
-                trainer, split, truth_all, refined, outputs[EVAL.scene], pl_module.scene_names
+                trainer, split, truth_all, methods, outputs[EVAL.scene], pl_module.scene_names
             )
         names = pl_module.scene_names
         scenes = picked[EVAL.scene].cpu()
