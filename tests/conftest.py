@@ -12,6 +12,9 @@ from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, open_dict
 
 from pae import CONFIG_DIR
+from pae.config.schemas import register_schemas
+
+register_schemas()  # every test composes pae's configs as pae-train does
 
 REFERENCE_LABELS = Path(__file__).resolve().parents[2] / "shared" / "reference" / "labels"
 

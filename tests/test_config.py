@@ -120,43 +120,48 @@ def test_experiments_with_sweep_parameters_sweep_by_themselves(option: str) -> N
         assert cfg.hydra.mode == RunMode.MULTIRUN, f"experiment={option} needs hydra.mode"
 
 
-def test_python_defaults_are_the_yaml_defaults() -> None:
-    """One default per setting: where Python code has a default, it is the config's value."""
-    import inspect
-
+def test_config_files_with_a_schema_set_only_what_differs_from_it() -> None:
+    """Defaults live in code (the settings records behind ``pae.config.schemas``): a config
+    file that starts from a schema sets no key to the schema's own default."""
     from omegaconf import OmegaConf
 
-    from pae.callbacks.refinement import TestTimeRefinement
-    from pae.models.pae import PoseAutoEncoder
-    from pae.refine import PoseIndex
-    from pae.synthetic.datamodule import SyntheticDataModule
-
-    def defaults(function) -> dict:
-        return {
-            name: p.default
-            for name, p in inspect.signature(function).parameters.items()
-            if p.default is not inspect.Parameter.empty
-        }
+    from pae.config.schemas import SCHEMAS
 
     conf = Path(CONFIG_DIR)
-    for function, path in (
-        (SyntheticDataModule, "data/synthetic.yaml"),
-        (TestTimeRefinement, "refine/knn_affine.yaml"),
-        (PoseAutoEncoder, "pae/fourier_mlp4.yaml"),
-    ):
-        values = OmegaConf.to_container(OmegaConf.load(conf / path))
-        shared = {
-            k: v
-            for k, v in defaults(function).items()
-            if k in values and not isinstance(values[k], dict)
-        }
-        assert len(shared) >= 3
-        for key, default in shared.items():
-            if not isinstance(values[key], str) or "${" not in values[key]:
-                expected = tuple(values[key]) if isinstance(default, tuple) else values[key]
-                assert default == expected, f"{function.__name__}({key}=) vs {path}"
-    refine = OmegaConf.load(conf / "refine/knn_affine.yaml")
-    assert defaults(PoseIndex)["rot_weight"] == refine.rot_weight
+    checked = 0
+    for (group, name), node in SCHEMAS.items():
+        defaults = OmegaConf.to_container(OmegaConf.structured(node))
+        for path in sorted((conf / group).glob("*.yaml")):
+            values = OmegaConf.to_container(OmegaConf.load(path))
+            if {f"/schema/{group}@_here_": name} not in values.get("defaults", []):
+                continue
+            checked += 1
+            for key, value in values.items():
+                if key != "defaults":
+                    assert value != defaults[key], f"{path.name}: {key} is the schema's default"
+    assert checked >= 7
+
+
+def test_a_key_no_schema_has_or_a_value_of_another_type_is_refused_when_composing() -> None:
+    from hydra.errors import ConfigCompositionException
+
+    for key in ("data.val_walk=2", "refine.kk=3", "pae.l=4", "pae.L=abc", "data.val_walks=1.5"):
+        with pytest.raises(ConfigCompositionException, match=key.replace(".", r"\.")):
+            _compose("train.yaml", [key])
+
+
+def test_the_refinement_and_its_index_share_their_defaults() -> None:
+    """The paper's refinement's defaults have one home, read by the callback, the method and
+    the retrieval store alike."""
+    import inspect
+
+    from pae.callbacks.refinement import TestTimeRefinement
+    from pae.refine import PoseIndex
+    from pae.refine.settings import RefinementSettings
+
+    protocols = TestTimeRefinement().protocols
+    assert (protocols.k, protocols.rot_weight) == (RefinementSettings.k, 0.01)
+    assert inspect.signature(PoseIndex).parameters["rot_weight"].default == protocols.rot_weight
 
 
 def test_old_key_pae_ckpt_is_read_as_student_ckpt_with_one_warning(capsys) -> None:

@@ -432,9 +432,6 @@ def test_synth_passes_arguments_and_prints_summary(
         return Written()
 
     fake = types.ModuleType("pae.synthetic")
-    fake.DEFAULT_SCENES, fake.DEFAULT_TRAIN_FRAMES, fake.DEFAULT_TEST_FRAMES = 3, 40, 20
-    fake.DEFAULT_SIZE, fake.DEFAULT_TEST_OFFSET_M, fake.DEFAULT_TRAIN_LANE_M = 64, 0.7, 0.0
-    fake.DEFAULT_YAW_STRAY_RAD, fake.DEFAULT_STRAY_M = 0.5, 0.35
     fake.write_synthetic_dataset = write_synthetic_dataset
     monkeypatch.setitem(sys.modules, "pae.synthetic", fake)
     monkeypatch.setattr(pae, "synthetic", fake, raising=False)
@@ -451,45 +448,14 @@ def test_synth_passes_arguments_and_prints_summary(
     assert written.out == "synthetic summary\n" * 2
     assert f"rendering {tmp_path / 'a'}: 1/2 frames (50 %)" in written.err
     assert calls == [
-        (
-            tmp_path / "a",
-            dict(
-                scenes=2,
-                train_frames=40,
-                test_frames=20,
-                size=32,
-                seed=7,
-                test_offset_m=0.7,
-                train_lane_m=0.0,
-                yaw_stray_rad=0.5,
-                stray_m=0.35,
-                val_lane_m=None,
-                val_walks=0,
-                lighting_change=0.0,
-                occluder_fraction=0.0,
-                sensor_noise_std=0.0,
-                motion_blur_px=0.0,
-                plain_surface_share=0.0,
-                repeated_surface_share=0.0,
-                glossy_surface_share=0.0,
-                camera_pipeline=0.0,
-                jpeg_quality=0,
-                render_scale=1,
-                overwrite=False,
-            ),
-        ),
+        (tmp_path / "a", dict(seed=7, overwrite=False, scenes=2, size=32)),
         (
             tmp_path / "b",
             dict(
-                scenes=3,
-                train_frames=40,
-                test_frames=20,
-                size=64,
                 seed=0,
+                overwrite=False,
                 test_offset_m=0.0,
                 train_lane_m=0.5,
-                yaw_stray_rad=0.5,
-                stray_m=0.35,
                 val_lane_m=-0.25,
                 val_walks=2,
                 lighting_change=0.5,
@@ -502,7 +468,6 @@ def test_synth_passes_arguments_and_prints_summary(
                 camera_pipeline=1.0,
                 jpeg_quality=75,
                 render_scale=4,
-                overwrite=False,
             ),
         ),
     ]

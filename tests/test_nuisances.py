@@ -22,6 +22,7 @@ from pae.synthetic import (
     FrameConditions,
     Nuisances,
     PinholeCamera,
+    SyntheticSettings,
     make_scene,
     make_sequences,
     motion_kernel,
@@ -57,7 +58,7 @@ def _nuisance_rows(root: Path) -> list[dict[str, str]]:
 def sequence() -> tuple:
     """Scene 0, its first train sequence's first 20 frames and a 24 px camera."""
     scene = make_scene(0, 0)
-    first = make_sequences(0, scene, 120, 10, 0)[0]
+    first = make_sequences(0, scene, SyntheticSettings(train_frames=120, test_frames=10))[0]
     first = dataclasses.replace(first, poses=first.poses[:20])
     return scene, first, PinholeCamera(SIZE)
 
@@ -71,19 +72,17 @@ def _draw(sequence: tuple, **settings: float) -> tuple:
 
 def test_default_folder_names_are_unchanged() -> None:
     plain = "data/synthetic/scenes2_train1600_test250_px64_seed0_offset0_lane0.5_yaw0.15_stray0.1"
-    layout = (2, 1600, 250, 64, 0, 0.0, None, 0.5, 0.15, 0.1)
-    assert default_root(*layout) == plain
-    assert default_root(*layout, Nuisances()) == plain
+    assert default_root(SyntheticSettings()) == plain
     assert str(SyntheticDataModule().root) == plain
     zeros = dict.fromkeys(ALL_ON, 0.0)
     assert str(SyntheticDataModule(**zeros).root) == plain
-    assert default_root(*layout, Nuisances(**ALL_ON)) == f"{plain}_light1_occl0.3_noise0.02_blur3"
+    assert default_root(SyntheticSettings(**ALL_ON)) == f"{plain}_light1_occl0.3_noise0.02_blur3"
     assert str(SyntheticDataModule(occluder_fraction=0.3).root) == f"{plain}_occl0.3"
     assert str(SyntheticDataModule(val_lane_m=0.0).root) == f"{plain}_val0"
     assert str(SyntheticDataModule(val_lane_m=None).root) == plain
     walks = SyntheticDataModule(val_lane_m=0.0, val_walks=3)
     assert str(walks.root) == f"{plain}_val0_walks3" and walks.holdout == (4, 0.1)
-    assert SyntheticDataModule(**ALL_ON).render_args.items() >= ALL_ON.items()
+    assert SyntheticDataModule(**ALL_ON).render_settings == SyntheticSettings(**ALL_ON)
 
 
 def test_nuisances_at_zero_render_the_plain_benchmark(tmp_path: Path) -> None:

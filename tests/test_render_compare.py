@@ -25,6 +25,7 @@ from pae.synthetic import (
     Appearance,
     PinholeCamera,
     SyntheticScene,
+    SyntheticSettings,
     furnish,
     make_scene,
     make_sequences,
@@ -177,7 +178,8 @@ def _oracle_queries(n: int = 6) -> tuple[OracleSceneModel, torch.Tensor, torch.T
     the true poses moved by about 0.3 m and 5 degrees."""
     scene = make_scene(0)
     camera = PinholeCamera(48)
-    poses = make_sequences(0, scene, train_frames=6, test_frames=8 * n)[-1].poses[::4]
+    walks = make_sequences(0, scene, SyntheticSettings(train_frames=6, test_frames=8 * n))
+    poses = walks[-1].poses[::4]
     truth = torch.from_numpy(poses).float()
     images = render_batch(scene, poses, camera, Appearance(), supersample=1)
     images = torch.from_numpy(images).float().div(255).permute(0, 3, 1, 2)

@@ -26,6 +26,7 @@ from pae.synthetic import (
     PinholeCamera,
     SurfaceOptions,
     SyntheticScene,
+    SyntheticSettings,
     dress_surfaces,
     jpeg_roundtrip,
     make_scene,
@@ -83,18 +84,17 @@ def _facing_wall(scene: SyntheticScene, distance_m: float) -> np.ndarray:
 def sequence() -> tuple:
     """Scene 0, its first train sequence's first 16 frames and a 32 px camera."""
     scene = make_scene(0, 0)
-    first = make_sequences(0, scene, 120, 10, 0)[0]
+    first = make_sequences(0, scene, SyntheticSettings(train_frames=120, test_frames=10))[0]
     return scene, dataclasses.replace(first, poses=first.poses[:16]), PinholeCamera(SIZE)
 
 
 def test_default_folder_names_are_unchanged() -> None:
     plain = "data/synthetic/scenes2_train1600_test250_px64_seed0_offset0_lane0.5_yaw0.15_stray0.1"
-    layout = (2, 1600, 250, 64, 0, 0.0, None, 0.5, 0.15, 0.1, None, None, 0)
-    assert default_root(*layout, SurfaceOptions(), CaptureOptions()) == plain
+    assert default_root(SyntheticSettings(**OFF)) == plain
     assert str(SyntheticDataModule(**OFF).root) == plain
     module = SyntheticDataModule(**ALL_ON, lighting_change=1.0)
     assert str(module.root) == f"{plain}_light1_plain0.3_repeat0.2_gloss0.3_pipe1_jpeg75_x2"
-    assert module.render_args.items() >= ALL_ON.items()
+    assert module.render_settings == SyntheticSettings(**ALL_ON, lighting_change=1.0)
     assert (module.camera.width, module.camera.height) == (128, 128)
     assert module.camera.cx == 63.5 and SyntheticDataModule().camera.width == 64
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -13,13 +14,12 @@ from pae.bench.rendering import measure_render_speed
 from pae.data.labels import read_labels
 from pae.synthetic import (
     DEFAULT_SIZE,
-    DEFAULT_TEST_FRAMES,
-    DEFAULT_TRAIN_FRAMES,
     Appearance,
     Box,
     FaceTexture,
     PinholeCamera,
     SyntheticScene,
+    SyntheticSettings,
     SyntheticSummary,
     make_scene,
     make_sequences,
@@ -142,11 +142,18 @@ def test_test_positions_lie_within_the_train_area(seed: int) -> None:
     for index in range(2):
         scene = make_scene(index, seed, 0.0, 0.0)
         sequences = make_sequences(
-            index, scene, DEFAULT_TRAIN_FRAMES, DEFAULT_TEST_FRAMES, seed, 0.0, 0.0, 0.5, 0.35
+            index,
+            scene,
+            SyntheticSettings(
+                seed=seed, test_offset_m=0.0, train_lane_m=0.0, yaw_stray_rad=0.5, stray_m=0.35
+            ),
         )
         train = np.concatenate([s.poses for s in sequences if s.split == "train"])
         test = np.concatenate([s.poses for s in sequences if s.split == "test"])
-        assert (len(train), len(test)) == (DEFAULT_TRAIN_FRAMES, DEFAULT_TEST_FRAMES)
+        assert (len(train), len(test)) == (
+            SyntheticSettings.train_frames,
+            SyntheticSettings.test_frames,
+        )
         distance = np.linalg.norm(test[:, None, :3] - train[None, :, :3], axis=-1)
         nearest = distance.min(axis=1)
         assert nearest.max() < 0.75
@@ -166,7 +173,7 @@ def test_default_test_sequences_walk_between_the_train_lanes(seed: int) -> None:
     nearest_all = []
     for index in range(2):
         scene = make_scene(index, seed)
-        sequences = make_sequences(index, scene, DEFAULT_TRAIN_FRAMES, DEFAULT_TEST_FRAMES, seed)
+        sequences = make_sequences(index, scene, SyntheticSettings(seed=seed))
         train = np.concatenate([s.poses for s in sequences if s.split == "train"])
         test = np.concatenate([s.poses for s in sequences if s.split == "test"])
         nearest = np.linalg.norm(test[:, None, :3] - train[None, :, :3], axis=-1).min(axis=1)
@@ -182,7 +189,7 @@ def test_default_test_sequences_walk_between_the_train_lanes(seed: int) -> None:
 
 def test_trajectories_are_smooth_and_look_around() -> None:
     scene = make_scene(0, 0)
-    sequences = make_sequences(0, scene, DEFAULT_TRAIN_FRAMES, DEFAULT_TEST_FRAMES, 0)
+    sequences = make_sequences(0, scene, SyntheticSettings(seed=0))
     train_yaw = []
     for sequence in sequences:
         poses = sequence.poses
@@ -201,7 +208,7 @@ def test_trajectories_are_smooth_and_look_around() -> None:
 
 def test_appearance_differs_between_sequences() -> None:
     scene = make_scene(0, 0)
-    sequences = make_sequences(0, scene, 30, 10, 0)
+    sequences = make_sequences(0, scene, SyntheticSettings(train_frames=30, test_frames=10, seed=0))
     pose = sequences[0].poses[0]
     camera = PinholeCamera(DEFAULT_SIZE)
     images = [render(scene, pose, camera, s.appearance).astype(np.float64) for s in sequences]
@@ -215,7 +222,9 @@ def test_appearance_differs_between_sequences() -> None:
 def test_images_are_textured_and_change_with_pose() -> None:
     scene = make_scene(1, 0)
     camera = PinholeCamera(DEFAULT_SIZE)
-    sequence = make_sequences(1, scene, 300, 10, 0)[0].poses
+    sequence = make_sequences(
+        1, scene, SyntheticSettings(train_frames=300, test_frames=10, seed=0)
+    )[0].poses
     far = np.argmax(np.linalg.norm(sequence[:, :3] - sequence[0, :3], axis=1))
     poses = sequence[[0, far]]
     assert np.linalg.norm(poses[0, :3] - poses[1, :3]) > 0.5
@@ -343,8 +352,30 @@ def test_train_lanes_and_yaw_stray_shape_the_sequences() -> None:
     (test cameras stay, ``test_offset_m`` 0); ``yaw_stray_rad`` bounds the yaw change."""
     lane, stray = 0.6, 0.15
     scene = make_scene(0, 0, 0.0, lane)
-    base = make_sequences(0, scene, 600, 100, 0, 0.0, 0.0, 0.0)
-    moved = make_sequences(0, scene, 600, 100, 0, 0.0, lane, stray)
+    base = make_sequences(
+        0,
+        scene,
+        SyntheticSettings(
+            train_frames=600,
+            test_frames=100,
+            seed=0,
+            test_offset_m=0.0,
+            train_lane_m=0.0,
+            yaw_stray_rad=0.0,
+        ),
+    )
+    moved = make_sequences(
+        0,
+        scene,
+        SyntheticSettings(
+            train_frames=600,
+            test_frames=100,
+            seed=0,
+            test_offset_m=0.0,
+            train_lane_m=lane,
+            yaw_stray_rad=stray,
+        ),
+    )
     train_index = 0
     for before, after in zip(base, moved, strict=True):
         shift = after.poses[:, :3] - before.poses[:, :3]
@@ -368,9 +399,46 @@ def test_val_lane_moves_the_last_train_sequence_alone() -> None:
     ``val_sequences: 1``) that far beside the route, between the lanes; every other sequence,
     train and test, keeps its poses to the bit."""
     scene = make_scene(0, 0, 0.0, 0.5)
-    lanes = make_sequences(0, scene, 600, 100, 0, 0.0, 0.5, 0.0, 0.0)
-    between = make_sequences(0, scene, 600, 100, 0, 0.0, 0.5, 0.0, 0.0, val_lane_m=0.0)
-    on_route = make_sequences(0, scene, 600, 100, 0, 0.0, 0.0, 0.0, 0.0)
+    lanes = make_sequences(
+        0,
+        scene,
+        SyntheticSettings(
+            train_frames=600,
+            test_frames=100,
+            seed=0,
+            test_offset_m=0.0,
+            train_lane_m=0.5,
+            yaw_stray_rad=0.0,
+            stray_m=0.0,
+        ),
+    )
+    between = make_sequences(
+        0,
+        scene,
+        SyntheticSettings(
+            train_frames=600,
+            test_frames=100,
+            seed=0,
+            test_offset_m=0.0,
+            train_lane_m=0.5,
+            yaw_stray_rad=0.0,
+            stray_m=0.0,
+            val_lane_m=0.0,
+        ),
+    )
+    on_route = make_sequences(
+        0,
+        scene,
+        SyntheticSettings(
+            train_frames=600,
+            test_frames=100,
+            seed=0,
+            test_offset_m=0.0,
+            train_lane_m=0.0,
+            yaw_stray_rad=0.0,
+            stray_m=0.0,
+        ),
+    )
     val = [s.split == "train" for s in lanes].index(False) - 1
     for index, (before, after) in enumerate(zip(lanes, between, strict=True)):
         if index == val:
@@ -389,10 +457,23 @@ def test_validation_walks_add_sequences_and_change_none(tmp_path: Path) -> None:
     the bit, and the data module holds the walks out with seq-06: its train split (its
     fingerprint) is the one without them, its validation split seq-06 and the walks."""
     scene = make_scene(0, 0, 0.0, 0.5)
-    plain = make_sequences(0, scene, 600, 100, 0, 0.0, 0.5, 0.15, 0.1, val_lane_m=0.0)
-    layout = (0, scene, 600, 100, 0, 0.0, 0.5, 0.15, 0.1)
-    walked = make_sequences(*layout, val_lane_m=0.0, val_walks=2)
-    beside = make_sequences(*layout, val_lane_m=0.3, val_walks=2)
+    plain = make_sequences(
+        0,
+        scene,
+        SyntheticSettings(
+            train_frames=600,
+            test_frames=100,
+            seed=0,
+            test_offset_m=0.0,
+            train_lane_m=0.5,
+            yaw_stray_rad=0.15,
+            stray_m=0.1,
+            val_lane_m=0.0,
+        ),
+    )
+    layout = SyntheticSettings(train_frames=600, test_frames=100, val_walks=2)
+    walked = make_sequences(0, scene, dataclasses.replace(layout, val_lane_m=0.0))
+    beside = make_sequences(0, scene, dataclasses.replace(layout, val_lane_m=0.3))
     assert [s.name for s in walked[len(plain) :]] == ["seq-09", "seq-10"]
     for before, after in zip(plain, walked, strict=False):
         np.testing.assert_array_equal(after.poses, before.poses)
@@ -422,4 +503,4 @@ def test_the_package_exports_every_public_name() -> None:
         assert getattr(package, name) is not None, name
     for name in ("PinholeCamera", "render_batch", "make_scene", "make_sequences", "Appearance"):
         assert name in package.__all__
-    assert "DEFAULT_TRAIN_LANE_M" in package.__all__ and "TEXEL_SIZE_M" in package.__all__
+    assert "SyntheticSettings" in package.__all__ and "TEXEL_SIZE_M" in package.__all__

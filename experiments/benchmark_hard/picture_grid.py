@@ -15,13 +15,12 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
-from hydra import compose, initialize_config_dir
 
-from pae import CONFIG_DIR, synthetic
+from pae import synthetic
+from pae.config.schemas import compose_config
 
 SHOWN_PX = 256
 """Width and height (px) each frame is shown at."""
@@ -29,43 +28,29 @@ LABEL_PX = 22
 """Height (px) of the band holding the column titles."""
 
 
-def data_settings(experiment: str) -> dict[str, Any]:
-    """The ``data`` settings of ``experiment`` (a name under conf/experiment)."""
-    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-        cfg = compose("train", [f"experiment={experiment}"])
-    return dict(cfg.data)
+def data_settings(experiment: str) -> tuple[synthetic.SyntheticSettings, int]:
+    """The synthetic benchmark's settings in ``data`` of ``experiment`` (a name under
+    conf/experiment) and the size (px) its loaders downsample the images to."""
+    cfg = compose_config("train", [f"experiment={experiment}"])
+    given = {name: cfg.data[name] for name in synthetic.SyntheticSettings.names() if name != "seed"}
+    return synthetic.SyntheticSettings(**given, seed=cfg.data.render_seed), cfg.data.shorter_edge
 
 
-def render_frames(settings: dict[str, Any], frames: int) -> list[np.ndarray]:
+def render_frames(settings: synthetic.SyntheticSettings, frames: int) -> list[np.ndarray]:
     """``frames`` images ``[S, S, 3]`` uint8 RGB (``S``: size × render_scale) of the first
     train sequence of each scene, spread evenly along it, rendered with ``settings``."""
-    size, seed = settings["size"], settings["render_seed"]
-    nuisances = synthetic.Nuisances(*(settings[key] for key in synthetic.NUISANCE_BOUNDS))
-    surfaces = synthetic.SurfaceOptions(*(settings[key] for key in synthetic.SURFACE_BOUNDS))
-    capture = synthetic.CaptureOptions(
-        settings["camera_pipeline"], settings["jpeg_quality"], settings["render_scale"]
-    )
+    size, seed, capture = settings.size, settings.seed, settings.capture
     camera = synthetic.PinholeCamera(size)
     stored = synthetic.PinholeCamera(size * capture.render_scale)
     images = []
-    for index in range(settings["scenes"]):
-        scene = synthetic.make_scene(
-            index, seed, settings["test_offset_m"], settings["train_lane_m"]
+    for index in range(settings.scenes):
+        scene = synthetic.make_scene(index, seed, settings.test_offset_m, settings.train_lane_m)
+        scene = synthetic.dress_surfaces(
+            scene, settings.surfaces, synthetic.surface_seed(seed, index)
         )
-        scene = synthetic.dress_surfaces(scene, surfaces, synthetic.surface_seed(seed, index))
-        sequence = synthetic.make_sequences(
-            index,
-            scene,
-            settings["train_frames"],
-            settings["test_frames"],
-            seed,
-            settings["test_offset_m"],
-            settings["train_lane_m"],
-            settings["yaw_stray_rad"],
-            settings["stray_m"],
-        )[0]
+        sequence = synthetic.make_sequences(index, scene, settings)[0]
         appearance, conditions = synthetic.sequence_conditions(
-            scene, sequence, camera, nuisances, capture
+            scene, sequence, camera, settings.nuisances, capture
         )
         conditions = synthetic.scaled_blur(conditions, capture.render_scale)
         step = len(sequence.poses) // frames
@@ -111,10 +96,10 @@ def main() -> None:
         "--out", type=Path, default=Path("outputs/benchmark_hard/grid.png"), help="PNG to write"
     )
     args = parser.parse_args()
-    easy_settings, hard_settings = data_settings("demo"), data_settings(args.experiment)
+    easy_settings, _ = data_settings("demo")
+    hard_settings, seen = data_settings(args.experiment)
     easy = render_frames(easy_settings, args.frames)
     hard = render_frames(hard_settings, args.frames)
-    seen = hard_settings["shorter_edge"]
     columns = [
         np.concatenate([shown(image) for image in easy], axis=0),
         np.concatenate([shown(image) for image in hard], axis=0),
@@ -131,7 +116,7 @@ def main() -> None:
     if not cv2.imwrite(str(args.out), cv2.cvtColor(grid, cv2.COLOR_RGB2BGR)):
         raise OSError(f"could not write {args.out}")
     print(
-        f"wrote {args.out}: {len(easy)} frames of {easy_settings['scenes']} scenes, "
+        f"wrote {args.out}: {len(easy)} frames of {easy_settings.scenes} scenes, "
         f"{grid.shape[1]}x{grid.shape[0]} px"
     )
 

@@ -14,10 +14,9 @@ import sys
 
 import numpy as np
 import torch
-from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from pae import CONFIG_DIR
+from pae.config.schemas import compose_config
 from pae.core.checkpoints import load_teacher
 
 BINS_M = (0.0, 0.1, 0.2, 0.4, 0.8, np.inf)
@@ -37,8 +36,7 @@ def nearest_train_distances(
 
 
 def main(checkpoint: str, root: str) -> None:
-    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
-        cfg = compose("train", overrides=[f"data.root={root}", "data.num_workers=0"])
+    cfg = compose_config("train", [f"data.root={root}", "data.num_workers=0"])
     data = instantiate(cfg.data)
     data.setup("fit")
     data.setup("test")

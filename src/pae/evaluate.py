@@ -14,16 +14,19 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from pae import CONFIG_DIR
+from pae.config.schemas import register_schemas
 from pae.config.validation import apply_renamed_keys, validate_eval_config
 from pae.core.atomic import write_json_atomic
-from pae.core.error_reporting import reporting_errors
+from pae.core.error_reporting import in_one_line, reporting_errors
 from pae.core.provenance import save_corrected_config
 from pae.core.run_context import start_run
 from pae.report.tables import format_results_table
 
+register_schemas()  # conf/<group>/*.yaml start from them
+
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="eval")
-def main(cfg: DictConfig) -> float | None:
+def hydra_main(cfg: DictConfig) -> float | None:
     from pae.core.console import quiet_third_party
 
     quiet_third_party()
@@ -57,6 +60,9 @@ def main(cfg: DictConfig) -> float | None:
         say(f"metrics: {run_dir / 'metrics.json'}")
         return metrics.get("val/refined/pos_median_m")  # a sweeper's objective: never test
 
+
+main = in_one_line("pae-eval", hydra_main)
+"""The console entry point: a config Hydra cannot compose is said in one line."""
 
 if __name__ == "__main__":
     main()

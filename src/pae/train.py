@@ -15,9 +15,10 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from pae import CONFIG_DIR
+from pae.config.schemas import register_schemas
 from pae.config.validation import apply_renamed_keys, validate_train_config
 from pae.core.atomic import write_json_atomic
-from pae.core.error_reporting import reporting_errors
+from pae.core.error_reporting import in_one_line, reporting_errors
 from pae.core.provenance import save_corrected_config
 from pae.core.run_context import start_run
 from pae.report.tables import format_results_table, step_figures
@@ -67,8 +68,11 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, float | int | str]:
     return metrics
 
 
+register_schemas()  # conf/<group>/*.yaml start from them
+
+
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="train")
-def main(cfg: DictConfig) -> float | None:
+def hydra_main(cfg: DictConfig) -> float | None:
     with reporting_errors("pae-train"):
         from pae.core.console import say
 
@@ -85,6 +89,9 @@ def objective(metrics: dict[str, float]) -> float | None:
     student's median position error, else the teacher's)."""
     return metrics.get("val/student/pos_median_m", metrics.get("val/teacher/pos_median_m"))
 
+
+main = in_one_line("pae-train", hydra_main)
+"""The console entry point: a config Hydra cannot compose is said in one line."""
 
 if __name__ == "__main__":
     main()

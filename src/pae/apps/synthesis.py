@@ -16,77 +16,64 @@ def _render_progress(out: Path) -> Progress:
     return Progress(f"rendering {out}", "frames", lambda line: print(line, file=sys.stderr))
 
 
+SYNTH_OPTIONS = {
+    "scenes": "scenes",
+    "train_frames": "train_frames",
+    "test_frames": "test_frames",
+    "test_offset_m": "test_offset",
+    "train_lane_m": "train_lane",
+    "val_lane_m": "val_lane",
+    "val_walks": "val_walks",
+    "yaw_stray_rad": "yaw_stray",
+    "stray_m": "stray",
+    "lighting_change": "lighting_change",
+    "occluder_fraction": "occluder_fraction",
+    "sensor_noise_std": "sensor_noise",
+    "motion_blur_px": "motion_blur",
+    "plain_surface_share": "plain_surfaces",
+    "repeated_surface_share": "repeated_surfaces",
+    "glossy_surface_share": "glossy_surfaces",
+    "camera_pipeline": "camera_pipeline",
+    "jpeg_quality": "jpeg_quality",
+    "render_scale": "render_scale",
+}
+"""The benchmark's settings (:class:`pae.synthetic.settings.SyntheticSettings`) ->
+``pae-data synth``'s options that set them (``--test-offset`` for ``test_offset``); one
+not given keeps its default."""
+
+
 def run_synth(args: argparse.Namespace) -> int:
     """``pae-data synth``: render the benchmark (or the rows of ``--poses``) into ``OUT``."""
     from pae import synthetic
 
-    def chosen(value: int | float | None, default: int | float) -> int | float:
-        return default if value is None else value
-
+    given = {
+        setting: getattr(args, option)
+        for setting, option in SYNTH_OPTIONS.items()
+        if getattr(args, option) is not None
+    }
     if args.poses:
-        ignored = [
-            flag
-            for flag, value in (
-                ("--scenes", args.scenes),
-                ("--train-frames", args.train_frames),
-                ("--test-frames", args.test_frames),
-                ("--test-offset", args.test_offset),
-                ("--train-lane", args.train_lane),
-                ("--val-lane", args.val_lane),
-                ("--val-walks", args.val_walks),
-                ("--yaw-stray", args.yaw_stray),
-                ("--stray", args.stray),
-                ("--lighting-change", args.lighting_change),
-                ("--occluder-fraction", args.occluder_fraction),
-                ("--sensor-noise", args.sensor_noise),
-                ("--motion-blur", args.motion_blur),
-                ("--plain-surfaces", args.plain_surfaces),
-                ("--repeated-surfaces", args.repeated_surfaces),
-                ("--glossy-surfaces", args.glossy_surfaces),
-                ("--camera-pipeline", args.camera_pipeline),
-                ("--jpeg-quality", args.jpeg_quality),
-                ("--render-scale", args.render_scale),
-            )
-            if value is not None
-        ]
-        if ignored:
-            raise ValueError(f"--poses renders the given rows only: drop {', '.join(ignored)}")
+        if given:
+            flags = ", ".join(f"--{SYNTH_OPTIONS[s].replace('_', '-')}" for s in given)
+            raise ValueError(f"--poses renders the given rows only: drop {flags}")
         from pae.synthetic.poses import write_dataset_at_poses
 
         dataset = write_dataset_at_poses(
             args.out,
             args.poses,
-            size=chosen(args.size, synthetic.DEFAULT_SIZE),
+            size=synthetic.SyntheticSettings.size if args.size is None else args.size,
             seed=args.seed,
             overwrite=args.overwrite,
             progress=_render_progress(args.out),
         )
     else:
+        if args.size is not None:
+            given["size"] = args.size
         dataset = synthetic.write_synthetic_dataset(
             args.out,
-            scenes=chosen(args.scenes, synthetic.DEFAULT_SCENES),
-            train_frames=chosen(args.train_frames, synthetic.DEFAULT_TRAIN_FRAMES),
-            test_frames=chosen(args.test_frames, synthetic.DEFAULT_TEST_FRAMES),
-            size=chosen(args.size, synthetic.DEFAULT_SIZE),
             seed=args.seed,
-            test_offset_m=chosen(args.test_offset, synthetic.DEFAULT_TEST_OFFSET_M),
-            train_lane_m=chosen(args.train_lane, synthetic.DEFAULT_TRAIN_LANE_M),
-            yaw_stray_rad=chosen(args.yaw_stray, synthetic.DEFAULT_YAW_STRAY_RAD),
-            stray_m=chosen(args.stray, synthetic.DEFAULT_STRAY_M),
-            val_lane_m=args.val_lane,
-            val_walks=chosen(args.val_walks, 0),
-            lighting_change=chosen(args.lighting_change, 0.0),
-            occluder_fraction=chosen(args.occluder_fraction, 0.0),
-            sensor_noise_std=chosen(args.sensor_noise, 0.0),
-            motion_blur_px=chosen(args.motion_blur, 0.0),
-            plain_surface_share=chosen(args.plain_surfaces, 0.0),
-            repeated_surface_share=chosen(args.repeated_surfaces, 0.0),
-            glossy_surface_share=chosen(args.glossy_surfaces, 0.0),
-            camera_pipeline=chosen(args.camera_pipeline, 0.0),
-            jpeg_quality=chosen(args.jpeg_quality, 0),
-            render_scale=chosen(args.render_scale, 1),
             overwrite=args.overwrite,
             progress=_render_progress(args.out),
+            **given,
         )
     print(dataset.summary())
     return 0

@@ -43,16 +43,14 @@ def teacher_epoch(root: Path, train_frames: int = 320) -> Callable[[], None]:
     scenes of ``train_frames`` 64 px frames each (written under ``root``): augmented 56 px
     crops, batches of 32, the learned pose loss and the scene classifier's, Adam."""
     import torch
-    from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
-    from pae import CONFIG_DIR
+    from pae.config.schemas import compose_config
     from pae.data.datamodule import PoseDataModule
     from pae.synthetic import write_synthetic_dataset
 
     write_synthetic_dataset(root, scenes=2, train_frames=train_frames, test_frames=4)
-    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
-        cfg = compose(config_name="train", overrides=["experiment=demo"])
+    cfg = compose_config("train", ["experiment=demo"])
     data = PoseDataModule(
         root=str(root),
         train_labels=str(root / "labels" / "all_train.csv"),

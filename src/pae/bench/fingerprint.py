@@ -11,10 +11,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from pae import CONFIG_DIR
+from pae.config.schemas import compose_config
 from pae.data.fingerprint import images_blake2b, sampled_images_sha256
 from pae.data.labels import LabelTable, read_labels, write_labels
 from pae.synthetic import write_synthetic_dataset
@@ -28,13 +27,12 @@ def demo_train_root(spare: Path) -> Path:
     """The folder of the demo's dataset (``experiment=demo``): its folder under
     data/synthetic/ where its label files are, else the same settings rendered into ``spare``
     (an empty folder)."""
-    with initialize_config_dir(str(CONFIG_DIR), version_base=None):
-        cfg = compose("train", overrides=["experiment=demo"])
+    cfg = compose_config("train", ["experiment=demo"])
     data = instantiate(cfg.data)
     root = Path(data.root)
     if (root / "labels" / "all_train.csv").is_file():
         return root
-    write_synthetic_dataset(spare, **data.render_args)
+    write_synthetic_dataset(spare, data.render_settings)
     return spare
 
 

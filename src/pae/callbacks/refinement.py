@@ -4,12 +4,16 @@ split and logs its figures."""
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Any
+
 import lightning as L
 import torch
 from lightning.pytorch.loggers import TensorBoardLogger
 from torch import Tensor
 
 from pae.callbacks.error_curves import log_error_curves
+from pae.callbacks.settings import TestTimeRefinementSettings
 from pae.callbacks.trajectory import log_trajectories
 from pae.core.geometry import pose_errors
 from pae.core.metrics import summarise_errors
@@ -22,6 +26,7 @@ from pae.refine.protocols import (
     RefinerFactory,
     store_distances,
 )
+from pae.refine.settings import RefinementSettings
 
 PROTOCOLS_TEXT = (
     "**Retrieval protocols.** `refined`, `knn_mean`, `guess_refined` and the alternatives "
@@ -42,35 +47,23 @@ class TestTimeRefinement(L.Callback):
     (``*_test_store``: the authors' scripts' protocol, an audit), with ``guess_sigma_m`` the
     random-guess check (``guess_initial``, ``guess_refined``), every alternative, and
     ``{split}/diagnostics/...`` (:func:`store_distances`). Under DDP every process gathers
-    all queries (dataset order, each once). The arguments are those of
-    :class:`RefinementProtocols` and the plots' (``trajectory_plot``, ``trajectory_methods``)."""
+    all queries (dataset order, each once). The settings: :class:`TestTimeRefinementSettings`
+    (the refinement's, :class:`RefinementProtocols`, and how often it runs and what it
+    draws); ``alternatives``: named factories of other refiners (train store only)."""
+
+    settings_types = (TestTimeRefinementSettings,)
+    """The settings it takes by name besides ``alternatives``."""
 
     def __init__(
-        self,
-        k: int = 3,
-        iterations: int = 3,
-        lr: float = 1e-3,
-        weight_model: str = "mlp",
-        activation: str = "relu",
-        orientation: str = "teacher",
-        distance: str = "normalized",
-        rot_weight: float = 0.01,
-        every_n_val_epochs: int = 1,
-        guess_sigma_m: float | None = 0.5,
-        seed: int = 0,
-        trajectory_plot: bool = True,
-        trajectory_methods: tuple[str, ...] = ("refined",),
-        audit: bool = True,
-        alternatives: dict[str, RefinerFactory] | None = None,
+        self, alternatives: dict[str, RefinerFactory] | None = None, **settings: Any
     ) -> None:
         super().__init__()
-        self.protocols = RefinementProtocols(
-            k, iterations, lr, weight_model, activation, orientation, distance, rot_weight,
-            guess_sigma_m, seed, audit, dict(alternatives or {}),
-        )  # fmt: skip
-        self.every_n_val_epochs = max(1, every_n_val_epochs)
-        self.trajectory_plot = trajectory_plot
-        self.trajectory_methods = tuple(trajectory_methods)
+        given = TestTimeRefinementSettings(**settings)
+        method = {f.name: getattr(given, f.name) for f in dataclasses.fields(RefinementSettings)}
+        self.protocols = RefinementProtocols(**method, alternatives=dict(alternatives or {}))
+        self.every_n_val_epochs = max(1, given.every_n_val_epochs)
+        self.trajectory_plot = given.trajectory_plot
+        self.trajectory_methods = tuple(given.trajectory_methods)
         self.index: PoseIndex | None = None
         self.position_index: PoseIndex | None = None
         self._val_runs = 0

@@ -5,6 +5,7 @@ ranges with them)."""
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import typing
 from pathlib import Path
@@ -73,11 +74,15 @@ ANNOTATED_TYPES = {int: "an integer", float: "a number", bool: "true or false", 
 
 
 def constructor_types(target: Any) -> dict[str, Any]:
-    """The constructor's annotated argument types (empty where they cannot be resolved)."""
+    """The constructor's annotated argument types, those of its ``settings_types`` included
+    (empty where they cannot be resolved)."""
     try:
-        return typing.get_type_hints(target.__init__ if inspect.isclass(target) else target)
+        types = typing.get_type_hints(target.__init__ if inspect.isclass(target) else target)
+        for settings in getattr(target, "settings_types", ()):
+            types = typing.get_type_hints(settings) | types
     except Exception:  # annotations naming what the module does not import: unchecked
         return {}
+    return types
 
 
 def matches_annotation(value: Any, annotation: Any) -> bool:
@@ -93,11 +98,17 @@ def matches_annotation(value: Any, annotation: Any) -> bool:
 
 def accepted_arguments(target: Any) -> tuple[list[str], bool]:
     """The keyword arguments a class (or function) accepts, and whether it takes any: a
-    class whose ``**kwargs`` go to its base class's constructor accepts that one's too."""
+    class with ``settings_types`` (dataclasses of the settings its ``**settings`` take)
+    accepts their fields; one whose ``**kwargs`` go to its base class's constructor accepts
+    that one's."""
     parameters = inspect.signature(target).parameters.values()
     names = [p.name for p in parameters if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
     if not any(p.kind == p.VAR_KEYWORD for p in parameters):
         return names, False
+    settings_types = getattr(target, "settings_types", ())
+    if settings_types:
+        fields = [f.name for settings in settings_types for f in dataclasses.fields(settings)]
+        return [*names, *dict.fromkeys(n for n in fields if n not in names)], False
     if inspect.isclass(target):
         for base in target.__mro__[1:]:
             if base is not object and "__init__" in vars(base):

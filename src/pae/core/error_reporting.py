@@ -7,7 +7,7 @@ from __future__ import annotations
 import os
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
 
@@ -63,6 +63,40 @@ def first_line(err: BaseException) -> str:
     if lines and lines[0].startswith("Caught ") and "Traceback" in str(cause):
         lines = [lines[-1].split(": ", 1)[-1]]
     return " ".join(" ".join(lines).split()) or type(cause).__name__
+
+
+def config_error_line(err: HydraException | OmegaConfBaseException) -> str:
+    """The line of a config that Hydra could not compose (an override of a key no schema
+    has, a value of the wrong type): the key and what is wrong with it."""
+    cause = err.__cause__ if isinstance(err.__cause__, OmegaConfBaseException) else err
+    key = getattr(cause, "full_key", None)
+    if key and isinstance(cause, OmegaConfBaseException):
+        return f"{key}: {str(cause).strip().splitlines()[0]}"
+    return first_line(err).split(" Config search path:")[0]
+
+
+def in_one_line(program: str, hydra_main: Callable[[], object]) -> Callable[[], None]:
+    """The console entry point of ``hydra_main`` (a ``hydra.main`` function): what Hydra
+    reports itself before or after the run (a config it cannot compose, a failed sweep) is
+    said in one line ``<program>: error: ...`` with exit status 1. ``HYDRA_FULL_ERROR=1``
+    keeps Hydra's own report with its traceback."""
+
+    def entry() -> None:
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            hydra_main()
+            return
+        os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra raises instead of printing
+        try:
+            hydra_main()
+        except (HydraException, OmegaConfBaseException) as err:
+            line = config_error_line(err)
+            prefix = f"{program}: error: "
+            print(line if line.startswith(prefix) else prefix + line, file=sys.stderr)
+            raise SystemExit(1) from None
+        finally:
+            del os.environ["HYDRA_FULL_ERROR"]
+
+    return entry
 
 
 def _hydra_job() -> tuple[Path, bool] | None:

@@ -25,6 +25,7 @@ from pae.data.fingerprint import images_blake2b, sampled_images_sha256
 from pae.data.holdout import HeldOut, held_out_rows, scenes_short_of_sequences
 from pae.data.labels import LabelTable, focal_column_mismatch, focal_problems, read_labels
 from pae.data.order import EpochOrder, trainer_epoch
+from pae.data.settings import PoseDataSettings
 from pae.data.transforms import ImageTransform, image_size
 
 
@@ -55,61 +56,41 @@ class PoseDataModule(L.LightningDataModule):
     decoded when first loaded: a student whose teacher latents are cached never reads them.
     """
 
-    def __init__(
-        self,
-        root: str,
-        train_labels: str,
-        test_labels: str,
-        val_labels: str | None = None,
-        shorter_edge: int = 256,
-        crop: int = 224,
-        color_jitter: tuple[float, float, float, float] = (0.5, 0.5, 0.5, 0.2),
-        channel_gain: float = 0.0,
-        crop_shift_px: int | None = None,
-        crop_turns_camera: bool = False,
-        augment: bool = True,
-        batch_size: int = 32,
-        eval_batch_size: int = 128,
-        num_workers: int = 0,
-        cache_images: bool = False,
-        balance_scenes: bool = False,
-        pose_loss_init: dict[str, float] | None = None,
-        scenes: list[str] | None = None,
-        camera: dict[str, float] | None = None,
-        val_sequences: HeldOut = 1,
-        val_fraction: float | None = 0.1,
-        order_seed: int = 0,
-    ) -> None:
+    settings_types = (PoseDataSettings,)
+    """The settings it takes by name besides ``root`` and the label files."""
+
+    def __init__(self, root: str, train_labels: str, test_labels: str, **settings: Any) -> None:
+        s = PoseDataSettings.given(settings)
         super().__init__()
-        self.order_seed = order_seed
-        self.camera = Intrinsics(**camera) if camera else None
-        self.crop = crop
+        self.order_seed = s.order_seed
+        self.camera = Intrinsics(**s.camera) if s.camera else None
+        self.crop = s.crop
         self.root = Path(root)
-        self.label_paths = {"train": train_labels, "val": val_labels or test_labels}
+        self.label_paths = {"train": train_labels, "val": s.val_labels or test_labels}
         self.label_paths["test"] = test_labels
-        carve = val_labels is None and val_sequences is not None
-        self.holdout = (val_sequences, val_fraction) if carve else None
-        self.shorter_edge = shorter_edge
-        self.batch_size = batch_size
-        self.eval_batch_size = eval_batch_size
-        self.num_workers = num_workers
-        self.cache_images = cache_images
-        self.balance_scenes = balance_scenes
-        self.augment = augment
-        self.pose_loss_init = dict(pose_loss_init or {})
-        self.keep_scenes = list(scenes) if scenes else None
+        carve = s.val_labels is None and s.val_sequences is not None
+        self.holdout = (s.val_sequences, s.val_fraction) if carve else None
+        self.shorter_edge = s.shorter_edge
+        self.batch_size = s.batch_size
+        self.eval_batch_size = s.eval_batch_size
+        self.num_workers = s.num_workers
+        self.cache_images = s.cache_images
+        self.balance_scenes = s.balance_scenes
+        self.augment = s.augment
+        self.pose_loss_init = dict(s.pose_loss_init or {})
+        self.keep_scenes = list(s.scenes) if s.scenes else None
         try:
             self.train_transform = ImageTransform(
-                crop,
+                s.crop,
                 train=True,
-                color_jitter=tuple(color_jitter),
-                channel_gain=channel_gain,
-                crop_shift_px=crop_shift_px,
+                color_jitter=tuple(s.color_jitter),
+                channel_gain=s.channel_gain,
+                crop_shift_px=s.crop_shift_px,
             )
         except ValueError as err:  # its message starts with the key
             raise ConfigError(f"data.{err}") from None
-        self.eval_transform = ImageTransform(crop, train=False)
-        self.crop_turns_camera = crop_turns_camera
+        self.eval_transform = ImageTransform(s.crop, train=False)
+        self.crop_turns_camera = s.crop_turns_camera
         self._turn_intrinsics: Tensor | None = None
         self.tables: dict[str, LabelTable] = {}
         self.datasets: dict[str, PoseDataset] = {}

@@ -8,6 +8,7 @@ import torch
 from torch import Tensor, nn
 
 from pae.models.base import Latents
+from pae.models.settings import PAE_DEFAULTS
 
 
 class FourierFeatures(nn.Module):
@@ -61,11 +62,11 @@ class PoseAutoEncoder(nn.Module):
 
     def __init__(
         self,
-        latent_dim: int = 256,
-        hidden: Sequence[int] = (64, 128, 256),
-        L: int = 6,
+        latent_dim: int = PAE_DEFAULTS.latent_dim,
+        hidden: Sequence[int] = tuple(PAE_DEFAULTS.hidden),
+        L: int = PAE_DEFAULTS.L,
         n_scenes: int = 1,
-        scene_L: int = 6,
+        scene_L: int = PAE_DEFAULTS.scene_L,
     ) -> None:
         super().__init__()
         self.latent_dim = latent_dim

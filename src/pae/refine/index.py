@@ -11,6 +11,7 @@ from torch import Tensor
 
 from pae.core.compiled import ENGINES, Engine, insert_sorted, jit, run_in_parts
 from pae.core.geometry import canonicalize_quaternion
+from pae.refine.settings import RefinementSettings
 
 PoseDistance = Literal["normalized", "fixed"]
 _DEGREES_PER_HALF_TURN = 360.0 / math.pi
@@ -158,7 +159,7 @@ class PoseIndex:
         scenes: Tensor | np.ndarray | None = None,
         *,
         distance: PoseDistance = "normalized",
-        rot_weight: float = 0.01,
+        rot_weight: float = RefinementSettings.rot_weight,
         chunk_size: int = 256,
         engine: Engine = "auto",
     ) -> None:

@@ -17,6 +17,7 @@ from pae.models.base import Latents
 from pae.refine.index import PoseIndex
 from pae.refine.refiner import ORIENTATION_MODES, PositionRefiner, RefinementResult
 from pae.refine.regressor import ACTIVATIONS
+from pae.refine.settings import RefinementSettings
 from pae.refine.weights import WEIGHT_MODELS
 
 Refiner = Callable[[Latents, Tensor, Tensor | None], RefinementResult]
@@ -40,24 +41,12 @@ RESERVED_METHODS = (
 
 
 @dataclasses.dataclass
-class RefinementProtocols:
-    """The paper's refinement's settings (``k`` neighbours, ``iterations``, ``lr``,
-    ``weight_model``, ``activation``, ``orientation``), the store's distance (``distance``:
-    normalized | fixed, ``rot_weight`` m per degree), the random-guess check's noise
-    (``guess_sigma_m``, None: none), ``seed``, ``audit`` (also retrieve among the evaluated
-    split's own poses: ``*_test_store``) and named ``alternatives`` (train store only)."""
+class RefinementProtocols(RefinementSettings):
+    """The paper's refinement's settings (:class:`RefinementSettings`: ``k`` neighbours,
+    ``iterations``, ``lr``, ``weight_model``, ``activation``, ``orientation``, the store's
+    ``distance`` and ``rot_weight``, the random-guess check's ``guess_sigma_m``, ``seed``,
+    ``audit``) and named ``alternatives`` (train store only)."""
 
-    k: int = 3
-    iterations: int = 3
-    lr: float = 1e-3
-    weight_model: str = "mlp"
-    activation: str = "relu"
-    orientation: str = "teacher"
-    distance: str = "normalized"
-    rot_weight: float = 0.01
-    guess_sigma_m: float | None = 0.5
-    seed: int = 0
-    audit: bool = True
     alternatives: Mapping[str, RefinerFactory] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self) -> None:

@@ -10,8 +10,9 @@ import numpy as np
 import torch
 
 from pae.core.geometry import quaternion_to_matrix
+from pae.synthetic.settings import SyntheticSettings
 
-DEFAULT_SIZE = 64
+DEFAULT_SIZE = SyntheticSettings.size
 """Image width and height in pixels."""
 DEFAULT_FOV_DEG = 65.0
 """Horizontal field of view in degrees."""

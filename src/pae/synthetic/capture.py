@@ -22,65 +22,12 @@ own, so turning it on leaves the nuisances' draws unchanged.
 from __future__ import annotations
 
 import dataclasses
-import math
-from dataclasses import dataclass
 
 import numpy as np
 
 from pae.synthetic.raycast import Appearance, FrameConditions
+from pae.synthetic.settings import CaptureOptions
 from pae.synthetic.trajectories import smooth_wave
-
-JPEG_QUALITY_RANGE = (1, 100)
-"""Qualities ``jpeg_quality`` takes when on."""
-RENDER_SCALE_MAX = 8
-"""Largest ``render_scale``."""
-
-
-@dataclass(frozen=True)
-class CaptureOptions:
-    """The benchmark's capture settings (see the module doc); the defaults: the plain
-    benchmark's. Out-of-range values raise a one-line ValueError naming the setting."""
-
-    camera_pipeline: float = 0.0
-    jpeg_quality: int = 0
-    render_scale: int = 1
-
-    def __post_init__(self) -> None:
-        value = self.camera_pipeline
-        number = isinstance(value, int | float) and not isinstance(value, bool)
-        if not (number and math.isfinite(value) and 0 <= value <= 1):
-            raise ValueError(f"camera_pipeline must be a number in [0, 1], got {value!r}")
-        low, high = JPEG_QUALITY_RANGE
-        if not _is_int(self.jpeg_quality) or not (
-            self.jpeg_quality == 0 or low <= self.jpeg_quality <= high
-        ):
-            raise ValueError(
-                f"jpeg_quality must be 0 (off) or an integer in [{low}, {high}], "
-                f"got {self.jpeg_quality!r}"
-            )
-        if not _is_int(self.render_scale) or not 1 <= self.render_scale <= RENDER_SCALE_MAX:
-            raise ValueError(
-                f"render_scale must be an integer in [1, {RENDER_SCALE_MAX}], "
-                f"got {self.render_scale!r}"
-            )
-
-    @property
-    def active(self) -> bool:
-        """Whether any capture setting is on."""
-        return bool(self.camera_pipeline or self.jpeg_quality or self.render_scale > 1)
-
-    def folder_suffix(self) -> str:
-        """``_pipe1_jpeg75_x4``-like suffix naming the settings that are on (empty when none
-        is)."""
-        return (
-            (f"_pipe{self.camera_pipeline:g}" if self.camera_pipeline else "")
-            + (f"_jpeg{self.jpeg_quality}" if self.jpeg_quality else "")
-            + (f"_x{self.render_scale}" if self.render_scale > 1 else "")
-        )
-
-
-def _is_int(value: object) -> bool:
-    return isinstance(value, int | np.integer) and not isinstance(value, bool)
 
 
 def _drift(rng: np.random.Generator, frames: int) -> np.ndarray:

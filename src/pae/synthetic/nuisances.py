@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -35,15 +34,9 @@ from pae.synthetic.scene import (
     pattern_patch,
     texel_shape,
 )
+from pae.synthetic.settings import Nuisances
 from pae.synthetic.trajectories import smooth_wave
 
-NUISANCE_BOUNDS = {
-    "lighting_change": 1.0,
-    "occluder_fraction": 1.0,
-    "sensor_noise_std": 0.5,
-    "motion_blur_px": 64.0,
-}
-"""Upper bound of each nuisance setting (all >= 0; 0 turns it off)."""
 OCCLUDER_SIZE_M = (0.5, 0.4, 1.7)
 """Mean width, depth and height (m) of an occluder: a person (each ±15 %)."""
 OCCLUDER_DISTANCE_M = (0.8, 2.5)
@@ -51,39 +44,6 @@ OCCLUDER_DISTANCE_M = (0.8, 2.5)
 straight ahead."""
 MOTION_DEPTH_M = 2.0
 """Depth (m) of the point whose image motion between frames sets a frame's blur direction."""
-
-
-@dataclass(frozen=True)
-class Nuisances:
-    """The benchmark's nuisance settings (see the module doc); all 0: none, the plain render.
-
-    Out-of-range values raise a one-line ValueError naming the setting.
-    """
-
-    lighting_change: float = 0.0
-    occluder_fraction: float = 0.0
-    sensor_noise_std: float = 0.0
-    motion_blur_px: float = 0.0
-
-    def __post_init__(self) -> None:
-        for name, high in NUISANCE_BOUNDS.items():
-            value = getattr(self, name)
-            number = isinstance(value, int | float) and not isinstance(value, bool)
-            if not (number and math.isfinite(value) and 0 <= value <= high):
-                raise ValueError(f"{name} must be a number in [0, {high:g}], got {value!r}")
-
-    @property
-    def active(self) -> bool:
-        """Whether any nuisance is on."""
-        return any(getattr(self, name) for name in NUISANCE_BOUNDS)
-
-    def folder_suffix(self) -> str:
-        """``_light1_occl0.3_noise0.02_blur3``-like suffix naming the settings that are on
-        (empty when none is)."""
-        tags = zip(("light", "occl", "noise", "blur"), NUISANCE_BOUNDS, strict=True)
-        return "".join(
-            f"_{tag}{getattr(self, name):g}" for tag, name in tags if getattr(self, name)
-        )
 
 
 def _wave(rng: np.random.Generator, frames: int) -> np.ndarray:

@@ -12,13 +12,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-DEFAULT_TEST_OFFSET_M = 0.0
-"""Lateral offset (m) of the test sequences from the route, alternately left and right."""
-DEFAULT_TRAIN_LANE_M = 0.5
-"""Lateral offset (m) of the train sequences from the route, alternately left and right.
-With the defaults the test sequences walk between the train lanes, as test walks do between
-train walks in Cambridge Landmarks: the median test camera lies 0.21 m from the nearest train
-camera, about half the CPU teacher's error (the real datasets: 0.37-1.07 of MS-Transformer's)."""
+from pae.synthetic.settings import SyntheticSettings
+
 TEXEL_SIZE_M = 0.02
 
 
@@ -476,8 +471,8 @@ def furnish(
 def make_scene(
     index: int,
     seed: int = 0,
-    test_offset_m: float = DEFAULT_TEST_OFFSET_M,
-    train_lane_m: float = DEFAULT_TRAIN_LANE_M,
+    test_offset_m: float = SyntheticSettings.test_offset_m,
+    train_lane_m: float = SyntheticSettings.train_lane_m,
 ) -> SyntheticScene:
     """Scene ``index`` of the benchmark with ``seed``: room, furniture, textures, camera route.
 

@@ -21,20 +21,13 @@ and a larger share keeps the surfaces of a smaller one.
 from __future__ import annotations
 
 import dataclasses
-import math
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from pae.synthetic.scene import Box, FaceTexture, SyntheticScene
+from pae.synthetic.settings import SurfaceOptions
 
-SURFACE_BOUNDS = {
-    "plain_surface_share": 1.0,
-    "repeated_surface_share": 1.0,
-    "glossy_surface_share": 1.0,
-}
-"""Upper bound of each surface setting (all >= 0; 0 turns it off)."""
 REPEAT_PERIOD_M = (0.15, 0.3)
 """Range (m) of a repeated surface's period."""
 GLOSS_SPECULAR = (0.3, 0.7)
@@ -45,42 +38,6 @@ LAMPS = 2
 """Fixed lamps whose highlights glossy surfaces show, beside the point light's."""
 PLAIN_VALUE = (0.6, 0.9)
 """Range of a plain surface's grey level before its own colour is mixed in (30 %)."""
-
-
-@dataclass(frozen=True)
-class SurfaceOptions:
-    """The benchmark's surface settings (see the module doc); all 0: the plain benchmark's
-    textured, matte surfaces. Out-of-range values raise a one-line ValueError naming the
-    setting."""
-
-    plain_surface_share: float = 0.0
-    repeated_surface_share: float = 0.0
-    glossy_surface_share: float = 0.0
-
-    def __post_init__(self) -> None:
-        for name, high in SURFACE_BOUNDS.items():
-            value = getattr(self, name)
-            number = isinstance(value, int | float) and not isinstance(value, bool)
-            if not (number and math.isfinite(value) and 0 <= value <= high):
-                raise ValueError(f"{name} must be a number in [0, {high:g}], got {value!r}")
-        if self.plain_surface_share + self.repeated_surface_share > 1:
-            raise ValueError(
-                f"plain_surface_share + repeated_surface_share must be <= 1, got "
-                f"{self.plain_surface_share:g} + {self.repeated_surface_share:g}"
-            )
-
-    @property
-    def active(self) -> bool:
-        """Whether any surface setting is on."""
-        return any(getattr(self, name) for name in SURFACE_BOUNDS)
-
-    def folder_suffix(self) -> str:
-        """``_plain0.3_repeat0.2_gloss0.3``-like suffix naming the settings that are on (empty
-        when none is)."""
-        tags = zip(("plain", "repeat", "gloss"), SURFACE_BOUNDS, strict=True)
-        return "".join(
-            f"_{tag}{getattr(self, name):g}" for tag, name in tags if getattr(self, name)
-        )
 
 
 def _face_grid(texture: FaceTexture) -> tuple[np.ndarray, np.ndarray]:

@@ -11,17 +11,9 @@ import torch
 from pae.core.geometry import matrix_to_quaternion
 from pae.synthetic.camera import look_rotations
 from pae.synthetic.raycast import Appearance
-from pae.synthetic.scene import (
-    DEFAULT_TEST_OFFSET_M,
-    DEFAULT_TRAIN_LANE_M,
-    CameraRoute,
-    SyntheticScene,
-)
+from pae.synthetic.scene import CameraRoute, SyntheticScene
+from pae.synthetic.settings import SyntheticSettings
 
-DEFAULT_STRAY_M = 0.1
-"""How far (m) a sequence's camera strays horizontally from its lane, at most."""
-DEFAULT_YAW_STRAY_RAD = 0.15
-"""How far (rad) a sequence's yaw strays from the route's heading, at most."""
 TRAIN_SEQUENCES = 6
 TEST_SEQUENCES = 2
 
@@ -82,8 +74,8 @@ def trajectory(
     start: float,
     rng: np.random.Generator,
     offset_m: float = 0.0,
-    yaw_stray_rad: float = DEFAULT_YAW_STRAY_RAD,
-    stray_m: float = DEFAULT_STRAY_M,
+    yaw_stray_rad: float = SyntheticSettings.yaw_stray_rad,
+    stray_m: float = SyntheticSettings.stray_m,
 ) -> np.ndarray:
     """Smooth camera path of ``frames`` poses ``[frames, 7]`` along the scene's route.
 
@@ -115,17 +107,7 @@ def trajectory(
 
 
 def make_sequences(
-    scene_index: int,
-    scene: SyntheticScene,
-    train_frames: int,
-    test_frames: int,
-    seed: int = 0,
-    test_offset_m: float = DEFAULT_TEST_OFFSET_M,
-    train_lane_m: float = DEFAULT_TRAIN_LANE_M,
-    yaw_stray_rad: float = DEFAULT_YAW_STRAY_RAD,
-    stray_m: float = DEFAULT_STRAY_M,
-    val_lane_m: float | None = None,
-    val_walks: int = 0,
+    scene_index: int, scene: SyntheticScene, settings: SyntheticSettings
 ) -> list[CameraSequence]:
     """Train sequences ``seq-01…``, test sequences, then ``val_walks`` validation walks
     (numbered on) of scene ``scene_index``.
@@ -142,8 +124,10 @@ def make_sequences(
     others and walking where it walks (``val_lane_m``, or alternately its lane and the
     other): more validation data from the same layout, every other sequence unchanged.
     """
+    train_frames, seed, val_lane_m = settings.train_frames, settings.seed, settings.val_lane_m
+    train_lane_m, val_walks = settings.train_lane_m, settings.val_walks
     train_counts = _split_counts(train_frames, TRAIN_SEQUENCES)
-    test_counts = _split_counts(test_frames, TEST_SEQUENCES)
+    test_counts = _split_counts(settings.test_frames, TEST_SEQUENCES)
     splits = [("train", i, len(train_counts), n) for i, n in enumerate(train_counts)]
     splits += [("test", i, len(test_counts), n) for i, n in enumerate(test_counts)]
     splits += [("walk", i, val_walks, walk_frames(train_frames)) for i in range(val_walks)]
@@ -152,7 +136,7 @@ def make_sequences(
     for number, (kind, index_in_split, count, frames) in enumerate(splits, start=1):
         rng = np.random.default_rng([seed, scene_index, 1, number])
         start = (index_in_split + rng.uniform(0, 0.3)) / count
-        lane = test_offset_m if kind == "test" else train_lane_m
+        lane = settings.test_offset_m if kind == "test" else train_lane_m
         offset = lane * (-1) ** index_in_split
         last_train = kind == "train" and index_in_split == count - 1
         if (last_train or kind == "walk") and val_lane_m is not None:
@@ -160,7 +144,9 @@ def make_sequences(
         elif kind == "walk":
             offset = last_lane * (-1) ** index_in_split
         split = "test" if kind == "test" else "train"
-        poses = trajectory(scene, frames, start, rng, offset, yaw_stray_rad, stray_m)
+        poses = trajectory(
+            scene, frames, start, rng, offset, settings.yaw_stray_rad, settings.stray_m
+        )
         appearance = Appearance.random(rng)
         sequences.append(
             CameraSequence(

@@ -7,43 +7,27 @@ are)."""
 from __future__ import annotations
 
 import dataclasses
-import math
 import shutil
 import time
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
 from pae.data.labels import LabelTable, write_labels
-from pae.synthetic.camera import DEFAULT_SIZE, PinholeCamera
-from pae.synthetic.capture import CaptureOptions, sequence_capture
-from pae.synthetic.nuisances import Nuisances, sequence_nuisances
+from pae.synthetic.camera import PinholeCamera
+from pae.synthetic.capture import sequence_capture
+from pae.synthetic.nuisances import sequence_nuisances
 from pae.synthetic.raycast import Appearance, FrameConditions, render_batch
-from pae.synthetic.scene import (
-    DEFAULT_TEST_OFFSET_M,
-    DEFAULT_TRAIN_LANE_M,
-    SyntheticScene,
-    make_scene,
-    scene_name,
-)
-from pae.synthetic.surfaces import SurfaceOptions, dress_surfaces
-from pae.synthetic.trajectories import (
-    DEFAULT_STRAY_M,
-    DEFAULT_YAW_STRAY_RAD,
-    CameraSequence,
-    make_sequences,
-    walk_frames,
-)
+from pae.synthetic.scene import SyntheticScene, make_scene, scene_name
+from pae.synthetic.settings import CaptureOptions, Nuisances, SyntheticSettings
+from pae.synthetic.surfaces import dress_surfaces
+from pae.synthetic.trajectories import CameraSequence, make_sequences, walk_frames
 
-DEFAULT_SCENES = 2
-DEFAULT_TRAIN_FRAMES = 1600
-"""Training frames per scene."""
-DEFAULT_TEST_FRAMES = 250
-"""Test frames per scene."""
 FRAMES_PER_WRITE = 64
 """Frames rendered before they are written, bounding memory for large images."""
 NUISANCE_FILE = "nuisances.csv"
@@ -200,105 +184,38 @@ def write_whole(
 
 def write_synthetic_dataset(
     out: Path | str,
-    scenes: int = DEFAULT_SCENES,
-    train_frames: int = DEFAULT_TRAIN_FRAMES,
-    test_frames: int = DEFAULT_TEST_FRAMES,
-    size: int = DEFAULT_SIZE,
-    seed: int = 0,
-    test_offset_m: float = DEFAULT_TEST_OFFSET_M,
+    settings: SyntheticSettings | None = None,
+    *,
     overwrite: bool = False,
-    train_lane_m: float = DEFAULT_TRAIN_LANE_M,
-    yaw_stray_rad: float = DEFAULT_YAW_STRAY_RAD,
-    stray_m: float = DEFAULT_STRAY_M,
     progress: RenderProgress | None = None,
-    lighting_change: float = 0.0,
-    occluder_fraction: float = 0.0,
-    sensor_noise_std: float = 0.0,
-    motion_blur_px: float = 0.0,
-    val_lane_m: float | None = None,
-    val_walks: int = 0,
-    plain_surface_share: float = 0.0,
-    repeated_surface_share: float = 0.0,
-    glossy_surface_share: float = 0.0,
-    camera_pipeline: float = 0.0,
-    jpeg_quality: int = 0,
-    render_scale: int = 1,
+    **overrides: Any,
 ) -> SyntheticSummary:
-    """Render the benchmark into ``out`` (see :func:`write_whole`): images first, label files
-    last.
-
-    ``train_frames`` and ``test_frames`` are per scene; ``test_offset_m`` is the test
-    sequences' lateral offset from the train route, ``val_lane_m`` (None: its lane) the last
-    train sequence's, within the train lanes, and ``val_walks`` the validation walks per
-    scene, train-split sequences numbered after the test ones (see :func:`make_sequences`;
-    their frames come on top of ``train_frames``). The same
-    arguments give byte-identical files. ``progress(done, total)`` is called after each
-    sequence with the frames rendered so far. ``lighting_change``, ``occluder_fraction``,
-    ``sensor_noise_std`` and ``motion_blur_px`` are the nuisances of train and test frames
-    alike (:class:`~pae.synthetic.nuisances.Nuisances`; all 0: none, and no
-    ``labels/nuisances.csv``). ``plain_surface_share``, ``repeated_surface_share`` and
-    ``glossy_surface_share`` dress the scenes' surfaces
-    (:class:`~pae.synthetic.surfaces.SurfaceOptions`), ``camera_pipeline``, ``jpeg_quality``
-    and ``render_scale`` capture the frames like a real camera
-    (:class:`~pae.synthetic.capture.CaptureOptions`; images of ``render_scale · size`` px);
-    all off by default.
+    """Render the benchmark of ``settings`` (None: the defaults), with ``overrides`` (any of
+    :class:`~pae.synthetic.settings.SyntheticSettings`' names) replacing its values, into
+    ``out`` (see :func:`write_whole`): images first, label files last. The same settings
+    give byte-identical files. ``progress(done, total)`` is called after each sequence with
+    the frames rendered so far. With a nuisance or the camera pipeline on, each frame's
+    nuisances go to ``labels/nuisances.csv``. The validation walks' frames come on top of
+    ``train_frames``.
     """
-    nuisances = Nuisances(lighting_change, occluder_fraction, sensor_noise_std, motion_blur_px)
-    surfaces = SurfaceOptions(plain_surface_share, repeated_surface_share, glossy_surface_share)
-    capture = CaptureOptions(camera_pipeline, jpeg_quality, render_scale)
-    for name, value, low in (
-        ("scenes", scenes, 1),
-        ("train_frames", train_frames, 1),
-        ("test_frames", test_frames, 1),
-        ("size", size, 8),
-        ("seed", seed, 0),
-        ("val_walks", val_walks, 0),
-    ):
-        if int(value) != value or value < low:
-            raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
-    for name, value in (
-        ("test_offset_m", test_offset_m),
-        ("train_lane_m", train_lane_m),
-        ("stray_m", stray_m),
-    ):
-        if not (math.isfinite(value) and 0 <= value <= 1.0):
-            raise ValueError(f"{name} must lie in [0, 1] m, got {value!r}")
-    if val_lane_m is not None and not (
-        math.isfinite(val_lane_m) and abs(val_lane_m) <= train_lane_m
-    ):
-        raise ValueError(
-            f"val_lane_m must lie in [-train_lane_m, train_lane_m] = "
-            f"[{-train_lane_m:g}, {train_lane_m:g}] m, got {val_lane_m!r}"
-        )
-    if not (math.isfinite(yaw_stray_rad) and 0 <= yaw_stray_rad <= math.pi / 2):
-        raise ValueError(f"yaw_stray_rad must lie in [0, pi/2], got {yaw_stray_rad!r}")
-
-    train_and_walks = train_frames + val_walks * walk_frames(train_frames)
+    settings = dataclasses.replace(settings or SyntheticSettings(), **overrides)
+    train_and_walks = settings.train_frames + settings.val_walks * walk_frames(
+        settings.train_frames
+    )
+    scenes = settings.scenes
 
     def render(folder: Path) -> SyntheticSummary:
         started = time.perf_counter()
-        _render(
-            folder,
-            scenes,
-            train_frames,
-            test_frames,
-            size,
-            seed,
-            (test_offset_m, train_lane_m, yaw_stray_rad, stray_m, val_lane_m, val_walks),
-            progress,
-            nuisances,
-            surfaces,
-            capture,
-        )
+        _render(folder, settings, progress)
         seconds = time.perf_counter() - started
         return SyntheticSummary(
             root=str(folder),
             scenes=[scene_name(i) for i in range(scenes)],
             train_frames=scenes * train_and_walks,
-            test_frames=scenes * test_frames,
-            size=size * render_scale,
+            test_frames=scenes * settings.test_frames,
+            size=settings.size * settings.render_scale,
             seconds=seconds,
-            frames_per_second=scenes * (train_and_walks + test_frames) / seconds,
+            frames_per_second=scenes * (train_and_walks + settings.test_frames) / seconds,
         )
 
     return write_whole(out, overwrite, render)
@@ -336,52 +253,23 @@ def scaled_blur(conditions: FrameConditions | None, render_scale: int) -> FrameC
     return dataclasses.replace(conditions, blur_px=conditions.blur_px * render_scale)
 
 
-def _render(
-    out: Path,
-    scenes: int,
-    train_frames: int,
-    test_frames: int,
-    size: int,
-    seed: int,
-    layout: tuple[float, float, float, float, float | None, int],
-    progress: RenderProgress | None = None,
-    nuisances: Nuisances | None = None,
-    surfaces: SurfaceOptions | None = None,
-    capture: CaptureOptions | None = None,
-) -> None:
-    """Render every scene into `out`: images first, label files last. ``layout``: the test
-    offset, train lane (m), yaw stray (rad), stray (m), validation lane (m or None) and
-    validation walks of :func:`make_sequences`;
-    ``nuisances`` on (not None or all 0): each sequence's, and ``labels/nuisances.csv``
-    (also written with the camera pipeline on); ``surfaces`` and ``capture`` (None: off)
-    dress the scenes and capture the frames."""
-    test_offset_m, train_lane_m, yaw_stray_rad, stray_m, val_lane_m, val_walks = layout
-    walks = val_walks * walk_frames(train_frames)
-    total, done = scenes * (train_frames + walks + test_frames), 0
-    nuisances = nuisances or Nuisances()
-    capture = capture or CaptureOptions()
+def _render(out: Path, settings: SyntheticSettings, progress: RenderProgress | None) -> None:
+    """Render every scene of ``settings`` into `out`: images first, label files last (with
+    a nuisance or the camera pipeline on, ``labels/nuisances.csv`` too)."""
+    seed, size = settings.seed, settings.size
+    walks = settings.val_walks * walk_frames(settings.train_frames)
+    frames = settings.train_frames + walks + settings.test_frames
+    total, done = settings.scenes * frames, 0
+    nuisances, surfaces, capture = settings.nuisances, settings.surfaces, settings.capture
     camera = PinholeCamera(size)
     stored = PinholeCamera(size * capture.render_scale)
     label_tables: dict[tuple[str, str], LabelTable] = {}
     nuisance_rows: list[tuple[str, float, float, float]] = []
-    for index in range(scenes):
-        scene = make_scene(index, seed, test_offset_m, train_lane_m)
-        if surfaces is not None:
-            scene = dress_surfaces(scene, surfaces, surface_seed(seed, index))
+    for index in range(settings.scenes):
+        scene = make_scene(index, seed, settings.test_offset_m, settings.train_lane_m)
+        scene = dress_surfaces(scene, surfaces, surface_seed(seed, index))
         rows: dict[str, list[tuple[str, str, np.ndarray]]] = {"train": [], "test": []}
-        sequences = make_sequences(
-            index,
-            scene,
-            train_frames,
-            test_frames,
-            seed,
-            test_offset_m,
-            train_lane_m,
-            yaw_stray_rad,
-            stray_m,
-            val_lane_m,
-            val_walks,
-        )
+        sequences = make_sequences(index, scene, settings)
         for sequence in sequences:
             paths = [
                 f"{scene.name}/{sequence.name}/frame-{frame:06d}.png"

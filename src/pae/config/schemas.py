@@ -1,0 +1,135 @@
+"""The config groups' schemas, made from the settings records that hold their defaults, and
+registered with Hydra's ConfigStore in the groups ``schema/<group>``: a config file starts
+from its schema (``defaults: [/schema/data@_here_: pose_data, _self_]``) and sets only what
+differs. A key the schema lacks is refused by Hydra at compose time, and every key is typed.
+Imports neither numpy nor torch: a sweep's launching process composes configs without them."""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from typing import Any
+
+from omegaconf import MISSING, DictConfig
+
+from pae.callbacks.settings import TestTimeRefinementSettings
+from pae.data.settings import PoseDataSettings
+from pae.models.settings import PoseAutoEncoderSettings
+from pae.synthetic.settings import SYNTHETIC_LOADING, SyntheticSettings
+
+Field = tuple[str, Any, Any]
+"""A schema field: its name, type and ``dataclasses.field``."""
+
+
+BUILDER_FILLED = ("order_seed",)
+"""Settings a run fills in (the data order's seed: the run's ``seed``), not configured."""
+DESCRIBED_COUNTS = ("train_frames", "test_frames")
+"""The frame counts of ``data=synthetic``: with a given ``root`` they only describe it, None
+where its scenes hold different counts."""
+
+
+def settings_fields(
+    settings: type,
+    defaults: dict[str, Any] | None = None,
+    leave_out: tuple[str, ...] = (),
+    nullable: tuple[str, ...] = (),
+) -> list[Field]:
+    """The fields of the dataclass ``settings`` (but ``leave_out``) as schema fields, their
+    types resolved (optional where the default is None or the name is ``nullable``) and
+    ``defaults`` replacing theirs."""
+    types = typing.get_type_hints(settings)
+    defaults = defaults or {}
+    fields = []
+    for spec in dataclasses.fields(settings):
+        if spec.name in leave_out:
+            continue
+        if spec.name in defaults:
+            default = defaults[spec.name]
+        elif spec.default_factory is not dataclasses.MISSING:
+            default = spec.default_factory()
+        else:
+            default = spec.default
+        kind = types[spec.name]
+        optional = default is None or spec.name in nullable
+        if optional and type(None) not in typing.get_args(kind):
+            kind = kind | None
+        fields.append((spec.name, kind, _field(default)))
+    return fields
+
+
+def _field(default: Any) -> Any:
+    """A ``dataclasses.field`` of ``default`` (copied for each config where mutable)."""
+    if isinstance(default, list | dict):
+        return dataclasses.field(default_factory=lambda: type(default)(default))
+    return dataclasses.field(default=default)
+
+
+def schema(name: str, target: str, fields: list[Field]) -> type:
+    """A dataclass ``name`` of ``fields`` built by ``target`` (its ``_target_``)."""
+    return dataclasses.make_dataclass(name, [("_target_", str, _field(target)), *fields])
+
+
+def label_files_fields() -> list[Field]:
+    """The images' folder and the train and test label files: no default."""
+    return [(name, str, _field(MISSING)) for name in ("root", "train_labels", "test_labels")]
+
+
+SCHEMAS: dict[tuple[str, str], type] = {
+    ("data", "pose_data"): schema(
+        "PoseDataSchema",
+        "pae.data.datamodule.PoseDataModule",
+        [*label_files_fields(), *settings_fields(PoseDataSettings, leave_out=BUILDER_FILLED)],
+    ),
+    ("data", "synthetic"): schema(
+        "SyntheticDataSchema",
+        "pae.synthetic.datamodule.SyntheticDataModule",
+        [
+            ("root", str | None, _field(None)),
+            ("poses", list[str] | None, _field(None)),
+            ("render_seed", int, _field(0)),
+            *settings_fields(SyntheticSettings, leave_out=("seed",), nullable=DESCRIBED_COUNTS),
+            *settings_fields(
+                PoseDataSettings,
+                {**SYNTHETIC_LOADING, "shorter_edge": "${.size}"},
+                leave_out=(*BUILDER_FILLED, "scenes"),
+            ),
+        ],
+    ),
+    ("pae", "pose_auto_encoder"): schema(
+        "PoseAutoEncoderSchema",
+        "pae.models.pae.PoseAutoEncoder",
+        settings_fields(PoseAutoEncoderSettings),
+    ),
+    ("refine", "test_time_refinement"): schema(
+        "TestTimeRefinementSchema",
+        "pae.callbacks.refinement.TestTimeRefinement",
+        [
+            *settings_fields(TestTimeRefinementSettings),
+            ("alternatives", dict[str, Any], _field({})),
+        ],
+    ),
+}
+"""(group, name) -> the schema registered there. ``data=synthetic`` shows the loaders'
+``shorter_edge`` as the benchmark's ``size`` (SYNTHETIC_LOADING's None)."""
+
+
+def register_schemas() -> None:
+    """Store every schema of ``SCHEMAS`` in Hydra's ConfigStore (again: the same), each in
+    the group ``schema/<its group>``, apart from the options users choose."""
+    from hydra.core.config_store import ConfigStore
+
+    store = ConfigStore.instance()
+    for (group, name), node in SCHEMAS.items():
+        store.store(group=f"schema/{group}", name=name, node=node)
+
+
+def compose_config(config_name: str, overrides: list[str] | None = None) -> DictConfig:
+    """pae's config ``config_name`` (``train`` or ``eval``) with command-line ``overrides``,
+    composed as its entry point composes it, outside a run."""
+    from hydra import compose, initialize_config_dir
+
+    from pae import CONFIG_DIR
+
+    register_schemas()
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        return compose(config_name, overrides=list(overrides or []))
