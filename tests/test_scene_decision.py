@@ -27,6 +27,7 @@ from pae.render_compare.scene_decision import (
     probe_steps,
     try_scenes,
 )
+from pae.render_compare.scene_starts import LATENT_STARTS, latent_starts
 from pae.scene_model.oracle import OracleSceneModel
 from pae.synthetic import Appearance, PinholeCamera, make_scene, render_batch
 
@@ -256,3 +257,45 @@ def test_a_wrong_scene_on_a_three_scene_benchmark_is_moved_to_the_right_one() ->
     assert int(refined.scenes[4]) == int(scenes[4]), "the wrong prediction is moved"
     right = predicted == scenes
     assert torch.equal(refined.scenes[right], scenes[right]), "no right prediction moved"
+
+
+def test_latent_starts_are_the_teachers_pose_then_the_nearest_train_poses_of_each_scene() -> None:
+    generator = torch.Generator().manual_seed(0)
+    store_latents = torch.randn(12, 4, generator=generator)
+    store_poses = torch.zeros(12, 7)
+    store_poses[:, 0] = torch.arange(12.0)  # x = the row
+    store_scenes = torch.arange(12) % SCENES
+    scene_poses = torch.zeros(2, SCENES, 7)
+    scene_poses[..., 0] = -1.0
+    # query 0's latent for scene 1 is train row 7's (scene 1), query 1's for scene 2 row 5's
+    scene_latents = torch.full((2, SCENES, 4), 50.0)
+    scene_latents[0, 1] = store_latents[7]
+    scene_latents[1, 2] = store_latents[5]
+    starts = latent_starts(scene_poses, scene_latents, store_latents, store_poses, store_scenes)
+    assert starts.shape == (2, SCENES, 1 + LATENT_STARTS, 7)
+    assert (starts[:, :, 0, 0] == -1).all(), "the teacher's pose first"
+    assert starts[0, 1, 1, 0] == 7 and starts[1, 2, 1, 0] == 5, "the nearest by latent next"
+    assert (starts[:, :, 1:, 0] % SCENES == torch.arange(SCENES)[None, :, None]).all()
+    with pytest.raises(ValueError, match="5 latent starts per scene, but a scene has 4"):
+        latent_starts(scene_poses, scene_latents, store_latents, store_poses, store_scenes, 5)
+
+
+def test_a_scene_tried_from_several_starts_keeps_the_best_scoring_one() -> None:
+    images, intrinsics, scene_poses, truth = _queries(6)
+    predicted = truth.clone()
+    starts = torch.stack([scene_poses, scene_poses.clone()], 2)  # [N, S, 2, 7]
+    starts[:, :, 1, 2] = 1.0  # the second start of every scene lies at z = 1
+
+    def refine(images: Tensor, intrinsics: Tensor, poses: Tensor, scenes: Tensor):
+        score = torch.where(poses[:, 2] == 1.0, torch.tensor(0.9), torch.tensor(0.1))
+        return RenderCompareResult(poses.clone(), score, score)
+
+    first = refine(images, intrinsics, scene_poses[torch.arange(6), predicted], predicted)
+    trials = try_scenes(
+        refine, None, images, intrinsics, starts, predicted, first, torch.arange(6), ()
+    )
+    others = torch.ones(6, SCENES, dtype=torch.bool)
+    others[torch.arange(6), predicted] = False
+    assert (trials.result.poses[others][:, 2] == 1.0).all(), "the better start kept"
+    assert (trials.result.score[others] == 0.9).all()
+    assert (trials.result.score[~others] == 0.1).all(), "the predicted scene's own refinement"

@@ -2,7 +2,9 @@
 every val and test query refined in every scene (the run's scene model and teacher, the first
 steps from the val errors as the run's step_from_val), and per evidence (the refined score,
 its sharpness at each probe scale) and prior weight the share of queries whose evidence is
-highest in their true scene, and the scene accuracy of checking every query with margin 0.
+highest in their true scene, and the scene accuracy of checking every query with margin 0;
+then, per mispredicted query, how far the teacher's pose for its true scene was, how far the
+refinement there ended and its scores.
 
     PYTHONPATH=src python experiments/ms_scene_decision/evidence.py outputs/ms_seed0
 """
@@ -18,6 +20,7 @@ from torch import Tensor
 
 from pae.apps import localization as loc
 from pae.core.checkpoints import load_scene_model, load_teacher
+from pae.core.geometry import pose_errors
 from pae.data.transforms import ImageTransform
 from pae.lit.scene_model import compare_queries
 from pae.render_compare.api import build_refiner
@@ -94,6 +97,22 @@ def main(folder: Path) -> None:
             name = "refined score" if scale == 0 else f"sharpness x{scale:g}"
             label = f"{split} (teacher {teacher_accuracy:.1f} %)"
             print(f"| {label} | {name} | " + " | ".join(cells) + " |")
+        wrong = (q["predicted"] != q["scene"]).nonzero().flatten()
+        true_start = q["scene_poses"][wrong, q["scene"][wrong]]
+        start_error, _ = pose_errors(true_start.float(), q["pose"][wrong])
+        refined_error, _ = pose_errors(
+            trials.result.poses[wrong, q["scene"][wrong]], q["pose"][wrong]
+        )
+        scores = trials.result.score
+        for i, row in enumerate(wrong.tolist()):
+            true, predicted = int(q["scene"][row]), int(q["predicted"][row])
+            print(
+                f"{split} query {row} (scene {true} taken for {predicted}): the teacher's pose for "
+                f"its scene {float(start_error[i]):.2f} m off, refined there to "
+                f"{float(refined_error[i]):.2f} m, score {float(scores[row, true]):.3f} there "
+                f"against {float(scores[row, predicted]):.3f} in scene {predicted}, the "
+                f"teacher's probability of its scene {float(q['log_prior'][row, true].exp()):.3f}"
+            )
 
 
 if __name__ == "__main__":

@@ -28,10 +28,12 @@ from pae.data.transforms import ImageTransform
 from pae.lit.eval_outputs import EVAL
 from pae.lit.scene_model import compare_queries
 from pae.models.base import Latents
+from pae.models.latents import compute_teacher_latents
 from pae.render_compare import Calibration, calibrate_any_start, refine
 from pae.render_compare.calibration import scene_size, teacher_features
 from pae.render_compare.refiner import ACCEPT_ALL, BUILD_KEYS, refiner_defaults
 from pae.render_compare.scene_decision import SceneRule
+from pae.render_compare.scene_starts import latent_starts
 from pae.scene_model.base import SceneModel
 
 TEACHER = "teacher"
@@ -187,8 +189,8 @@ class Estimates(NamedTuple):
     """The teacher's answer for every query: pose [N, 7] (unit quaternion), scene [N] it
     assigns, latents [N, 2d] ([z_x, z_q]); for render-and-compare, the query images [N, 3,
     h, w] in [0, 1] at its compare width and their intrinsics [N, 4] (else None), and for
-    teachers that classify the scene its pose for every scene [N, S, 7] and its scene logits
-    [N, S] (else None)."""
+    teachers that classify the scene its pose for every scene [N, S, 7], its latents for
+    every scene [N, S, 2d] and its scene logits [N, S] (else None)."""
 
     pose: Tensor
     scene: Tensor
@@ -196,6 +198,7 @@ class Estimates(NamedTuple):
     images: Tensor | None
     intrinsics: Tensor | None
     scene_poses: Tensor | None = None
+    scene_latents: Tensor | None = None
     scene_logits: Tensor | None = None
 
 
@@ -239,6 +242,7 @@ def estimate(
             scene_poses = teacher.scene_poses(images)
             if scene_poses is not None:
                 part[EVAL.scene_poses] = scene_poses.cpu()
+                part["scene_latents"] = teacher.scene_latents(images).cpu()
                 part[EVAL.scene_logits] = answer.latents.scene_logits.cpu()
         parts.append(part)
         progress(rows[-1] + 1, total)
@@ -250,6 +254,7 @@ def estimate(
         joined.get(EVAL.image),
         joined.get(EVAL.intrinsics),
         joined.get(EVAL.scene_poses),
+        joined.get("scene_latents"),
         joined.get(EVAL.scene_logits),
     )
 
@@ -346,6 +351,23 @@ def any_start_calibration(
     return calibration
 
 
+def scene_starts(
+    run: Run, teacher: torch.nn.Module, found: Estimates, device: torch.device
+) -> Tensor:
+    """Render-and-compare's starts [N, S, K, 7] in every scene for a multi-scene teacher's
+    queries as the run's scene-model step made them (:func:`latent_starts`, from the run's
+    train images, the validation rows held out)."""
+    assert found.scene_poses is not None and found.scene_latents is not None
+    data = data_module(run, cache_images=False)
+    data.setup()
+    store = {
+        k: v.to(device) for k, v in compute_teacher_latents(teacher, data, device).tensors.items()
+    }
+    joint = torch.cat([store["z_x"], store["z_q"]], -1)
+    poses, latents = found.scene_poses.to(device), found.scene_latents.to(device)
+    return latent_starts(poses, latents, joint, store["pose"], store["scene"])
+
+
 def are_estimates_of(starts: Tensor, estimates: Tensor) -> bool:
     """Whether starts [N, 7] are the estimates [N, 7] as a label file keeps them (within
     ``SAME_START_M`` and ``SAME_START_DEG``)."""
@@ -376,7 +398,8 @@ def render_compare(
     if gate == "any":
         calibration = any_start_calibration(run, model, settings, features, device)
     elif found.scene_poses is not None and found.scene_logits is not None:
-        scene_poses, scene_logits = found.scene_poses.to(device), found.scene_logits.to(device)
+        scene_poses = scene_starts(run, teacher, found, device)
+        scene_logits = found.scene_logits.to(device)
     assert found.images is not None and found.intrinsics is not None
     refined = refine(
         model,

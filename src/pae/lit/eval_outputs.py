@@ -22,8 +22,8 @@ class EvalKeys:
     (RGB in [0, 1], at the compare width), its ``intrinsics`` [B, 4] (px, at that size), the
     teacher's pose ``estimate`` [B, 7] and ``scene_estimate`` [B], the true ``pose`` [B, 7]
     and ``scene`` [B], and the query's row ``index`` [B] in the split; for teachers that
-    classify the scene, their pose for every scene ``scene_poses`` [B, S, 7] and their scene
-    logits ``scene_logits`` [B, S]."""
+    classify the scene, render-and-compare's starts in every scene ``scene_poses`` [B, S, K,
+    7] (their pose for the scene first) and their scene logits ``scene_logits`` [B, S]."""
 
     image: str = "image"
     intrinsics: str = "intrinsics"

@@ -15,7 +15,9 @@ from pae.lit.base import OptimizerFactory, PaeModule, SchedulerFactory
 from pae.lit.eval_outputs import EVAL
 from pae.lit.evaluation import PoseEvaluation
 from pae.models.base import PoseRegressor
+from pae.models.latents import compute_teacher_latents
 from pae.render_compare.images import compare_size
+from pae.render_compare.scene_starts import latent_starts
 from pae.scene_model.base import SceneModel
 
 SCENE_MODEL_METHODS = ["teacher", "mean_pose"]
@@ -78,6 +80,7 @@ class SceneModelModule(PaeModule):
         self.register_mean_pose_baseline(len(scene_names))
         self.eval_outputs: list[dict[str, Tensor]] = []
         self._split_intrinsics: dict[str, Tensor] = {}
+        self._store: dict[str, Tensor] | None = None  # the teacher's train latents
 
     def train(self, mode: bool = True) -> SceneModelModule:
         super().train(mode)
@@ -111,6 +114,18 @@ class SceneModelModule(PaeModule):
             prog_bar=True,
         )
         return loss + self.tv_weight * tv
+
+    def scene_starts(self, images: Tensor, scene_poses: Tensor) -> Tensor:
+        """Render-and-compare's starts [B, S, K, 7] in every scene for a multi-scene teacher's
+        queries (:func:`pae.render_compare.scene_starts.latent_starts`, from the teacher's
+        poses for every scene [B, S, 7] and its latents of the train images, computed once)."""
+        if self._store is None:
+            data = self.trainer.datamodule
+            self._store = compute_teacher_latents(self.teacher, data, self.device).tensors
+        store = {key: value.to(self.device) for key, value in self._store.items()}
+        joint = torch.cat([store["z_x"], store["z_q"]], -1)
+        latents = self.teacher.scene_latents(images)
+        return latent_starts(scene_poses, latents, joint, store["pose"], store["scene"])
 
     def _intrinsics(self, split: str, index: Tensor) -> Tensor:
         """Intrinsics [B, 4] of the split's rows ``index`` [B] (the split's table computed
@@ -146,6 +161,6 @@ class SceneModelModule(PaeModule):
         }
         scene_poses = self.teacher.scene_poses(batch["image"])
         if scene_poses is not None:
-            outputs[EVAL.scene_poses] = scene_poses
+            outputs[EVAL.scene_poses] = self.scene_starts(batch["image"], scene_poses)
             outputs[EVAL.scene_logits] = answer.latents.scene_logits
         self.eval_outputs.append(outputs)

@@ -66,3 +66,8 @@ class PoseRegressor(nn.Module):
         """images [B, 3, H, W] -> the pose [B, S, 7] (unit quaternions) it regresses for each
         of its S scenes, for teachers that classify the scene; None for the others."""
         return None
+
+    def scene_latents(self, images: Tensor) -> Tensor | None:
+        """images [B, 3, H, W] -> its latents [B, S, 2d] ([z_x, z_q]) for each of its S scenes,
+        for teachers that classify the scene; None for the others."""
+        return None

@@ -263,3 +263,9 @@ class MSTransformer(PoseRegressor):
             return None
         dec_x, dec_q, _ = self.decode(images)
         return normalize_pose(torch.cat([self.head_x(dec_x), self.head_q(dec_q)], dim=-1))
+
+    def scene_latents(self, images: Tensor) -> Tensor | None:
+        if self.scene_head is None:
+            return None
+        dec_x, dec_q, _ = self.decode(images)
+        return torch.cat([dec_x, dec_q], dim=-1)

@@ -83,7 +83,8 @@ def _check(
     check_shape(starts, "starts", f"{n} 7")
     check_shape(scenes, "scenes", f"{n}")
     if scene_poses is not None:
-        s = check_shape(scene_poses, "scene_poses", f"{n} S 7")["S"]
+        spec = f"{n} S 7" if scene_poses.dim() == 3 else f"{n} S K 7"
+        s = check_shape(scene_poses, "scene_poses", spec)["S"]
         if scene_logits is not None:
             check_shape(scene_logits, "scene_logits", f"{n} {s}")
 
@@ -131,7 +132,9 @@ def refine(
     (:class:`RenderCompareSettings`), ``calibration`` gives the gate, first steps and scene
     check chosen on validation (:func:`calibrate`; default: margin 0, no floor, the
     settings' steps, no scene check). With a multi-scene APR's poses for every scene
-    ``scene_poses`` [B, S, 7] (and its scene logits ``scene_logits`` [B, S], the prior),
+    ``scene_poses`` [B, S, 7] (or K starts per scene [B, S, K, 7]:
+    :mod:`pae.render_compare.scene_starts`) and its scene logits ``scene_logits`` [B, S] (the
+    prior),
     the calibration's scene rule decides each query's scene
     (:mod:`pae.render_compare.scene_decision`)."""
     _check(images, intrinsics, starts, scenes, scene_poses, scene_logits)

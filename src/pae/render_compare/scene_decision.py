@@ -156,17 +156,24 @@ def try_scenes(
     scales: tuple[float, ...],
 ) -> SceneTrials:
     """The queries ``query`` [Q] refined in every scene: their ``first`` refinement in the
-    ``predicted`` scene [N] kept, every other scene refined from the teacher's pose for it
-    (``scene_poses`` [N, S, 7]) in one batched call, and every scene's sharpness at
-    ``scales`` -> :class:`SceneTrials` of the Q queries."""
+    ``predicted`` scene [N] kept, every other scene refined from each start for it
+    (``scene_poses`` [N, S, 7], the teacher's pose, or [N, S, K, 7], K starts:
+    :mod:`pae.render_compare.scene_starts`) in one batched call, keeping the best-scoring
+    start's (ties: the first), and every scene's sharpness at ``scales`` ->
+    :class:`SceneTrials` of the Q queries."""
     q, s = len(query), scene_poses.shape[1]
+    starts = scene_poses if scene_poses.dim() == 4 else scene_poses[:, :, None]
+    k = starts.shape[2]
     pair_query, pair_scene = _pairs(query, s, predicted[query])
-    pairs = refine(
-        images[pair_query],
-        intrinsics[pair_query],
-        scene_poses[pair_query, pair_scene],
-        pair_scene,
+    tried = refine(
+        images[pair_query].repeat_interleave(k, 0),
+        intrinsics[pair_query].repeat_interleave(k, 0),
+        starts[pair_query, pair_scene].reshape(-1, 7),
+        pair_scene.repeat_interleave(k),
     )
+    best = tried.score.view(len(pair_query), k).argmax(1)
+    pick = torch.arange(len(pair_query), device=best.device) * k + best
+    pairs = RenderCompareResult(*(field[pick] for field in tried))
     own = predicted[query]
     fields = []
     for mine, theirs in zip(first, pairs, strict=True):
@@ -232,8 +239,8 @@ def decide_scenes(
 ) -> SceneDecision:
     """Decide the scene of every query under ``rule``: those whose score in their
     ``predicted`` scene [N] (``first``, the refinement there) is below ``rule.check_below``
-    are tried in every scene (:func:`try_scenes`, from the teacher's poses of every scene
-    ``scene_poses`` [N, S, 7]) and moved where the evidence says (:func:`moves`; the
+    are tried in every scene (:func:`try_scenes`, from the starts of every scene
+    ``scene_poses`` [N, S, 7] or [N, S, K, 7]) and moved where the evidence says (:func:`moves`; the
     teacher's scene log-probabilities ``log_prior`` [N, S], None: no prior)."""
     checked = first.score < rule.check_below
     if scene_poses.shape[1] < 2 or not bool(checked.any()):
