@@ -121,25 +121,28 @@ def test_experiments_with_sweep_parameters_sweep_by_themselves(option: str) -> N
 
 
 def test_config_files_with_a_schema_set_only_what_differs_from_it() -> None:
-    """Defaults live in code (the settings records behind ``pae.config.schemas``): a config
-    file that starts from a schema sets no key to the schema's own default."""
+    """Defaults live in code (settings records and constructors, behind
+    ``pae.config.schemas``): a config file that starts from a schema sets no key of it to the
+    schema's own default."""
     from omegaconf import OmegaConf
 
     from pae.config.schemas import SCHEMAS
 
-    conf = Path(CONFIG_DIR)
-    checked = 0
-    for (group, name), node in SCHEMAS.items():
-        defaults = OmegaConf.to_container(OmegaConf.structured(node))
-        for path in sorted((conf / group).glob("*.yaml")):
-            values = OmegaConf.to_container(OmegaConf.load(path))
-            if {f"/schema/{group}@_here_": name} not in values.get("defaults", []):
+    checked = set()
+    for path in sorted(Path(CONFIG_DIR).rglob("*.yaml")):
+        values = OmegaConf.to_container(OmegaConf.load(path)) or {}
+        for entry in values.get("defaults", []) if isinstance(values, dict) else []:
+            if not isinstance(entry, dict) or not next(iter(entry)).startswith("/schema/"):
                 continue
-            checked += 1
-            for key, value in values.items():
+            ((choice, name),) = entry.items()
+            group, package = choice.removeprefix("/schema/").split("@")
+            defaults = OmegaConf.to_container(OmegaConf.structured(SCHEMAS[group, name]))
+            node = values if package == "_here_" else values.get(package, {})
+            checked.add((group, name))
+            for key, value in node.items():
                 if key != "defaults":
                     assert value != defaults[key], f"{path.name}: {key} is the schema's default"
-    assert checked >= 7
+    assert checked == set(SCHEMAS), set(SCHEMAS) - checked
 
 
 def test_a_key_no_schema_has_or_a_value_of_another_type_is_refused_when_composing() -> None:

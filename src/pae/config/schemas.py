@@ -13,6 +13,7 @@ from typing import Any
 from omegaconf import MISSING, DictConfig
 
 from pae.callbacks.settings import TestTimeRefinementSettings
+from pae.config.signatures import source_fields
 from pae.data.settings import PoseDataSettings
 from pae.models.settings import PoseAutoEncoderSettings
 from pae.synthetic.settings import SYNTHETIC_LOADING, SyntheticSettings
@@ -100,6 +101,18 @@ SCHEMAS: dict[tuple[str, str], type] = {
         "pae.models.pae.PoseAutoEncoder",
         settings_fields(PoseAutoEncoderSettings),
     ),
+    **{
+        (group, name): schema(f"{target.rsplit('.', 1)[1]}Schema", target, source_fields(target))
+        for group, name, target in (
+            ("backbone", "backbone", "pae.models.backbones.Backbone"),
+            ("teacher", "posenet", "pae.models.posenet.PoseNet"),
+            ("teacher", "ms_transformer", "pae.models.ms_transformer.MSTransformer"),
+            ("rpr", "siamese", "pae.models.rpr.SiameseRPR"),
+            ("iapr", "iterative_apr", "pae.models.iapr.IterativeAPR"),
+            ("decoder", "image_decoder", "pae.models.decoder.ImageDecoder"),
+            ("loss", "learned_pose", "pae.core.losses.LearnedPoseLoss"),
+        )
+    },
     ("refine", "test_time_refinement"): schema(
         "TestTimeRefinementSchema",
         "pae.callbacks.refinement.TestTimeRefinement",
@@ -109,7 +122,9 @@ SCHEMAS: dict[tuple[str, str], type] = {
         ],
     ),
 }
-"""(group, name) -> the schema registered there. ``data=synthetic`` shows the loaders'
+"""(group, name) -> the schema registered there: the settings records', and the models'
+read from their constructors' signatures (:mod:`pae.config.signatures`; ``n_scenes``, which
+the steps fill in, is left out). ``data=synthetic`` shows the loaders'
 ``shorter_edge`` as the benchmark's ``size`` (SYNTHETIC_LOADING's None)."""
 
 
