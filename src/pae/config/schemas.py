@@ -65,9 +65,13 @@ def _field(default: Any) -> Any:
     return dataclasses.field(default=default)
 
 
-def schema(name: str, target: str, fields: list[Field]) -> type:
-    """A dataclass ``name`` of ``fields`` built by ``target`` (its ``_target_``)."""
-    return dataclasses.make_dataclass(name, [("_target_", str, _field(target)), *fields])
+def schema(name: str, target: str, fields: list[Field], partial: bool = False) -> type:
+    """A dataclass ``name`` of ``fields`` built by ``target`` (its ``_target_``; with
+    ``partial``, built as a ``functools.partial`` that the run completes)."""
+    built = [("_target_", str, _field(target))]
+    if partial:
+        built.append(("_partial_", bool, _field(True)))
+    return dataclasses.make_dataclass(name, [*built, *fields])
 
 
 def label_files_fields() -> list[Field]:
@@ -113,6 +117,12 @@ SCHEMAS: dict[tuple[str, str], type] = {
             ("loss", "learned_pose", "pae.core.losses.LearnedPoseLoss"),
         )
     },
+    ("render_compare", "refiner"): schema(
+        "RenderCompareRefinerSchema",
+        "pae.render_compare.refiner.RenderCompareRefiner",
+        source_fields("pae.render_compare.settings.RenderCompareSettings"),
+        partial=True,
+    ),
     ("refine", "test_time_refinement"): schema(
         "TestTimeRefinementSchema",
         "pae.callbacks.refinement.TestTimeRefinement",

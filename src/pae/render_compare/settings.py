@@ -24,28 +24,53 @@ class RenderCompareSettings:
     default (chosen on the demo's validation split: experiments/render_compare)."""
 
     rounds: int = 4
+    """The search, at the coarsest pyramid level: a first round of ``hypotheses`` ×
+    ``candidates`` draws around the start seeds ``hypotheses`` chains; each then draws
+    ``candidates`` per round, for ``rounds`` rounds."""
     candidates: int = 12
     hypotheses: int = 4
     position_sigma_m: float = 0.25
+    """The first draws' spread in position (m) and orientation (deg)."""
     orientation_sigma_deg: float = 4.0
     shrink: float = 0.6
+    """The spread's factor from one round to the next."""
     resolution: int = 64
+    """The pyramid: ``levels`` compare widths, the finest ``resolution`` px (or the query's
+    width), each level half the next."""
     levels: int = 3
     blur_sigma_px: float = 0.3
+    """The compared images' blur (px of each level)."""
     highpass_sigma_px: float = 0.0
+    """Subtract the compared images' blur at this sigma (px at ``resolution``; a difference
+    of Gaussians) so that smooth shading and light fall-off do not steer the score; 0: off."""
     highpass_levels: int = 0
+    """The high-pass at the finest this many levels only (the coarser, where the search
+    starts, compared whole: its reach); 0: at every level."""
     reference_size: int = 16
+    """The scene model's rendering at the start (px), with ``reference_fov_scale`` × the
+    query's field of view."""
     reference_fov_scale: float = 1.3
     final_reference_size: int = 32
+    """Rendered again at the best hypothesis before the finest level (px; 0: not), with a
+    field of view ``final_fov_scale`` × the query's."""
     final_fov_scale: float = 1.05
     polish_steps: int = 5
+    """Levenberg–Marquardt steps on each hypothesis's image residual at every level, damped
+    by ``polish_damping``."""
     polish_damping: float = 1.0e-3
     min_overlap: float = 0.2
+    """The share of the reference's surface points a candidate must see."""
     trim_sigma: float = 0.0
+    """Robust score: pixels whose residual after a gain-and-bias fit exceeds ``trim_sigma``
+    residual standard deviations (occluders, what the scene model cannot explain) are dropped
+    and the ZNCC recomputed, ``trim_passes`` times (each pass refits on the points kept); 0:
+    the plain ZNCC."""
     trim_passes: int = 2
     score: str = "zncc"
+    """zncc, or features (the teacher backbone's; search only: ``polish_steps=0``)."""
     seed: int = 0
     chunk: int = 64
+    """Queries refined at once."""
     engine: str = "auto"
 
 
