@@ -123,6 +123,13 @@ SCHEMAS: dict[tuple[str, str], type] = {
         source_fields("pae.render_compare.settings.RenderCompareSettings"),
         partial=True,
     ),
+    ("novel_views", "default"): dataclasses.make_dataclass(
+        "NovelViewSchema",
+        [
+            ("enabled", bool, _field(False)),
+            *source_fields("pae.scene_model.novel_views.NovelViewSettings"),
+        ],
+    ),
     ("refine", "test_time_refinement"): schema(
         "TestTimeRefinementSchema",
         "pae.callbacks.refinement.TestTimeRefinement",

@@ -120,27 +120,39 @@ def partners_within(
 
 @dataclass(frozen=True)
 class NovelViewSettings:
-    """``teacher.novel_views``: ``ratio`` rendered images per real one in each train batch;
-    a pool of ``views`` rendered views per train image, rendered once (``cache``) or afresh
-    each epoch; the sampling's ``position_jitter_m`` (m), ``orientation_jitter_deg``,
-    ``between``, ``between_radius_m`` (m; None: the nearest camera of another sequence),
-    ``between_max_turn_deg``, ``between_share`` (the range [lo, hi] of the share of the way
-    towards the partner) and ``between_orientation`` (``interpolated`` like the position, or
-    ``either`` camera's, drawn at random); ``min_distance_m`` (m) between a view and every
-    train camera; the render ``size`` (px shorter edge, None: the train images')."""
+    """``teacher.novel_views``: views the scene model renders at poses sampled around the
+    train cameras, mixed into each train batch (their one home of defaults; the config
+    schema reads them from this source)."""
 
-    ratio: float
-    views: float
-    position_jitter_m: float
-    orientation_jitter_deg: float
+    ratio: float = 0.5
+    """Rendered images per real one in each train batch (0.5: batches of 32 real + 16
+    rendered)."""
+    views: float = 1.0
+    """Rendered views per train image in the pool the batches draw from."""
+    position_jitter_m: float = 0.1
+    """Each view moved by a distance uniform in [0, 2 × this] (m) ..."""
+    orientation_jitter_deg: float = 3.0
+    """... and turned by a rotation uniform in [0, 2 × this] (deg)."""
     between: bool = True
+    """Each view: a train camera first moved a share of the way (``between_share``) towards
+    a camera of another train sequence of its scene: the nearest one (``between_radius_m``
+    None) or one drawn among those within ``between_radius_m`` (m) whose orientation differs
+    from its own by at most ``between_max_turn_deg``."""
     between_radius_m: float | None = None
     between_max_turn_deg: float = 180.0
     between_share: tuple[float, float] = (0.0, 1.0)
+    """The range [lo, hi] the share of the way is drawn from ([0.4, 0.6]: about midway)."""
     between_orientation: str = "interpolated"
+    """The view's orientation: ``interpolated`` between the two cameras' likewise, or
+    ``either``: that of one of the two, drawn at random (interpolating two orientations
+    shrinks their spread)."""
     min_distance_m: float = 0.0
+    """Views only where no train image was taken: at least this far (m) from every train
+    camera of their scene (candidates drawn until enough are; 0: anywhere)."""
     size: int | None = None
+    """The rendered images' shorter edge (px), resized to the train images' (None: theirs)."""
     cache: bool = True
+    """The pool rendered once, before the first epoch; false: afresh every epoch."""
 
 
 MAX_DRAWS = 16
