@@ -1,6 +1,7 @@
 """How well each kind of scene evidence names the true scene on a finished MS-Transformer run:
 every val and test query refined in every scene (the run's scene model and teacher, the first
-steps from the val errors as the run's step_from_val), and per evidence (the refined score,
+steps from the val errors as the run's step_from_val, the starts of
+pae.render_compare.scene_starts), and per evidence (the refined score,
 its sharpness at each probe scale) and prior weight the share of queries whose evidence is
 highest in their true scene, and the scene accuracy of checking every query with margin 0;
 then, per mispredicted query, how far the teacher's pose for its true scene was, how far the
@@ -23,6 +24,7 @@ from pae.core.checkpoints import load_scene_model, load_teacher
 from pae.core.geometry import pose_errors
 from pae.data.transforms import ImageTransform
 from pae.lit.scene_model import compare_queries
+from pae.models.latents import compute_teacher_latents
 from pae.render_compare.api import build_refiner
 from pae.render_compare.calibration import steps_from_errors
 from pae.render_compare.scene_decision import (
@@ -33,14 +35,17 @@ from pae.render_compare.scene_decision import (
     sharpness,
     try_scenes,
 )
+from pae.render_compare.scene_starts import latent_starts
 
 
 @torch.no_grad()
 def split_outputs(run: loc.Run, teacher: torch.nn.Module, split: str) -> dict[str, Tensor]:
-    """The split's queries at the compare width with the teacher's answers, as the run's
-    scene-model step keeps them."""
+    """The split's queries at the compare width with the teacher's answers and the starts in
+    every scene, as the run's scene-model step keeps them."""
     data = loc.data_module(run, cache_images=False)
     data.setup()
+    store = compute_teacher_latents(teacher, data).tensors
+    joint = torch.cat([store["z_x"], store["z_q"]], -1)
     width = loc.compare_width(loc.render_compare_settings(run)[0])
     loader = data.val_dataloader() if split == "val" else data.test_dataloader()
     intrinsics = data.intrinsics(split)
@@ -57,7 +62,13 @@ def split_outputs(run: loc.Run, teacher: torch.nn.Module, split: str) -> dict[st
             "scene": batch["scene"],
             "estimate": answer.pose,
             "predicted": answer.scene,
-            "scene_poses": teacher.scene_poses(images),
+            "scene_poses": latent_starts(
+                teacher.scene_poses(images),
+                teacher.scene_latents(images),
+                joint,
+                store["pose"],
+                store["scene"],
+            ),
             "log_prior": answer.latents.scene_logits.log_softmax(-1),
         }
         for key, value in found.items():
@@ -98,7 +109,7 @@ def main(folder: Path) -> None:
             label = f"{split} (teacher {teacher_accuracy:.1f} %)"
             print(f"| {label} | {name} | " + " | ".join(cells) + " |")
         wrong = (q["predicted"] != q["scene"]).nonzero().flatten()
-        true_start = q["scene_poses"][wrong, q["scene"][wrong]]
+        true_start = q["scene_poses"][wrong, q["scene"][wrong], 0]
         start_error, _ = pose_errors(true_start.float(), q["pose"][wrong])
         refined_error, _ = pose_errors(
             trials.result.poses[wrong, q["scene"][wrong]], q["pose"][wrong]
