@@ -1,7 +1,8 @@
 """Config schemas read from the classes themselves: a constructor's keyword arguments (or a
-settings dataclass's fields) with their annotations and defaults, parsed from the module's
-source with ``ast``. The module is not imported, so a launching process makes the schemas of
-torch models without torch; the class's signature stays the one home of its defaults."""
+settings dataclass's fields) with their annotations and defaults (literals, or module-level
+constants holding one), parsed from the module's source with ``ast``. The module is not
+imported, so a launching process makes the schemas of torch models without torch; the
+class's signature stays the one home of its defaults."""
 
 from __future__ import annotations
 
@@ -22,18 +23,37 @@ SOURCE_ROOT = Path(__file__).resolve().parents[1]
 
 
 @functools.cache
+def _module_tree(module: str) -> ast.Module:
+    """The parsed source of ``module`` (``pae.<...>``; a package: its ``__init__.py``)."""
+    parts = module.split(".")
+    if parts[0] != "pae":
+        raise ValueError(f"{module}: not a module of pae")
+    path = SOURCE_ROOT.joinpath(*parts[1:])
+    path = path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
+    return ast.parse(path.read_text(), str(path))
+
+
 def _class_node(target: str) -> ast.ClassDef:
     """The class definition of ``target`` (``pae.<module>.<Class>``) in its module's source."""
     module, name = target.rsplit(".", 1)
-    parts = module.split(".")
-    if parts[0] != "pae":
-        raise ValueError(f"{target}: not a class of pae")
-    path = SOURCE_ROOT.joinpath(*parts[1:]).with_suffix(".py")
-    tree = ast.parse(path.read_text(), str(path))
-    for node in tree.body:
+    for node in _module_tree(module).body:
         if isinstance(node, ast.ClassDef) and node.name == name:
             return node
-    raise ValueError(f"{target}: no class {name} in {path}")
+    raise ValueError(f"{target}: no class {name} in {module}")
+
+
+def _constant(module: str, name: str, depth: int = 4) -> Any:
+    """The literal value of the module-level constant ``name`` of ``module``, followed through
+    ``from pae... import name`` (a default written as a named constant)."""
+    for node in _module_tree(module).body:
+        if isinstance(node, ast.Assign | ast.AnnAssign):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            if any(isinstance(t, ast.Name) and t.id == name for t in targets):
+                return ast.literal_eval(node.value)
+        imported = isinstance(node, ast.ImportFrom) and (node.module or "").startswith("pae")
+        if imported and depth and any((a.asname or a.name) == name for a in node.names):
+            return _constant(node.module, name, depth - 1)
+    raise ValueError(f"{module}: no literal constant {name}")
 
 
 def _annotation(node: ast.expr | None) -> Any:
@@ -49,11 +69,15 @@ def _annotation(node: ast.expr | None) -> Any:
 
 
 def _default(node: ast.expr | None, target: str, name: str) -> Any:
-    """A literal default (tuples as lists); no default: mandatory (``???``)."""
+    """A literal default, or a named constant's (tuples as lists); no default: mandatory
+    (``???``)."""
     if node is None:
         return MISSING
     try:
-        value = ast.literal_eval(node)
+        if isinstance(node, ast.Name):
+            value = _constant(target.rsplit(".", 1)[0], node.id)
+        else:
+            value = ast.literal_eval(node)
     except ValueError:
         raise ValueError(f"{target}: the default of {name} is not a literal") from None
     return list(value) if isinstance(value, tuple) else value
