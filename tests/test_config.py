@@ -224,3 +224,33 @@ def test_configured_adam_updates_as_the_default_loop_does() -> None:
             scheduler.step()
         results.append(torch.cat([p.detach().flatten() for p in network.parameters()]))
     assert torch.equal(results[0], results[1])
+
+
+def test_a_schema_read_from_a_signature_has_its_defaults_and_leaves_out_what_runs_fill_in() -> None:
+    """The schema of a class comes from its source: literal and named-constant defaults,
+    mandatory arguments as ``???``, and neither ``n_scenes`` nor ``from_run`` arguments."""
+    import inspect
+
+    from omegaconf import MISSING
+
+    from pae.callbacks.render_compare import RenderCompareCallback
+    from pae.config.signatures import source_fields
+    from pae.models.posenet import PoseNet
+    from pae.scene_model.voxel_grid import VoxelGridSceneModel
+
+    for target, cls in (
+        ("pae.callbacks.render_compare.RenderCompareCallback", RenderCompareCallback),
+        ("pae.models.posenet.PoseNet", PoseNet),
+    ):
+        fields = {name: spec for name, _, spec in source_fields(target)}
+        signature = inspect.signature(cls).parameters
+        assert set(fields) == set(signature) - {"n_scenes"}
+        for name, spec in fields.items():
+            default = signature[name].default
+            expected = MISSING if default is inspect.Parameter.empty else default
+            assert spec.default == expected, (target, name)
+    voxels = {
+        name for name, _, _ in source_fields("pae.scene_model.voxel_grid.VoxelGridSceneModel")
+    }
+    assert "bounds" in VoxelGridSceneModel.from_run and "bounds" not in voxels
+    assert "num_voxels" in voxels
