@@ -14,10 +14,10 @@ EPILOG = """examples:
 INPUT: image files, folders of images (searched recursively) or label files (their img_path
 read under --root, by default the run's data root; their poses only give the printed errors).
 The teacher's estimates by default, or another APR's with --init FILE; --refine
-render_compare refines them against the run's scene model (with the gate and steps the run
-chose on val for its teacher; another APR's starts with those chosen on val for starts of any
-error scale: --init-gate), --refine refined (knn_mean, student, or an entry of the run's
-refine.alternatives) with its student."""
+render_compare refines them against the run's scene model (with the gate, steps and, for a
+multi-scene teacher, the scene decision the run chose on val for its teacher; another APR's
+starts with those chosen on val for starts of any error scale: --init-gate), --refine refined
+(knn_mean, student, or an entry of the run's refine.alternatives) with its student."""
 
 
 def parser() -> argparse.ArgumentParser:
