@@ -858,3 +858,28 @@ def test_the_public_refine_names_a_wrong_shape() -> None:
     model, images, intrinsics, _, start = _oracle_queries(3)
     with pytest.raises(ValueError, match=r"starts must be \[3, 7\], got \[3, 6\]"):
         refine(model, images, intrinsics, start[:, :6], torch.zeros(3, dtype=torch.long))
+
+
+def test_calibrate_keeps_the_filter_with_the_lowest_val_error() -> None:
+    """``filters``: each tried on the val queries, the one whose gated refinement has the
+    lowest mean position error is the calibration's, in its steps (as pae-localize reads)."""
+    from pae.render_compare import CalibrationOptions, calibrate
+
+    settings = {"rounds": 2, "candidates": 6, "resolution": 16, "reference_size": 12}
+    model, images, intrinsics, truth, start = _oracle_queries(4)
+    scenes = torch.zeros(4, dtype=torch.long)
+    filters = [{}, {"highpass_sigma_px": 2.0, "trim_sigma": 2.5}, {"blur_sigma_px": 3.0}]
+    errors = []
+    for chosen in filters:
+        _, alone = calibrate(
+            model, images, intrinsics, start, scenes, truth, settings, filters=[chosen]
+        )
+        errors.append(float(pose_errors(alone.poses, truth)[0].mean()))
+    calibration, best = calibrate(
+        model, images, intrinsics, start, scenes, truth, settings, filters=filters
+    )
+    kept = min(range(3), key=errors.__getitem__)
+    assert dict(calibration.steps).items() >= filters[kept].items()
+    assert float(pose_errors(best.poses, truth)[0].mean()) == pytest.approx(errors[kept])
+    with pytest.raises(ValueError, match=r"render_compare\.filters_from_val: shrink is not"):
+        CalibrationOptions(filters_from_val=[{"shrink": 0.5}])

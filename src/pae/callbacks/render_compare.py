@@ -39,9 +39,10 @@ class RenderCompareCallback(L.Callback):
     ``bench/<method>/ms_per_query`` at test and ``queries_{split}_{method}.csv``.
 
     ``refiner``: the partial Hydra makes of ``render_compare.refiner`` or a mapping of
-    settings replacing the defaults; ``feature_layers``: modules of the teacher backbone that
-    make the features of ``refiner.score=features``; ``init``, ``init_axes``: another APR's
-    starts file, for :class:`pae.callbacks.render_compare_init.RenderCompareFromFile`."""
+    settings replacing the defaults; the gate's options: :class:`CalibrationOptions`;
+    ``feature_layers``: modules of the teacher backbone that make the features of
+    ``refiner.score=features``; ``init``, ``init_axes``: another APR's starts file
+    (:class:`pae.callbacks.render_compare_init.RenderCompareFromFile`)."""
 
     def __init__(
         self,
@@ -53,17 +54,17 @@ class RenderCompareCallback(L.Callback):
         accept_score: float | str = ACCEPT_ALL,
         step_from_val: dict[str, float] | None = None,
         scene_check_below: float | str = "auto",
+        filters_from_val: list[dict[str, float]] | None = None,
         init: str | None = None,
         init_axes: str = "pae",
     ) -> None:
         super().__init__()
         settings = refiner.keywords if isinstance(refiner, functools.partial) else refiner
         self.settings = refiner_defaults() | dict(settings or {})
-        self.oracle = oracle
-        self.every_n_val_epochs = max(1, every_n_val_epochs)
+        self.oracle, self.every_n_val_epochs = oracle, max(1, every_n_val_epochs)
         self.feature_layers, self.init, self.init_axes = feature_layers, init, init_axes
         self.options = CalibrationOptions(
-            accept_margin, accept_score, step_from_val, scene_check_below
+            accept_margin, accept_score, step_from_val, scene_check_below, filters_from_val
         )
         self.calibrations: dict[str, Calibration] = {}  # method -> the last chosen on val
         self.refined: dict[str, dict[str, Tensor]] = {}  # split -> method -> poses kept

@@ -117,6 +117,11 @@ SCHEMAS: dict[tuple[str, str], type] = {
             ("loss", "learned_pose", "pae.core.losses.LearnedPoseLoss"),
         )
     },
+    ("render_compare", "callback"): schema(
+        "RenderCompareCallbackSchema",
+        "pae.callbacks.render_compare.RenderCompareCallback",
+        source_fields("pae.callbacks.render_compare.RenderCompareCallback"),
+    ),
     ("render_compare", "refiner"): schema(
         "RenderCompareRefinerSchema",
         "pae.render_compare.refiner.RenderCompareRefiner",

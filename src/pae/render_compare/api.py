@@ -7,7 +7,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import itertools
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any, NamedTuple
 
 import torch
@@ -164,18 +164,29 @@ def calibrate(
     true_scenes: Tensor | None = None,
     scene_check_below: float | None = None,
     scene_logits: Tensor | None = None,
+    filters: Sequence[Mapping[str, float]] | None = None,
 ) -> tuple[Calibration, Refinement]:
     """The calibration chosen on validation queries (as :func:`refine`'s arguments, with
-    their true poses ``truth`` [B, 7]): the search's first steps as ``step_fractions`` of the
-    starts' median errors (None: the settings' own); with ``scene_poses``, every query tried
-    in every scene and the scene rule that maximises accuracy against ``true_scenes`` [B]
+    their true poses ``truth`` [B, 7]): with ``filters`` (refiner settings of
+    ``pae.render_compare.calibration.FILTER_KEYS``), each tried and the one whose gated
+    refinement has the lowest mean position error kept in the calibration's steps; the
+    search's first steps as
+    ``step_fractions`` of the starts' median errors (None: the settings' own); with
+    ``scene_poses``, every query tried in every scene and the scene rule that maximises
+    accuracy against ``true_scenes`` [B]
     (:func:`pae.render_compare.scene_decision.choose_scene_rule`; its check floor
     ``scene_check_below`` chosen where None, else kept); then the gate's margin and floor
     that minimise the mean position error (None: chosen, :func:`choose_gate`; a number:
     kept) -> the calibration and the validation queries' refinement under it."""
     _check(images, intrinsics, starts, scenes, scene_poses, scene_logits)
     check_shape(truth, "truth", f"{len(starts)} 7")
+    if filters is not None and len(filters) > 1:
+        arguments = dict(locals())  # every argument as given
+        tried = [calibrate(**arguments | {"filters": [chosen]}) for chosen in filters]
+        errors = [pose_errors(r.poses.float(), truth.float())[0].mean() for _, r in tried]
+        return tried[min(range(len(tried)), key=lambda i: float(errors[i]))]
     steps = {} if step_fractions is None else steps_from_errors(starts, truth, step_fractions)
+    steps |= dict(filters[0]) if filters else {}
     refiner = build_refiner(scene_model, settings, steps, features)
     first = refiner(images, intrinsics, starts, scenes)
     result, decided, checked = first, scenes, torch.zeros_like(scenes, dtype=torch.bool)

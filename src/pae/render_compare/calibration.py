@@ -4,7 +4,7 @@ at test: the acceptance gate (margin and score floor) and the search's first ste
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
@@ -86,17 +86,40 @@ def _number_or_auto(key: str, value: float | str) -> float | None:
     return float(value)
 
 
+FILTER_KEYS = ("highpass_sigma_px", "highpass_levels", "trim_sigma", "trim_passes", "blur_sigma_px")
+"""The refiner settings a filter tried on val may set: how the compared images are filtered
+and scored."""
+
+
 @dataclasses.dataclass(frozen=True)
 class CalibrationOptions:
-    """What :func:`pae.render_compare.calibrate` chooses on validation and what it keeps:
-    ``accept_margin``, ``accept_score`` and ``scene_check_below`` a number (kept) or
-    ``auto`` (chosen); ``step_from_val``: ``{"position": a, "orientation": b}``, the first
-    steps as shares of the starts' median val errors (None: the refiner's own)."""
+    """What :func:`pae.render_compare.calibrate` chooses on validation and what it keeps.
+
+    - ``accept_margin``: a refined pose replaces the start only where its score beats the
+      start's by more than this margin (a ZNCC difference); ``auto``: the margin that
+      minimises the val queries' mean position error, applied at test.
+    - ``accept_score``: and only where the refined score itself exceeds this floor (a ZNCC: a
+      low final score marks a query the scene model does not explain); ``auto``: chosen with
+      the margin; -4 (the default): no floor (scores lie in [-2, 1]).
+    - ``step_from_val``: ``{"position": a, "orientation": b}``, the search's first steps as
+      shares of the starts' median val errors (so that it covers them in a room and on a
+      street alike); None: the refiner's own.
+    - ``scene_check_below``: teachers that predict the scene: a query whose refined score in
+      its predicted scene is below this ZNCC is refined in every other scene too and moved
+      where the evidence beats its own by a margin, all chosen on val
+      (:mod:`pae.render_compare.scene_decision`); ``auto``: the floor chosen too; -4: never,
+      2: always.
+    - ``filters_from_val``: image filters to try on val, each a mapping of ``FILTER_KEYS``
+      (``{}``: the refiner's own; e.g. ``{"highpass_sigma_px": 4, "trim_sigma": 2.5}``);
+      the one with the lowest mean val position error after the gate is kept. None: the
+      refiner's own only.
+    """
 
     accept_margin: float | str = AUTO
     accept_score: float | str = ACCEPT_ALL
     step_from_val: Mapping[str, float] | None = None
     scene_check_below: float | str = AUTO
+    filters_from_val: Sequence[Mapping[str, float]] | None = None
 
     def __post_init__(self) -> None:
         for key in ("accept_margin", "accept_score", "scene_check_below"):
@@ -109,6 +132,13 @@ class CalibrationOptions:
                 "render_compare.step_from_val needs position and orientation fractions > 0, "
                 f"got {dict(steps)!r}"
             )
+        for chosen in self.filters_from_val or ():
+            unknown = sorted(set(chosen) - set(FILTER_KEYS))
+            if unknown:
+                raise ValueError(
+                    f"render_compare.filters_from_val: {unknown[0]} is not a filter setting; "
+                    f"choose among {list(FILTER_KEYS)}"
+                )
 
     def fixed(self, key: str) -> float | None:
         """The option ``key`` as a number, None where it is ``auto``."""
@@ -121,6 +151,7 @@ class CalibrationOptions:
             "accept_margin": self.fixed("accept_margin"),
             "accept_score": self.fixed("accept_score"),
             "scene_check_below": self.fixed("scene_check_below"),
+            "filters": self.filters_from_val,
         }
 
     def uncalibrated(self) -> Calibration:
