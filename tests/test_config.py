@@ -148,7 +148,15 @@ def test_config_files_with_a_schema_set_only_what_differs_from_it() -> None:
 def test_a_key_no_schema_has_or_a_value_of_another_type_is_refused_when_composing() -> None:
     from hydra.errors import ConfigCompositionException
 
-    for key in ("data.val_walk=2", "refine.kk=3", "pae.l=4", "pae.L=abc", "data.val_walks=1.5"):
+    for key in (
+        "data.val_walk=2",
+        "refine.kk=3",
+        "pae.l=4",
+        "pae.L=abc",
+        "data.val_walks=1.5",
+        "render_compare.refiner.rounds=1.5",
+        "teacher.model.dropout=abc",
+    ):
         with pytest.raises(ConfigCompositionException, match=key.replace(".", r"\.")):
             _compose("train.yaml", [key])
 
