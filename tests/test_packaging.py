@@ -78,6 +78,8 @@ def test_installed_package_composes_every_stage(installed: Path) -> None:
 from pathlib import Path
 from hydra import compose, initialize_config_dir
 import pae
+from pae.config.schemas import register_schemas
+register_schemas()  # as a script composing pae's configs does (docs/configuration.md)
 assert Path(pae.__file__).resolve().is_relative_to(site.resolve()), pae.__file__
 assert Path(pae.CONFIG_DIR).resolve() == (site / "pae" / "conf").resolve(), pae.CONFIG_DIR
 assert not any(Path(p).name == "src" for p in sys.path), sys.path

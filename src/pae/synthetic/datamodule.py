@@ -48,8 +48,9 @@ class SyntheticDataModule(PoseDataModule):
     under ``data/synthetic`` named by the settings and renders into it when its label files
     are missing (a non-empty folder without them is an error, never overwritten). A given
     ``root`` is only read: without label files it is an error naming it, so a mistyped path
-    never trains on freshly rendered data; ``train_frames`` and ``test_frames`` then only
-    describe it (None where its scenes hold different counts).
+    never trains on freshly rendered data; ``train_frames`` and ``test_frames`` (per scene;
+    None: the benchmark's) then only describe it (None where its scenes hold different
+    counts).
     """
 
     settings_types = (SyntheticSettings, PoseDataSettings)
@@ -61,6 +62,8 @@ class SyntheticDataModule(PoseDataModule):
         root: str | None = None,
         poses: list[str] | None = None,
         render_seed: int = 0,
+        train_frames: int | None = None,
+        test_frames: int | None = None,
         **settings: Any,
     ) -> None:
         poses = [str(p) for p in poses] if poses else None
@@ -70,8 +73,9 @@ class SyntheticDataModule(PoseDataModule):
             for name in SyntheticSettings.names()
             if name != "seed" and name in settings
         }
-        described = {k: v for k, v in rendering.items() if v is not None}
-        self.render_settings = SyntheticSettings(**described, seed=render_seed)
+        counts = {"train_frames": train_frames, "test_frames": test_frames}
+        rendering |= {name: count for name, count in counts.items() if count is not None}
+        self.render_settings = SyntheticSettings(**rendering, seed=render_seed)
         if poses and self.render_settings.nuisances.active:
             raise ValueError(
                 "data.poses renders the given rows without nuisances: set lighting_change, "
