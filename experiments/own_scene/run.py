@@ -97,7 +97,7 @@ def main(argv: list[str]) -> int:
             f"data.test_labels={labels / 'all_test.csv'}",
             f"data.camera={{fx: {f}, fy: {f}, cx: {c}, cy: {c}, "
             f"width: {DEFAULT_SIZE}, height: {DEFAULT_SIZE}}}",
-            # the demo's data settings (conf/data/synthetic.yaml), which data=converted
+            # the demo's data settings (pae.synthetic.settings), which data=converted
             # leaves at a real dataset's
             f"data.shorter_edge={DEFAULT_SIZE}",
             "data.crop=56",
