@@ -352,29 +352,12 @@ def test_train_lanes_and_yaw_stray_shape_the_sequences() -> None:
     (test cameras stay, ``test_offset_m`` 0); ``yaw_stray_rad`` bounds the yaw change."""
     lane, stray = 0.6, 0.15
     scene = make_scene(0, 0, 0.0, lane)
+    layout = SyntheticSettings(train_frames=600, test_frames=100)
     base = make_sequences(
-        0,
-        scene,
-        SyntheticSettings(
-            train_frames=600,
-            test_frames=100,
-            seed=0,
-            test_offset_m=0.0,
-            train_lane_m=0.0,
-            yaw_stray_rad=0.0,
-        ),
+        0, scene, dataclasses.replace(layout, train_lane_m=0.0, yaw_stray_rad=0.0)
     )
     moved = make_sequences(
-        0,
-        scene,
-        SyntheticSettings(
-            train_frames=600,
-            test_frames=100,
-            seed=0,
-            test_offset_m=0.0,
-            train_lane_m=lane,
-            yaw_stray_rad=stray,
-        ),
+        0, scene, dataclasses.replace(layout, train_lane_m=lane, yaw_stray_rad=stray)
     )
     train_index = 0
     for before, after in zip(base, moved, strict=True):
@@ -399,46 +382,10 @@ def test_val_lane_moves_the_last_train_sequence_alone() -> None:
     ``val_sequences: 1``) that far beside the route, between the lanes; every other sequence,
     train and test, keeps its poses to the bit."""
     scene = make_scene(0, 0, 0.0, 0.5)
-    lanes = make_sequences(
-        0,
-        scene,
-        SyntheticSettings(
-            train_frames=600,
-            test_frames=100,
-            seed=0,
-            test_offset_m=0.0,
-            train_lane_m=0.5,
-            yaw_stray_rad=0.0,
-            stray_m=0.0,
-        ),
-    )
-    between = make_sequences(
-        0,
-        scene,
-        SyntheticSettings(
-            train_frames=600,
-            test_frames=100,
-            seed=0,
-            test_offset_m=0.0,
-            train_lane_m=0.5,
-            yaw_stray_rad=0.0,
-            stray_m=0.0,
-            val_lane_m=0.0,
-        ),
-    )
-    on_route = make_sequences(
-        0,
-        scene,
-        SyntheticSettings(
-            train_frames=600,
-            test_frames=100,
-            seed=0,
-            test_offset_m=0.0,
-            train_lane_m=0.0,
-            yaw_stray_rad=0.0,
-            stray_m=0.0,
-        ),
-    )
+    layout = SyntheticSettings(train_frames=600, test_frames=100, yaw_stray_rad=0.0, stray_m=0.0)
+    lanes = make_sequences(0, scene, layout)
+    between = make_sequences(0, scene, dataclasses.replace(layout, val_lane_m=0.0))
+    on_route = make_sequences(0, scene, dataclasses.replace(layout, train_lane_m=0.0))
     val = [s.split == "train" for s in lanes].index(False) - 1
     for index, (before, after) in enumerate(zip(lanes, between, strict=True)):
         if index == val:
@@ -458,18 +405,7 @@ def test_validation_walks_add_sequences_and_change_none(tmp_path: Path) -> None:
     fingerprint) is the one without them, its validation split seq-06 and the walks."""
     scene = make_scene(0, 0, 0.0, 0.5)
     plain = make_sequences(
-        0,
-        scene,
-        SyntheticSettings(
-            train_frames=600,
-            test_frames=100,
-            seed=0,
-            test_offset_m=0.0,
-            train_lane_m=0.5,
-            yaw_stray_rad=0.15,
-            stray_m=0.1,
-            val_lane_m=0.0,
-        ),
+        0, scene, SyntheticSettings(train_frames=600, test_frames=100, val_lane_m=0.0)
     )
     layout = SyntheticSettings(train_frames=600, test_frames=100, val_walks=2)
     walked = make_sequences(0, scene, dataclasses.replace(layout, val_lane_m=0.0))
