@@ -152,7 +152,7 @@ def refine_scene(
     data.setup()
     loaded = load_scene_model(scene_model_path(run), "scene_model_ckpt")
     model = loaded.model.eval()
-    settings = RenderCompareSettings(resolution=size)
+    settings = RenderCompareSettings(resolution=size, final_reference_size=size // 2)
     val = split_queries(data, "val", settings.resolution)
     test = split_queries(data, "test", settings.resolution)
     if not todo:
@@ -184,6 +184,7 @@ def refine_scene(
             "val_queries": len(val["pose"]),
             "scene_size_m": extent,
             "image_px": size,
+            "final_reference_px": settings.final_reference_size,
             "calibration": {
                 "accept_margin": calibration.accept_margin,
                 "accept_score": calibration.accept_score,
