@@ -1,21 +1,24 @@
 """What limits render-and-compare's precision: the refiner's floor on the validation images.
 
 For a fitted real-starts run (``run.py``), the validation queries are refined with settings
-variants (``--variant key=value,key=value``; the first steps and high-pass that
-``calibrate_any_start`` chose, read from ``real_starts_DFNet.json``, under every variant),
-every refinement accepted, from two kinds of starts: the true poses (the floor: where the
-scene model's best match lies) and starts of a good APR's error scale (1 % of the scene's size
-and 1 deg, as :func:`pae.render_compare.calibration.ladder_starts` draws them). Only
-validation labels are read. One table row per variant, printed and written to
-``RUN/floor_val.json``.
+variants (``--variant key=value,key=value`` over run.py's settings; ``''``: those alone), the
+first steps and high-pass that ``calibrate_any_start`` chose (``real_starts_DFNet.json``)
+under every variant, every refinement accepted, from two kinds of starts: the true poses (the
+floor: where the scene model's best match lies) and starts of a good APR's error scale (1 % of
+the scene's size and 1 deg, drawn as :func:`pae.core.pose_sampling.perturb_poses` draws).
+``--ladder``: also, under run.py's settings, each rung of the any-start calibration's ladder
+(:func:`pae.render_compare.calibration.ladder_starts`): the starts' and the refined poses'
+medians and the share the refinement made worse. Only validation labels are read. One row per
+variant, printed and written to ``RUN/floor_val.json``.
 
     python experiments/render_compare_real_starts/floor.py outputs/rs128/chess \\
-        --variant '' --variant final_reference_size=64 --variant final_reference_size=128
+        --variant final_reference_size=32 --variant '' --variant final_reference_size=96
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -23,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from run import chosen_steps, refiner_settings  # beside this script
 
 from pae.apps.localization import data_module, read_run, scene_model_path, split_queries
 from pae.core.atomic import atomic_write
@@ -30,21 +34,27 @@ from pae.core.checkpoints import load_scene_model
 from pae.core.geometry import pose_errors
 from pae.core.pose_sampling import perturb_poses
 from pae.render_compare import ACCEPT_ALL, Calibration, refine
-from pae.render_compare.calibration import scene_size
+from pae.render_compare.calibration import LADDER, ladder_starts, scene_size
 from pae.render_compare.settings import RenderCompareSettings
 
 GOOD_START_SHARE = 0.01
 """A good APR's position error as a share of the scene's size (DFNet: 3 cm in a 3 m room)."""
 GOOD_START_DEG = 1.0
-STEP_KEYS = ("position_sigma_m", "orientation_sigma_deg", "highpass_sigma_px", "highpass_levels")
 
 
 def parse_variant(text: str) -> dict[str, Any]:
-    """``key=value,key=value`` -> settings (numbers as int or float)."""
+    """``key=value,key=value`` -> settings (numbers as int or float); a malformed item or an
+    unknown setting is a one-line error."""
+    known = {field.name for field in dataclasses.fields(RenderCompareSettings)}
     variant: dict[str, Any] = {}
     for item in filter(None, text.split(",")):
         key, _, value = item.partition("=")
-        number = float(value)
+        if key not in known:
+            raise SystemExit(f"--variant {text!r}: {key!r} is not a render-and-compare setting")
+        try:
+            number = float(value)
+        except ValueError:
+            raise SystemExit(f"--variant {text!r}: {item!r} is not key=number") from None
         variant[key] = int(number) if number.is_integer() and "." not in value else number
     return variant
 
@@ -55,61 +65,90 @@ def medians(poses: torch.Tensor, truth: torch.Tensor) -> dict[str, float]:
     return {"pos_median_m": float(pos.median()), "rot_median_deg": float(rot.median())}
 
 
+def ladder_rows(refined: torch.Tensor, starts: torch.Tensor, truth: torch.Tensor) -> list[dict]:
+    """Per rung of the ladder (query i on rung i mod K): its share of the scene's size, the
+    starts' and the refined poses' median position errors (m), the share made worse."""
+    start_pos, _ = pose_errors(starts.float(), truth.float())
+    refined_pos, _ = pose_errors(refined.float(), truth.float())
+    rung = torch.arange(len(truth)) % len(LADDER)
+    return [
+        {
+            "share": share,
+            "start_pos_median_m": float(start_pos[rung == k].median()),
+            "refined_pos_median_m": float(refined_pos[rung == k].median()),
+            "worse_share": float((refined_pos > start_pos)[rung == k].float().mean()),
+        }
+        for k, share in enumerate(LADDER)
+    ]
+
+
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path)
     parser.add_argument("--variant", action="append", default=[], help="key=value,...")
     parser.add_argument("--queries", type=int, default=400, help="val queries (evenly spaced)")
+    parser.add_argument("--ladder", action="store_true", help="every val query, ladder starts")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
+    variants = [parse_variant(text) for text in args.variant or [""]]
     run = read_run(args.run)
     size = int(run.config.data.size)
     data = data_module(run, cache_images=False, crop=size)
     data.setup()
     model = load_scene_model(scene_model_path(run), "scene_model_ckpt").model.eval()
-    val = split_queries(data, "val", size)
-    rows = torch.linspace(0, len(val["pose"]) - 1, min(args.queries, len(val["pose"]))).long()
-    val = {key: value[rows] for key, value in val.items()}
+    every = split_queries(data, "val", size)
+    count = min(args.queries, len(every["pose"]))
+    rows = torch.linspace(0, len(every["pose"]) - 1, count).long()
+    val = {key: value[rows] for key, value in every.items()}
     truth = val["pose"]
     train_positions, _ = data.train_poses()
     extent = scene_size(train_positions[:, :3].double())
-    chosen = json.loads((args.run / "real_starts_DFNet.json").read_text())["calibration"]
-    steps = {key: chosen[key] for key in STEP_KEYS if key in chosen}
-    generator = torch.Generator().manual_seed(args.seed)
-    count = len(truth)
+    calibration = Calibration(ACCEPT_ALL, ACCEPT_ALL, chosen_steps(args.run))
+    base = dataclasses.asdict(refiner_settings(size))
     good = perturb_poses(
         truth.double(),
         torch.full((count,), GOOD_START_SHARE * extent, dtype=torch.float64),
         torch.full((count,), GOOD_START_DEG, dtype=torch.float64),
-        generator,
+        torch.Generator().manual_seed(args.seed),
     ).to(truth)
     out_path = args.run / "floor_val.json"
     results = json.loads(out_path.read_text()) if out_path.is_file() else {}
-    print(f"{args.run.name}: {count} val queries, scene {extent:.2f} m, steps {steps}")
+    print(f"{args.run.name}: {count} val queries, scene {extent:.2f} m, {calibration.steps}")
     print(f"start (1 % / 1 deg): {medians(good, truth)}")
-    for text in args.variant or [""]:
-        settings = RenderCompareSettings(resolution=size).__dict__ | parse_variant(text)
-        calibration = Calibration(ACCEPT_ALL, ACCEPT_ALL, steps)
+    for text, variant in zip(args.variant or [""], variants, strict=True):
         row: dict[str, Any] = {}
         for name, starts in (("from_truth", truth), ("from_good", good)):
             begin = time.perf_counter()
             refined = refine(
-                model, val["image"], val["intrinsics"], starts, val["scene"], settings,
-                calibration,
+                model, val["image"], val["intrinsics"], starts, val["scene"],
+                base | variant, calibration,
             )  # fmt: skip
             row[name] = medians(refined.poses, truth)
             row[f"{name}_ms_per_query"] = 1000 * (time.perf_counter() - begin) / count
-        results[text or "(chosen)"] = row
+        results[text or "(run.py's)"] = row
         print(
-            f"{text or '(chosen)':60s} truth {100 * row['from_truth']['pos_median_m']:.2f} cm"
-            f" / {row['from_truth']['rot_median_deg']:.2f} deg, good "
+            f"{text or '(run.py settings)':60s} truth {100 * row['from_truth']['pos_median_m']:.2f}"
+            f" cm / {row['from_truth']['rot_median_deg']:.2f} deg, good "
             f"{100 * row['from_good']['pos_median_m']:.2f} cm / "
             f"{row['from_good']['rot_median_deg']:.2f} deg, "
             f"{row['from_good_ms_per_query']:.1f} ms/query",
             flush=True,
         )
-        with atomic_write(out_path) as handle:
-            json.dump(results, handle, indent=1)
+    if args.ladder:
+        truth = every["pose"]
+        starts = ladder_starts(truth, extent, torch.Generator().manual_seed(args.seed))
+        refined = refine(
+            model, every["image"], every["intrinsics"], starts, every["scene"], base, calibration
+        )
+        results["ladder"] = ladder_rows(refined.poses, starts, truth)
+        for rung in results["ladder"]:
+            print(
+                f"rung {100 * rung['share']:.2f} % of the size: start "
+                f"{100 * rung['start_pos_median_m']:.1f} cm -> "
+                f"{100 * rung['refined_pos_median_m']:.1f} cm, worse {rung['worse_share']:.2f}"
+            )
+    with atomic_write(out_path) as handle:
+        json.dump(results, handle, indent=1)
     return 0
 
 

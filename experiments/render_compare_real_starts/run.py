@@ -118,16 +118,27 @@ def source_paths(rendered: LabelTable, source: Path) -> list[str]:
     return list(table.img_path)
 
 
+def refiner_settings(size: int) -> RenderCompareSettings:
+    """The refiner's settings at a ``size``-px comparison: the final reference at half of
+    it (the default 32 px at 64 px; at 128 px 64, chosen on chess's val with floor.py)."""
+    return RenderCompareSettings(resolution=size, final_reference_size=size // 2)
+
+
+def chosen_steps(run_dir: Path) -> dict[str, float]:
+    """The first steps and high-pass that ``calibrate_any_start`` chose on the scene's val
+    images, read from its ``real_starts_<APR>.json``."""
+    chosen = json.loads((run_dir / f"real_starts_{APRS[0]}.json").read_text())["calibration"]
+    keys = ("position_sigma_m", "orientation_sigma_deg", "highpass_sigma_px", "highpass_levels")
+    return {key: chosen[key] for key in keys if key in chosen}
+
+
 def truth_audit(
     run_dir: Path, model: object, test: dict[str, torch.Tensor], settings: object
 ) -> None:
     """The scene model's floor, an audit reading the test labels as starts: the test images
     refined from their true poses with the first steps chosen on val (every refinement
     accepted) -> ``OUT/<scene>/truth_audit.json`` (``from_truth_oracle``)."""
-    chosen = json.loads((run_dir / f"real_starts_{APRS[0]}.json").read_text())["calibration"]
-    keys = ("position_sigma_m", "orientation_sigma_deg", "highpass_sigma_px", "highpass_levels")
-    steps = {key: chosen[key] for key in keys if key in chosen}
-    calibration = Calibration(ACCEPT_ALL, ACCEPT_ALL, steps)
+    calibration = Calibration(ACCEPT_ALL, ACCEPT_ALL, chosen_steps(run_dir))
     truth = test["pose"]
     refined = refine(
         model, test["image"], test["intrinsics"], truth, test["scene"], settings, calibration
@@ -152,7 +163,7 @@ def refine_scene(
     data.setup()
     loaded = load_scene_model(scene_model_path(run), "scene_model_ckpt")
     model = loaded.model.eval()
-    settings = RenderCompareSettings(resolution=size, final_reference_size=size // 2)
+    settings = refiner_settings(size)
     val = split_queries(data, "val", settings.resolution)
     test = split_queries(data, "test", settings.resolution)
     if not todo:
