@@ -112,6 +112,21 @@ def test_compiled_volume_rendering_equals_the_grid_sample_path(contract: bool) -
         assert (compiled - reference).abs().max() / scale < 2e-3
 
 
+def test_compiled_total_variation_equals_the_tensor_one_and_reads_the_grid_in_place() -> None:
+    torch.manual_seed(0)
+    grid = VoxelGrid([[-2, -2, -0.5], [2, 2, 2.5]], num_voxels=4000)
+    with torch.no_grad():
+        grid.grid.normal_(0, 1)
+    assert grid.kernel_cells().ctypes.data == grid.grid.data_ptr()  # no copy per step
+    values, grads = [], []
+    for engine in ("numba", "torch"):
+        value = grid.total_variation(engine)
+        grads.append(torch.autograd.grad(value, grid.grid)[0])
+        values.append(value.detach())
+    assert abs(values[0] - values[1]) < 1e-6 * values[1]
+    assert (grads[0] - grads[1]).abs().max() < 1e-5 * grads[1].abs().max()
+
+
 def _one_box_scene() -> SyntheticScene:
     """A room holding one textured box."""
     rng = np.random.default_rng(3)

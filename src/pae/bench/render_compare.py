@@ -1,6 +1,7 @@
 """Render-and-compare speed, side by side in one run: the refiner's milliseconds per query
 (batched, as the callback runs it), the compiled scorer against the tensor one, and the
-compiled volume renderer against the ``grid_sample`` one, on the same inputs.
+compiled volume renderer against the ``grid_sample`` one, and a step of the scene model's fit
+compiled against the tensor one, on the same inputs.
 
 The scene model is the default voxel grid (conf/scene_model/voxel_grid.yaml) over a room of
 the benchmark's size whose walls are opaque and whose inside is empty, so that rays stop
@@ -87,6 +88,33 @@ def machine_gflops(size: int = 1024, repeats: int = 5) -> float:
     return 2 * size**3 / best / 1e9
 
 
+def fit_step_seconds(model: VoxelGridSceneModel, engine: str, steps: int = 10) -> float:
+    """Seconds per fit step of the scene model on ``engine``: 4,096 rays from inside the room
+    rendered with jitter, their squared error and the grid's total variation
+    (``conf/scene_model/base.yaml``'s batch and weight), backward and one Adam step."""
+    generator = torch.Generator().manual_seed(1)
+    rays = 4096
+    origins = torch.rand(rays, 3, generator=generator) * 2 - 1 + torch.tensor([0.0, 0.0, 1.4])
+    directions = torch.randn(rays, 3, generator=generator)
+    target = torch.rand(rays, 3, generator=generator)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+    half = rays // len(model.grids)
+
+    def step() -> None:
+        loss = torch.zeros(())
+        for i, grid in enumerate(model.grids):
+            part = slice(i * half, (i + 1) * half)
+            rgb, _, _ = grid.composite(origins[part], directions[part], 48, 0.05, True, engine)
+            loss = loss + (rgb - target[part]).square().mean()
+            loss = loss + 1e-3 * grid.total_variation(engine) / len(model.grids)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+
+    step()
+    return _seconds(lambda: [step() for _ in range(steps)]) / steps
+
+
 def bench_render_compare(
     queries: int = 250, scenes: int = 2, crop: int = 56, device: str = "cpu"
 ) -> dict[str, float]:
@@ -141,6 +169,11 @@ def bench_render_compare(
             for e in ("numba", "torch")
         )
     figures[f"{prefix}/compiled_render_speedup"] = slow / fast
+    compiled_step, tensor_step = (
+        fit_step_seconds(room_grid(scenes), e) for e in ("numba", "torch")
+    )
+    figures["bench/scene_model/fit_step_ms"] = 1000 * compiled_step
+    figures["bench/scene_model/compiled_fit_step_speedup"] = tensor_step / compiled_step
     figures["bench/deploy/render_compare/scene_model_bytes"] = sum(
         p.numel() * p.element_size() for p in model.parameters()
     )

@@ -25,7 +25,13 @@ from pae.core.checks import boolean, integer, is_int, number, setting
 from pae.core.compiled import ENGINES, Engine
 from pae.core.errors import ConfigError
 from pae.scene_model.base import SceneModel, SceneModelInputs, SceneRendering
-from pae.scene_model.voxel_render import CompiledComposite, GridGeometry, RaySegments, channels_last
+from pae.scene_model.voxel_render import (
+    CompiledComposite,
+    CompiledTotalVariation,
+    GridGeometry,
+    RaySegments,
+    channels_last,
+)
 
 _EPS = 1e-9
 
@@ -104,7 +110,9 @@ class VoxelGrid(nn.Module):
         self.voxel_m = float(min(e / (n - 1) for e, n in zip(extent, shape, strict=True)))
         if contract:
             self.voxel_m *= 2
-        self.grid = nn.Parameter(torch.zeros(1, 4, shape[2], shape[1], shape[0]))
+        # stored channels last: the compiled kernels read and write it without a copy
+        cells = torch.zeros(1, 4, shape[2], shape[1], shape[0])
+        self.grid = nn.Parameter(cells.to(memory_format=torch.channels_last_3d))
         # softplus(shift) · (one voxel) = -log(1 - init_alpha): a faint initial fog
         self.density_shift = math.log(math.expm1(-math.log1p(-init_alpha)))
         self.background = nn.Parameter(torch.zeros(3))
@@ -180,12 +188,7 @@ class VoxelGrid(nn.Module):
         else:
             offsets = origins.new_full(shape, 0.5)
         background = torch.sigmoid(self.background)
-        if engine not in ENGINES:
-            raise ValueError(f"unknown engine {engine!r}; choose one of {ENGINES}")
-        runs = self.grid.device.type == "cpu" and self.grid.dtype == torch.float32
-        if engine == "numba" and not runs:
-            raise ValueError("engine 'numba' renders CPU float32 grids only; use auto or torch")
-        if engine != "torch" and runs:
+        if self.compiled(engine):
             geometry = GridGeometry(
                 self.lo.double().numpy(),
                 self.hi.double().numpy(),
@@ -225,9 +228,23 @@ class VoxelGrid(nn.Module):
             self._kernel_cells = (key, channels_last(self.grid))
         return self._kernel_cells[1]
 
-    def total_variation(self) -> Tensor:
-        """Mean squared difference of neighbouring voxels (density and colour channels)."""
+    def compiled(self, engine: Engine) -> bool:
+        """Whether ``engine`` (:data:`pae.core.compiled.ENGINES`) runs the compiled kernels on
+        this grid: ``numba`` (CPU float32 grids only), or ``auto`` where they can run."""
+        if engine not in ENGINES:
+            raise ValueError(f"unknown engine {engine!r}; choose one of {ENGINES}")
+        runs = self.grid.device.type == "cpu" and self.grid.dtype == torch.float32
+        if engine == "numba" and not runs:
+            raise ValueError("engine 'numba' runs on CPU float32 grids only; use auto or torch")
+        return engine != "torch" and runs
+
+    def total_variation(self, engine: Engine = "auto") -> Tensor:
+        """Mean squared difference of neighbouring voxels (density and colour channels) along
+        each axis, summed over the axes; ``engine`` as in :meth:`composite` (the compiled one
+        takes one pass forward and one backward)."""
         g = self.grid
+        if self.compiled(engine):
+            return CompiledTotalVariation.apply(g, self.kernel_cells())
         return (
             (g[..., 1:, :, :] - g[..., :-1, :, :]).square().mean()
             + (g[..., :, 1:, :] - g[..., :, :-1, :]).square().mean()

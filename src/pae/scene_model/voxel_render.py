@@ -94,17 +94,52 @@ def _sample(grid: np.ndarray, i0: int, j0: int, k0: int, fz: float, fy: float, f
 
 
 @jit(nogil=True, inline="always", fastmath=True)
-def _scatter(
-    grad: np.ndarray, i0: int, j0: int, k0: int, fz: float, fy: float, fx: float, c: int, g: float
-) -> None:
-    """Add ``g`` times the trilinear weights of the cell at (i0, j0, k0) to channel ``c``."""
+def _sample_all(
+    grid: np.ndarray, i0: int, j0: int, k0: int, fz: float, fy: float, fx: float
+) -> tuple[float, float, float, float]:
+    """Trilinear values of the four channels in the cell at (i0, j0, k0), read together."""
+    v0 = v1 = v2 = v3 = 0.0
     for di in range(2):
         wz = fz if di else 1 - fz
         for dj in range(2):
             wy = fy if dj else 1 - fy
             for dk in range(2):
-                wx = fx if dk else 1 - fx
-                grad[i0 + di, j0 + dj, k0 + dk, c] += g * wz * wy * wx
+                w = wz * wy * (fx if dk else 1 - fx)
+                cell = grid[i0 + di, j0 + dj, k0 + dk]
+                v0 += w * cell[0]
+                v1 += w * cell[1]
+                v2 += w * cell[2]
+                v3 += w * cell[3]
+    return v0, v1, v2, v3
+
+
+@jit(nogil=True, inline="always", fastmath=True)
+def _scatter_all(
+    grad: np.ndarray,
+    i0: int,
+    j0: int,
+    k0: int,
+    fz: float,
+    fy: float,
+    fx: float,
+    g0: float,
+    g1: float,
+    g2: float,
+    g3: float,
+) -> None:
+    """Add (g0, g1, g2, g3) times the trilinear weights of the cell at (i0, j0, k0) to the
+    four channels."""
+    for di in range(2):
+        wz = fz if di else 1 - fz
+        for dj in range(2):
+            wy = fy if dj else 1 - fy
+            for dk in range(2):
+                w = wz * wy * (fx if dk else 1 - fx)
+                cell = grad[i0 + di, j0 + dj, k0 + dk]
+                cell[0] += w * g0
+                cell[1] += w * g1
+                cell[2] += w * g2
+                cell[3] += w * g3
 
 
 @jit(nogil=True, inline="always", fastmath=True)
@@ -186,9 +221,10 @@ def render_forward(
             alpha = 1.0 - math.exp(-sigma * length)
             weight = transmit * alpha
             if weight > SKIP_WEIGHT:  # empty space: its colour adds nothing visible
-                red += weight * _sigmoid(_sample(grid, i0, j0, k0, fz, fy, fx, 1))
-                green += weight * _sigmoid(_sample(grid, i0, j0, k0, fz, fy, fx, 2))
-                blue += weight * _sigmoid(_sample(grid, i0, j0, k0, fz, fy, fx, 3))
+                _, raw_r, raw_g, raw_b = _sample_all(grid, i0, j0, k0, fz, fy, fx)
+                red += weight * _sigmoid(raw_r)
+                green += weight * _sigmoid(raw_g)
+                blue += weight * _sigmoid(raw_b)
                 depth += weight * t
             transmit *= 1.0 - alpha
             s += 1
@@ -228,29 +264,115 @@ def render_backward(
             for s in range(used[r]):
                 px, py, pz, length, _ = _point(segments, r, s, n, offsets, where)
                 i0, j0, k0, fz, fy, fx = _corners(shape, px, py, pz)
-                x = _sample(grid, i0, j0, k0, fz, fy, fx, 0) + density_shift
+                raw, raw_r, raw_g, raw_b = _sample_all(grid, i0, j0, k0, fz, fy, fx)
+                x = raw + density_shift
                 sigma = _softplus(x)
                 alpha = 1.0 - math.exp(-sigma * length)
                 weight = transmit * alpha
-                cr = _sigmoid(_sample(grid, i0, j0, k0, fz, fy, fx, 1))
-                cg = _sigmoid(_sample(grid, i0, j0, k0, fz, fy, fx, 2))
-                cb = _sigmoid(_sample(grid, i0, j0, k0, fz, fy, fx, 3))
+                cr, cg, cb = _sigmoid(raw_r), _sigmoid(raw_g), _sigmoid(raw_b)
                 along = cr * gr + cg * gg + cb * gb
                 done += weight * along
                 rest = total - done
                 d_sigma = length * (transmit * (1.0 - alpha) * along - rest)
-                _scatter(grad, i0, j0, k0, fz, fy, fx, 0, d_sigma * _sigmoid(x))
-                _scatter(grad, i0, j0, k0, fz, fy, fx, 1, weight * gr * cr * (1 - cr))
-                _scatter(grad, i0, j0, k0, fz, fy, fx, 2, weight * gg * cg * (1 - cg))
-                _scatter(grad, i0, j0, k0, fz, fy, fx, 3, weight * gb * cb * (1 - cb))
+                _scatter_all(
+                    grad,
+                    i0,
+                    j0,
+                    k0,
+                    fz,
+                    fy,
+                    fx,
+                    d_sigma * _sigmoid(x),
+                    weight * gr * cr * (1 - cr),
+                    weight * gg * cg * (1 - cg),
+                    weight * gb * cb * (1 - cb),
+                )
                 transmit *= 1.0 - alpha
             grad_background[t, 0] += transmit * gr
             grad_background[t, 1] += transmit * gg
             grad_background[t, 2] += transmit * gb
 
 
+@jit(parallel=True, nogil=True, fastmath=True)
+def variation_sums(cells: np.ndarray) -> tuple[float, float, float]:
+    """Sums of the squared differences of neighbouring cells [nz, ny, nx, C] along x, y, z."""
+    nz, ny, nx, nc = cells.shape
+    sx = sy = sz = 0.0
+    for i in numba.prange(nz):
+        for j in range(ny):
+            for k in range(nx):
+                for c in range(nc):
+                    v = cells[i, j, k, c]
+                    if k + 1 < nx:
+                        sx += (cells[i, j, k + 1, c] - v) ** 2
+                    if j + 1 < ny:
+                        sy += (cells[i, j + 1, k, c] - v) ** 2
+                    if i + 1 < nz:
+                        sz += (cells[i + 1, j, k, c] - v) ** 2
+    return sx, sy, sz
+
+
+@jit(parallel=True, nogil=True, fastmath=True)
+def variation_gradient(
+    cells: np.ndarray, wx: float, wy: float, wz: float, grad: np.ndarray
+) -> None:
+    """grad [nz, ny, nx, C] = the gradient of ``wx·sx + wy·sy + wz·sz`` (the sums of
+    :func:`variation_sums`) w.r.t. cells [nz, ny, nx, C]."""
+    nz, ny, nx, nc = cells.shape
+    for i in numba.prange(nz):
+        for j in range(ny):
+            for k in range(nx):
+                for c in range(nc):
+                    v = cells[i, j, k, c]
+                    g = 0.0
+                    if k > 0:
+                        g += wx * (v - cells[i, j, k - 1, c])
+                    if k + 1 < nx:
+                        g += wx * (v - cells[i, j, k + 1, c])
+                    if j > 0:
+                        g += wy * (v - cells[i, j - 1, k, c])
+                    if j + 1 < ny:
+                        g += wy * (v - cells[i, j + 1, k, c])
+                    if i > 0:
+                        g += wz * (v - cells[i - 1, j, k, c])
+                    if i + 1 < nz:
+                        g += wz * (v - cells[i + 1, j, k, c])
+                    grad[i, j, k, c] = 2.0 * g
+
+
+class CompiledTotalVariation(torch.autograd.Function):
+    """(grid [1, C, nz, ny, nx], the same grid in the kernels' layout [nz, ny, nx, C]) -> the
+    mean squared difference of neighbouring cells along each axis, summed over the axes
+    (:meth:`VoxelGrid.total_variation`), in one pass forward and one backward instead of
+    a dozen tensor passes."""
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: torch.autograd.function.FunctionCtx, grid: Tensor, cells: np.ndarray
+    ) -> Tensor:
+        nz, ny, nx, nc = cells.shape
+        counts = (nz * ny * (nx - 1) * nc, nz * (ny - 1) * nx * nc, (nz - 1) * ny * nx * nc)
+        sums = variation_sums(cells)
+        ctx.cells, ctx.counts = cells, counts
+        ctx.dtype = grid.dtype
+        value = sum(s / n for s, n in zip(sums, counts, strict=True))
+        return torch.tensor(value, dtype=grid.dtype)
+
+    @staticmethod
+    def backward(  # type: ignore[override]
+        ctx: torch.autograd.function.FunctionCtx, grad_value: Tensor
+    ) -> tuple[Tensor, None]:
+        scale = float(grad_value)
+        weights = [scale / n for n in ctx.counts]
+        grad = np.empty_like(ctx.cells)
+        variation_gradient(ctx.cells, *weights, grad)
+        return torch.from_numpy(grad).permute(3, 0, 1, 2)[None].to(ctx.dtype), None
+
+
 def channels_last(grid: Tensor) -> np.ndarray:
-    """A grid [1, 4, nz, ny, nx] in the kernels' layout [nz, ny, nx, 4] (a copy)."""
+    """A grid [1, 4, nz, ny, nx] in the kernels' layout [nz, ny, nx, 4]: a view where the grid
+    is stored channels last (``torch.channels_last_3d``, as :class:`VoxelGrid` stores it), else
+    a copy."""
     return grid.detach()[0].permute(1, 2, 3, 0).contiguous().numpy()
 
 
