@@ -3,7 +3,8 @@
 For a fitted real-starts run (``run.py``), the validation queries are refined with settings
 variants (``--variant key=value,key=value`` over run.py's settings; ``''``: those alone), the
 first steps and high-pass that ``calibrate_any_start`` chose (``real_starts_DFNet.json``)
-under every variant, every refinement accepted, from two kinds of starts: the true poses (the
+under every variant (a key the variant sets overrides the chosen value), every refinement
+accepted, from two kinds of starts: the true poses (the
 floor: where the scene model's best match lies) and starts of a good APR's error scale (1 % of
 the scene's size and 1 deg, drawn as :func:`pae.core.pose_sampling.perturb_poses` draws).
 ``--ladder``: also, under run.py's settings, each rung of the any-start calibration's ladder
@@ -40,6 +41,12 @@ from pae.render_compare.settings import RenderCompareSettings
 GOOD_START_SHARE = 0.01
 """A good APR's position error as a share of the scene's size (DFNet: 3 cm in a 3 m room)."""
 GOOD_START_DEG = 1.0
+
+
+def overridden(calibration: Calibration, variant: dict[str, Any]) -> Calibration:
+    """The calibration without the chosen steps that ``variant`` sets: its values stand."""
+    steps = {key: value for key, value in calibration.steps.items() if key not in variant}
+    return dataclasses.replace(calibration, steps=steps)
 
 
 def parse_variant(text: str) -> dict[str, Any]:
@@ -121,7 +128,7 @@ def main(argv: list[str]) -> int:
             begin = time.perf_counter()
             refined = refine(
                 model, val["image"], val["intrinsics"], starts, val["scene"],
-                base | variant, calibration,
+                base | variant, overridden(calibration, variant),
             )  # fmt: skip
             row[name] = medians(refined.poses, truth)
             row[f"{name}_ms_per_query"] = 1000 * (time.perf_counter() - begin) / count
