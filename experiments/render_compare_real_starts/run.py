@@ -34,7 +34,7 @@ from pae.core.geometry import pose_errors, transfer_error
 from pae.data.labels import LabelTable, read_labels
 from pae.data.starts import match_starts, read_starts
 from pae.render_compare import ACCEPT_ALL, Calibration, calibrate_any_start, refine
-from pae.render_compare.calibration import scene_size
+from pae.render_compare.calibration import HIGHPASS_PX, scene_size
 from pae.render_compare.settings import RenderCompareSettings
 
 SCENES = {
@@ -173,8 +173,9 @@ def refine_scene(
     extent = scene_size(train_positions[:, :3].double())
     start = time.perf_counter()
     calibration, val_refined, val_starts = calibrate_any_start(
-        model, val["image"], val["intrinsics"], val["scene"], val["pose"], extent, settings
-    )
+        model, val["image"], val["intrinsics"], val["scene"], val["pose"], extent, settings,
+        highpass_px=args.highpass_px,
+    )  # fmt: skip
     calibrate_s = time.perf_counter() - start
     metrics = json.loads((run_dir / "metrics.json").read_text())
     img_paths = source_paths(data.tables["test"], files[1])
@@ -245,6 +246,13 @@ def main(argv: list[str]) -> int:
         default=64,
         help="px of the rendered images, the scene model's "
         "train images and the comparison (default: 64)",
+    )
+    parser.add_argument(
+        "--highpass-px",
+        type=float,
+        nargs="+",
+        default=[HIGHPASS_PX],
+        help=f"the high-passes (px) the calibration tries (default: {HIGHPASS_PX:g})",
     )
     args = parser.parse_args(own)
     dataset_of = {scene: dataset for dataset, names in SCENES.items() for scene in names}

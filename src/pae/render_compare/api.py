@@ -229,12 +229,14 @@ def calibrate_any_start(
     settings: Settings = None,
     features: FeatureExtractor | None = None,
     seed: int = 0,
+    highpass_px: Sequence[float] = (HIGHPASS_PX,),
 ) -> tuple[Calibration, Refinement, Tensor]:
     """The calibration for starts from any APR, whose error scale the run cannot know: on
     validation queries (as :func:`calibrate`'s) with starts at every scale of the ladder
     (:func:`pae.render_compare.calibration.ladder_starts`, ``size_m``: the scene's size, m),
     the first steps among ``STEP_SHARES`` of the size, the high-pass among the settings' own
-    and ``HIGHPASS_PX`` at every level or the finest only, and the gate that minimise the
+    and each of ``highpass_px`` (px) at every level or the finest only, and the gate that
+    minimise the
     mean log of each query's error over its start's (``choose_gate(objective="log_ratio")``),
     so that a good start is kept rather than refined to the refiner's floor -> the
     calibration (its ``steps`` holding the chosen steps and high-pass), the validation
@@ -245,7 +247,8 @@ def calibrate_any_start(
     deg_per_share = LADDER_DEG[0] / LADDER[0]
     own = build_refiner(scene_model, settings, None, features)
     filters = dict.fromkeys(
-        [(own.highpass_sigma_px, own.highpass_levels), (HIGHPASS_PX, 0), (HIGHPASS_PX, 1)]
+        [(own.highpass_sigma_px, own.highpass_levels)]
+        + [(sigma, levels) for sigma in highpass_px for levels in (0, 1)]
     )
     best: tuple[float, Calibration, Refinement] | None = None
     for (highpass, levels), share in itertools.product(filters, STEP_SHARES):
