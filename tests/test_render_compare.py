@@ -351,12 +351,25 @@ def test_the_log_ratio_gate_keeps_good_starts_that_the_refiner_would_make_worse(
         choose_gate(gains, scores, refined, start, objective="median")
 
 
-def test_calibrating_for_any_start_never_makes_the_val_starts_worse_on_average() -> None:
+def test_calibrating_for_any_start_never_makes_the_val_starts_worse_on_average(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """calibrate_any_start on a tiny scene: starts at every scale of the ladder, the steps and
-    gate chosen so that the mean log error ratio over those val starts is at most 0."""
-    from pae.render_compare import calibrate_any_start
+    gate chosen so that the mean log error ratio over those val starts is at most 0; every
+    high-pass of ``highpass_px`` tried, at every level and at the finest only."""
+    from pae.render_compare import api, calibrate_any_start
     from pae.render_compare.calibration import HIGHPASS_PX
+    from pae.render_compare.settings import RenderCompareSettings
 
+    tried = set()
+    build = api.build_refiner
+
+    def spy(scene_model: Any, settings: Any, steps: Any, features: Any) -> Any:
+        if steps:
+            tried.add((steps["highpass_sigma_px"], steps["highpass_levels"]))
+        return build(scene_model, settings, steps, features)
+
+    monkeypatch.setattr(api, "build_refiner", spy)
     model, images, intrinsics, truth, _ = _oracle_queries(12)
     scenes = torch.zeros(len(truth), dtype=torch.long)
     settings = {"rounds": 3, "candidates": 8, "resolution": 16, "reference_size": 12}
@@ -369,6 +382,9 @@ def test_calibrating_for_any_start_never_makes_the_val_starts_worse_on_average()
     chosen = {"position_sigma_m", "orientation_sigma_deg", "highpass_sigma_px", "highpass_levels"}
     assert set(calibration.steps) == chosen
     assert calibration.steps["highpass_sigma_px"] in (0.0, HIGHPASS_PX, 6.0)
+    own = RenderCompareSettings(**settings)
+    expected = {(own.highpass_sigma_px, own.highpass_levels)}
+    assert tried == expected | {(px, levels) for px in (HIGHPASS_PX, 6.0) for levels in (0, 1)}
     kept = ~refinement.accepted
     torch.testing.assert_close(refinement.poses[kept], starts[kept].to(refinement.poses))
 

@@ -126,8 +126,12 @@ def refiner_settings(size: int) -> RenderCompareSettings:
 
 def chosen_steps(run_dir: Path) -> dict[str, float]:
     """The first steps and high-pass that ``calibrate_any_start`` chose on the scene's val
-    images, read from its ``real_starts_<APR>.json``."""
-    chosen = json.loads((run_dir / f"real_starts_{APRS[0]}.json").read_text())["calibration"]
+    images, read from its ``real_starts_<APR>.json`` (a one-line error where run.py has not
+    calibrated the scene yet)."""
+    path = run_dir / f"real_starts_{APRS[0]}.json"
+    if not path.is_file():
+        raise SystemExit(f"{path} is missing: run run.py on this scene first (it calibrates)")
+    chosen = json.loads(path.read_text())["calibration"]
     keys = ("position_sigma_m", "orientation_sigma_deg", "highpass_sigma_px", "highpass_levels")
     return {key: chosen[key] for key in keys if key in chosen}
 

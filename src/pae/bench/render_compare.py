@@ -89,11 +89,12 @@ def machine_gflops(size: int = 1024, repeats: int = 5) -> float:
 
 
 def fit_step_seconds(model: VoxelGridSceneModel, engine: str, steps: int = 10) -> float:
-    """Seconds per fit step of the scene model on ``engine``: 4,096 rays from inside the room
-    rendered with jitter, their squared error and the grid's total variation
-    (``conf/scene_model/base.yaml``'s batch and weight), backward and one Adam step."""
+    """Seconds per fit step of the scene model on ``engine``: a batch of rays from inside the
+    room rendered with jitter, their squared error and the grid's total variation (the batch
+    and weight of ``conf/scene_model/base.yaml``), backward and one Adam step."""
+    fit = OmegaConf.load(Path(CONFIG_DIR) / "scene_model" / "base.yaml")
     generator = torch.Generator().manual_seed(1)
-    rays = 4096
+    rays = int(fit.rays_per_batch)
     origins = torch.rand(rays, 3, generator=generator) * 2 - 1 + torch.tensor([0.0, 0.0, 1.4])
     directions = torch.randn(rays, 3, generator=generator)
     target = torch.rand(rays, 3, generator=generator)
@@ -104,9 +105,11 @@ def fit_step_seconds(model: VoxelGridSceneModel, engine: str, steps: int = 10) -
         loss = torch.zeros(())
         for i, grid in enumerate(model.grids):
             part = slice(i * half, (i + 1) * half)
-            rgb, _, _ = grid.composite(origins[part], directions[part], 48, 0.05, True, engine)
+            rgb, _, _ = grid.composite(
+                origins[part], directions[part], model.samples_per_ray, model.near_m, True, engine
+            )
             loss = loss + (rgb - target[part]).square().mean()
-            loss = loss + 1e-3 * grid.total_variation(engine) / len(model.grids)
+            loss = loss + fit.tv_weight * grid.total_variation(engine) / len(model.grids)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()

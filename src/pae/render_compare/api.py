@@ -236,11 +236,10 @@ def calibrate_any_start(
     (:func:`pae.render_compare.calibration.ladder_starts`, ``size_m``: the scene's size, m),
     the first steps among ``STEP_SHARES`` of the size, the high-pass among the settings' own
     and each of ``highpass_px`` (px) at every level or the finest only, and the gate that
-    minimise the
-    mean log of each query's error over its start's (``choose_gate(objective="log_ratio")``),
-    so that a good start is kept rather than refined to the refiner's floor -> the
-    calibration (its ``steps`` holding the chosen steps and high-pass), the validation
-    refinement under it and its starts [N, 7]."""
+    minimise the mean log of each query's error over its start's
+    (``choose_gate(objective="log_ratio")``), so that a good start is kept rather than
+    refined to the refiner's floor -> the calibration (its ``steps`` holding the chosen steps
+    and high-pass), the validation refinement under it and its starts [N, 7]."""
     _check(images, intrinsics, truth, scenes, None)
     starts = ladder_starts(truth, size_m, torch.Generator().manual_seed(seed))
     start_pos, _ = pose_errors(starts.float(), truth.float())
