@@ -112,6 +112,18 @@ def test_compiled_volume_rendering_equals_the_grid_sample_path(contract: bool) -
         assert (compiled - reference).abs().max() / scale < 2e-3
 
 
+def test_the_forward_kernels_polynomial_exp_and_log1p_match_the_library_ones() -> None:
+    from pae.scene_model.voxel_render import _exp_parts, _log1p_unit
+
+    for x in np.linspace(-20.0, 20.0, 401, dtype=np.float32):
+        mantissa, bits = _exp_parts(x)
+        value = float(mantissa) * float(np.array(bits, np.int32).view(np.float32))
+        assert abs(value - math.exp(float(x))) <= 2e-6 * math.exp(float(x))
+    for z in np.linspace(0.0, 1.0, 101, dtype=np.float32):
+        assert abs(_log1p_unit(z) - math.log1p(float(z))) <= 1e-6 * max(math.log1p(float(z)), 1e-30)
+    assert _exp_parts(np.float32(-200.0))[1] == 1 << 23  # clamped to 2^-126, not wrapped
+
+
 def test_compiled_total_variation_equals_the_tensor_one_and_reads_the_grid_in_place() -> None:
     torch.manual_seed(0)
     grid = VoxelGrid([[-2, -2, -0.5], [2, 2, 2.5]], num_voxels=4000)
