@@ -84,9 +84,8 @@ def test_compiled_and_tensor_polish_take_the_same_steps() -> None:
 def test_the_tensor_score_equals_the_compiled_score() -> None:
     inputs, _ = _polish_inputs()
     points, values, valid, rotations, positions, _, intrinsics, target = inputs
-    compiled = compiled_zncc_scores(
-        points, values, valid, rotations, positions, intrinsics, target, 0.4, 2.0
-    )
+    poses = torch.cat([positions, matrix_to_quaternion(rotations)], -1)
+    compiled = compiled_zncc_scores(points, values, valid, poses, intrinsics, target, 0.4, 2.0)
     rows = torch.arange(len(points)).repeat_interleave(rotations.shape[1])
     cameras = (rotations.flatten(0, 1), positions.flatten(0, 1))
     per_row = (points[rows], values[rows], valid[rows])
@@ -101,9 +100,8 @@ def test_the_polish_raises_every_score_and_moves_towards_the_truth() -> None:
     rotation, position, scores = polish_compiled(inputs, PolishSettings(10, 1e-3, 0.4))
     assert (scores > inputs[5] + 0.1).all(), (inputs[5], scores)
     points, values, valid, _, _, _, intrinsics, target = inputs
-    rescored = compiled_zncc_scores(
-        points, values, valid, rotation, position, intrinsics, target, 0.4
-    )
+    poses = torch.cat([position, matrix_to_quaternion(rotation)], -1)
+    rescored = compiled_zncc_scores(points, values, valid, poses, intrinsics, target, 0.4)
     torch.testing.assert_close(rescored, scores.to(rescored.dtype), atol=1e-5, rtol=0)
     start = torch.cat([inputs[4][:, 0], matrix_to_quaternion(inputs[3][:, 0])], -1)
     after = torch.cat([position[:, 0], matrix_to_quaternion(rotation[:, 0])], -1)

@@ -36,11 +36,12 @@ MIN_DEPTH_M = 0.05
 NOT_SEEN_SCORE = -2.0
 """The score of a candidate that sees too few of the reference points."""
 
-FLOPS_PER_POINT_STEP = 230
-"""Floating-point operations per reference point and polish iteration (projection and three
-bilinear samples 54, moments 8, Jacobian 36, normal equations 88, the step's score 40),
-counted from ``numba_polish._polish_one``: what ``bench/render_compare/mflop_per_query``
-adds up."""
+FLOPS_PER_POINT_STEP = 264
+"""Floating-point operations per reference point and polish iteration, counted from
+``numba_polish._polish_one``: the projection 27, the three bilinear samples with their shared
+weights 27, the moments 17, the Jacobian and residual 50, the normal equations' 44 dot
+products 88 and the step's score 55 (``numba_score.FLOPS_PER_POINT_SCORE``): what
+``bench/render_compare/mflop_per_query`` adds up."""
 DAMPING_UP, DAMPING_DOWN = 5.0, 0.3
 """λ's factor after a rejected and after an accepted step."""
 DAMPING_RANGE = (1e-7, 1e7)
