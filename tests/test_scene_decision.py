@@ -11,7 +11,7 @@ import pytest
 import torch
 from torch import Tensor
 
-from pae.core.geometry import matrix_to_quaternion
+from pae.core.geometry import matrix_to_quaternion, quaternion_to_matrix
 from pae.core.pose_sampling import perturb
 from pae.render_compare import calibrate, refine
 from pae.render_compare.confusion import confusion_markdown, scene_confusion
@@ -27,7 +27,7 @@ from pae.render_compare.scene_decision import (
     probe_steps,
     try_scenes,
 )
-from pae.render_compare.scene_starts import LATENT_STARTS, latent_starts
+from pae.render_compare.scene_starts import HEADINGS, LATENT_STARTS, heading_starts, latent_starts
 from pae.scene_model.oracle import OracleSceneModel
 from pae.synthetic import Appearance, PinholeCamera, make_scene, render_batch
 
@@ -259,6 +259,17 @@ def test_a_wrong_scene_on_a_three_scene_benchmark_is_moved_to_the_right_one() ->
     assert torch.equal(refined.scenes[right], scenes[right]), "no right prediction moved"
 
 
+def test_heading_starts_turn_the_pose_about_its_camera_vertical_evenly() -> None:
+    poses = torch.tensor([[1.0, 2.0, 3.0, 1.0, 0.0, 0.0, 0.0]])
+    turned = heading_starts(poses, 4)  # [1, 4, 7]
+    assert torch.equal(turned[:, :, :3], poses[:, None, :3].expand(1, 4, 3)), "positions kept"
+    axes = quaternion_to_matrix(turned[0, :, 3:])  # camera-to-world rotations [4, 3, 3]
+    assert torch.allclose(axes[:, :, 1], torch.tensor([0.0, 1.0, 0.0]).expand(4, 3), atol=1e-6)
+    optical = axes[:, :, 2]  # the camera's z axis turns by 90° per heading
+    expected = torch.tensor([[0.0, 0, 1], [1, 0, 0], [0, 0, -1], [-1, 0, 0]])
+    assert torch.allclose(optical, expected, atol=1e-6)
+
+
 def test_latent_starts_are_the_teachers_pose_then_the_nearest_train_poses_of_each_scene() -> None:
     generator = torch.Generator().manual_seed(0)
     store_latents = torch.randn(12, 4, generator=generator)
@@ -266,16 +277,18 @@ def test_latent_starts_are_the_teachers_pose_then_the_nearest_train_poses_of_eac
     store_poses[:, 0] = torch.arange(12.0)  # x = the row
     store_scenes = torch.arange(12) % SCENES
     scene_poses = torch.zeros(2, SCENES, 7)
-    scene_poses[..., 0] = -1.0
+    scene_poses[..., 0], scene_poses[..., 3] = -1.0, 1.0
     # query 0's latent for scene 1 is train row 7's (scene 1), query 1's for scene 2 row 5's
     scene_latents = torch.full((2, SCENES, 4), 50.0)
     scene_latents[0, 1] = store_latents[7]
     scene_latents[1, 2] = store_latents[5]
     starts = latent_starts(scene_poses, scene_latents, store_latents, store_poses, store_scenes)
-    assert starts.shape == (2, SCENES, 1 + LATENT_STARTS, 7)
-    assert (starts[:, :, 0, 0] == -1).all(), "the teacher's pose first"
-    assert starts[0, 1, 1, 0] == 7 and starts[1, 2, 1, 0] == 5, "the nearest by latent next"
-    assert (starts[:, :, 1:, 0] % SCENES == torch.arange(SCENES)[None, :, None]).all()
+    assert starts.shape == (2, SCENES, HEADINGS + LATENT_STARTS, 7)
+    assert torch.equal(starts[:, :, :HEADINGS], heading_starts(scene_poses)), "teacher's first"
+    assert torch.allclose(starts[:, :, 0], scene_poses), "its own heading first"
+    near = starts[:, :, HEADINGS:]
+    assert near[0, 1, 0, 0] == 7 and near[1, 2, 0, 0] == 5, "the nearest by latent next"
+    assert (near[..., 0] % SCENES == torch.arange(SCENES)[None, :, None]).all()
     with pytest.raises(ValueError, match="5 latent starts per scene, but a scene has 4"):
         latent_starts(scene_poses, scene_latents, store_latents, store_poses, store_scenes, 5)
 

@@ -1,19 +1,38 @@
 """Where render-and-compare starts in the scenes a multi-scene teacher did not predict: its
-own pose for each scene, and the poses of the train images of that scene whose teacher
-latents lie nearest to the query's latent for that scene. A teacher that took the query for
-another room regresses a poor pose for the right one (a metre off where it erred on the
-synthetic benchmark), from which the refinement does not reach the true pose; the nearest
-train images by latent give starts the search can reach."""
+own pose for each scene, turned to ``HEADINGS`` headings about the camera's vertical axis, and
+the poses of the train images of that scene whose teacher latents lie nearest to the query's
+latent for that scene. A teacher that took the query for another room regresses a poor pose
+for the right one: a metre off, and often facing another way (tens of degrees to half a turn
+where it erred on the synthetic benchmark), from which the search, whose steps are sized to
+the teacher's errors in its predicted room, does not reach the true pose; the headings and
+the nearest train images by latent give starts it can reach."""
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import Tensor
 
+from pae.core.pose_sampling import perturb
 from pae.core.shapes import check_shape
 
 LATENT_STARTS = 2
 """Train poses per scene added to the teacher's pose as starts."""
+HEADINGS = 8
+"""Headings of the teacher's pose tried per scene, evenly spaced (45° apart: within about
+20° of any true heading, where the search's turns reach), the teacher's own first."""
+
+
+def heading_starts(poses: Tensor, headings: int = HEADINGS) -> Tensor:
+    """Poses [..., 7] turned about their camera's y axis (the vertical of a level camera) by
+    ``k · 360° / headings``, k = 0 .. headings - 1 -> [..., headings, 7] (k = 0: the pose
+    itself)."""
+    turns = poses.new_zeros(headings, 6)
+    turns[:, 4] = torch.arange(headings, dtype=poses.dtype, device=poses.device)
+    turns[:, 4] *= 2 * math.pi / headings
+    expanded = poses[..., None, :].expand(*poses.shape[:-1], headings, 7)
+    return perturb(expanded, turns.expand(*poses.shape[:-1], headings, 6))
 
 
 def latent_starts(
@@ -23,12 +42,14 @@ def latent_starts(
     store_poses: Tensor,
     store_scenes: Tensor,
     k: int = LATENT_STARTS,
+    headings: int = HEADINGS,
 ) -> Tensor:
-    """Starts [B, S, 1 + k, 7] per query and scene: the teacher's pose for the scene
-    (``scene_poses`` [B, S, 7]), then the poses (``store_poses`` [M, 7]) of the ``k`` train
-    images of that scene (``store_scenes`` [M]) whose latents (``store_latents`` [M, 2d], each
-    for its own scene) are nearest (Euclidean) to the query's latent for the scene
-    (``scene_latents`` [B, S, 2d]), nearest first."""
+    """Starts [B, S, headings + k, 7] per query and scene: the teacher's pose for the scene
+    (``scene_poses`` [B, S, 7]) at ``headings`` headings (:func:`heading_starts`, its own
+    first), then the poses (``store_poses`` [M, 7]) of the ``k`` train images of that scene
+    (``store_scenes`` [M]) whose latents (``store_latents`` [M, 2d], each for its own scene)
+    are nearest (Euclidean) to the query's latent for the scene (``scene_latents`` [B, S,
+    2d]), nearest first."""
     sizes = check_shape(scene_poses, "scene_poses", "B S 7")
     b, s = sizes["B"], sizes["S"]
     d = check_shape(scene_latents, "scene_latents", f"{b} {s} D")["D"]
@@ -46,4 +67,4 @@ def latent_starts(
         distance = torch.cdist(scene_latents[:, scene].float(), store_latents[rows].float())
         nearest = distance.topk(k, largest=False).indices  # [B, k], nearest first
         near[:, scene] = store_poses[rows][nearest].to(near)
-    return torch.cat([scene_poses[:, :, None], near], 2)
+    return torch.cat([heading_starts(scene_poses, headings), near], 2)
