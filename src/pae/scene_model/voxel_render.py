@@ -110,78 +110,6 @@ def _log1p_unit(z: float) -> float:
 
 
 @jit(nogil=True, inline="always", fastmath=True)
-def _corners(grid_shape: tuple[int, int, int], x: float, y: float, z: float) -> tuple:
-    """The lower corner (clamped inside the grid) and fractions of a point's voxel cell."""
-    nz, ny, nx = grid_shape
-    x = min(max(x, 0.0), nx - 1.0)
-    y = min(max(y, 0.0), ny - 1.0)
-    z = min(max(z, 0.0), nz - 1.0)
-    i0 = min(int(z), nz - 2)
-    j0 = min(int(y), ny - 2)
-    k0 = min(int(x), nx - 2)
-    return i0, j0, k0, z - i0, y - j0, x - k0
-
-
-@jit(nogil=True, inline="always", fastmath=True)
-def _sample_all(
-    grid: np.ndarray, i0: int, j0: int, k0: int, fz: float, fy: float, fx: float
-) -> tuple[float, float, float, float]:
-    """Trilinear values of the four channels in the cell at (i0, j0, k0), read together."""
-    v0 = v1 = v2 = v3 = 0.0
-    for di in range(2):
-        wz = fz if di else 1 - fz
-        for dj in range(2):
-            wy = fy if dj else 1 - fy
-            for dk in range(2):
-                w = wz * wy * (fx if dk else 1 - fx)
-                cell = grid[i0 + di, j0 + dj, k0 + dk]
-                v0 += w * cell[0]
-                v1 += w * cell[1]
-                v2 += w * cell[2]
-                v3 += w * cell[3]
-    return v0, v1, v2, v3
-
-
-@jit(nogil=True, inline="always", fastmath=True)
-def _scatter_all(
-    grad: np.ndarray,
-    i0: int,
-    j0: int,
-    k0: int,
-    fz: float,
-    fy: float,
-    fx: float,
-    g0: float,
-    g1: float,
-    g2: float,
-    g3: float,
-) -> None:
-    """Add (g0, g1, g2, g3) times the trilinear weights of the cell at (i0, j0, k0) to the
-    four channels."""
-    for di in range(2):
-        wz = fz if di else 1 - fz
-        for dj in range(2):
-            wy = fy if dj else 1 - fy
-            for dk in range(2):
-                w = wz * wy * (fx if dk else 1 - fx)
-                cell = grad[i0 + di, j0 + dj, k0 + dk]
-                cell[0] += w * g0
-                cell[1] += w * g1
-                cell[2] += w * g2
-                cell[3] += w * g3
-
-
-@jit(nogil=True, inline="always", fastmath=True)
-def _softplus(x: float) -> float:
-    return x + math.log1p(math.exp(-x)) if x > 0 else math.log1p(math.exp(x))
-
-
-@jit(nogil=True, inline="always", fastmath=True)
-def _sigmoid(x: float) -> float:
-    return 1.0 / (1.0 + math.exp(-x))
-
-
-@jit(nogil=True, inline="always", fastmath=True)
 def _depth(u: float, near: float, leave: float, far: float, contract: bool) -> float:
     """Depth at the fraction ``u`` in (0, 1) of a ray's samples (see VoxelGrid.sample_depths)."""
     if not contract:
@@ -226,6 +154,71 @@ def _point(rays: tuple, r: int, s: int, n: int, offsets: np.ndarray, geometry: t
         length,
         t,
     )
+
+
+@jit(nogil=True, inline="always", fastmath=True)
+def _cell(point: np.ndarray, j: int, top: tuple, sx: int, sy: int, sz: int) -> int:
+    """Column ``j`` of point [3, BLOCK_RAYS] (grid coordinates x, y, z) clamped inside a grid
+    whose largest coordinates are ``top`` (x, y, z): returns its cell's flat index into the
+    grid's values (strides ``sx``, ``sy``, ``sz``) and writes the fractions inside the cell
+    back to the column."""
+    x = min(max(point[0, j], _ZERO), top[0])
+    y = min(max(point[1, j], _ZERO), top[1])
+    z = min(max(point[2, j], _ZERO), top[2])
+    k0 = min(np.int32(x), np.int32(top[0]) - 1)
+    j0 = min(np.int32(y), np.int32(top[1]) - 1)
+    i0 = min(np.int32(z), np.int32(top[2]) - 1)
+    point[0, j] = x - np.float32(k0)
+    point[1, j] = y - np.float32(j0)
+    point[2, j] = z - np.float32(i0)
+    return i0 * sz + j0 * sy + k0 * sx
+
+
+@jit(nogil=True, inline="always", fastmath=True)
+def _trilinear(
+    cells: np.ndarray, corner: int, point: np.ndarray, j: int, sx: int, sy: int, sz: int
+) -> tuple[float, float, float, float]:
+    """The four channels of the flat grid ``cells`` interpolated in the cell ``corner`` at
+    the fractions of column ``j`` of point [3, BLOCK_RAYS]."""
+    fx, fy, fz = point[0, j], point[1, j], point[2, j]
+    v0 = v1 = v2 = v3 = _ZERO
+    for di in range(2):
+        wz = fz if di else _ONE - fz
+        for dj in range(2):
+            wzy = wz * (fy if dj else _ONE - fy)
+            w0, w1 = wzy * (_ONE - fx), wzy * fx
+            o = corner + di * sz + dj * sy
+            v0 += w0 * cells[o] + w1 * cells[o + sx]
+            v1 += w0 * cells[o + 1] + w1 * cells[o + sx + 1]
+            v2 += w0 * cells[o + 2] + w1 * cells[o + sx + 2]
+            v3 += w0 * cells[o + 3] + w1 * cells[o + sx + 3]
+    return v0, v1, v2, v3
+
+
+@jit(nogil=True, inline="always", fastmath=True)
+def _scatter(
+    grad: np.ndarray,
+    corner: int,
+    point: np.ndarray,
+    j: int,
+    out: np.ndarray,
+    sx: int,
+    sy: int,
+    sz: int,
+) -> None:
+    """Add column ``j`` of out [4, BLOCK_RAYS] (one value per channel) times the trilinear
+    weights of column ``j`` of point [3, BLOCK_RAYS] to the cell ``corner`` of the flat
+    gradient ``grad``: the adjoint of :func:`_trilinear`."""
+    fx, fy, fz = point[0, j], point[1, j], point[2, j]
+    for di in range(2):
+        wz = fz if di else _ONE - fz
+        for dj in range(2):
+            wzy = wz * (fy if dj else _ONE - fy)
+            o = corner + di * sz + dj * sy
+            for dk in range(2):
+                w = wzy * (fx if dk else _ONE - fx)
+                for c in range(4):
+                    grad[o + dk * sx + c] += w * out[c, j]
 
 
 @jit(parallel=True, nogil=True, fastmath=True)
@@ -292,31 +285,9 @@ def render_forward(
                         point[axis, j] = start[axis, j] + u * step[axis, j]
                     depth[j] = depth0[j] + u * depth_step[j]
             for j in range(BLOCK_RAYS):
-                x = min(max(point[0, j], _ZERO), top[0])
-                y = min(max(point[1, j], _ZERO), top[1])
-                z = min(max(point[2, j], _ZERO), top[2])
-                i0, j0, k0 = (
-                    min(np.int32(z), nz - 2),
-                    min(np.int32(y), ny - 2),
-                    min(np.int32(x), nx - 2),
-                )
-                point[0, j] = x - np.float32(k0)
-                point[1, j] = y - np.float32(j0)
-                point[2, j] = z - np.float32(i0)
-                corner[j] = i0 * sz + j0 * sy + k0 * sx
-            for j in range(BLOCK_RAYS):  # the gathers: scalar
-                fx, fy, fz = point[0, j], point[1, j], point[2, j]
-                v0 = v1 = v2 = v3 = _ZERO
-                for di in range(2):
-                    wz = fz if di else _ONE - fz
-                    for dj in range(2):
-                        wzy = wz * (fy if dj else _ONE - fy)
-                        w0, w1 = wzy * (_ONE - fx), wzy * fx
-                        o = corner[j] + di * sz + dj * sy
-                        v0 += w0 * cells[o] + w1 * cells[o + sx]
-                        v1 += w0 * cells[o + 1] + w1 * cells[o + sx + 1]
-                        v2 += w0 * cells[o + 2] + w1 * cells[o + sx + 2]
-                        v3 += w0 * cells[o + 3] + w1 * cells[o + sx + 3]
+                corner[j] = _cell(point, j, top, sx, sy, sz)
+            for j in range(BLOCK_RAYS):  # the reads: scalar
+                v0, v1, v2, v3 = _trilinear(cells, corner[j], point, j, sx, sy, sz)
                 density[j] = v0 + shift
                 colour[0, j], colour[1, j], colour[2, j] = v1, v2, v3
             for j in range(BLOCK_RAYS):  # SIMD from here on
@@ -357,50 +328,112 @@ def render_backward(
 ) -> None:
     """Gradient of a loss with d loss / d rgb = grad_rgb [R, 3] (of :func:`render_forward`'s
     rgb and used) w.r.t. the grid of ``march`` (added to grad_grid [T, nz, ny, nx, 4], one
-    copy per chunk of rays) and the background colour (grad_background [T, 3])."""
+    copy per chunk of rays) and the background colour (grad_background [T, 3]). Each chunk
+    marches its rays ``BLOCK_RAYS`` at a time as the forward pass does; the reads of the grid
+    and the scatter into its gradient stay scalar."""
     grid, rays, offsets, geometry, density_shift, _ = march
-    shape = (grid.shape[0], grid.shape[1], grid.shape[2])
+    nz, ny, nx = grid.shape[0], grid.shape[1], grid.shape[2]
+    cells = grid.reshape(-1)
+    sx, sy, sz = 4, nx * 4, ny * nx * 4
     chunks = grad_grid.shape[0]
     n_rays, n = offsets.shape
-    segments = (rays.origins, rays.directions, rays.near, rays.leave, rays.far)
-    where = (geometry.lo, geometry.hi, geometry.cells, geometry.inverse_voxel_m, geometry.contract)
+    origins, directions, nears, leaves, fars = rays
+    lo, hi, per_axis, inverse_voxel_m, contract = geometry
+    segments = (origins, directions, nears, leaves, fars)
+    where = (lo, hi, per_axis, inverse_voxel_m, contract)
+    top = (np.float32(nx - 1), np.float32(ny - 1), np.float32(nz - 1))
+    shift = np.float32(density_shift)
     for t in numba.prange(chunks):
-        grad = grad_grid[t]
-        for r in range(t * n_rays // chunks, (t + 1) * n_rays // chunks):
-            gr, gg, gb = grad_rgb[r, 0], grad_rgb[r, 1], grad_rgb[r, 2]
-            total = rgb[r, 0] * gr + rgb[r, 1] * gg + rgb[r, 2] * gb
-            transmit = 1.0
-            done = 0.0
-            for s in range(used[r]):
-                px, py, pz, length, _ = _point(segments, r, s, n, offsets, where)
-                i0, j0, k0, fz, fy, fx = _corners(shape, px, py, pz)
-                raw, raw_r, raw_g, raw_b = _sample_all(grid, i0, j0, k0, fz, fy, fx)
-                x = raw + density_shift
-                sigma = _softplus(x)
-                alpha = 1.0 - math.exp(-sigma * length)
-                weight = transmit * alpha
-                cr, cg, cb = _sigmoid(raw_r), _sigmoid(raw_g), _sigmoid(raw_b)
-                along = cr * gr + cg * gg + cb * gb
-                done += weight * along
-                rest = total - done
-                d_sigma = length * (transmit * (1.0 - alpha) * along - rest)
-                _scatter_all(
-                    grad,
-                    i0,
-                    j0,
-                    k0,
-                    fz,
-                    fy,
-                    fx,
-                    d_sigma * _sigmoid(x),
-                    weight * gr * cr * (1 - cr),
-                    weight * gg * cg * (1 - cg),
-                    weight * gb * cb * (1 - cb),
-                )
-                transmit *= 1.0 - alpha
-            grad_background[t, 0] += transmit * gr
-            grad_background[t, 1] += transmit * gg
-            grad_background[t, 2] += transmit * gb
+        grad = grad_grid[t].reshape(-1)
+        first, last = t * n_rays // chunks, (t + 1) * n_rays // chunks
+        rows = np.empty(BLOCK_RAYS, np.int64)
+        start = np.empty((3, BLOCK_RAYS), np.float32)
+        step = np.empty((3, BLOCK_RAYS), np.float32)
+        length = np.empty(BLOCK_RAYS, np.float32)
+        point = np.empty((3, BLOCK_RAYS), np.float32)  # grid coordinates, then fractions
+        corner = np.empty(BLOCK_RAYS, np.int64)
+        density = np.empty(BLOCK_RAYS, np.float32)
+        colour = np.empty((3, BLOCK_RAYS), np.float32)
+        mantissa = np.empty((4, BLOCK_RAYS), np.float32)
+        exponent = np.empty((4, BLOCK_RAYS), np.int32)
+        power = exponent.view(np.float32)
+        upstream = np.empty((3, BLOCK_RAYS), np.float32)  # d loss / d rgb
+        total = np.empty(BLOCK_RAYS, np.float32)  # rgb · upstream
+        done = np.empty(BLOCK_RAYS, np.float32)  # the samples' light so far · upstream
+        transmit = np.empty(BLOCK_RAYS, np.float32)
+        steps = np.empty(BLOCK_RAYS, np.int64)
+        out = np.empty((4, BLOCK_RAYS), np.float32)  # d loss / d the sample's raw values
+        for block in range(first, last, BLOCK_RAYS):
+            for j in range(BLOCK_RAYS):
+                r = min(block + j, last - 1)
+                rows[j] = r
+                inside = block + j < last
+                for c in range(3):
+                    upstream[c, j] = grad_rgb[r, c] if inside else _ZERO
+                total[j] = rgb[r, 0] * upstream[0, j] + rgb[r, 1] * upstream[1, j]
+                total[j] += rgb[r, 2] * upstream[2, j]
+                done[j], transmit[j] = _ZERO, _ONE
+                steps[j] = used[r] if inside else 0
+                if not contract:
+                    span = leaves[r] - nears[r]
+                    for axis in range(3):
+                        to_grid = per_axis[axis] / (hi[axis] - lo[axis])
+                        at_near = origins[r, axis] + nears[r] * directions[r, axis]
+                        start[axis, j] = (at_near - lo[axis]) * to_grid
+                        step[axis, j] = span / n * directions[r, axis] * to_grid
+                    norm = math.sqrt(
+                        directions[r, 0] ** 2 + directions[r, 1] ** 2 + directions[r, 2] ** 2
+                    )
+                    length[j] = span * norm / n * inverse_voxel_m
+            for s in range(steps.max()):
+                if contract:
+                    for j in range(BLOCK_RAYS):
+                        x, y, z, sample_length, _ = _point(segments, rows[j], s, n, offsets, where)
+                        point[0, j], point[1, j], point[2, j] = x, y, z
+                        length[j] = sample_length
+                else:
+                    for j in range(BLOCK_RAYS):
+                        u = np.float32(s) + offsets[rows[j], s]
+                        for axis in range(3):
+                            point[axis, j] = start[axis, j] + u * step[axis, j]
+                for j in range(BLOCK_RAYS):
+                    corner[j] = _cell(point, j, top, sx, sy, sz)
+                for j in range(BLOCK_RAYS):  # the reads: scalar
+                    v0, v1, v2, v3 = _trilinear(cells, corner[j], point, j, sx, sy, sz)
+                    density[j] = v0 + shift
+                    colour[0, j], colour[1, j], colour[2, j] = v1, v2, v3
+                for j in range(BLOCK_RAYS):  # SIMD
+                    mantissa[0, j], exponent[0, j] = _exp_parts(-abs(density[j]))
+                    for c in range(3):
+                        mantissa[c + 1, j], exponent[c + 1, j] = _exp_parts(-colour[c, j])
+                for j in range(BLOCK_RAYS):
+                    x = density[j]
+                    e = mantissa[0, j] * power[0, j]  # exp(-|x|)
+                    out[0, j] = (_ONE if x >= _ZERO else e) / (_ONE + e)  # softplus' slope
+                    sigma = max(x, _ZERO) + _log1p_unit(e)
+                    mantissa[0, j], exponent[0, j] = _exp_parts(-sigma * length[j])
+                for j in range(BLOCK_RAYS):
+                    active = s < steps[j]
+                    keep = mantissa[0, j] * power[0, j]
+                    weight = transmit[j] * (_ONE - keep) if active else _ZERO
+                    along = _ZERO
+                    for c in range(3):
+                        colour[c, j] = _ONE / (_ONE + mantissa[c + 1, j] * power[c + 1, j])
+                        along += colour[c, j] * upstream[c, j]
+                    done[j] += weight * along
+                    d_sigma = length[j] * (transmit[j] * keep * along - (total[j] - done[j]))
+                    out[0, j] = d_sigma * out[0, j] if active else _ZERO
+                    for c in range(3):
+                        out[c + 1, j] = (
+                            weight * upstream[c, j] * colour[c, j] * (_ONE - colour[c, j])
+                        )
+                    transmit[j] = transmit[j] * keep if active else transmit[j]
+                for j in range(BLOCK_RAYS):  # the scatter: scalar
+                    if s < steps[j]:
+                        _scatter(grad, corner[j], point, j, out, sx, sy, sz)
+            for j in range(min(BLOCK_RAYS, last - block)):
+                for c in range(3):
+                    grad_background[t, c] += transmit[j] * upstream[c, j]
 
 
 @jit(parallel=True, nogil=True, fastmath=True)
