@@ -27,11 +27,11 @@ from pae.core.errors import ConfigError
 from pae.scene_model.base import SceneModel, SceneModelInputs, SceneRendering
 from pae.scene_model.voxel_render import (
     CompiledComposite,
-    CompiledTotalVariation,
     GridGeometry,
     RaySegments,
     channels_last,
 )
+from pae.scene_model.voxel_variation import CompiledTotalVariation
 
 _EPS = 1e-9
 
