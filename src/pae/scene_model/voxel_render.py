@@ -221,27 +221,56 @@ def _scatter(
                     grad[o + dk * sx + c] += w * out[c, j]
 
 
+@jit(nogil=True, inline="always", fastmath=True)
+def _marching(march: March) -> tuple:
+    """What both passes read from ``march`` before their loops: the grid's values flattened,
+    their strides along x, y and z, the rays' and the grid's fields as plain tuples (which the
+    parallel loops read), the largest grid coordinates (x, y, z) and the density shift, both
+    float32."""
+    grid, rays, _, geometry, density_shift, _ = march
+    nz, ny, nx = grid.shape[0], grid.shape[1], grid.shape[2]
+    origins, directions, nears, leaves, fars = rays
+    lo, hi, per_axis, inverse_voxel_m, contract = geometry
+    return (
+        grid.reshape(-1),
+        (4, nx * 4, ny * nx * 4),
+        (origins, directions, nears, leaves, fars),
+        (lo, hi, per_axis, inverse_voxel_m, contract),
+        (np.float32(nx - 1), np.float32(ny - 1), np.float32(nz - 1)),
+        np.float32(density_shift),
+    )
+
+
+@jit(nogil=True, inline="always", fastmath=True)
+def _ray_steps(
+    r: int, j: int, n: int, segments: tuple, where: tuple, start: np.ndarray, step: np.ndarray
+) -> float:
+    """Column ``j`` of start and step [3, BLOCK_RAYS]: ray ``r``'s grid coordinates at its near
+    depth and per stratum of its ``n`` samples (uncontracted grids) -> their length (voxels)."""
+    origins, directions, nears, leaves, _ = segments
+    lo, hi, per_axis, inverse_voxel_m, _ = where
+    span = leaves[r] - nears[r]
+    for axis in range(3):
+        to_grid = per_axis[axis] / (hi[axis] - lo[axis])
+        at_near = origins[r, axis] + nears[r] * directions[r, axis]
+        start[axis, j] = (at_near - lo[axis]) * to_grid
+        step[axis, j] = span / n * directions[r, axis] * to_grid
+    norm = math.sqrt(directions[r, 0] ** 2 + directions[r, 1] ** 2 + directions[r, 2] ** 2)
+    return span * norm / n * inverse_voxel_m
+
+
 @jit(parallel=True, nogil=True, fastmath=True)
 def render_forward(
     march: March, rgb: np.ndarray, surface: np.ndarray, opacity: np.ndarray, used: np.ndarray
 ) -> None:
     """Composite the rays of ``march`` -> rgb [R, 3], surface [R] (mean depth of the light),
     opacity [R], used [R] (samples marched)."""
-    grid, rays, offsets, geometry, density_shift, background = march
-    nz, ny, nx = grid.shape[0], grid.shape[1], grid.shape[2]
-    cells = grid.reshape(-1)
-    sx, sy, sz = 4, nx * 4, ny * nx * 4
+    offsets, background = march.offsets, march.background
+    cells, (sx, sy, sz), segments, where, top, shift = _marching(march)
+    nears, leaves, contract = segments[2], segments[3], where[4]
     n_rays, n = offsets.shape
-    origins, directions, nears, leaves, fars = rays
-    lo, hi, per_axis, inverse_voxel_m, contract = geometry
-    segments = (origins, directions, nears, leaves, fars)
-    where = (lo, hi, per_axis, inverse_voxel_m, contract)
-    top = (np.float32(nx - 1), np.float32(ny - 1), np.float32(nz - 1))
-    shift = np.float32(density_shift)
     for block in numba.prange(-(-n_rays // BLOCK_RAYS)):
         rows = np.minimum(np.arange(BLOCK_RAYS) + block * BLOCK_RAYS, n_rays - 1)
-        # per ray: grid coordinates at the first sample's stratum start and per stratum,
-        # the samples' length (voxels), depth at the first stratum start and per stratum
         start = np.empty((3, BLOCK_RAYS), np.float32)
         step = np.empty((3, BLOCK_RAYS), np.float32)
         length = np.empty(BLOCK_RAYS, np.float32)
@@ -250,17 +279,9 @@ def render_forward(
         if not contract:
             for j in range(BLOCK_RAYS):
                 r = rows[j]
-                span = leaves[r] - nears[r]
-                direction = directions[r]
-                for axis in range(3):
-                    to_grid = per_axis[axis] / (hi[axis] - lo[axis])
-                    at_near = origins[r, axis] + nears[r] * direction[axis]
-                    start[axis, j] = (at_near - lo[axis]) * to_grid
-                    step[axis, j] = span / n * direction[axis] * to_grid
-                norm = math.sqrt(direction[0] ** 2 + direction[1] ** 2 + direction[2] ** 2)
-                length[j] = span * norm / n * inverse_voxel_m
+                length[j] = _ray_steps(r, j, n, segments, where, start, step)
                 depth0[j] = nears[r]
-                depth_step[j] = span / n
+                depth_step[j] = (leaves[r] - nears[r]) / n
         point = np.empty((3, BLOCK_RAYS), np.float32)  # grid coordinates, then fractions
         corner = np.empty(BLOCK_RAYS, np.int64)
         depth = np.empty(BLOCK_RAYS, np.float32)
@@ -331,18 +352,11 @@ def render_backward(
     copy per chunk of rays) and the background colour (grad_background [T, 3]). Each chunk
     marches its rays ``BLOCK_RAYS`` at a time as the forward pass does; the reads of the grid
     and the scatter into its gradient stay scalar."""
-    grid, rays, offsets, geometry, density_shift, _ = march
-    nz, ny, nx = grid.shape[0], grid.shape[1], grid.shape[2]
-    cells = grid.reshape(-1)
-    sx, sy, sz = 4, nx * 4, ny * nx * 4
+    offsets = march.offsets
+    cells, (sx, sy, sz), segments, where, top, shift = _marching(march)
+    contract = where[4]
     chunks = grad_grid.shape[0]
     n_rays, n = offsets.shape
-    origins, directions, nears, leaves, fars = rays
-    lo, hi, per_axis, inverse_voxel_m, contract = geometry
-    segments = (origins, directions, nears, leaves, fars)
-    where = (lo, hi, per_axis, inverse_voxel_m, contract)
-    top = (np.float32(nx - 1), np.float32(ny - 1), np.float32(nz - 1))
-    shift = np.float32(density_shift)
     for t in numba.prange(chunks):
         grad = grad_grid[t].reshape(-1)
         first, last = t * n_rays // chunks, (t + 1) * n_rays // chunks
@@ -375,16 +389,7 @@ def render_backward(
                 done[j], transmit[j] = _ZERO, _ONE
                 steps[j] = used[r] if inside else 0
                 if not contract:
-                    span = leaves[r] - nears[r]
-                    for axis in range(3):
-                        to_grid = per_axis[axis] / (hi[axis] - lo[axis])
-                        at_near = origins[r, axis] + nears[r] * directions[r, axis]
-                        start[axis, j] = (at_near - lo[axis]) * to_grid
-                        step[axis, j] = span / n * directions[r, axis] * to_grid
-                    norm = math.sqrt(
-                        directions[r, 0] ** 2 + directions[r, 1] ** 2 + directions[r, 2] ** 2
-                    )
-                    length[j] = span * norm / n * inverse_voxel_m
+                    length[j] = _ray_steps(r, j, n, segments, where, start, step)
             for s in range(steps.max()):
                 if contract:
                     for j in range(BLOCK_RAYS):
