@@ -20,6 +20,9 @@ from pae.data.labels import read_labels
 def main(run: Path, labels: Path, poses: Path) -> None:
     truth, found = read_labels(labels), read_labels(poses)
     estimate = dict(zip(found.img_path, torch.as_tensor(found.poses), strict=True))
+    missing = [path for path in truth.img_path if path not in estimate]
+    if missing:
+        sys.exit(f"{poses}: no pose for {len(missing)} of {labels}'s images, e.g. {missing[0]}")
     rows = torch.stack([estimate[path] for path in truth.img_path]).float()
     position, orientation = pose_errors(rows, torch.as_tensor(truth.poses).float())
     scenes = torch.as_tensor(truth.scene_ids())

@@ -1,10 +1,11 @@
 """An audit of the scene decision's starts on a finished MS-Transformer run (reads the test
 labels): each mispredicted query refined in its true scene from every start the scene
 decision tries there (:func:`pae.render_compare.scene_starts.latent_starts`: the teacher's
-pose at each heading, then the nearest train poses by latent), with each start's distance and
-angle from the truth, where its refinement ended and its score; and which start the decision
-keeps (the best-scoring one), with the headings and without them (the teacher's pose and the
-latent starts only, as before the headings).
+pose at each heading, then the nearest train poses by latent): how far the teacher's own pose
+for that room lies from the truth (m / °), and which start the decision keeps (the
+best-scoring one), with the headings and without them (the teacher's pose and the latent
+starts only, as before the headings): that start's distance and angle from the truth, where
+its refinement ended and its score.
 
     PYTHONPATH=src python experiments/ms_scene_decision/starts.py outputs/ms52_seed1 [SPLIT]
 """
@@ -54,8 +55,11 @@ def main(folder: Path, split: str = "test") -> None:
     end_m, end_deg = (e.view(w, k) for e in pose_errors(out.poses, truth))
     score = out.score.view(w, k)
     old = torch.cat([torch.zeros(1, dtype=torch.long), torch.arange(HEADINGS, k)])
-    print(f"| {split} query | true → predicted scene | start kept without headings | with |")
-    print("|---|---|---|---|")
+    print(
+        f"| {split} query | true → predicted scene | the teacher's pose there "
+        "| start kept without headings | with |"
+    )
+    print("|---|---|---|---|---|")
     for i, row in enumerate(wrong.tolist()):
         cells = []
         for columns in (old, torch.arange(k)):
@@ -65,7 +69,8 @@ def main(folder: Path, split: str = "test") -> None:
                 f"{end_deg[i, j]:.1f}° (score {score[i, j]:.3f})"
             )
         scenes = f"{int(q['scene'][row])} → {int(q['predicted'][row])}"
-        print(f"| {row} | {scenes} | " + " | ".join(cells) + " |")
+        own = f"{start_m[i, 0]:.2f} m / {start_deg[i, 0]:.0f}°"
+        print(f"| {row} | {scenes} | {own} | " + " | ".join(cells) + " |")
 
 
 if __name__ == "__main__":

@@ -27,9 +27,10 @@ MODULE = "src/pae/scene_model/voxel_render.py"
 
 def load_at(commit: str):
     """``pae.scene_model.voxel_render`` as it was at ``commit`` (a module of its own)."""
-    source = subprocess.run(
-        ["git", "show", f"{commit}:{MODULE}"], check=True, capture_output=True, text=True
-    ).stdout
+    shown = subprocess.run(["git", "show", f"{commit}:{MODULE}"], capture_output=True, text=True)
+    if shown.returncode:
+        sys.exit(f"renderer_ab: no {MODULE} at {commit!r}: {shown.stderr.strip()}")
+    source = shown.stdout
     path = Path(tempfile.mkdtemp()) / "voxel_render_at_commit.py"
     path.write_text(source)
     spec = importlib.util.spec_from_file_location(path.stem, path)

@@ -2,8 +2,8 @@
 own pose for each scene, turned to ``HEADINGS`` headings about the camera's vertical axis, and
 the poses of the train images of that scene whose teacher latents lie nearest to the query's
 latent for that scene. A teacher that took the query for another room regresses a poor pose
-for the right one: a metre off, and often facing another way (tens of degrees to half a turn
-where it erred on the synthetic benchmark), from which the search, whose steps are sized to
+for the right one: a metre off, and often facing another way (up to more than a quarter
+turn where it erred on the synthetic benchmark), from which the search, whose steps are sized to
 the teacher's errors in its predicted room, does not reach the true pose; the headings and
 the nearest train images by latent give starts it can reach."""
 

@@ -1,14 +1,14 @@
 """Compiled volume rendering of a voxel grid on the CPU (numba): forward and backward.
 
-The forward pass marches ``BLOCK_RAYS`` rays side by side, one sample index at a time: the
-trilinear reads of the grid stay scalar, the arithmetic after them (softplus, the samples'
-opacities, the colours' sigmoids, compositing) runs over the block in SIMD lanes, in float32
-with :func:`_exp_parts`'s polynomial exponential. A ray stops adding light once its
-transmittance falls below ``STOP_TRANSMITTANCE``, a block once all its rays have. The
-backward pass marches each ray's samples again and scatters the gradient into per-thread
-copies of the grid's gradient (summed afterwards). Both compute what
-:meth:`VoxelGrid.composite` computes with ``grid_sample`` (tested against it), several times
-faster on CPU cores, where many elementwise passes over every sample dominate.
+Both passes march ``BLOCK_RAYS`` rays side by side, one sample index at a time: the
+trilinear reads of the grid (and the backward's scatter into its gradient) stay scalar, the
+arithmetic between them (softplus, the samples' opacities, the colours' sigmoids,
+compositing and its adjoint) runs over the block in SIMD lanes, in float32 with
+:func:`_exp_parts`'s polynomial exponential. A ray stops adding light once its transmittance
+falls below ``STOP_TRANSMITTANCE``, a block once all its rays have. The backward pass marches
+each ray's samples again and scatters the gradient into per-thread copies of the grid's
+gradient (summed afterwards). Both compute what :meth:`VoxelGrid.composite` computes with
+``grid_sample`` (tested against it), several times faster on CPU cores.
 
 Grid layout: ``[nz, ny, nx, 4]`` float32 (raw density, raw RGB), channels last. Each ray's
 samples (depths, world points, their contraction and grid coordinates) are computed inside
@@ -70,7 +70,7 @@ class March(NamedTuple):
 STOP_TRANSMITTANCE = 1e-4
 """A ray's march stops once less than this share of its light remains."""
 BLOCK_RAYS = 32
-"""Rays one forward thread marches side by side (the SIMD loops' length)."""
+"""Rays a thread marches side by side in either pass (the SIMD loops' length)."""
 
 _ONE, _TWO, _HALF = np.float32(1.0), np.float32(2.0), np.float32(0.5)
 _ZERO = np.float32(0.0)
