@@ -11,7 +11,9 @@ GPU column and the torch engine's render-and-compare answers checked against the
   model (k=3, 3 steps, the tensor path) for one query and per query of a batch of 500
   (Table 5: 7.51 ms);
 - ``bench/gpu/engines/...``: ``answers_agree`` on 64 queries rendered in the render_compare
-  benchmark's room (``engine_answers``), and ``bench/gpu/engines/agree`` (1 or 0).
+  benchmark's room (``engine_answers``), and ``bench/gpu/engines/agree`` (1 or 0);
+- ``bench/gpu/stages/...``: where the torch engine's arithmetic on the GPU departs from its
+  own on the CPU (``stage_differences``).
 
 Without a CUDA device it prints ``no CUDA device: skipped`` and exits 0; it exits 1 where the
 engines disagree beyond the tolerances.
@@ -34,8 +36,14 @@ from pae.core.atomic import check_writable_file, write_json_atomic
 from pae.render_compare.gate import RenderCompareResult
 from pae.scene_model.voxel_grid import VoxelGridSceneModel
 
-SCORE_ATOL = 1e-3
-"""How far the two engines' scores of the start poses may differ (ZNCC, in [-1, 1])."""
+SCORE_MEDIAN_ATOL = 1e-3
+"""How far the two engines' scores of the start poses may differ at the median (ZNCC, in
+[-1, 1]): their arithmetic."""
+SCORE_MAX_ATOL = 1e-2
+"""How far they may differ at most: the trimmed ZNCC drops points by a threshold and a query
+whose engines refine to different poses is scored against another reference rendering, so
+single queries differ by more than the arithmetic (0.004 on an H200); TF32 convolutions
+moved them by 0.08."""
 SAME_POSE_M = 0.005
 """Refined positions closer than this (m) count as the same answer."""
 SAME_POSE_DEG = 0.1
@@ -51,24 +59,30 @@ def answers_agree(compiled: RenderCompareResult, tensor: RenderCompareResult) ->
     difference of the start poses' scores (``initial_score_max_diff``) and of the refined
     poses' scores, the median and largest refined position (m) and orientation (deg)
     differences, the share of queries refined to the same pose (``same_pose_share``) and
-    ``agree``: 1 where the start scores are within SCORE_ATOL and that share is at least
-    MIN_SAME_SHARE, else 0."""
+    ``agree``: 1 where the start scores are within SCORE_MEDIAN_ATOL at the median and
+    SCORE_MAX_ATOL at most and that share is at least MIN_SAME_SHARE, else 0."""
     from pae.core.geometry import pose_errors
 
     pos_m, rot_deg = pose_errors(tensor.poses.double(), compiled.poses.double())
-    start_diff = (tensor.initial_score - compiled.initial_score).abs().max().item()
+    start_diffs = (tensor.initial_score - compiled.initial_score).abs()
+    start_median, start_max = start_diffs.median().item(), start_diffs.max().item()
     same = ((pos_m <= SAME_POSE_M) & (rot_deg <= SAME_POSE_DEG)).double().mean().item()
     prefix = "bench/gpu/engines"
     return {
         f"{prefix}/queries": float(len(pos_m)),
-        f"{prefix}/initial_score_max_diff": start_diff,
+        f"{prefix}/initial_score_median_diff": start_median,
+        f"{prefix}/initial_score_max_diff": start_max,
         f"{prefix}/score_max_diff": (tensor.score - compiled.score).abs().max().item(),
         f"{prefix}/position_median_diff_m": pos_m.median().item(),
         f"{prefix}/position_max_diff_m": pos_m.max().item(),
         f"{prefix}/rotation_median_diff_deg": rot_deg.median().item(),
         f"{prefix}/rotation_max_diff_deg": rot_deg.max().item(),
         f"{prefix}/same_pose_share": same,
-        f"{prefix}/agree": float(start_diff <= SCORE_ATOL and same >= MIN_SAME_SHARE),
+        f"{prefix}/agree": float(
+            start_median <= SCORE_MEDIAN_ATOL
+            and start_max <= SCORE_MAX_ATOL
+            and same >= MIN_SAME_SHARE
+        ),
     }
 
 
@@ -108,6 +122,41 @@ def engine_answers(
         *(t.to(device) for t in inputs)
     )
     return compiled, RenderCompareResult(*(t.cpu() for t in tensor))
+
+
+def stage_differences(queries: int = 64, device: str = "cuda") -> dict[str, float]:
+    """Where the torch engine's arithmetic on ``device`` departs from its own on the CPU, on
+    ``engine_queries``: the largest difference of the band-passed query images the score
+    compares against (per pyramid level, coarse to fine) and of the reference renderings at
+    the start poses (grey level, and depth in m where both are opaque)."""
+    from pae.render_compare.refiner import RenderCompareRefiner
+
+    model, (images, intrinsics, starts, scenes) = engine_queries(queries)
+    refiner = RenderCompareRefiner.configured(model, engine="torch")
+    here = refiner.pyramid(images, intrinsics, scenes)
+    figures = {}
+    prefix = "bench/gpu/stages"
+    with torch.no_grad():
+        model.to(device)
+        there = refiner.pyramid(images.to(device), intrinsics.to(device), scenes.to(device))
+        for index, (a, b) in enumerate(zip(here, there, strict=True)):
+            figures[f"{prefix}/target_level{index}_max_diff"] = (
+                (a.target - b.target.cpu()).abs().max().item()
+            )
+        width = refiner.resolution
+        on_device = refiner.reference(starts.to(device), there[-1], width, 1.0)
+        model.to("cpu")
+        on_cpu = refiner.reference(starts, here[-1], width, 1.0)
+    both = (on_cpu.valid * on_device.valid.cpu()).bool()
+    depth_cpu = (on_cpu.points - starts[:, None, :3]).norm(dim=-1)
+    depth_device = (on_device.points.cpu() - starts[:, None, :3]).norm(dim=-1)
+    figures[f"{prefix}/reference_grey_max_diff"] = (
+        (on_cpu.image - on_device.image.cpu()).abs().max().item()
+    )
+    figures[f"{prefix}/reference_depth_max_diff_m"] = (
+        (depth_cpu - depth_device)[both].abs().max().item()
+    )
+    return figures
 
 
 def _milliseconds(run: Callable[[], object], device: str, repeats: int) -> float:
@@ -180,6 +229,7 @@ def main(argv: list[str] | None = None) -> int:
     figures |= {f"cpu/{k}": v for k, v in render_compare_bench("cpu").items()}
     figures |= pae_and_refinement_times("cuda")
     figures |= answers_agree(*engine_answers(device="cuda"))
+    figures |= stage_differences(device="cuda")
     write_json_atomic(args.out, figures)
     print(json.dumps(figures, indent=2, sort_keys=True))
     if not figures["bench/gpu/engines/agree"]:

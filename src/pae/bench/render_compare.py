@@ -72,9 +72,13 @@ def bench_queries(n: int, scenes: int, size: int, seed: int) -> tuple[torch.Tens
     return images, intrinsics, perturb(start, heading), torch.arange(n) % scenes
 
 
-def _seconds(run) -> float:
+def _seconds(run, device: str = "cpu") -> float:
+    """Seconds ``run()`` takes, a CUDA device synchronised before and after."""
+    synchronize = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
+    synchronize()
     start = time.perf_counter()
     run()
+    synchronize()
     return time.perf_counter() - start
 
 
@@ -88,21 +92,25 @@ def machine_gflops(size: int = 1024, repeats: int = 5) -> float:
     return 2 * size**3 / best / 1e9
 
 
-def fit_step_seconds(model: VoxelGridSceneModel, engine: str, steps: int = 10) -> float:
-    """Seconds per fit step of the scene model on ``engine``: a batch of rays from inside the
-    room rendered with jitter, their squared error and the grid's total variation (the batch
-    and weight of ``conf/scene_model/base.yaml``), backward and one Adam step."""
+def fit_step_seconds(
+    model: VoxelGridSceneModel, engine: str, steps: int = 10, device: str = "cpu"
+) -> float:
+    """Seconds per fit step of the scene model (on ``device``) on ``engine``: a batch of rays
+    from inside the room rendered with jitter, their squared error and the grid's total
+    variation (the batch and weight of ``conf/scene_model/base.yaml``), backward and one Adam
+    step."""
     fit = OmegaConf.load(Path(CONFIG_DIR) / "scene_model" / "base.yaml")
     generator = torch.Generator().manual_seed(1)
     rays = int(fit.rays_per_batch)
     origins = torch.rand(rays, 3, generator=generator) * 2 - 1 + torch.tensor([0.0, 0.0, 1.4])
     directions = torch.randn(rays, 3, generator=generator)
     target = torch.rand(rays, 3, generator=generator)
+    origins, directions, target = (t.to(device) for t in (origins, directions, target))
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
     half = rays // len(model.grids)
 
     def step() -> None:
-        loss = torch.zeros(())
+        loss = torch.zeros((), device=device)
         for i, grid in enumerate(model.grids):
             part = slice(i * half, (i + 1) * half)
             rgb, _, _ = grid.composite(
@@ -115,7 +123,7 @@ def fit_step_seconds(model: VoxelGridSceneModel, engine: str, steps: int = 10) -
         optimizer.step()
 
     step()
-    return _seconds(lambda: [step() for _ in range(steps)]) / steps
+    return _seconds(lambda: [step() for _ in range(steps)], device) / steps
 
 
 def bench_render_compare(
@@ -124,7 +132,8 @@ def bench_render_compare(
     """The refiner at its default settings, batched as the callback runs it, on ``device``:
     `bench/render_compare/ms_per_query` and its parts (the search's scores, the polish, the
     reference renderings), the kernels' counted work (`mflop_per_query`) and its rate against
-    the machine's measured throughput (`roofline_fraction`); on CPU also the compiled
+    the machine's measured throughput (`roofline_fraction`); elsewhere a step of the scene
+    model's fit there (the torch engine, `bench/scene_model/fit_step_ms`); on CPU the compiled
     scorer's and renderer's speed-ups over their tensor versions (same inputs)."""
     model = room_grid(scenes).to(device)
     images, intrinsics, start, scene_ids = (
@@ -134,7 +143,7 @@ def bench_render_compare(
         images[:4], intrinsics[:4], start[:4], scene_ids[:4]
     )  # compile
     refiner = RenderCompareRefiner.configured(model)
-    seconds = _seconds(lambda: refiner(images, intrinsics, start, scene_ids))
+    seconds = _seconds(lambda: refiner(images, intrinsics, start, scene_ids), device)
     work = refiner.work
     kernel_s = work.score_s + work.polish_s
     prefix = "bench/render_compare"
@@ -147,6 +156,8 @@ def bench_render_compare(
         f"{prefix}/kernel_gflops": work.kernel_mflop / kernel_s / 1000,
     }
     if device != "cpu":
+        step_s = fit_step_seconds(room_grid(scenes).to(device), "torch", device=device)
+        figures["bench/scene_model/fit_step_ms"] = 1000 * step_s
         return figures
     figures[f"{prefix}/machine_gflops"] = machine_gflops()
     figures[f"{prefix}/roofline_fraction"] = (

@@ -3,7 +3,9 @@ and the (trimmed) zero-mean normalised cross-correlation the refiner scores with
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Iterator
 
 import torch
 import torch.nn.functional as F
@@ -16,8 +18,31 @@ def grey(images: Tensor) -> Tensor:
     return (images * weights).sum(1, keepdim=True)
 
 
+@contextlib.contextmanager
+def float32_arithmetic() -> Iterator[None]:
+    """A context in which convolutions and matrix products keep float32 on every device: no
+    TF32, which cuDNN uses for convolutions by default on Ampere and later GPUs and matrix
+    products use where ``torch.set_float32_matmul_precision`` allows it. The band-pass
+    subtracts two blurs of the same image, and a 10-bit mantissa in each moved the refiner's
+    scores on an H200 by up to 0.08 against the CPU's (experiments/bench/README.md)."""
+    precision = torch.get_float32_matmul_precision()
+    cudnn = torch.backends.cudnn
+    try:
+        torch.set_float32_matmul_precision("highest")
+        with cudnn.flags(
+            enabled=cudnn.enabled,
+            benchmark=cudnn.benchmark,
+            deterministic=cudnn.deterministic,
+            allow_tf32=False,
+        ):
+            yield
+    finally:
+        torch.set_float32_matmul_precision(precision)
+
+
 def gaussian_blur(images: Tensor, sigma_px: float) -> Tensor:
-    """Separable Gaussian blur of [B, C, H, W] (σ in px; 0: unchanged), edges replicated."""
+    """Separable Gaussian blur of [B, C, H, W] (σ in px; 0: unchanged), edges replicated, in
+    float32 on every device (:func:`float32_arithmetic`)."""
     if sigma_px <= 0:
         return images
     radius = max(1, math.ceil(3 * sigma_px))
@@ -26,8 +51,9 @@ def gaussian_blur(images: Tensor, sigma_px: float) -> Tensor:
     kernel = kernel / kernel.sum()
     c = images.shape[1]
     padded = F.pad(images, (radius, radius, radius, radius), mode="replicate")
-    rows = F.conv2d(padded, kernel.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
-    return F.conv2d(rows, kernel.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+    with float32_arithmetic():
+        rows = F.conv2d(padded, kernel.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
+        return F.conv2d(rows, kernel.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
 
 
 def zncc(a: Tensor, b: Tensor, weights: Tensor) -> Tensor:

@@ -41,7 +41,13 @@ from pae.core.camera import camera_rays, project, scale_intrinsics
 from pae.core.geometry import matrix_to_quaternion, normalize_quaternion, quaternion_to_matrix
 from pae.core.pose_sampling import perturb
 from pae.render_compare.gate import ACCEPT_ALL, GatedPoses, RenderCompareResult, gate
-from pae.render_compare.images import band_pass, grey, pyramid_widths, trimmed_zncc
+from pae.render_compare.images import (
+    band_pass,
+    float32_arithmetic,
+    grey,
+    pyramid_widths,
+    trimmed_zncc,
+)
 from pae.render_compare.kernels.numba_polish import polish_compiled
 from pae.render_compare.kernels.numba_score import compiled_zncc_scores
 from pae.render_compare.kernels.reference import (
@@ -98,7 +104,8 @@ class RenderCompareRefiner:
     per level and hypothesis), polish_damping (the first λ). Score: min_overlap (the share of
     reference points a candidate must see, else ``NOT_SEEN_SCORE``), trim_sigma, trim_passes
     (:func:`trimmed_zncc`; 0: plain ZNCC), score (``zncc``, or ``features`` with
-    ``features``). seed: of the draws; chunk: queries refined at once; engine: ``ENGINES``.
+    ``features``). seed: of the draws; chunk, gpu_chunk: queries refined at once on the CPU and on
+    another device (:meth:`chunk_for`); engine: ``ENGINES``.
     Every setting's default is in ``RenderCompareSettings`` (:meth:`configured`).
     """
 
@@ -133,6 +140,7 @@ class RenderCompareRefiner:
         score: str,
         seed: int,
         chunk: int,
+        gpu_chunk: int,
         engine: str,
         features: FeatureExtractor | None = None,
     ) -> None:
@@ -161,6 +169,7 @@ class RenderCompareRefiner:
         self.features = features
         self.seed = seed
         self.chunk = chunk
+        self.gpu_chunk = gpu_chunk
         self.engine = engine
         self.work = RenderCompareWork()
 
@@ -169,6 +178,12 @@ class RenderCompareRefiner:
         """The refiner with the default settings (``RenderCompareSettings``,
         :func:`refiner_defaults`), ``settings`` replacing any of them."""
         return cls(scene_model, **(refiner_defaults() | settings))
+
+    def chunk_for(self, device: torch.device) -> int:
+        """How many queries are refined at once on ``device``: ``chunk`` on the CPU (what
+        stays in its caches), ``gpu_chunk`` elsewhere (few, large kernel launches). The
+        draws do not depend on it."""
+        return self.chunk if device.type == "cpu" else self.gpu_chunk
 
     def draw_stream(self) -> Callable[[int], Tensor]:
         """The search's standard-normal draws, made as they are needed: each call ``(n)``
@@ -467,15 +482,17 @@ class RenderCompareRefiner:
         initial = torch.cat([initial[:, :3], normalize_quaternion(initial[:, 3:])], -1).float()
         stream = self.draw_stream()
         parts = []
-        for rows in torch.arange(len(initial), device=initial.device).split(self.chunk):
+        chunk = self.chunk_for(initial.device)
+        for rows in torch.arange(len(initial), device=initial.device).split(chunk):
             chunk_draws = stream(len(rows)) if draws is None else draws[rows.cpu()]
-            parts.append(
-                self.refine_chunk(
-                    images[rows].float(),
-                    intrinsics[rows],
-                    initial[rows],
-                    scenes[rows],
-                    chunk_draws.to(initial.device),
+            with float32_arithmetic():
+                parts.append(
+                    self.refine_chunk(
+                        images[rows].float(),
+                        intrinsics[rows],
+                        initial[rows],
+                        scenes[rows],
+                        chunk_draws.to(initial.device),
+                    )
                 )
-            )
         return RenderCompareResult(*(torch.cat(column) for column in zip(*parts, strict=True)))

@@ -120,7 +120,8 @@ def sharpness(
     parts = []
     poses = poses.float()
     steps = torch.cat([probe_steps(s) for s in scales]).to(poses)  # [12 K, 6]
-    for rows in torch.arange(len(poses), device=poses.device).split(refiner.chunk):
+    chunk = refiner.chunk_for(poses.device)
+    for rows in torch.arange(len(poses), device=poses.device).split(chunk):
         level = refiner.pyramid(images[rows].float(), intrinsics[rows], scenes[rows])[-1]
         surface = None
         if refiner.scene_model.has_depth:

@@ -73,7 +73,11 @@ class RenderCompareSettings:
     """zncc, or features (the teacher backbone's; search only: ``polish_steps=0``)."""
     seed: int = 0
     chunk: int = 64
-    """Queries refined at once."""
+    """Queries refined at once on the CPU."""
+    gpu_chunk: int = 1024
+    """Queries refined at once on another device, where the tensor engine's time goes to
+    launching small kernels: on an H200, 64 took 2.19 ms per query, 1,024 0.29 ms
+    (experiments/bench/README.md, "On a GPU")."""
     engine: str = "auto"
 
 
