@@ -850,6 +850,28 @@ def test_the_band_pass_score_ignores_smooth_shading_that_plain_zncc_does_not() -
         RenderCompareRefiner.configured(OracleSceneModel([]), highpass_sigma_px=-1.0)
 
 
+def test_the_local_contrast_evens_out_a_vignette_that_the_high_pass_leaves() -> None:
+    """A gain that falls from 1 at the centre to 0.1 at the corners (vignetting, a highlight's
+    edge) scales the texture's band pass there; divided by its local contrast the image
+    correlates with the unvignetted one better than after the high pass alone."""
+    torch.manual_seed(0)
+    texture = torch.rand(1, 1, 48, 48)
+    v, u = torch.meshgrid(torch.linspace(-1, 1, 48), torch.linspace(-1, 1, 48), indexing="ij")
+    dimmed = texture * (1 - 0.45 * (u.square() + v.square()))
+
+    def score(contrast: float) -> float:
+        x = band_pass(texture, 0.5, 4.0, contrast).flatten(1)
+        y = band_pass(dimmed, 0.5, 4.0, contrast).flatten(1)
+        return zncc(x, y, torch.ones_like(x)).item()
+
+    assert score(3.0) > score(0.0) + 0.02
+    torch.testing.assert_close(band_pass(texture, 1.0, 4.0), band_pass(texture, 1.0, 4.0, 0.0))
+    flat = band_pass(torch.full((1, 1, 16, 16), 0.5), 1.0, 4.0, 3.0)
+    assert torch.isfinite(flat).all() and flat.abs().max() < 1e-3  # no texture: none made up
+    with pytest.raises(ValueError, match="contrast_sigma_px"):
+        RenderCompareRefiner.configured(OracleSceneModel([]), contrast_sigma_px=-1.0)
+
+
 def test_the_package_refines_without_lightning_as_the_callback_does(tmp_path: Path) -> None:
     """pae.render_compare's calibrate and refine run with lightning never imported, and give
     the callback's poses on the same val and test queries."""

@@ -5,6 +5,7 @@ surfaces and capture together, and with everything on (experiment=demo_hard), un
 refiner's defaults and under each filter demo_hard tries on val.
 
     python experiments/benchmark_hard/oracle_basin.py [--train-frames 300] [--every 2]
+        [--rows ROW ...] [--filters COLUMN ...]
 
 Reads the val split's labels only (the starts are its true poses moved: an audit of the
 refiner's basin, not a method). Renders each dataset on first use under data/synthetic/
@@ -53,14 +54,19 @@ FILTERS = {
     "defaults": {},
     "high-pass 4 px": {"highpass_sigma_px": 4.0},
     "high-pass 4 px + trim 2.5": {"highpass_sigma_px": 4.0, "trim_sigma": 2.5},
+    "high-pass 4 px + contrast 4 px": {"highpass_sigma_px": 4.0, "contrast_sigma_px": 4.0},
+    "high-pass 4 px + contrast 8 px": {"highpass_sigma_px": 4.0, "contrast_sigma_px": 8.0},
 }
 """Column name -> the refiner settings it replaces (demo_hard's filters_from_val)."""
 START_M, START_DEG = 0.2, 3.0
 
 
-def basin_row(overrides: list[str], train_frames: int, every: int) -> list[str]:
-    """Median position (m) / orientation (deg) error of the starts and of each filter's
-    refinement on every ``every``-th val query of the benchmark ``overrides`` make."""
+def basin_row(
+    overrides: list[str], train_frames: int, every: int, filters: dict[str, dict]
+) -> list[str]:
+    """Median position (m) / orientation (deg) error of the starts and of each of
+    ``filters``' refinements on every ``every``-th val query of the benchmark ``overrides``
+    make."""
     base = [] if any(o.startswith("experiment=") for o in overrides) else ["experiment=demo"]
     cfg = compose_config("train", [*base, *overrides, f"data.train_frames={train_frames}"])
     data = instantiate(cfg.data, order_seed=0)
@@ -79,7 +85,7 @@ def basin_row(overrides: list[str], train_frames: int, every: int) -> list[str]:
     cells = []
     for poses in [starts] + [
         refine(model, images, intrinsics, starts, scenes, chosen).poses
-        for chosen in FILTERS.values()
+        for chosen in filters.values()
     ]:
         position, orientation = pose_errors(poses, truth)
         cells.append(f"{position.median():.3f} / {orientation.median():.2f}")
@@ -90,11 +96,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--train-frames", type=int, default=300, help="train frames per scene")
     parser.add_argument("--every", type=int, default=2, help="every n-th val query")
+    parser.add_argument("--rows", nargs="+", choices=list(OPTIONS), default=list(OPTIONS))
+    parser.add_argument("--filters", nargs="+", choices=list(FILTERS), default=list(FILTERS))
     args = parser.parse_args()
-    print(f"| benchmark | starts | {' | '.join(FILTERS)} |")
-    print(f"|---|---|{'---|' * len(FILTERS)}")
-    for name, overrides in OPTIONS.items():
-        cells = basin_row(overrides, args.train_frames, args.every)
+    filters = {name: FILTERS[name] for name in args.filters}
+    print(f"| benchmark | starts | {' | '.join(filters)} |")
+    print(f"|---|---|{'---|' * len(filters)}")
+    for name in args.rows:
+        cells = basin_row(OPTIONS[name], args.train_frames, args.every, filters)
         print(f"| {name} | {' | '.join(cells)} |", flush=True)
 
 

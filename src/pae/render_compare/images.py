@@ -11,6 +11,14 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+CONTRAST_FLOOR = 0.5
+"""The local contrast's floor in :func:`band_pass`, as a share of the image's RMS: flat
+regions (a plain wall) are not raised to the contrast of textured ones, where they would
+compare noise."""
+CONTRAST_EPSILON = 1e-3
+"""Added to the local contrast (grey levels): an image with no texture at all stays flat
+rather than its rounding errors raised to unit contrast."""
+
 
 def grey(images: Tensor) -> Tensor:
     """RGB [B, 3, H, W] -> luma [B, 1, H, W] (ITU-R 601)."""
@@ -94,13 +102,22 @@ def trimmed_zncc(
     return zncc(a, b, kept)
 
 
-def band_pass(images: Tensor, sigma_px: float, highpass_sigma_px: float) -> Tensor:
+def band_pass(
+    images: Tensor, sigma_px: float, highpass_sigma_px: float, contrast_sigma_px: float = 0.0
+) -> Tensor:
     """[B, C, H, W] blurred at ``sigma_px`` minus, when ``highpass_sigma_px`` > 0, its blur at
-    that wider σ (a difference of Gaussians: smooth shading and light fall-off removed)."""
+    that wider σ (a difference of Gaussians: smooth shading and light fall-off removed); when
+    ``contrast_sigma_px`` > 0, divided by its local contrast (its RMS within that σ, px) plus
+    ``CONTRAST_FLOOR`` × its RMS over the image, so that a region's structure counts alike
+    whether vignetting, exposure or a highlight made it dim or bright there."""
     blurred = gaussian_blur(images, sigma_px)
-    if highpass_sigma_px <= 0:
+    if highpass_sigma_px > 0:
+        blurred = blurred - gaussian_blur(images, highpass_sigma_px)
+    if contrast_sigma_px <= 0:
         return blurred
-    return blurred - gaussian_blur(images, highpass_sigma_px)
+    local = gaussian_blur(blurred.square(), contrast_sigma_px).clamp_min(0).sqrt()
+    whole = blurred.square().mean((-2, -1), keepdim=True).sqrt()
+    return blurred / (local + CONTRAST_FLOOR * whole + CONTRAST_EPSILON)
 
 
 def compare_size(height: int, width: int, compare_width: int) -> tuple[int, int]:

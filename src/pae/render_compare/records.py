@@ -16,7 +16,7 @@ class Level(NamedTuple):
     target: Tensor  # [B, C, h, w] band-passed grey query (or its feature maps)
     intrinsics: Tensor  # [B, 4] of the level's images
     scenes: Tensor  # [B]
-    sigmas: tuple[float, float]  # blur and high-pass sigma (px of this level)
+    sigmas: tuple[float, ...]  # blur, high-pass and contrast sigma (px of this level)
 
 
 class Reference(NamedTuple):

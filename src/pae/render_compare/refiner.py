@@ -91,22 +91,16 @@ class RenderCompareRefiner:
 
     Search: rounds (at the coarsest level; 0: none), candidates (per hypothesis and round),
     hypotheses (chains kept until the finer levels decide), position_sigma_m,
-    orientation_sigma_deg (the first round's steps: standard deviations per axis), shrink (a
-    chain's step factor after a round without improvement). Pyramid: resolution (the finest
-    compare width, px), levels (how many, each half the next's width), blur_sigma_px (px of
-    each level), highpass_sigma_px (px at ``resolution``: the blur subtracted from the
-    compared images, see :func:`band_pass`; 0: none), highpass_levels (the high-pass at the
-    finest that many levels only, the coarser ones compared whole so that the search keeps
-    its reach; 0: at every level). References: reference_size,
-    reference_fov_scale (the start's rendering: width in px, field of view relative to the
-    query's), final_reference_size, final_fov_scale (the rendering at the best hypothesis
-    before the finest level; size 0: none). Polish: polish_steps (Levenberg–Marquardt steps
-    per level and hypothesis), polish_damping (the first λ). Score: min_overlap (the share of
-    reference points a candidate must see, else ``NOT_SEEN_SCORE``), trim_sigma, trim_passes
-    (:func:`trimmed_zncc`; 0: plain ZNCC), score (``zncc``, or ``features`` with
-    ``features``). seed: of the draws; chunk, gpu_chunk: queries refined at once on the CPU and on
-    another device (:meth:`chunk_for`); engine: ``ENGINES``.
-    Every setting's default is in ``RenderCompareSettings`` (:meth:`configured`).
+    orientation_sigma_deg (the first round's steps per axis), shrink (a chain's step factor
+    after a round without improvement). Pyramid: resolution, levels, and the compared images'
+    filter (blur_sigma_px, highpass_sigma_px, contrast_sigma_px, highpass_levels:
+    :func:`band_pass`). References: reference_size, reference_fov_scale (the start's
+    rendering), final_reference_size, final_fov_scale (at the best hypothesis before the
+    finest level; 0: none). Polish: polish_steps, polish_damping. Score: min_overlap (else
+    ``NOT_SEEN_SCORE``), trim_sigma, trim_passes (:func:`trimmed_zncc`), score (``zncc``, or
+    ``features`` with ``features``). seed: of the draws; chunk, gpu_chunk: queries refined at
+    once (:meth:`chunk_for`); engine: ``ENGINES``. What each setting means and its default:
+    ``RenderCompareSettings`` (:meth:`configured`).
     """
 
     from_run: ClassVar[tuple[str, ...]] = ("scene_model", "features")
@@ -127,6 +121,7 @@ class RenderCompareRefiner:
         levels: int,
         blur_sigma_px: float,
         highpass_sigma_px: float,
+        contrast_sigma_px: float,
         highpass_levels: int,
         reference_size: int,
         reference_fov_scale: float,
@@ -155,6 +150,7 @@ class RenderCompareRefiner:
         self.levels = levels
         self.blur_sigma_px = blur_sigma_px
         self.highpass_sigma_px = highpass_sigma_px
+        self.contrast_sigma_px = contrast_sigma_px
         self.highpass_levels = highpass_levels
         self.reference_size = reference_size
         self.reference_fov_scale = reference_fov_scale
@@ -233,8 +229,12 @@ class RenderCompareRefiner:
                     Level(maps, scale_intrinsics(scaled, fw / width, fh / height), scenes, (0, 0))
                 )
                 continue
-            highpass = 0.0 if index < whole else self.highpass_sigma_px * width / finest
-            sigmas = (self.blur_sigma_px, highpass)
+            scale = 0.0 if index < whole else width / finest
+            sigmas = (
+                self.blur_sigma_px,
+                self.highpass_sigma_px * scale,
+                self.contrast_sigma_px * scale,
+            )
             target = band_pass(grey(small), *sigmas)
             levels.append(Level(target, scaled, scenes, sigmas))
         return levels
@@ -279,8 +279,7 @@ class RenderCompareRefiner:
             values = F.interpolate(maps, size=(height, width), mode="bilinear").flatten(2)
         else:
             scale = float((reference.focal / level.intrinsics[:, 0]).mean())
-            sigmas = (level.sigmas[0] * scale, level.sigmas[1] * scale)
-            values = band_pass(reference.image, *sigmas).flatten(2)
+            values = band_pass(reference.image, *(s * scale for s in level.sigmas)).flatten(2)
         return Surface(reference.points, values, reference.valid)
 
     def _score_projected(self, poses: Tensor, level: Level, surface: Surface) -> Tensor:

@@ -43,6 +43,10 @@ class RenderCompareSettings:
     highpass_sigma_px: float = 0.0
     """Subtract the compared images' blur at this sigma (px at ``resolution``; a difference
     of Gaussians) so that smooth shading and light fall-off do not steer the score; 0: off."""
+    contrast_sigma_px: float = 0.0
+    """Divide the compared images' (band-passed) values by their local contrast within this
+    sigma (px at ``resolution``, :func:`pae.render_compare.images.band_pass`) so that dim and
+    bright regions weigh alike; 0: off."""
     highpass_levels: int = 0
     """The high-pass at the finest this many levels only (the coarser, where the search
     starts, compared whole: its reach); 0: at every level."""
@@ -103,6 +107,7 @@ def check_settings(
     final_fov_scale: float,
     blur_sigma_px: float,
     highpass_sigma_px: float,
+    contrast_sigma_px: float,
     highpass_levels: int,
     polish_damping: float,
     trim_sigma: float,
@@ -142,11 +147,11 @@ def check_settings(
             "render_compare needs reference_fov_scale and final_fov_scale > 0, not "
             f"{reference_fov_scale:g} and {final_fov_scale:g}"
         )
-    if highpass_sigma_px < 0 or blur_sigma_px < 0 or polish_damping <= 0:
+    if min(highpass_sigma_px, blur_sigma_px, contrast_sigma_px) < 0 or polish_damping <= 0:
         raise ValueError(
-            "render_compare needs blur_sigma_px >= 0, highpass_sigma_px >= 0 and "
-            f"polish_damping > 0, not {blur_sigma_px:g}, {highpass_sigma_px:g}, "
-            f"{polish_damping:g}"
+            "render_compare needs blur_sigma_px, highpass_sigma_px and contrast_sigma_px >= 0 "
+            f"and polish_damping > 0, not {blur_sigma_px:g}, {highpass_sigma_px:g}, "
+            f"{contrast_sigma_px:g}, {polish_damping:g}"
         )
     if highpass_levels < 0:
         raise ValueError(f"render_compare needs highpass_levels >= 0, not {highpass_levels}")
