@@ -48,6 +48,16 @@ OPTIONS = {
         "data.render_scale=4",
     ],
     "all on (demo_hard)": ["experiment=demo_hard"],
+    "all on but the occluders": ["experiment=demo_hard", "data.occluder_fraction=0"],
+    "all on but the lighting change": ["experiment=demo_hard", "data.lighting_change=0"],
+    "all on but the glossy surfaces": ["experiment=demo_hard", "data.glossy_surface_share=0"],
+    "all on but the plain surfaces": ["experiment=demo_hard", "data.plain_surface_share=0"],
+    "all on but the camera pipeline": ["experiment=demo_hard", "data.camera_pipeline=0"],
+    "all on but noise and blur": [
+        "experiment=demo_hard",
+        "data.sensor_noise_std=0",
+        "data.motion_blur_px=0",
+    ],
 }
 """Row name -> the overrides of experiment=demo that make its benchmark."""
 FILTERS = {
@@ -56,6 +66,17 @@ FILTERS = {
     "high-pass 4 px + trim 2.5": {"highpass_sigma_px": 4.0, "trim_sigma": 2.5},
     "high-pass 4 px + contrast 4 px": {"highpass_sigma_px": 4.0, "contrast_sigma_px": 4.0},
     "high-pass 4 px + contrast 8 px": {"highpass_sigma_px": 4.0, "contrast_sigma_px": 8.0},
+    "high-pass 4 px + contrast 2 px": {"highpass_sigma_px": 4.0, "contrast_sigma_px": 2.0},
+    "high-pass 4 px + contrast 4 px + trim 2.5": {
+        "highpass_sigma_px": 4.0,
+        "contrast_sigma_px": 4.0,
+        "trim_sigma": 2.5,
+    },
+    "high-pass 4 px + contrast 4 px + blur 1 px": {
+        "highpass_sigma_px": 4.0,
+        "contrast_sigma_px": 4.0,
+        "blur_sigma_px": 1.0,
+    },
 }
 """Column name -> the refiner settings it replaces (demo_hard's filters_from_val)."""
 START_M, START_DEG = 0.2, 3.0

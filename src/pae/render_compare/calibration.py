@@ -86,7 +86,14 @@ def _number_or_auto(key: str, value: float | str) -> float | None:
     return float(value)
 
 
-FILTER_KEYS = ("highpass_sigma_px", "highpass_levels", "trim_sigma", "trim_passes", "blur_sigma_px")
+FILTER_KEYS = (
+    "highpass_sigma_px",
+    "highpass_levels",
+    "contrast_sigma_px",
+    "trim_sigma",
+    "trim_passes",
+    "blur_sigma_px",
+)
 """The refiner settings a filter tried on val may set: how the compared images are filtered
 and scored."""
 
