@@ -1,8 +1,9 @@
 """Which of the hard benchmark's options break render-and-compare itself: the benchmark's own
 renderer (the oracle scene model, a bound) refines validation queries from their true poses
 moved by 0.2 m and 3 degrees, on the easy benchmark with each option alone, with the
-surfaces and capture together, and with everything on (experiment=demo_hard), under the
-refiner's defaults and under each filter demo_hard tries on val.
+surfaces and capture together, with everything on (experiment=demo_hard) and with everything
+but one, under the refiner's defaults and under filters demo_hard tries on val and their
+variants (--rows and --filters pick some; the default: every row and filter).
 
     python experiments/benchmark_hard/oracle_basin.py [--train-frames 300] [--every 2]
         [--rows ROW ...] [--filters COLUMN ...]
