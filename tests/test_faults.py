@@ -1290,7 +1290,7 @@ def test_a_missing_scene_in_an_evaluated_split_is_said_and_recorded(
         ("scene_model.fit_trim=1.0", r"scene_model.fit_trim must be a number in \[0, 1\)"),
         (
             "render_compare.refiner.highpass_sigma_px=-1",
-            "needs blur_sigma_px >= 0, highpass_sigma_px >= 0",
+            "needs blur_sigma_px, highpass_sigma_px and contrast_sigma_px >= 0",
         ),
     ],
 )
