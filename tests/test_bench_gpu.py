@@ -97,3 +97,5 @@ def test_the_refiner_takes_larger_chunks_off_the_cpu() -> None:
     refiner = RenderCompareRefiner.configured(room_grid(1), chunk=8, gpu_chunk=512)
     assert refiner.chunk_for(torch.device("cpu")) == 8
     assert refiner.chunk_for(torch.device("cuda", 0)) == 512
+    with pytest.raises(ValueError, match="chunk and gpu_chunk >= 1"):
+        RenderCompareRefiner.configured(room_grid(1), gpu_chunk=0)

@@ -112,6 +112,8 @@ def check_settings(
     polish_damping: float,
     trim_sigma: float,
     trim_passes: int,
+    chunk: int,
+    gpu_chunk: int,
     **_: Any,
 ) -> None:
     """The ranges and combinations of the refiner's settings (``features``: the feature
@@ -129,6 +131,10 @@ def check_settings(
         )
     if score == "features" and features is None:
         raise ValueError("render_compare.score=features needs a feature extractor")
+    if min(chunk, gpu_chunk) < 1:
+        raise ValueError(
+            f"render_compare needs chunk and gpu_chunk >= 1, not {chunk} and {gpu_chunk}"
+        )
     if (
         min(rounds, polish_steps, final_reference_size) < 0
         or min(candidates, hypotheses, levels) < 1
