@@ -1,14 +1,12 @@
 """Compiled volume rendering of a voxel grid on the CPU (numba): forward and backward.
 
-Both passes march ``BLOCK_RAYS`` rays side by side, one sample index at a time: the
-trilinear reads of the grid (and the backward's scatter into its gradient) stay scalar, the
-arithmetic between them (softplus, the samples' opacities, the colours' sigmoids,
-compositing and its adjoint) runs over the block in SIMD lanes, in float32 with
-:func:`_exp_parts`'s polynomial exponential. A ray stops adding light once its transmittance
-falls below ``STOP_TRANSMITTANCE``, a block once all its rays have. The backward pass marches
-each ray's samples again and scatters the gradient into per-thread copies of the grid's
-gradient (summed afterwards). Both compute what :meth:`VoxelGrid.composite` computes with
-``grid_sample`` (tested against it), several times faster on CPU cores.
+Both passes march ``BLOCK_RAYS`` rays side by side, one sample index at a time: the grid's
+reads (:func:`_read_block`) and the backward's scatter stay scalar, the arithmetic between
+them (softplus, opacities, sigmoids, compositing and its adjoint) runs in float32 SIMD lanes
+with :func:`_exp_parts`'s polynomial exponential. A ray stops adding light once its
+transmittance falls below ``STOP_TRANSMITTANCE``, a block once all its rays have. The
+backward marches each ray again and scatters into per-thread gradient copies (summed after).
+Both compute what :meth:`VoxelGrid.composite` computes with ``grid_sample`` (tested).
 
 Grid layout: ``[nz, ny, nx, 4]`` float32 (raw density, raw RGB), channels last. Each ray's
 samples (depths, world points, their contraction and grid coordinates) are computed inside
@@ -196,6 +194,24 @@ def _trilinear(
 
 
 @jit(nogil=True, inline="always", fastmath=True)
+def _read_block(cells, samples: tuple, top: tuple, sx: int, sy: int, sz: int, shift: float):
+    """A block's samples (point at grid coordinates, then the fractions in its cell; corner,
+    density, colour, mantissa, exponent) read in place: raw density + ``shift``, colour, and
+    exp(-|density|), exp(-colour) as mantissa × 2^exponent. Scalar reads, SIMD exponentials."""
+    point, corner, density, colour, mantissa, exponent = samples
+    for j in range(BLOCK_RAYS):
+        corner[j] = _cell(point, j, top, sx, sy, sz)
+    for j in range(BLOCK_RAYS):
+        v0, v1, v2, v3 = _trilinear(cells, corner[j], point, j, sx, sy, sz)
+        density[j] = v0 + shift
+        colour[0, j], colour[1, j], colour[2, j] = v1, v2, v3
+    for j in range(BLOCK_RAYS):
+        mantissa[0, j], exponent[0, j] = _exp_parts(-abs(density[j]))
+        for c in range(3):
+            mantissa[c + 1, j], exponent[c + 1, j] = _exp_parts(-colour[c, j])
+
+
+@jit(nogil=True, inline="always", fastmath=True)
 def _scatter(
     grad: np.ndarray,
     corner: int,
@@ -290,6 +306,7 @@ def render_forward(
         mantissa = np.empty((4, BLOCK_RAYS), np.float32)
         exponent = np.empty((4, BLOCK_RAYS), np.int32)
         power = exponent.view(np.float32)
+        samples = (point, corner, density, colour, mantissa, exponent)
         transmit = np.ones(BLOCK_RAYS, np.float32)
         light = np.zeros((4, BLOCK_RAYS), np.float32)  # red, green, blue, depth
         marched = np.zeros(BLOCK_RAYS, np.int64)
@@ -305,16 +322,7 @@ def render_forward(
                     for axis in range(3):
                         point[axis, j] = start[axis, j] + u * step[axis, j]
                     depth[j] = depth0[j] + u * depth_step[j]
-            for j in range(BLOCK_RAYS):
-                corner[j] = _cell(point, j, top, sx, sy, sz)
-            for j in range(BLOCK_RAYS):  # the reads: scalar
-                v0, v1, v2, v3 = _trilinear(cells, corner[j], point, j, sx, sy, sz)
-                density[j] = v0 + shift
-                colour[0, j], colour[1, j], colour[2, j] = v1, v2, v3
-            for j in range(BLOCK_RAYS):  # SIMD from here on
-                mantissa[0, j], exponent[0, j] = _exp_parts(-abs(density[j]))
-                for c in range(3):
-                    mantissa[c + 1, j], exponent[c + 1, j] = _exp_parts(-colour[c, j])
+            _read_block(cells, samples, top, sx, sy, sz, shift)  # SIMD after
             for j in range(BLOCK_RAYS):
                 sigma = max(density[j], _ZERO) + _log1p_unit(mantissa[0, j] * power[0, j])
                 mantissa[0, j], exponent[0, j] = _exp_parts(-sigma * length[j])
@@ -371,6 +379,7 @@ def render_backward(
         mantissa = np.empty((4, BLOCK_RAYS), np.float32)
         exponent = np.empty((4, BLOCK_RAYS), np.int32)
         power = exponent.view(np.float32)
+        samples = (point, corner, density, colour, mantissa, exponent)
         upstream = np.empty((3, BLOCK_RAYS), np.float32)  # d loss / d rgb
         total = np.empty(BLOCK_RAYS, np.float32)  # rgb · upstream
         done = np.empty(BLOCK_RAYS, np.float32)  # the samples' light so far · upstream
@@ -401,16 +410,7 @@ def render_backward(
                         u = np.float32(s) + offsets[rows[j], s]
                         for axis in range(3):
                             point[axis, j] = start[axis, j] + u * step[axis, j]
-                for j in range(BLOCK_RAYS):
-                    corner[j] = _cell(point, j, top, sx, sy, sz)
-                for j in range(BLOCK_RAYS):  # the reads: scalar
-                    v0, v1, v2, v3 = _trilinear(cells, corner[j], point, j, sx, sy, sz)
-                    density[j] = v0 + shift
-                    colour[0, j], colour[1, j], colour[2, j] = v1, v2, v3
-                for j in range(BLOCK_RAYS):  # SIMD
-                    mantissa[0, j], exponent[0, j] = _exp_parts(-abs(density[j]))
-                    for c in range(3):
-                        mantissa[c + 1, j], exponent[c + 1, j] = _exp_parts(-colour[c, j])
+                _read_block(cells, samples, top, sx, sy, sz, shift)
                 for j in range(BLOCK_RAYS):
                     x = density[j]
                     e = mantissa[0, j] * power[0, j]  # exp(-|x|)
