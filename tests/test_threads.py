@@ -13,6 +13,7 @@ import pytest
 from pae.core import threads
 from pae.core.errors import ConfigError
 from pae.core.threads import (
+    HUGE_PAGES,
     cgroup_cpu_limit,
     decide_threads,
     loader_workers,
@@ -106,12 +107,12 @@ def test_cgroup_v1_reads_the_cfs_quota_and_period(tmp_path: Path) -> None:
 def test_waiting_threads_sleep_unless_the_environment_says_how_they_wait() -> None:
     environ: dict[str, str] = {}
     prepare_environment(environ)
-    assert environ == {"OMP_WAIT_POLICY": "PASSIVE", "KMP_BLOCKTIME": "0"}
+    assert environ == {"OMP_WAIT_POLICY": "PASSIVE", "KMP_BLOCKTIME": "0", **HUGE_PAGES}
     assert wait_policy(environ) == "waiting threads sleep (OMP_WAIT_POLICY=PASSIVE)"
     for chosen in ({"OMP_WAIT_POLICY": "ACTIVE"}, {"GOMP_SPINCOUNT": "300000"}):
-        environ = dict(chosen)
+        environ = {**chosen, "THP_MEM_ALLOC_ENABLE": "0"}
         prepare_environment(environ)
-        assert environ == chosen
+        assert environ == {**chosen, "THP_MEM_ALLOC_ENABLE": "0"}
         assert "as the environment says" in wait_policy(environ)
 
 
