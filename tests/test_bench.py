@@ -176,7 +176,8 @@ def test_bench_render_compare_scale_at_tiny_size(tmp_path: Path) -> None:
 
     figures = bench_render_compare_scale(60, 20, 2, 64, 48, root=tmp_path, batches_per_epoch=2)
     prefix = "bench/render_compare"
-    for key in ("peak_rss_mb", "scale_fit_s", "scale_refine_s", "scale_teacher_peak_rss_mb"):
+    keys = ("peak_rss_mb", "scale_fit_s", "scale_refine_s", "scale_teacher_peak_rss_mb")
+    for key in (*keys, "scale_store_s", "scale_store_peak_rss_mb"):
         assert figures[f"{prefix}/{key}"] > 0, key
     assert figures[f"{prefix}/scale_train_images"] == 60
     assert figures[f"{prefix}/scale_fit_images"] == 40  # one of 4 and 2 sequences held out

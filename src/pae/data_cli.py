@@ -16,6 +16,7 @@
     pae-data convert colmap MODEL_DIR IMAGE_DIR OUT_DIR [--split-list FILE | --every K |
                             --test-folders NAME ...] [--scale S] [--scene NAME]
     pae-data check LABELS.csv [LABELS.csv ...] ROOT
+    pae-data store LABELS.csv [LABELS.csv ...] ROOT --store STORE [--shorter-edge PX]
     pae-data audit-guess --test TEST.csv [...] --train TRAIN.csv [...] [--sigma M --k K --seed S]
 
 Bad input ends with exit status 1 and a one-line ``pae-data: error: ...`` message on stderr.
@@ -26,6 +27,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
+import time
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -192,6 +194,20 @@ def _read_tables(paths: Sequence[Path], world_to_camera: bool = False) -> LabelT
     return table
 
 
+def _store(args: argparse.Namespace) -> int:
+    """Decode every image of the label files into the store folder."""
+    from pae.core.threads import current_budget
+    from pae.data.image_store import ImageStore
+
+    table = _read_tables(args.labels)
+    paths = list(dict.fromkeys(str(args.root / path) for path in table.img_path))
+    started = time.perf_counter()
+    decoded = ImageStore(args.store).fill(paths, args.shorter_edge, current_budget().threads)
+    seconds = time.perf_counter() - started
+    print(f"{decoded} of {len(paths)} images decoded into {args.store} in {seconds:.1f} s")
+    return 0
+
+
 def _audit_guess(args: argparse.Namespace) -> int:
     from pae.refine.audit import format_guess_audit, guess_audit
 
@@ -315,6 +331,26 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument("labels", type=Path, nargs="+", metavar="LABELS.csv")
     check.add_argument("root", type=Path, metavar="ROOT", help="dataset root of img_path")
 
+    store = _add_command(
+        commands,
+        "store",
+        "decode the images of label files once, into a data.image_store folder",
+        "Decode and resize every image of each LABELS.csv (under ROOT) that the STORE "
+        "folder does not hold yet, on pae's threads, so that runs with data.image_store=STORE "
+        "read them back instead of decoding them (pae.data.image_store).",
+        _store,
+    )
+    store.add_argument("labels", type=Path, nargs="+", metavar="LABELS.csv")
+    store.add_argument("root", type=Path, metavar="ROOT", help="dataset root of img_path")
+    store.add_argument("--store", type=Path, required=True, metavar="STORE", help="the folder")
+    store.add_argument(
+        "--shorter-edge",
+        type=int,
+        default=256,
+        metavar="PX",
+        help="the size runs read them at, data.shorter_edge (default: 256)",
+    )
+
     audit = _add_command(
         commands,
         "audit-guess",
@@ -337,7 +373,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         budget = configure_threads(load_libraries=False)
-        if args.run is run_synth:  # the command whose work runs on those threads: the renderer
+        if args.run in (run_synth, _store):  # the commands whose work runs on those threads
             print(budget.summary(), file=sys.stderr)
         return args.run(args)
     except (LabelError, OSError, ValueError) as error:

@@ -9,15 +9,16 @@ scene from the synthetic renderer (rendered small, upsampled to 640x480, PNG), e
 row a hard link to one of them. The images do not match the poses: the figures are the
 step's memory and time at that size, not its accuracy.
 
-The harness trains a teacher checkpoint in the cheapest valid way (one epoch of two
-batches), then runs ``stage=render_compare`` with the default scene model and refiner, one
-short scene-model epoch (``batches_per_epoch`` ray batches) and a few validation batches;
-every train image is read into the ray store and every test query refined. Children inherit
-the environment: on cores shared with other work, run with ``OMP_WAIT_POLICY=PASSIVE``
-(docs/usage.md; the refiner's many small tensor operations ran 5x slower with spinning
-threads on a loaded 2-core machine). Each command's
-peak resident set size is read from ``os.wait4`` (ru_maxrss: the largest of the process and
-the children it waited for, such as its loader workers, not their sum).
+The harness first decodes every image once into an image store (``pae-data store``, as a
+user does once per dataset, or as the teacher's training does on its first epoch), which
+the teacher and the step then read (``data.image_store``). It trains a teacher checkpoint
+in the cheapest valid way (one epoch of two batches), then runs ``stage=render_compare``
+with the default scene model and refiner, one short scene-model epoch
+(``batches_per_epoch`` ray batches) and a few validation batches; every train image is
+read into the ray store and every test query refined. Children inherit the environment
+(pae's own settings: ``pae.core.threads``). Each command's peak resident set size is read
+from ``os.wait4`` (ru_maxrss: the largest of the process and the children it waited for,
+such as its loader workers, not their sum).
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from omegaconf import OmegaConf
 from pae.core.geometry import matrix_to_quaternion
 from pae.data.holdout import held_out_rows
 from pae.data.labels import LabelTable, read_labels
+from pae.data.settings import PoseDataSettings
 from pae.synthetic import write_label_files, write_synthetic_dataset
 from pae.synthetic.camera import look_rotations
 
@@ -257,7 +259,8 @@ def bench_render_compare_scale(
     ``bench/render_compare/peak_rss_mb`` (the step's process), ``scale_fit_s`` (its
     ``bench/scene_model/fit_s``: reading the train images into the ray store and the fit),
     ``scale_refine_s`` (the refiner's measured seconds over the test queries),
-    ``scale_step_s`` (the whole command), the counts
+    ``scale_step_s`` (the whole command), ``scale_store_s`` and ``scale_store_peak_rss_mb``
+    (decoding every image into the image store beforehand), the counts
     (``scale_train_images`` in the label files, ``scale_fit_images`` in the ray store after
     the validation split's hold-out, ``scale_test_images`` refined) and the teacher
     command's ``scale_teacher_peak_rss_mb`` and ``scale_teacher_s``."""
@@ -269,10 +272,29 @@ def bench_render_compare_scale(
         counts = write_scale_dataset(data_root, train, test, scenes, width, height)
         write_s = time.perf_counter() - started
         names = ",".join(name for name, *_ in SEVEN_SCENES[:scenes])
+        store_dir = folder / "image_store"
+        _say(f"decoding every image into {store_dir}")
+        labels = [str(data_root / "labels" / f"all_{split}.csv") for split in SPLITS]
+        store = run_measured(
+            [
+                sys.executable,
+                "-m",
+                "pae.data_cli",
+                "store",
+                *labels,
+                str(data_root),
+                "--store",
+                str(store_dir),
+                "--shorter-edge",
+                str(PoseDataSettings().shorter_edge),  # data=seven_scenes reads them at this
+            ],
+            folder / "store.log",
+        )
         data = [
             "data=seven_scenes",
             f"data.root={data_root}",
             f"data.scenes=[{names}]",
+            f"data.image_store={store_dir}",
             "callbacks=minimal",
             "+trainer.enable_progress_bar=false",
         ]
@@ -332,6 +354,8 @@ def bench_render_compare_scale(
         f"{PREFIX}/scale_unique_files": counts["files"],
         f"{PREFIX}/scale_teacher_peak_rss_mb": teacher["rss_mb"],
         f"{PREFIX}/scale_teacher_s": teacher["s"],
+        f"{PREFIX}/scale_store_s": store["s"],
+        f"{PREFIX}/scale_store_peak_rss_mb": store["rss_mb"],
         f"{PREFIX}/scale_write_s": write_s,
         f"{PREFIX}/scale_total_s": time.perf_counter() - started,
     }

@@ -23,6 +23,7 @@ from pae.core.threads import loader_workers
 from pae.data.dataset import PoseDataset, collate_batch
 from pae.data.fingerprint import images_blake2b, sampled_images_sha256
 from pae.data.holdout import HeldOut, held_out_rows, scenes_short_of_sequences
+from pae.data.image_store import ImageStore
 from pae.data.labels import LabelTable, focal_column_mismatch, focal_problems, read_labels
 from pae.data.order import EpochOrder, trainer_epoch
 from pae.data.settings import PoseDataSettings
@@ -54,6 +55,8 @@ class PoseDataModule(L.LightningDataModule):
     those scenes of the label files (None: all). With `cache_images`, setup decodes the
     val/test images (a bad image fails the run before training) and the train images are
     decoded when first loaded: a student whose teacher latents are cached never reads them.
+    With an `image_store` folder each image is decoded and resized once and read back from
+    there by every later epoch, step and run (pae.data.image_store).
     """
 
     settings_types = (PoseDataSettings,)
@@ -75,6 +78,7 @@ class PoseDataModule(L.LightningDataModule):
         self.eval_batch_size = s.eval_batch_size
         self.num_workers = s.num_workers
         self.cache_images = s.cache_images
+        self.image_store = ImageStore(s.image_store) if s.image_store else None
         self.balance_scenes = s.balance_scenes
         self.augment = s.augment
         self.pose_loss_init = dict(s.pose_loss_init or {})
@@ -130,7 +134,12 @@ class PoseDataModule(L.LightningDataModule):
         for split, table in self.tables.items():
             if id(table) not in datasets:
                 datasets[id(table)] = PoseDataset(
-                    table, self.root, self.scene_names, self.shorter_edge, cache=self.cache_images
+                    table,
+                    self.root,
+                    self.scene_names,
+                    self.shorter_edge,
+                    cache=self.cache_images,
+                    store=self.image_store,
                 )
             self.datasets[split] = datasets[id(table)]
         self.datasets["val"].load()

@@ -12,9 +12,10 @@ from torch import Tensor
 from torch.utils.data import Dataset, default_collate
 
 from pae.core.errors import ImageError, LabelError
+from pae.data.image_store import ImageStore
 from pae.data.label_images import odd_sizes, outside_root
 from pae.data.labels import LabelTable
-from pae.data.transforms import image_size, load_image, load_sized_image
+from pae.data.transforms import check_image_size, image_size, load_image, load_sized_image
 
 
 class PoseDataset(Dataset):
@@ -36,6 +37,7 @@ class PoseDataset(Dataset):
         shorter_edge: int,
         cache: bool = False,
         workers: int = 2,
+        store: ImageStore | None = None,
     ) -> None:
         self.table = table
         self.root = Path(root)
@@ -54,6 +56,7 @@ class PoseDataset(Dataset):
         self.image_size = image_size(self.paths[0]) if self.paths else None
         self.workers = max(1, workers)
         self.cache = cache
+        self.store = store
         self._cached: Tensor | None = None
 
     def load(self) -> None:
@@ -65,7 +68,7 @@ class PoseDataset(Dataset):
         """Every image -> uint8 [N, 3, H, W]; an image of another size than most is an
         ImageError naming it and its row."""
         with ThreadPoolExecutor(self.workers) as pool:
-            loaded = list(pool.map(lambda p: load_sized_image(p, self.shorter_edge), self.paths))
+            loaded = list(pool.map(self._load_sized, self.paths))
         odd = odd_sizes({i: size for i, (_, size) in enumerate(loaded)})
         if odd:
             i = min(odd)
@@ -86,8 +89,18 @@ class PoseDataset(Dataset):
             arrays = list(pool.map(self._load, paths))
         return torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous()
 
+    def _load_sized(self, path: str) -> tuple[np.ndarray, tuple[int, int]]:
+        """The image at ``path`` resized, and its (h, w) in the file."""
+        if self.store is None:
+            return load_sized_image(path, self.shorter_edge)
+        return self.store.read(path, self.shorter_edge)
+
     def _load(self, path: str) -> np.ndarray:
-        return load_image(path, self.shorter_edge, self.image_size)
+        if self.store is None:
+            return load_image(path, self.shorter_edge, self.image_size)
+        image, file_size = self.store.read(path, self.shorter_edge)
+        check_image_size(path, file_size, self.image_size)
+        return image
 
     def __len__(self) -> int:
         return len(self.paths)

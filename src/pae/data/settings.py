@@ -44,6 +44,10 @@ class PoseDataSettings:
     cache_images: bool = False
     """Decode the val/test images at setup (a bad image fails the run before training) and
     each train image once."""
+    image_store: str | None = None
+    """A folder where each image, once decoded and resized, is kept for every later epoch,
+    step and run to read back (:mod:`pae.data.image_store`; about 262 kB per image at the
+    default size); None: decoded each time it is read."""
     balance_scenes: bool = False
     """Sample scenes equally often in multi-scene training."""
     pose_loss_init: dict[str, float] | None = None

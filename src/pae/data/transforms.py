@@ -51,14 +51,21 @@ def load_image(path: str, shorter_edge: int, size: tuple[int, int] | None = None
     `size` (h, w) in px: the size of the label file's first image, which every image must
     have (ImageError otherwise).
     """
-    image, (h, w) = load_sized_image(path, shorter_edge)
+    image, file_size = load_sized_image(path, shorter_edge)
+    check_image_size(path, file_size, size)
+    return image
+
+
+def check_image_size(path: str, file_size: tuple[int, int], size: tuple[int, int] | None) -> None:
+    """An ImageError naming ``path`` where its image's (h, w) ``file_size`` is not ``size``
+    (the label file's first image's; None: any size)."""
+    h, w = file_size
     if size is not None and (h, w) != tuple(size):
         raise ImageError(
             f"{path}: image is {w}x{h} px, unlike the {size[1]}x{size[0]} px of the label "
             "file's first image (all images of a label file must have one size; `pae-data "
             "check LABELS ROOT` names the odd ones)"
         )
-    return image
 
 
 def _gray(images: Tensor) -> Tensor:
