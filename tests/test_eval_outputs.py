@@ -23,4 +23,8 @@ def test_collect_outputs_keeps_each_query_once_in_split_order() -> None:
     joined = collect_outputs(trainer, in_order)
     assert joined[EVAL.index].tolist() == [0, 1, 2, 3]
     assert joined[EVAL.pose].flatten().tolist() == [0.0, 1.0, 2.0, 3.0]
+    assert len(in_order.eval_outputs) == 1  # the batches replaced by the joined one
+    again = collect_outputs(trainer, in_order)
+    assert again[EVAL.index].tolist() == [0, 1, 2, 3]
+    assert again[EVAL.pose].data_ptr() == joined[EVAL.pose].data_ptr()  # no copy
     assert collect_outputs(trainer, SimpleNamespace(eval_outputs=[])) is None

@@ -68,6 +68,7 @@ def test_a_learned_grid_halves_the_start_error_on_unseen_views(tmp_path: Path) -
     )
     data.train_batches = RayLoader(rays_per_batch=2048, batches=40)
     trainer.fit(module, datamodule=data)
+    assert len(trainer.train_dataloader.dataset.images) == 0  # released when the fit ended
 
     test = data.datasets["test"]
     batch = test.__getitems__(list(range(len(test))))

@@ -66,14 +66,22 @@ def collect_outputs(
 ) -> dict[str, Tensor] | None:
     """The finished evaluation epoch's batches of ``module`` joined, each query once, in
     split order (a distributed sampler pads with repeats); with ``gather``, every rank's
-    (so each rank sees all queries of the split). None where it kept none."""
+    (so each rank sees all queries of the split). None where it kept none. In one process
+    the joined batch replaces the batches in ``module.eval_outputs``: the queries are held
+    once, and every later call returns them without a copy."""
     if not module.eval_outputs:
         return None
     batches = module.eval_outputs
-    outputs = {key: torch.cat([batch[key] for batch in batches]) for key in batches[0]}
-    if gather and trainer.world_size > 1:
+    if len(batches) == 1:
+        outputs = dict(batches[0])
+    else:
+        outputs = {key: torch.cat([batch[key] for batch in batches]) for key in batches[0]}
+    distributed = trainer.world_size > 1
+    if gather and distributed:
         outputs = {k: module.all_gather(v).flatten(0, 1) for k, v in outputs.items()}
     keep = first_occurrences(outputs[EVAL.index])
-    if len(keep) == len(outputs[EVAL.index]) and bool((keep[1:] > keep[:-1]).all()):
-        return outputs  # each query once and in order already: no second copy
-    return {key: value[keep] for key, value in outputs.items()}
+    if len(keep) != len(outputs[EVAL.index]) or not bool((keep[1:] > keep[:-1]).all()):
+        outputs = {key: value[keep] for key, value in outputs.items()}
+    if not distributed:
+        module.eval_outputs = [outputs]
+    return dict(outputs)

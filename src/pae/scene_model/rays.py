@@ -85,6 +85,11 @@ class RayBatches(Dataset):
         self.seed = seed
         self.epoch = epoch
 
+    def release(self) -> None:
+        """Drop the images once the fit has ended (a later batch is an IndexError): the
+        trainer keeps its train loader, and with it this store, until the step ends."""
+        self.images = self.images[:0]
+
     def __len__(self) -> int:
         return self.batches
 
