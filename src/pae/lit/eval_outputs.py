@@ -12,6 +12,7 @@ import lightning as L
 import torch
 from torch import Tensor
 
+from pae.core.heap import release_free_heap
 from pae.core.metrics import first_occurrences
 from pae.scene_model.base import SceneModel
 
@@ -68,10 +69,12 @@ def collect_outputs(
     split order (a distributed sampler pads with repeats); with ``gather``, every rank's
     (so each rank sees all queries of the split). None where it kept none. In one process
     the joined batch replaces the batches in ``module.eval_outputs``: the queries are held
-    once, and every later call returns them without a copy."""
+    once (the batches' freed pages returned to the system: :mod:`pae.core.heap`), and every
+    later call returns them without a copy."""
     if not module.eval_outputs:
         return None
     batches = module.eval_outputs
+    release_free_heap()  # what the epoch freed, before the joined copy is allocated
     if len(batches) == 1:
         outputs = dict(batches[0])
     else:
@@ -84,4 +87,5 @@ def collect_outputs(
         outputs = {key: value[keep] for key, value in outputs.items()}
     if not distributed:
         module.eval_outputs = [outputs]
+        release_free_heap()  # the batches just freed: their pages, not only the joined copy's
     return dict(outputs)
