@@ -235,6 +235,12 @@ def _add_command(
     return command
 
 
+def _add_labels_and_root(command: argparse.ArgumentParser) -> None:
+    """The positional arguments of a command over label files and their images."""
+    command.add_argument("labels", type=Path, nargs="+", metavar="LABELS.csv")
+    command.add_argument("root", type=Path, metavar="ROOT", help="dataset root of img_path")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``pae-data`` argument parser."""
     parser = argparse.ArgumentParser(prog=PROG, description="Make, convert and check label files.")
@@ -328,8 +334,7 @@ def build_parser() -> argparse.ArgumentParser:
         "problem.",
         _check,
     )
-    check.add_argument("labels", type=Path, nargs="+", metavar="LABELS.csv")
-    check.add_argument("root", type=Path, metavar="ROOT", help="dataset root of img_path")
+    _add_labels_and_root(check)
 
     store = _add_command(
         commands,
@@ -340,8 +345,7 @@ def build_parser() -> argparse.ArgumentParser:
         "read them back instead of decoding them (pae.data.image_store).",
         _store,
     )
-    store.add_argument("labels", type=Path, nargs="+", metavar="LABELS.csv")
-    store.add_argument("root", type=Path, metavar="ROOT", help="dataset root of img_path")
+    _add_labels_and_root(store)
     store.add_argument("--store", type=Path, required=True, metavar="STORE", help="the folder")
     store.add_argument(
         "--shorter-edge",
