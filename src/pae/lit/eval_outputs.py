@@ -62,24 +62,54 @@ class SceneModelEvaluation(EvalOutputs, Protocol):
     def log_dict(self, dictionary: Any, *args: Any, **kwargs: Any) -> None: ...
 
 
+TRIM_BYTES = 64 * 2**20
+"""While batches are joined, the freed ones' heap pages are returned every this many bytes."""
+
+
+def _join_consuming(batches: list[dict[str, Tensor]]) -> dict[str, Tensor]:
+    """The batches joined along their first axis, each batch's tensors dropped as soon as they
+    are copied and their pages returned every ``TRIM_BYTES``: the joined copy and the
+    batches never both stay whole (``batches`` is emptied)."""
+    rows = sum(len(batch[EVAL.index]) for batch in batches)
+    joined = {}
+    for key in list(batches[0]):
+        first = batches[0][key]
+        out = first.new_empty((rows, *first.shape[1:]))
+        row, freed = 0, 0
+        for batch in batches:
+            part = batch.pop(key)
+            out[row : row + len(part)] = part
+            row += len(part)
+            freed += part.nbytes
+            del part
+            if freed >= TRIM_BYTES:
+                release_free_heap()
+                freed = 0
+        joined[key] = out
+    batches.clear()
+    return joined
+
+
 def collect_outputs(
     trainer: L.Trainer, module: EvalOutputs, gather: bool = True
 ) -> dict[str, Tensor] | None:
     """The finished evaluation epoch's batches of ``module`` joined, each query once, in
     split order (a distributed sampler pads with repeats); with ``gather``, every rank's
     (so each rank sees all queries of the split). None where it kept none. In one process
-    the joined batch replaces the batches in ``module.eval_outputs``: the queries are held
-    once (the batches' freed pages returned to the system: :mod:`pae.core.heap`), and every
-    later call returns them without a copy."""
+    the joined batch replaces the batches in ``module.eval_outputs`` as they are copied: the
+    queries are held once (the batches' freed pages returned to the system:
+    :mod:`pae.core.heap`), and every later call returns them without a copy."""
     if not module.eval_outputs:
         return None
-    batches = module.eval_outputs
     release_free_heap()  # what the epoch freed, before the joined copy is allocated
+    distributed = trainer.world_size > 1
+    batches = module.eval_outputs
     if len(batches) == 1:
         outputs = dict(batches[0])
-    else:
+    elif distributed:
         outputs = {key: torch.cat([batch[key] for batch in batches]) for key in batches[0]}
-    distributed = trainer.world_size > 1
+    else:
+        outputs = _join_consuming(batches)
     if gather and distributed:
         outputs = {k: module.all_gather(v).flatten(0, 1) for k, v in outputs.items()}
     keep = first_occurrences(outputs[EVAL.index])
@@ -87,5 +117,5 @@ def collect_outputs(
         outputs = {key: value[keep] for key, value in outputs.items()}
     if not distributed:
         module.eval_outputs = [outputs]
-        release_free_heap()  # the batches just freed: their pages, not only the joined copy's
+        release_free_heap()
     return dict(outputs)
