@@ -128,3 +128,13 @@ def test_pae_data_store_fills_the_folder_once_and_names_a_missing_image(tmp_path
     (tmp_path / paths[1]).unlink()
     assert main(command) == 1
     assert "frame-000001.color.png: missing" in capsys.readouterr().err
+
+
+def test_a_store_that_cannot_be_written_is_one_line_naming_the_setting(tmp_path) -> None:
+    from pae.core.errors import ConfigError
+
+    picture = tmp_path / "a.png"
+    _write_image(picture, 0)
+    (tmp_path / "taken").write_text("a file where the store's folder should be")
+    with pytest.raises(ConfigError, match=r"^data\.image_store: cannot write .*taken"):
+        ImageStore(tmp_path / "taken").read(str(picture), 24)

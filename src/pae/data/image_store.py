@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pae.core.errors import ImageError
+from pae.core.atomic import disk_full, no_space_error
+from pae.core.errors import ConfigError, ImageError
 from pae.data.transforms import load_sized_image
 
 HEADER = np.dtype("<u4")
@@ -92,15 +93,24 @@ def _read_entry(entry: Path) -> tuple[np.ndarray, tuple[int, int]] | None:
 
 
 def _write_entry(entry: Path, image: np.ndarray, size: tuple[int, int]) -> None:
-    """Keep ``image`` [h, w, 3] (of a file of ``size`` (h, w)) at ``entry``, atomically."""
-    entry.parent.mkdir(parents=True, exist_ok=True)
+    """Keep ``image`` [h, w, 3] (of a file of ``size`` (h, w)) at ``entry``, atomically; a
+    failed write is a one-line error naming the entry (DiskFullError on a full disk, else a
+    ConfigError naming ``data.image_store``)."""
     header = np.array([*size, *image.shape[:2]], HEADER).tobytes()
-    handle, temporary = tempfile.mkstemp(dir=entry.parent, suffix=".part")
+    temporary = None
     try:
+        entry.parent.mkdir(parents=True, exist_ok=True)
+        handle, temporary = tempfile.mkstemp(dir=entry.parent, suffix=".part")
         with os.fdopen(handle, "wb") as out:
             out.write(header)
             out.write(np.ascontiguousarray(image).tobytes())
         os.replace(temporary, entry)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
+    except BaseException as err:
+        if temporary is not None:
+            Path(temporary).unlink(missing_ok=True)
+        if not isinstance(err, OSError):
+            raise
+        if no_space_error(err) is not None:
+            raise disk_full(entry) from None
+        reason = err.strerror or type(err).__name__
+        raise ConfigError(f"data.image_store: cannot write {entry} ({reason})") from None
