@@ -209,7 +209,8 @@ def test_bench_fingerprint_measures_both_hashes_on_the_same_images(tiny_root: Pa
     from pae.data.labels import read_labels
 
     figures = bench_fingerprint(tiny_root, repeats=2)
-    names = ("images", "mb", "full_ms", "sampled_ms", "full_over_sampled", "full_mb_per_s")
+    names = ("images", "mb", "full_ms", "sampled_ms", "stored_ms", "full_over_sampled")
+    names += ("full_over_stored", "full_mb_per_s")
     assert set(figures) == {f"{PREFIX}/{name}" for name in names}
     table = read_labels(tiny_root / "labels" / "all_train.csv")
     assert figures[f"{PREFIX}/images"] == len(table.img_path)
@@ -217,6 +218,8 @@ def test_bench_fingerprint_measures_both_hashes_on_the_same_images(tiny_root: Pa
     assert figures[f"{PREFIX}/mb"] == size / 1e6
     ratio = figures[f"{PREFIX}/full_ms"] / figures[f"{PREFIX}/sampled_ms"]
     assert figures[f"{PREFIX}/full_over_sampled"] == pytest.approx(ratio)
+    stored = figures[f"{PREFIX}/full_ms"] / figures[f"{PREFIX}/stored_ms"]
+    assert figures[f"{PREFIX}/full_over_stored"] == pytest.approx(stored)
 
 
 def test_bench_fingerprint_at_seven_scenes_size_scales_the_per_image_cost(tmp_path: Path) -> None:

@@ -276,14 +276,15 @@ class PoseDataModule(L.LightningDataModule):
         """What identifies the training data: its scene names, a SHA-256 of its train poses
         (float64 [N, 7], as read from the train label file) and a BLAKE2b of its train images
         (:func:`pae.data.fingerprint.images_blake2b`: paths, sizes, every byte of each file),
-        computed once. Checkpoints record it."""
+        computed once (each file's BLAKE2b kept in the image store where one is set).
+        Checkpoints record it."""
         if self._fingerprint is None:
             train = self.tables["train"]
             poses = np.ascontiguousarray(train.poses, dtype=np.float64)
             self._fingerprint = {
                 "scenes": list(self.scene_names),
                 "train_poses_sha256": hashlib.sha256(poses.tobytes()).hexdigest(),
-                "train_images_blake2b": images_blake2b(train, self.root),
+                "train_images_blake2b": images_blake2b(train, self.root, self.image_store),
             }
         return dict(self._fingerprint)
 

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 from pae.core.errors import ImageError
+from pae.data.image_store import ImageStore
 from pae.data.labels import LabelTable
 
 CHUNK_BYTES = 1 << 20
@@ -21,15 +22,27 @@ SAMPLE_BYTES = 4096
 
 
 def _each_image(
-    table: LabelTable, root: Path, summary: Callable[[BinaryIO], tuple[int, bytes]]
+    table: LabelTable,
+    root: Path,
+    summary: Callable[[BinaryIO], tuple[int, bytes]],
+    store: ImageStore | None = None,
+    name: str = "",
 ) -> Iterator[tuple[str, int, bytes]]:
     """(path as the label file gives it, size in bytes, ``summary``'s digest) per row, in row
-    order; an unreadable image is an ImageError naming it and its row."""
+    order (kept in ``store`` under ``name`` where a store is given); an unreadable image is an
+    ImageError naming it and its row."""
     for row, relative in enumerate(table.img_path):
         path = root / relative
-        try:
+
+        def compute(path: Path = path) -> tuple[int, bytes]:
             with path.open("rb") as handle:
-                size, digest = summary(handle)
+                return summary(handle)
+
+        try:
+            if store is None:
+                size, digest = compute()
+            else:
+                size, digest = store.file_digest(str(path), compute, name)
         except OSError as err:
             where = f"{table.source or 'row'}:{table.file_line(row)}"
             raise ImageError(f"{path} ({where}): cannot be read ({err.strerror})") from None
@@ -53,13 +66,15 @@ def _middle_sample(handle: BinaryIO) -> tuple[int, bytes]:
     return size, hashlib.sha256(handle.read(SAMPLE_BYTES)).digest()
 
 
-def images_blake2b(table: LabelTable, root: Path) -> str:
+def images_blake2b(table: LabelTable, root: Path, store: ImageStore | None = None) -> str:
     """BLAKE2b (hex, 128 characters) over each row's ``img_path`` (as the label file gives it,
     so a copied dataset keeps its hash), its file's size in bytes and the BLAKE2b of every byte
-    of the file, in row order: any edit of an image changes it. An unreadable image is an
-    ImageError naming it and its row."""
+    of the file, in row order: any edit of an image changes it. With an image ``store`` each
+    file's BLAKE2b is read from it where the file's size and modification time are those it
+    was hashed at (:meth:`pae.data.image_store.ImageStore.file_digest`). An unreadable image
+    is an ImageError naming it and its row."""
     digest = hashlib.blake2b()
-    for relative, size, file_digest in _each_image(table, root, _whole_file):
+    for relative, size, file_digest in _each_image(table, root, _whole_file, store, "blake2b"):
         digest.update(f"{relative}\0{size}\0".encode())
         digest.update(file_digest)
     return digest.hexdigest()

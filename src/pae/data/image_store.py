@@ -9,6 +9,10 @@ file its own even where two rows' files are hard links to one. Entries are writt
 temporary name and renamed (two loader workers writing one entry leave one whole entry);
 one whose length disagrees with its header is decoded again and rewritten. Nothing is
 evicted: the folder holds about ``3 h w`` bytes per image (262 kB at 256 × 341 px).
+
+The store also keeps each train image file's BLAKE2b (:func:`pae.data.fingerprint.images_blake2b`,
+the data's identity that checkpoints record), keyed the same way: a file is hashed once, not
+once per step and run (an edit that keeps a file's size and modification time is not seen).
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ from __future__ import annotations
 import hashlib
 import os
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -28,6 +32,8 @@ from pae.data.transforms import load_sized_image
 
 HEADER = np.dtype("<u4")
 """The header's four numbers: the file's height and width, the entry's height and width."""
+DIGEST_SIZE = np.dtype("<u8")
+"""A file digest entry's header: the file's size in bytes, before the digest's bytes."""
 
 
 class ImageStore:
@@ -38,10 +44,34 @@ class ImageStore:
 
     def entry(self, path: str, shorter_edge: int) -> Path:
         """Where the image at ``path`` resized to ``shorter_edge`` px is kept."""
+        return self._keyed(path, str(shorter_edge), ".rgb")
+
+    def _keyed(self, path: str, what: str, suffix: str) -> Path:
+        """The entry of ``what`` of the file at ``path``, named by the file's absolute path,
+        size and modification time (FileNotFoundError where it is missing)."""
         stat = os.stat(path)
-        name = f"{os.path.abspath(path)}\0{stat.st_size}\0{stat.st_mtime_ns}\0{shorter_edge}"
+        name = f"{os.path.abspath(path)}\0{stat.st_size}\0{stat.st_mtime_ns}\0{what}"
         digest = hashlib.sha1(name.encode(), usedforsecurity=False).hexdigest()
-        return self.folder / digest[:2] / f"{digest}.rgb"
+        return self.folder / digest[:2] / f"{digest}{suffix}"
+
+    def file_digest(
+        self, path: str, compute: Callable[[], tuple[int, bytes]], name: str
+    ) -> tuple[int, bytes]:
+        """(size in bytes, digest) of the file at ``path`` by the hash ``name``: from its
+        entry where one is whole, else ``compute()`` (which reads the file) and kept, so an
+        unchanged file is read once for every later step and run. OSError where the file
+        cannot be read."""
+        entry = self._keyed(path, name, f".{name}")
+        try:
+            data = entry.read_bytes()
+        except OSError:
+            data = b""
+        if len(data) > DIGEST_SIZE.itemsize:
+            size = int(np.frombuffer(data, DIGEST_SIZE, 1)[0])
+            return size, data[DIGEST_SIZE.itemsize :]
+        size, digest = compute()
+        _write_entry(entry, np.array([size], DIGEST_SIZE).tobytes(), digest)
+        return size, digest
 
     def read(self, path: str, shorter_edge: int) -> tuple[np.ndarray, tuple[int, int]]:
         """The image at ``path`` resized so its shorter edge is ``shorter_edge`` px, as
@@ -56,7 +86,7 @@ class ImageStore:
         if kept is not None:
             return kept
         image, size = load_sized_image(path, shorter_edge)
-        _write_entry(entry, image, size)
+        _write_image(entry, image, size)
         return image, size
 
     def fill(self, paths: Sequence[str], shorter_edge: int, threads: int) -> int:
@@ -73,7 +103,7 @@ class ImageStore:
             raise ImageError(f"{path}: missing or unreadable image") from None
         if _read_entry(entry) is not None:
             return False
-        _write_entry(entry, *load_sized_image(path, shorter_edge))
+        _write_image(entry, *load_sized_image(path, shorter_edge))
         return True
 
 
@@ -92,18 +122,23 @@ def _read_entry(entry: Path) -> tuple[np.ndarray, tuple[int, int]] | None:
     return pixels.copy(), (file_h, file_w)
 
 
-def _write_entry(entry: Path, image: np.ndarray, size: tuple[int, int]) -> None:
-    """Keep ``image`` [h, w, 3] (of a file of ``size`` (h, w)) at ``entry``, atomically; a
-    failed write is a one-line error naming the entry (DiskFullError on a full disk, else a
-    ConfigError naming ``data.image_store``)."""
+def _write_image(entry: Path, image: np.ndarray, size: tuple[int, int]) -> None:
+    """Keep ``image`` [h, w, 3] (of a file of ``size`` (h, w)) at ``entry``."""
     header = np.array([*size, *image.shape[:2]], HEADER).tobytes()
+    _write_entry(entry, header, np.ascontiguousarray(image).tobytes())
+
+
+def _write_entry(entry: Path, header: bytes, body: bytes) -> None:
+    """Keep ``header`` then ``body`` at ``entry``, atomically; a failed write is a one-line
+    error naming the entry (DiskFullError on a full disk, else a ConfigError naming
+    ``data.image_store``)."""
     temporary = None
     try:
         entry.parent.mkdir(parents=True, exist_ok=True)
         handle, temporary = tempfile.mkstemp(dir=entry.parent, suffix=".part")
         with os.fdopen(handle, "wb") as out:
             out.write(header)
-            out.write(np.ascontiguousarray(image).tobytes())
+            out.write(body)
         os.replace(temporary, entry)
     except BaseException as err:
         if temporary is not None:
