@@ -4,6 +4,7 @@ prior) beats their own; the rule is chosen on validation."""
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -14,6 +15,7 @@ from torch import Tensor
 from pae.core.geometry import matrix_to_quaternion, quaternion_to_matrix
 from pae.core.pose_sampling import perturb
 from pae.render_compare import calibrate, refine
+from pae.render_compare.api import build_refiner
 from pae.render_compare.confusion import confusion_markdown, scene_confusion
 from pae.render_compare.gate import RenderCompareResult
 from pae.render_compare.scene_decision import (
@@ -25,6 +27,7 @@ from pae.render_compare.scene_decision import (
     decide_scenes,
     moves,
     probe_steps,
+    sharpness,
     try_scenes,
 )
 from pae.render_compare.scene_starts import HEADINGS, LATENT_STARTS, heading_starts, latent_starts
@@ -54,7 +57,7 @@ def _stand_ins(truth: Tensor, calls: list[int], lucky: Tensor | None = None):
     0.4 in the true
     scene and 0.05 elsewhere. The refined pose is the start moved by 0.5 m along y."""
 
-    def refine(images: Tensor, intrinsics: Tensor, starts: Tensor, scenes: Tensor):
+    def refine(images: Tensor, intrinsics: Tensor, starts: Tensor, scenes: Tensor, keys=None):
         calls.append(len(images))
         query = images[:, 0, 0, 0].long()
         right = scenes == truth[query]
@@ -259,6 +262,23 @@ def test_a_wrong_scene_on_a_three_scene_benchmark_is_moved_to_the_right_one() ->
     assert torch.equal(refined.scenes[right], scenes[right]), "no right prediction moved"
 
 
+def test_a_querys_trials_do_not_depend_on_the_queries_tried_beside_it() -> None:
+    """The calibration tries every validation query in every scene, the test only those
+    below the floor: each (query, scene, start) draws from its own key, so a query's trials
+    are the same either way."""
+    model, images, intrinsics, _, scenes, scene_poses = _three_scenes(2, seed=3)
+    refiner = build_refiner(model, SMALL)
+    first = refiner(images, intrinsics, scene_poses[:, 0], scenes)
+    probe = functools.partial(sharpness, refiner)
+    tried = (images, intrinsics, scene_poses, scenes, first)
+    every = try_scenes(refiner, probe, *tried, torch.arange(len(scenes)), PROBE_SCALES)
+    some = torch.tensor([4, 1])
+    alone = try_scenes(refiner, probe, *tried, some, PROBE_SCALES)
+    for whole, part in zip(every.result, alone.result, strict=True):
+        assert torch.equal(whole[some], part)
+    assert torch.equal(every.sharpness[some], alone.sharpness)
+
+
 def test_heading_starts_turn_the_pose_about_its_camera_vertical_evenly() -> None:
     poses = torch.tensor([[1.0, 2.0, 3.0, 1.0, 0.0, 0.0, 0.0]])
     turned = heading_starts(poses, 4)  # [1, 4, 7]
@@ -299,7 +319,7 @@ def test_a_scene_tried_from_several_starts_keeps_the_best_scoring_one() -> None:
     starts = torch.stack([scene_poses, scene_poses.clone()], 2)  # [N, S, 2, 7]
     starts[:, :, 1, 2] = 1.0  # the second start of every scene lies at z = 1
 
-    def refine(images: Tensor, intrinsics: Tensor, poses: Tensor, scenes: Tensor):
+    def refine(images: Tensor, intrinsics: Tensor, poses: Tensor, scenes: Tensor, keys=None):
         score = torch.where(poses[:, 2] == 1.0, torch.tensor(0.9), torch.tensor(0.1))
         return RenderCompareResult(poses.clone(), score, score)
 

@@ -21,10 +21,9 @@ once per query (a wider field of view) and its surface points are projected into
 candidate camera; a model without depth renders every candidate's image (search only).
 
 Every query of a call is refined at once, in chunks of ``chunk`` queries: no Python loop runs
-per query. The random draws come from one generator in query order (``draws``), so a query's
-result does not depend on the batch it is refined in. ``engine`` chooses compiled loops
-(numba, CPU) or tensor operations (any device) for the scores and the polish; both run the
-same steps (tested equal).
+per query. The random draws come from one generator in query order (the chunking changes no
+result) or, given ``keys``, from each query's key (the batch changes no result). ``engine``:
+compiled loops (numba, CPU) or tensor operations (any device), the same steps (tested equal).
 """
 
 from __future__ import annotations
@@ -39,6 +38,7 @@ from torch import Tensor
 
 from pae.core.camera import camera_rays, project, scale_intrinsics
 from pae.core.geometry import matrix_to_quaternion, normalize_quaternion, quaternion_to_matrix
+from pae.core.keyed_random import keyed_normals
 from pae.core.pose_sampling import perturb
 from pae.render_compare.gate import ACCEPT_ALL, GatedPoses, RenderCompareResult, gate
 from pae.render_compare.images import (
@@ -141,9 +141,7 @@ class RenderCompareRefiner:
     ) -> None:
         check_settings(**{name: value for name, value in locals().items() if name != "self"})
         self.scene_model = scene_model
-        self.rounds = rounds
-        self.candidates = candidates
-        self.hypotheses = hypotheses
+        self.rounds, self.candidates, self.hypotheses = rounds, candidates, hypotheses
         self.sigma = (position_sigma_m, math.radians(orientation_sigma_deg))
         self.shrink = shrink
         self.resolution = resolution
@@ -152,20 +150,15 @@ class RenderCompareRefiner:
         self.highpass_sigma_px = highpass_sigma_px
         self.contrast_sigma_px = contrast_sigma_px
         self.highpass_levels = highpass_levels
-        self.reference_size = reference_size
-        self.reference_fov_scale = reference_fov_scale
-        self.final_reference_size = final_reference_size
-        self.final_fov_scale = final_fov_scale
-        self.polish_steps = polish_steps
-        self.polish_damping = polish_damping
+        self.reference_size, self.reference_fov_scale = reference_size, reference_fov_scale
+        self.final_reference_size, self.final_fov_scale = final_reference_size, final_fov_scale
+        self.polish_steps, self.polish_damping = polish_steps, polish_damping
         self.min_overlap = min_overlap
-        self.trim_sigma = trim_sigma
-        self.trim_passes = trim_passes
+        self.trim_sigma, self.trim_passes = trim_sigma, trim_passes
         self.score = score
         self.features = features
         self.seed = seed
-        self.chunk = chunk
-        self.gpu_chunk = gpu_chunk
+        self.chunk, self.gpu_chunk = chunk, gpu_chunk
         self.engine = engine
         self.work = RenderCompareWork()
 
@@ -202,6 +195,11 @@ class RenderCompareRefiner:
     def draws(self, n_queries: int, device: torch.device | str = "cpu") -> Tensor:
         """The first ``n_queries`` queries' draws of :meth:`draw_stream`, in query order."""
         return self.draw_stream()(n_queries).to(device)
+
+    def keyed_draws(self, keys: Tensor) -> Tensor:
+        """Draws as :meth:`draws`', each query's from the seed and its key (int64 [n])."""
+        shape = (self.rounds, self.hypotheses * self.candidates, 6)
+        return keyed_normals(self.seed, keys, math.prod(shape)).reshape(len(keys), *shape)
 
     def _compiled(self, device: torch.device) -> bool:
         return self.engine == "numba" or (
@@ -474,16 +472,19 @@ class RenderCompareRefiner:
         initial: Tensor,
         scenes: Tensor,
         draws: Tensor | None = None,
+        keys: Tensor | None = None,
     ) -> RenderCompareResult:
         """Refine queries: images [B, 3, H, W] RGB in [0, 1] with intrinsics [B, 4] (px of
-        those images), initial poses [B, 7], scene ids [B]; draws as from :meth:`draws`
-        (None: made chunk by chunk from :meth:`draw_stream`)."""
+        those images), initial poses [B, 7], scene ids [B]; draws as from :meth:`draws`, or
+        ``keys`` [B] (:meth:`keyed_draws`: a query's result then does not depend on the
+        batch), else made chunk by chunk from :meth:`draw_stream`."""
         initial = torch.cat([initial[:, :3], normalize_quaternion(initial[:, 3:])], -1).float()
-        stream = self.draw_stream()
+        stream = self.draw_stream() if keys is None else self.keyed_draws
         parts = []
         chunk = self.chunk_for(initial.device)
         for rows in torch.arange(len(initial), device=initial.device).split(chunk):
-            chunk_draws = stream(len(rows)) if draws is None else draws[rows.cpu()]
+            ask = len(rows) if keys is None else keys[rows.cpu()].cpu()
+            chunk_draws = stream(ask) if draws is None else draws[rows.cpu()]
             with float32_arithmetic():
                 parts.append(
                     self.refine_chunk(

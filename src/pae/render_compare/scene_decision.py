@@ -44,8 +44,10 @@ MOVE_MARGINS = (0.0, 0.02, 0.05, 0.1, 0.2)
 """Candidate margins (score units) by which another scene's evidence must beat the
 predicted scene's."""
 
-Refine = Callable[[Tensor, Tensor, Tensor, Tensor], RenderCompareResult]
-"""``refine(images [B, 3, h, w], intrinsics [B, 4], starts [B, 7], scenes [B])``."""
+Refine = Callable[..., RenderCompareResult]
+"""``refine(images [B, 3, h, w], intrinsics [B, 4], starts [B, 7], scenes [B], keys=None)``;
+``keys`` [B] (int64): each row's random draws from its key alone
+(:meth:`pae.render_compare.refiner.RenderCompareRefiner.keyed_draws`)."""
 Probe = Callable[[Tensor, Tensor, Tensor, Tensor, tuple[float, ...]], Tensor]
 """``probe(images, intrinsics, poses [B, 7], scenes [B], scales [K]) -> sharpness [B, K]``:
 the score at each pose minus the mean score of its probes at each scale
@@ -161,16 +163,19 @@ def try_scenes(
     (``scene_poses`` [N, S, 7], the teacher's pose, or [N, S, K, 7], K starts:
     :mod:`pae.render_compare.scene_starts`) in one batched call, keeping the best-scoring
     start's (ties: the first), and every scene's sharpness at ``scales`` ->
-    :class:`SceneTrials` of the Q queries."""
+    :class:`SceneTrials` of the Q queries. Each (query, scene, start) draws from its own key,
+    so a query's trials do not depend on which other queries are tried beside it."""
     q, s = len(query), scene_poses.shape[1]
     starts = scene_poses if scene_poses.dim() == 4 else scene_poses[:, :, None]
     k = starts.shape[2]
     pair_query, pair_scene = _pairs(query, s, predicted[query])
+    keys = ((pair_query * s + pair_scene) * k)[:, None] + torch.arange(k, device=query.device)
     tried = refine(
         images[pair_query].repeat_interleave(k, 0),
         intrinsics[pair_query].repeat_interleave(k, 0),
         starts[pair_query, pair_scene].reshape(-1, 7),
         pair_scene.repeat_interleave(k),
+        keys=keys.flatten(),
     )
     best = tried.score.view(len(pair_query), k).argmax(1)
     pick = torch.arange(len(pair_query), device=best.device) * k + best
