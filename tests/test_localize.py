@@ -89,6 +89,27 @@ def test_localized_test_split_gives_the_runs_figures(
     assert (q[:, 0] >= 0).all() and torch.allclose(q.norm(dim=1), torch.ones(len(q)).double())
 
 
+def test_the_teacher_pass_takes_the_runs_eval_batch_size_unless_given(
+    finished_run: Path, tiny_root: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from pae.apps import localization
+
+    sizes: list[int] = []
+    estimate = localization.estimate
+
+    def recorded(model, queries, data, intrinsics, width, batch_size, *rest):
+        sizes.append(batch_size)
+        return estimate(model, queries, data, intrinsics, width, batch_size, *rest)
+
+    monkeypatch.setattr(localization, "estimate", recorded)
+    labels = str(tiny_root / "labels" / "all_test.csv")
+    out = str(tmp_path / "poses.csv")
+    assert main([str(finished_run), labels, "--out", out]) == 0
+    assert main([str(finished_run), labels, "--out", out, "--batch-size", "5"]) == 0
+    run_config = OmegaConf.load(finished_run / ".hydra" / "config.yaml")
+    assert sizes == [run_config.data.eval_batch_size, 5]
+
+
 def test_pae_eval_of_the_runs_checkpoints_gives_the_same_figures(
     finished_run: Path, tiny_root: Path, tmp_path: Path
 ) -> None:

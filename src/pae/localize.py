@@ -46,7 +46,12 @@ def parser() -> argparse.ArgumentParser:
     parse.add_argument("--refine", default="teacher", help="the method (default: teacher)")
     parse.add_argument("--root", type=Path, help="dataset root of a label file's img_path")
     parse.add_argument("--focal", type=float, help="focal length (px) of the images on disk")
-    parse.add_argument("--batch-size", type=int, default=64, help="images per teacher pass")
+    parse.add_argument(
+        "--batch-size",
+        type=int,
+        help="images per teacher pass (default: the run's data.eval_batch_size, whose "
+        "rounding the run's own figures carry)",
+    )
     parse.add_argument("--device", default="cpu", help="torch device (default: cpu)")
     parse.add_argument(
         "--init",
@@ -92,6 +97,7 @@ def main(argv: list[str] | None = None) -> int:
 def localize(args: argparse.Namespace) -> None:
     """What main runs once the arguments are parsed."""
     import torch
+    from omegaconf import OmegaConf
 
     from pae.apps import localization as loc
     from pae.core.atomic import check_writable_dir, check_writable_file
@@ -112,6 +118,8 @@ def localize(args: argparse.Namespace) -> None:
         raise ConfigError(f"--refine {method}: unknown method; choose one of {methods}")
     if args.focal is not None and args.focal <= 0:
         raise ConfigError(f"--focal must be > 0 px, got {args.focal}")
+    if args.batch_size is None:
+        args.batch_size = int(OmegaConf.select(run.config, "data.eval_batch_size", default=64))
     if args.batch_size < 1:
         raise ConfigError(f"--batch-size must be >= 1, got {args.batch_size}")
     step = {loc.RENDER_COMPARE: "scene_model", loc.TEACHER: None}.get(method, "student")
