@@ -26,6 +26,21 @@ def _write_image(path: Path, seed: int, size: tuple[int, int] = (48, 64)) -> Non
     assert cv2.imwrite(str(path), pixels)
 
 
+def _frames(folder: Path, count: int) -> tuple[list[str], LabelTable]:
+    """``count`` random images written under ``folder`` and a train label table of them."""
+    paths = [f"seq-01/frame-{i:06d}.color.png" for i in range(count)]
+    for i, path in enumerate(paths):
+        _write_image(folder / path, i)
+    table = LabelTable(
+        scene=["chess"] * count,
+        split=["train"] * count,
+        seq=["seq-01"] * count,
+        img_path=paths,
+        poses=np.tile([0.0, 0, 0, 1, 0, 0, 0], (count, 1)),
+    )
+    return paths, table
+
+
 def test_a_stored_image_equals_a_fresh_decode_and_is_decoded_once(tmp_path, monkeypatch) -> None:
     picture = tmp_path / "a.png"
     _write_image(picture, 0)
@@ -75,16 +90,7 @@ def test_hard_links_get_entries_of_their_own_and_a_missing_image_is_named(tmp_pa
 
 
 def test_a_dataset_reads_the_same_batches_through_a_store(tmp_path) -> None:
-    paths = [f"seq-01/frame-{i:06d}.color.png" for i in range(5)]
-    for i, path in enumerate(paths):
-        _write_image(tmp_path / path, i)
-    table = LabelTable(
-        scene=["chess"] * 5,
-        split=["train"] * 5,
-        seq=["seq-01"] * 5,
-        img_path=paths,
-        poses=np.tile([0.0, 0, 0, 1, 0, 0, 0], (5, 1)),
-    )
+    paths, table = _frames(tmp_path, 5)
     plain = PoseDataset(table, tmp_path, ["chess"], 24)
     stored = PoseDataset(table, tmp_path, ["chess"], 24, store=ImageStore(tmp_path / "store"))
     for _ in range(2):  # the first read fills the store, the second reads it back
@@ -102,16 +108,7 @@ def test_a_dataset_reads_the_same_batches_through_a_store(tmp_path) -> None:
 def test_the_train_images_fingerprint_hashes_each_file_once_through_a_store(
     tmp_path, monkeypatch
 ) -> None:
-    paths = [f"seq-01/frame-{i:06d}.color.png" for i in range(4)]
-    for i, path in enumerate(paths):
-        _write_image(tmp_path / path, i)
-    table = LabelTable(
-        scene=["chess"] * 4,
-        split=["train"] * 4,
-        seq=["seq-01"] * 4,
-        img_path=paths,
-        poses=np.tile([0.0, 0, 0, 1, 0, 0, 0], (4, 1)),
-    )
+    paths, table = _frames(tmp_path, 4)
     store = ImageStore(tmp_path / "store")
     plain = fingerprint.images_blake2b(table, tmp_path)
     hashed: list[str] = []
