@@ -110,6 +110,26 @@ def test_the_teacher_pass_takes_the_runs_eval_batch_size_unless_given(
     assert sizes == [run_config.data.eval_batch_size, 5]
 
 
+def test_a_step_that_fitted_nothing_takes_the_checkpoint_it_was_given(tmp_path: Path) -> None:
+    from pae.apps.localization import Run
+    from pae.core.checkpoints import CheckpointError
+
+    given = tmp_path / "fitted.ckpt"
+    given.write_bytes(b"checkpoint")
+    config = OmegaConf.create({"stage": {"steps": ["scene_model"]}, "scene_model_ckpt": None})
+    run = Run(tmp_path / "run", config, {}, None)
+    with pytest.raises(CheckpointError, match="no scene_model checkpoint"):
+        run.checkpoint("scene_model", "render_compare")
+    config.scene_model_ckpt = str(given)
+    assert run.checkpoint("scene_model", "render_compare") == given
+    own = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    own.parent.mkdir(parents=True)
+    own.write_bytes(b"its own")
+    assert run.checkpoint("scene_model", "render_compare") == own, "its own first"
+    with pytest.raises(CheckpointError, match="no teacher checkpoint"):
+        run.checkpoint("teacher", "teacher")
+
+
 def test_pae_eval_of_the_runs_checkpoints_gives_the_same_figures(
     finished_run: Path, tiny_root: Path, tmp_path: Path
 ) -> None:

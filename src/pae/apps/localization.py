@@ -42,11 +42,10 @@ STUDENT_METHODS = ("student", "refined", "knn_mean")
 """Methods of the student step's checkpoint besides the ``refine.alternatives`` by name."""
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 QUERY_SPLIT = "query"
+"""The ``split`` column of the rows written for images given without a label file."""
 SAME_START_M = 2e-3
 SAME_START_DEG = 0.2
 """Starts within these of the teacher's estimates are its estimates (a label file's rounding)."""
-
-"""The ``split`` column of the rows written for images given without a label file."""
 
 
 class Run(NamedTuple):
@@ -63,10 +62,12 @@ class Run(NamedTuple):
         return list(self.config.stage.steps)
 
     def checkpoint(self, step: str, method: str) -> Path:
-        """The last checkpoint of ``step``; a CheckpointError naming the run when it lacks
-        one (``method``: what needed it)."""
+        """The last checkpoint of ``step`` (its given ``{step}_ckpt`` where it fitted none); a
+        CheckpointError naming the run when it has neither (``method``: what needed it)."""
         folder = self.folder / step if len(self.steps) > 1 else self.folder
         path = folder / "checkpoints" / "last.ckpt"
+        if not path.is_file() and self.config.get(f"{step}_ckpt"):
+            path = Path(self.config.get(f"{step}_ckpt"))
         if step not in self.steps or not path.is_file():
             raise CheckpointError(
                 f"{self.folder}: no {step} checkpoint ({path}), which {method} needs: the run's "
@@ -301,9 +302,8 @@ def compare_width(settings: dict[str, Any]) -> int:
 def scene_model_path(run: Run) -> Path:
     """The scene model the run's render-and-compare used: ``scene_model_ckpt`` when given, else
     the checkpoint of its scene_fit step, else of its scene_model step."""
-    given = run.config.get("scene_model_ckpt")
-    if given:
-        return Path(given)
+    if run.config.get("scene_model_ckpt"):
+        return Path(run.config.scene_model_ckpt)
     step = "scene_fit" if "scene_fit" in run.steps else "scene_model"
     return run.checkpoint(step, RENDER_COMPARE)
 
