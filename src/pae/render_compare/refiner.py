@@ -197,7 +197,7 @@ class RenderCompareRefiner:
         return self.draw_stream()(n_queries).to(device)
 
     def keyed_draws(self, keys: Tensor) -> Tensor:
-        """Draws as :meth:`draws`', each query's from the seed and its key (int64 [n])."""
+        """Draws shaped as :meth:`draws` gives them, each from the seed and its key [n]."""
         shape = (self.rounds, self.hypotheses * self.candidates, 6)
         return keyed_normals(self.seed, keys, math.prod(shape)).reshape(len(keys), *shape)
 
