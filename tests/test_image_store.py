@@ -133,6 +133,11 @@ def test_the_train_images_fingerprint_hashes_each_file_once_through_a_store(
     for entry in (tmp_path / "store").rglob("*.blake2b"):
         entry.write_bytes(entry.read_bytes()[:5])  # cut short: hashed again
     assert fingerprint.images_blake2b(table, tmp_path, store) == edited
+    for entry in (tmp_path / "store").rglob("*.blake2b"):
+        entry.write_bytes(entry.read_bytes()[:40])  # cut inside the digest: hashed again
+    assert fingerprint.images_blake2b(table, tmp_path, store) == edited
+    sizes = [e.stat().st_size for e in (tmp_path / "store").rglob("*.blake2b")]
+    assert sizes.count(16 + 64) == 4, "the four files' entries written whole again"
     (tmp_path / paths[2]).unlink()
     with pytest.raises(ImageError, match=r"frame-000002.*row:"):
         fingerprint.images_blake2b(table, tmp_path, store)

@@ -32,8 +32,9 @@ from pae.data.transforms import load_sized_image
 
 HEADER = np.dtype("<u4")
 """The header's four numbers: the file's height and width, the entry's height and width."""
-DIGEST_SIZE = np.dtype("<u8")
-"""A file digest entry's header: the file's size in bytes, before the digest's bytes."""
+DIGEST_HEADER = np.dtype("<u8")
+"""A file digest entry's header, two of these: the file's size and the digest's length in
+bytes, before the digest's bytes."""
 
 
 class ImageStore:
@@ -58,7 +59,8 @@ class ImageStore:
         self, path: str, compute: Callable[[], tuple[int, bytes]], name: str
     ) -> tuple[int, bytes]:
         """(size in bytes, digest) of the file at ``path`` by the hash ``name``: from its
-        entry where one is whole, else ``compute()`` (which reads the file) and kept, so an
+        entry where one is whole (its length the header's), else ``compute()`` (which reads
+        the file) and kept, so an
         unchanged file is read once for every later step and run. OSError where the file
         cannot be read."""
         entry = self._keyed(path, name, f".{name}")
@@ -66,11 +68,13 @@ class ImageStore:
             data = entry.read_bytes()
         except OSError:
             data = b""
-        if len(data) > DIGEST_SIZE.itemsize:
-            size = int(np.frombuffer(data, DIGEST_SIZE, 1)[0])
-            return size, data[DIGEST_SIZE.itemsize :]
+        start = 2 * DIGEST_HEADER.itemsize
+        if len(data) > start:
+            size, length = (int(v) for v in np.frombuffer(data, DIGEST_HEADER, 2))
+            if len(data) == start + length:
+                return size, data[start:]
         size, digest = compute()
-        _write_entry(entry, np.array([size], DIGEST_SIZE).tobytes(), digest)
+        _write_entry(entry, np.array([size, len(digest)], DIGEST_HEADER).tobytes(), digest)
         return size, digest
 
     def read(self, path: str, shorter_edge: int) -> tuple[np.ndarray, tuple[int, int]]:
