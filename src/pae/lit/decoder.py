@@ -109,7 +109,7 @@ class DecoderModule(PaeModule):
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         loss, _, _ = self._l1(batch)
-        self.log("train/decoder_l1", loss)
+        self.log_train({"train/decoder_l1": loss})
         return loss
 
     def trainable_parameters(self) -> list[nn.Parameter]:

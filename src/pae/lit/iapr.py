@@ -80,10 +80,7 @@ class IAPRModule(PaeModule):
         target = relative_pose(start, batch["pose"])
         target = torch.cat([target[:, :3], canonicalize_quaternion(target[:, 3:])], dim=-1)
         terms = self.loss(self.iapr(batch["image"], encoding), target)
-        self.log_dict(
-            {"train/loss": terms.total, "train/pos_loss": terms.position},
-            batch_size=len(target),
-        )
+        self.log_train({"train/loss": terms.total, "train/pos_loss": terms.position})
         return terms.total
 
     def trainable_parameters(self) -> list[nn.Parameter]:

@@ -118,10 +118,7 @@ class PairedRPRModule(PaeModule, ABC):
         rows, reference = self.training_pairs(batch)
         images = self.reference_images(rows, reference, batch["scene"], batch["image"])
         terms = self.loss(self.rpr(batch["image"], images), relative_pose(reference, batch["pose"]))
-        self.log_dict(
-            {"train/loss": terms.total, "train/pos_loss": terms.position},
-            batch_size=len(reference),
-        )
+        self.log_train({"train/loss": terms.total, "train/pos_loss": terms.position})
         return terms.total
 
     def trainable_parameters(self) -> list[nn.Parameter]:

@@ -117,7 +117,7 @@ class SceneModelModule(PaeModule):
             keep = len(errors) - int(self.fit_trim * len(errors))
             loss = errors.topk(keep, largest=False, sorted=False).values.mean()
         tv = self.scene_model.total_variation()
-        self.log_dict(
+        self.log_train(
             {"train/mse": mse, "train/psnr_db": -10 * torch.log10(mse), "train/tv": tv},
             prog_bar=True,
         )

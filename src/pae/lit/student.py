@@ -149,8 +149,8 @@ class StudentModule(PaeModule, StudentEvaluator):
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         terms = self.student_loss(batch)
-        self.log_dict({f"train/{k}": v for k, v in terms.items()})
-        self.log_dict({"train/s_x": self.loss.s_x, "train/s_q": self.loss.s_q})
+        figures = {f"train/{k}": v for k, v in terms.items()}
+        self.log_train(figures | {"train/s_x": self.loss.s_x, "train/s_q": self.loss.s_q})
         return terms["loss"]
 
     def trainable_parameters(self) -> list[nn.Parameter]:

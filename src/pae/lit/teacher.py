@@ -47,19 +47,20 @@ class TeacherModule(PaeModule):
         pred, latents = self.teacher(batch["image"], batch["scene"])
         terms = self.loss(pred, batch["pose"])
         loss = terms.total
+        figures = {}
         if latents.scene_logits is not None:
             scene_loss = nn.functional.cross_entropy(latents.scene_logits, batch["scene"])
             loss = loss + self.scene_loss_weight * scene_loss
-            self.log("train/scene_loss", scene_loss)
-        self.log_dict(
-            {
+            figures["train/scene_loss"] = scene_loss
+        self.log_train(
+            figures
+            | {
                 "train/loss": loss,
                 "train/pos_loss": terms.position,
                 "train/rot_loss": terms.orientation,
                 "train/s_x": self.loss.s_x,
                 "train/s_q": self.loss.s_q,
-            },
-            prog_bar=False,
+            }
         )
         return loss
 
