@@ -37,10 +37,10 @@ def seed_global_for_batch(seed: int, step: str, epoch: int, batch: int, rank: in
     """Seed torch's global generators (the CPU's and every GPU's) for batch ``batch`` of
     training epoch ``epoch`` of ``step`` on process ``rank`` (``batch`` -1: the epoch's start,
     when its data order is drawn): what the batch then draws from them (augmentation,
-    dropout) depends on (``seed``, step, rank, epoch, batch) alone. The CPU's and CUDA's
-    generators only: ``torch.manual_seed`` would also seed every other backend's, at about
-    1 ms a call."""
+    dropout) depends on (``seed``, step, rank, epoch, batch) alone. The CPU's generator and,
+    once CUDA is in use, CUDA's: ``torch.manual_seed`` also seeds every other backend's and
+    asks the driver whether CUDA is there, at about 1 ms a call."""
     value = derived_seed(seed, f"{step}/rank{rank}/epoch{epoch}", batch)
     torch.default_generator.manual_seed(value)
-    if torch.cuda.is_available():
+    if torch.cuda.is_initialized():
         torch.cuda.manual_seed_all(value)
