@@ -47,7 +47,7 @@ class TeacherModule(PaeModule):
         pred, latents = self.teacher(batch["image"], batch["scene"])
         terms = self.loss(pred, batch["pose"])
         loss = terms.total
-        figures = {}
+        figures: dict[str, Tensor] = {}
         if latents.scene_logits is not None:
             scene_loss = nn.functional.cross_entropy(latents.scene_logits, batch["scene"])
             loss = loss + self.scene_loss_weight * scene_loss
