@@ -368,7 +368,8 @@ def test_calibrating_for_any_start_never_makes_the_val_starts_worse_on_average(
 ) -> None:
     """calibrate_any_start on a tiny scene: starts at every scale of the ladder, the steps and
     gate chosen so that the mean log error ratio over those val starts is at most 0; every
-    high-pass of ``highpass_px`` tried, at every level and at the finest only."""
+    high-pass of ``highpass_px`` tried, at every level and at the finest only, each without
+    and with each local contrast of ``contrast_px``."""
     from pae.render_compare import api, calibrate_any_start
     from pae.render_compare.calibration import HIGHPASS_PX
     from pae.render_compare.settings import RenderCompareSettings
@@ -378,7 +379,9 @@ def test_calibrating_for_any_start_never_makes_the_val_starts_worse_on_average(
 
     def spy(scene_model: Any, settings: Any, steps: Any, features: Any) -> Any:
         if steps:
-            tried.add((steps["highpass_sigma_px"], steps["highpass_levels"]))
+            tried.add(
+                (steps["highpass_sigma_px"], steps["highpass_levels"], steps["contrast_sigma_px"])
+            )
         return build(scene_model, settings, steps, features)
 
     monkeypatch.setattr(api, "build_refiner", spy)
@@ -386,17 +389,30 @@ def test_calibrating_for_any_start_never_makes_the_val_starts_worse_on_average(
     scenes = torch.zeros(len(truth), dtype=torch.long)
     settings = {"rounds": 3, "candidates": 8, "resolution": 16, "reference_size": 12}
     calibration, refinement, starts = calibrate_any_start(
-        model, images, intrinsics, scenes, truth, 2.0, settings, highpass_px=(HIGHPASS_PX, 6.0)
-    )
+        model, images, intrinsics, scenes, truth, 2.0, settings,
+        highpass_px=(HIGHPASS_PX, 6.0), contrast_px=(3.0,),
+    )  # fmt: skip
     before = pose_errors(starts, truth)[0]
     after = pose_errors(refinement.poses, truth)[0]
     assert float(((after + 1e-3) / (before + 1e-3)).log().mean()) <= 1e-6
-    chosen = {"position_sigma_m", "orientation_sigma_deg", "highpass_sigma_px", "highpass_levels"}
+    chosen = {
+        "position_sigma_m",
+        "orientation_sigma_deg",
+        "highpass_sigma_px",
+        "highpass_levels",
+        "contrast_sigma_px",
+    }
     assert set(calibration.steps) == chosen
     assert calibration.steps["highpass_sigma_px"] in (0.0, HIGHPASS_PX, 6.0)
+    assert calibration.steps["contrast_sigma_px"] in (0.0, 3.0)
     own = RenderCompareSettings(**settings)
-    expected = {(own.highpass_sigma_px, own.highpass_levels)}
-    assert tried == expected | {(px, levels) for px in (HIGHPASS_PX, 6.0) for levels in (0, 1)}
+    expected = {(own.highpass_sigma_px, own.highpass_levels, own.contrast_sigma_px)}
+    assert tried == expected | {
+        (px, levels, contrast)
+        for px in (HIGHPASS_PX, 6.0)
+        for levels in (0, 1)
+        for contrast in (0.0, 3.0)
+    }
     kept = ~refinement.accepted
     torch.testing.assert_close(refinement.poses[kept], starts[kept].to(refinement.poses))
 

@@ -34,7 +34,7 @@ from pae.core.geometry import pose_errors, transfer_error
 from pae.data.labels import LabelTable, read_labels
 from pae.data.starts import match_starts, read_starts
 from pae.render_compare import ACCEPT_ALL, Calibration, calibrate_any_start, refine
-from pae.render_compare.calibration import HIGHPASS_PX, scene_size
+from pae.render_compare.calibration import CONTRAST_PX, HIGHPASS_PX, scene_size
 from pae.render_compare.settings import RenderCompareSettings
 
 SCENES = {
@@ -132,7 +132,13 @@ def chosen_steps(run_dir: Path) -> dict[str, float]:
     if not path.is_file():
         raise SystemExit(f"{path} is missing: run run.py on this scene first (it calibrates)")
     chosen = json.loads(path.read_text())["calibration"]
-    keys = ("position_sigma_m", "orientation_sigma_deg", "highpass_sigma_px", "highpass_levels")
+    keys = (
+        "position_sigma_m",
+        "orientation_sigma_deg",
+        "highpass_sigma_px",
+        "highpass_levels",
+        "contrast_sigma_px",
+    )
     return {key: chosen[key] for key in keys if key in chosen}
 
 
@@ -178,7 +184,7 @@ def refine_scene(
     start = time.perf_counter()
     calibration, val_refined, val_starts = calibrate_any_start(
         model, val["image"], val["intrinsics"], val["scene"], val["pose"], extent, settings,
-        highpass_px=args.highpass_px,
+        highpass_px=args.highpass_px, contrast_px=args.contrast_px,
     )  # fmt: skip
     calibrate_s = time.perf_counter() - start
     metrics = json.loads((run_dir / "metrics.json").read_text())
@@ -257,6 +263,14 @@ def main(argv: list[str]) -> int:
         nargs="+",
         default=[HIGHPASS_PX],
         help=f"the high-passes (px) the calibration tries (default: {HIGHPASS_PX:g})",
+    )
+    parser.add_argument(
+        "--contrast-px",
+        type=float,
+        nargs="*",
+        default=list(CONTRAST_PX),
+        help="the local contrasts (px) the calibration tries with each high-pass besides none "
+        f"(default: {' '.join(f'{c:g}' for c in CONTRAST_PX)}; none given: none tried)",
     )
     args = parser.parse_args(own)
     dataset_of = {scene: dataset for dataset, names in SCENES.items() for scene in names}

@@ -21,7 +21,7 @@ COLUMNS = (
     "from truth (audit) cm / deg",
     "within 5 cm, 5° start → pae",
     "accepted",
-    "high-pass px / levels (val)",
+    "filter: high-pass px / levels / contrast px (val)",
     "PSNR dB",
     "fit s",
     "ms / query",
@@ -53,13 +53,14 @@ def row(record: dict) -> list[str]:
 
 
 def highpass(calibration: dict[str, float]) -> str:
-    """The high-pass chosen on val: its sigma (px) and the finest levels it applies at (all:
-    every level), or none."""
+    """The filter chosen on val: the high-pass's sigma (px) and the finest levels it applies
+    at (all: every level), or none; then the local contrast's sigma (px) where one was
+    chosen."""
     sigma = calibration.get("highpass_sigma_px", 0.0)
-    if not sigma:
-        return "none"
+    contrast = calibration.get("contrast_sigma_px", 0.0)
     levels = int(calibration.get("highpass_levels", 0))
-    return f"{sigma:g} / {levels or 'all'}"
+    chosen = f"{sigma:g} / {levels or 'all'}" if sigma else "none"
+    return f"{chosen} / c {contrast:g}" if contrast else chosen
 
 
 def mean_row(dataset: str, records: list[dict]) -> list[str]:

@@ -16,6 +16,7 @@ from torch import Tensor
 from pae.core.geometry import pose_errors
 from pae.core.shapes import check_shape
 from pae.render_compare.calibration import (
+    CONTRAST_PX,
     HIGHPASS_PX,
     LADDER,
     LADDER_DEG,
@@ -230,32 +231,40 @@ def calibrate_any_start(
     features: FeatureExtractor | None = None,
     seed: int = 0,
     highpass_px: Sequence[float] = (HIGHPASS_PX,),
+    contrast_px: Sequence[float] = CONTRAST_PX,
 ) -> tuple[Calibration, Refinement, Tensor]:
     """The calibration for starts from any APR, whose error scale the run cannot know: on
     validation queries (as :func:`calibrate`'s) with starts at every scale of the ladder
     (:func:`pae.render_compare.calibration.ladder_starts`, ``size_m``: the scene's size, m),
-    the first steps among ``STEP_SHARES`` of the size, the high-pass among the settings' own
-    and each of ``highpass_px`` (px) at every level or the finest only, and the gate that
+    the first steps among ``STEP_SHARES`` of the size, the filter among the settings' own and
+    each of ``highpass_px`` (px) at every level or the finest only, with no local contrast or
+    each of ``contrast_px`` (px, ``contrast_sigma_px``), and the gate that
     minimise the mean log of each query's error over its start's
     (``choose_gate(objective="log_ratio")``), so that a good start is kept rather than
     refined to the refiner's floor -> the calibration (its ``steps`` holding the chosen steps
-    and high-pass), the validation refinement under it and its starts [N, 7]."""
+    and filter), the validation refinement under it and its starts [N, 7]."""
     _check(images, intrinsics, truth, scenes, None)
     starts = ladder_starts(truth, size_m, torch.Generator().manual_seed(seed))
     start_pos, _ = pose_errors(starts.float(), truth.float())
     deg_per_share = LADDER_DEG[0] / LADDER[0]
     own = build_refiner(scene_model, settings, None, features)
     filters = dict.fromkeys(
-        [(own.highpass_sigma_px, own.highpass_levels)]
-        + [(sigma, levels) for sigma in highpass_px for levels in (0, 1)]
+        [(own.highpass_sigma_px, own.highpass_levels, own.contrast_sigma_px)]
+        + [
+            (sigma, levels, contrast)
+            for sigma in highpass_px
+            for levels in (0, 1)
+            for contrast in (0.0, *contrast_px)
+        ]
     )
     best: tuple[float, Calibration, Refinement] | None = None
-    for (highpass, levels), share in itertools.product(filters, STEP_SHARES):
+    for (highpass, levels, contrast), share in itertools.product(filters, STEP_SHARES):
         steps = {
             "position_sigma_m": share * size_m,
             "orientation_sigma_deg": share * deg_per_share,
             "highpass_sigma_px": highpass,
             "highpass_levels": levels,
+            "contrast_sigma_px": contrast,
         }
         result = build_refiner(scene_model, settings, steps, features)(
             images, intrinsics, starts, scenes

@@ -26,10 +26,10 @@ class Calibration:
     """The gate (``accept_margin``: a ZNCC gain; ``accept_score``: a ZNCC floor), the
     search's first steps and any other refiner setting chosen on val (``steps``:
     ``position_sigma_m``, ``orientation_sigma_deg``, ``highpass_sigma_px``,
-    ``highpass_levels``; empty: the refiner's settings) and how a multi-scene query's
-    scene is decided (``scene``: :class:`pae.render_compare.scene_decision.SceneRule`; by
-    default no query is checked in the other scenes), applied to queries without true
-    poses."""
+    ``highpass_levels``, ``contrast_sigma_px``; empty: the refiner's settings) and how a
+    multi-scene query's scene is decided (``scene``:
+    :class:`pae.render_compare.scene_decision.SceneRule`; by default no query is checked in
+    the other scenes), applied to queries without true poses."""
 
     accept_margin: float = 0.0
     accept_score: float = ACCEPT_ALL
@@ -56,6 +56,11 @@ settings' own (``highpass_sigma_px``, px at the compare resolution), at every le
 the finest only (``highpass_levels`` 0 and 1): it removes what varies slowly across the image
 (shading, a light's hot spot, exposure) that a scene model fitted under other light cannot
 explain, at the cost of the coarse levels' reach where it applies there too."""
+CONTRAST_PX = (2.0,)
+"""The local contrasts that :func:`pae.render_compare.calibrate_any_start` tries with each
+high-pass (``contrast_sigma_px``, px at the compare resolution, besides none): the band-passed
+images divided by their RMS within that σ, so that a region's texture counts alike whether a
+light's hot spot, vignetting or exposure made it bright or dim there."""
 
 
 def scene_size(train_positions: Tensor) -> float:
