@@ -4,9 +4,11 @@ writes on-step figures, and its random draws are seeded per batch."""
 from __future__ import annotations
 
 import csv
+import warnings
 from pathlib import Path
 
 import lightning as L
+import pytest
 import torch
 from lightning.pytorch.loggers import CSVLogger
 from torch import Tensor, nn
@@ -66,9 +68,14 @@ def test_training_figures_reach_the_loggers_as_if_logged_every_step(tmp_path: Pa
 
 
 def test_log_train_outside_a_trainer_logs_nothing() -> None:
+    """Lightning's own ``log_dict`` warns outside a Trainer; ``log_train`` does not call it."""
     module = _Line(every_step=False)
     batch = [torch.ones(2, 1), torch.ones(2, 1)]
-    assert module.training_step(batch, 0) >= 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert module.training_step(batch, 0) >= 0
+        with pytest.raises(UserWarning, match="trainer"):
+            _Line(every_step=True).training_step(batch, 0)
 
 
 def test_a_batch_draws_what_torch_manual_seed_of_its_derived_seed_draws() -> None:

@@ -273,6 +273,8 @@ def main(argv: list[str]) -> int:
         f"(default: {' '.join(f'{c:g}' for c in CONTRAST_PX)}; none given: none tried)",
     )
     args = parser.parse_args(own)
+    if min(args.highpass_px + args.contrast_px, default=0.0) < 0:
+        parser.error("--highpass-px and --contrast-px take sigmas (px) >= 0")
     dataset_of = {scene: dataset for dataset, names in SCENES.items() for scene in names}
     for scene in args.scenes or list(dataset_of):
         if scene not in dataset_of:

@@ -45,14 +45,14 @@ def row(record: dict) -> list[str]:
         cell(record["audit"]) if "audit" in record else "",
         f"{100 * start['within_5cm_5deg']:.0f} % → {100 * pae['within_5cm_5deg']:.0f} %",
         f"{100 * record['accepted_share']:.0f} %",
-        highpass(record["calibration"]),
+        chosen_filter(record["calibration"]),
         f"{record['psnr_db']:.1f}" if record.get("psnr_db") is not None else "",
         f"{record['fit_s']:.0f}" if record.get("fit_s") is not None else "",
         f"{record['ms_per_query']:.1f}",
     ]
 
 
-def highpass(calibration: dict[str, float]) -> str:
+def chosen_filter(calibration: dict[str, float]) -> str:
     """The filter chosen on val: the high-pass's sigma (px) and the finest levels it applies
     at (all: every level), or none; then the local contrast's sigma (px) where one was
     chosen."""

@@ -60,9 +60,8 @@ class ImageStore:
     ) -> tuple[int, bytes]:
         """(size in bytes, digest) of the file at ``path`` by the hash ``name``: from its
         entry where one is whole (its length the header's), else ``compute()`` (which reads
-        the file) and kept, so an
-        unchanged file is read once for every later step and run. OSError where the file
-        cannot be read."""
+        the file) and kept, so an unchanged file is read once for every later step and run.
+        OSError where the file cannot be read."""
         entry = self._keyed(path, name, f".{name}")
         try:
             data = entry.read_bytes()
