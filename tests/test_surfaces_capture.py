@@ -5,6 +5,7 @@ seed, bad values refused in one line naming the setting."""
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 from pathlib import Path
 
 import cv2
@@ -307,3 +308,19 @@ def test_demo_hard_turns_every_option_on() -> None:
     assert all(cfg.data[key] != OFF[key] for key in ALL_ON)
     assert all(cfg.data[key] for key in Nuisances.__dataclass_fields__)
     validate_data(cfg)
+
+
+def test_options_table_turns_on_each_row_alone() -> None:
+    """experiments/benchmark_hard/options_table.py: each row's benchmark differs from the easy
+    demo's in that row's options only, and "all" is demo_hard itself."""
+    script = Path(__file__).resolve().parents[1] / "experiments/benchmark_hard/options_table.py"
+    spec = importlib.util.spec_from_file_location("options_table", script)
+    assert spec is not None and spec.loader is not None
+    table = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(table)
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        easy = compose("train", ["experiment=demo"]).data
+        for row, options in table.ROWS.items():
+            data = compose("train", ["experiment=demo_hard", *table.overrides(row)]).data
+            changed = {key for key in easy if key != "poses" and data[key] != easy[key]}
+            assert changed == (set(table.OFF) if row == "all" else set(options)), row

@@ -1,0 +1,115 @@
+"""Every option of the hard benchmark alone through the whole pipeline: `pae-train
+experiment=demo_hard` (the same steps and refiner, its filters and gate chosen on each run's
+val split) with every benchmark option off but the row's, and with all on; one table of the
+runs' test figures from their metrics.json.
+
+    python experiments/benchmark_hard/options_table.py [--rows ROW ...] [--seed 0]
+        [--out outputs/benchmark_hard/options] [--table-only] [-- OVERRIDE ...]
+
+Runs each missing row into OUT/<row>_seed<seed> (about 6-8 minutes a row on 2 cores, its data
+rendered on first use), skips the rows whose metrics.json holds the test figures, and prints
+the markdown table: the teacher, render_compare and its oracle (the benchmark's own renderer,
+a bound), each test median position / orientation and share within 5 cm / 5 deg, the share
+of refinements the gate accepted, and the scene model's PSNR at the test poses.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+OFF = {
+    "lighting_change": 0,
+    "occluder_fraction": 0,
+    "sensor_noise_std": 0,
+    "motion_blur_px": 0,
+    "plain_surface_share": 0,
+    "repeated_surface_share": 0,
+    "glossy_surface_share": 0,
+    "camera_pipeline": 0,
+    "jpeg_quality": 0,
+    "render_scale": 1,
+}
+"""Every benchmark option of experiment=demo_hard, off."""
+ROWS = {
+    "plain": {"plain_surface_share": 0.3},
+    "repeated": {"repeated_surface_share": 0.2},
+    "glossy": {"glossy_surface_share": 0.5},
+    "pipeline": {"camera_pipeline": 1.0},
+    "jpeg": {"jpeg_quality": 75},
+    "resolution": {"render_scale": 4},
+    "nuisances": {
+        "lighting_change": 1.0,
+        "occluder_fraction": 0.3,
+        "sensor_noise_std": 0.02,
+        "motion_blur_px": 3,
+    },
+    "all": {},
+}
+"""Row -> the options it turns on (at demo_hard's values); ``all``: demo_hard as it is."""
+METHODS = ("teacher", "render_compare", "render_compare_oracle")
+
+
+def overrides(row: str) -> list[str]:
+    """The ``data.*`` overrides of experiment=demo_hard that make ``row``'s benchmark."""
+    if row == "all":
+        return []
+    return [f"data.{key}={value}" for key, value in (OFF | ROWS[row]).items()]
+
+
+def cells(metrics: dict[str, float]) -> list[str]:
+    """The row's table cells from a run's metrics.json."""
+    out = []
+    for method in METHODS:
+        key = f"test/{method}"
+        out.append(
+            f"{metrics[key + '/pos_median_m']:.3f} m / {metrics[key + '/rot_median_deg']:.2f}° "
+            f"({100 * metrics[key + '/within_5cm_5deg']:.0f} %)"
+        )
+    ratio = metrics["test/render_compare/pos_median_m"] / metrics["test/teacher/pos_median_m"]
+    accepted = metrics["test/render_compare/accepted_share"]
+    psnr = metrics.get("test/scene_model/psnr_db", float("nan"))
+    return [*out, f"{ratio:.3f}×", f"{100 * accepted:.0f} %", f"{psnr:.1f}"]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--rows", nargs="+", choices=list(ROWS), default=list(ROWS))
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default="outputs/benchmark_hard/options")
+    parser.add_argument("--table-only", action="store_true", help="run nothing")
+    parser.add_argument("extra", nargs="*", help="overrides given to every run (after --)")
+    args = parser.parse_args()
+    pae_train = str(Path(sys.executable).with_name("pae-train"))
+    lines = [
+        "| options on | teacher | render_compare | oracle † | ratio | accepted | PSNR (dB) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for row in args.rows:
+        run_dir = Path(args.out) / f"{row}_seed{args.seed}"
+        metrics_path = run_dir / "metrics.json"
+        done = metrics_path.exists() and "test/render_compare/pos_median_m" in json.loads(
+            metrics_path.read_text()
+        )
+        if not done and not args.table_only:
+            command = [
+                pae_train,
+                "experiment=demo_hard",
+                f"seed={args.seed}",
+                f"hydra.run.dir={run_dir}",
+                *overrides(row),
+                *args.extra,
+            ]
+            print(" ".join(command[1:]), file=sys.stderr, flush=True)
+            subprocess.run(command, check=True)
+            done = True
+        if done:
+            lines.append(f"| {row} | {' | '.join(cells(json.loads(metrics_path.read_text())))} |")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
