@@ -6,11 +6,12 @@ runs' test figures from their metrics.json.
     python experiments/benchmark_hard/options_table.py [--rows ROW ...] [--seed 0]
         [--out outputs/benchmark_hard/options] [--table-only] [-- OVERRIDE ...]
 
-Runs each missing row into OUT/<row>_seed<seed> (about 6-8 minutes a row on 2 cores, its data
+Runs each missing row into OUT/<row>_seed<seed> (about 9.5 minutes a row on 2 cores, its data
 rendered on first use), skips the rows whose metrics.json holds the test figures, and prints
 the markdown table: the teacher, render_compare and its oracle (the benchmark's own renderer,
 a bound), each test median position / orientation and share within 5 cm / 5 deg, the share
-of refinements the gate accepted, and the scene model's PSNR at the test poses.
+of refinements the gate accepted, the scene model's PSNR at the test poses and the compared
+images' filter val chose.
 """
 
 from __future__ import annotations
@@ -51,6 +52,12 @@ ROWS = {
 }
 """Row -> the options it turns on (at demo_hard's values); ``all``: demo_hard as it is."""
 METHODS = ("teacher", "render_compare", "render_compare_oracle")
+FILTER_NAMES = {
+    "highpass_sigma_px": "high-pass",
+    "contrast_sigma_px": "contrast",
+    "trim_sigma": "trim",
+}
+"""The filter settings a run logs when val chose them, and their names in the table."""
 
 
 def overrides(row: str) -> list[str]:
@@ -72,7 +79,17 @@ def cells(metrics: dict[str, float]) -> list[str]:
     ratio = metrics["test/render_compare/pos_median_m"] / metrics["test/teacher/pos_median_m"]
     accepted = metrics["test/render_compare/accepted_share"]
     psnr = metrics.get("test/scene_model/psnr_db", float("nan"))
-    return [*out, f"{ratio:.3f}×", f"{100 * accepted:.0f} %", f"{psnr:.1f}"]
+    return [*out, f"{ratio:.3f}×", f"{100 * accepted:.0f} %", f"{psnr:.1f}", chosen_filter(metrics)]
+
+
+def chosen_filter(metrics: dict[str, float]) -> str:
+    """The compared images' filter val chose (the run's ``test/render_compare/<setting>``)."""
+    parts = [
+        f"{name} {metrics[f'test/render_compare/{key}']:g}"
+        for key, name in FILTER_NAMES.items()
+        if metrics.get(f"test/render_compare/{key}", 0)
+    ]
+    return " + ".join(parts) or "the refiner's own"
 
 
 def main() -> None:
@@ -85,8 +102,9 @@ def main() -> None:
     args = parser.parse_args()
     pae_train = str(Path(sys.executable).with_name("pae-train"))
     lines = [
-        "| options on | teacher | render_compare | oracle † | ratio | accepted | PSNR (dB) |",
-        "|---|---|---|---|---|---|---|",
+        "| options on | teacher | render_compare | oracle † | ratio | accepted | PSNR (dB) "
+        "| filter chosen on val |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for row in args.rows:
         run_dir = Path(args.out) / f"{row}_seed{args.seed}"
