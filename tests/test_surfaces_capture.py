@@ -323,4 +323,5 @@ def test_options_table_turns_on_each_row_alone() -> None:
         for row, options in table.ROWS.items():
             data = compose("train", ["experiment=demo_hard", *table.overrides(row)]).data
             changed = {key for key in easy if key != "poses" and data[key] != easy[key]}
-            assert changed == (set(table.OFF) if row == "all" else set(options)), row
+            assert changed == set(options), row
+        assert set(table.ROWS["all"]) == set(ALL_ON) | set(Nuisances.__dataclass_fields__)

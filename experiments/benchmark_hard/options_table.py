@@ -17,40 +17,31 @@ images' filter val chose.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import subprocess
 import sys
 from pathlib import Path
 
+from pae.synthetic.settings import CaptureOptions, Nuisances, SurfaceOptions
+
 OFF = {
-    "lighting_change": 0,
-    "occluder_fraction": 0,
-    "sensor_noise_std": 0,
-    "motion_blur_px": 0,
-    "plain_surface_share": 0,
-    "repeated_surface_share": 0,
-    "glossy_surface_share": 0,
-    "camera_pipeline": 0,
-    "jpeg_quality": 0,
-    "render_scale": 1,
+    field.name: field.default
+    for options in (Nuisances, SurfaceOptions, CaptureOptions)
+    for field in dataclasses.fields(options)
 }
-"""Every benchmark option of experiment=demo_hard, off."""
+"""Every benchmark option (``data.*`` key) off: the settings' defaults."""
 ROWS = {
-    "plain": {"plain_surface_share": 0.3},
-    "repeated": {"repeated_surface_share": 0.2},
-    "glossy": {"glossy_surface_share": 0.5},
-    "pipeline": {"camera_pipeline": 1.0},
-    "jpeg": {"jpeg_quality": 75},
-    "resolution": {"render_scale": 4},
-    "nuisances": {
-        "lighting_change": 1.0,
-        "occluder_fraction": 0.3,
-        "sensor_noise_std": 0.02,
-        "motion_blur_px": 3,
-    },
-    "all": {},
+    "plain": ("plain_surface_share",),
+    "repeated": ("repeated_surface_share",),
+    "glossy": ("glossy_surface_share",),
+    "pipeline": ("camera_pipeline",),
+    "jpeg": ("jpeg_quality",),
+    "resolution": ("render_scale",),
+    "nuisances": tuple(field.name for field in dataclasses.fields(Nuisances)),
+    "all": tuple(OFF),
 }
-"""Row -> the options it turns on (at demo_hard's values); ``all``: demo_hard as it is."""
+"""Row -> the options it leaves at experiment=demo_hard's values (the rest are turned off)."""
 METHODS = ("teacher", "render_compare", "render_compare_oracle")
 FILTER_NAMES = {
     "highpass_sigma_px": "high-pass",
@@ -62,9 +53,7 @@ FILTER_NAMES = {
 
 def overrides(row: str) -> list[str]:
     """The ``data.*`` overrides of experiment=demo_hard that make ``row``'s benchmark."""
-    if row == "all":
-        return []
-    return [f"data.{key}={value}" for key, value in (OFF | ROWS[row]).items()]
+    return [f"data.{key}={value}" for key, value in OFF.items() if key not in ROWS[row]]
 
 
 def cells(metrics: dict[str, float]) -> list[str]:
@@ -122,7 +111,12 @@ def main() -> None:
                 *args.extra,
             ]
             print(" ".join(command[1:]), file=sys.stderr, flush=True)
-            subprocess.run(command, check=True)
+            returncode = subprocess.run(command).returncode
+            if returncode:
+                sys.exit(
+                    f"options_table: row {row} stopped (exit {returncode}); its run is "
+                    f"{run_dir} (error.txt there): continue it with --rows {row} -- resume=true"
+                )
             done = True
         if done:
             lines.append(f"| {row} | {' | '.join(cells(json.loads(metrics_path.read_text())))} |")

@@ -24,6 +24,7 @@ from hydra.utils import instantiate
 
 from pae.config.schemas import compose_config
 from pae.core.geometry import pose_errors
+from pae.core.metrics import WITHIN
 from pae.core.pose_sampling import perturb_poses
 from pae.render_compare import refine
 from pae.scene_model.oracle import OracleSceneModel
@@ -139,7 +140,8 @@ def basin_row(
             ]
         ):
             position, orientation = pose_errors(poses, truth)
-            within = ((position < 0.05) & (orientation < 5.0)).double().mean()
+            metres, degrees = WITHIN["5cm_5deg"]
+            within = ((position <= metres) & (orientation <= degrees)).double().mean()
             figures[column] += torch.stack([position.median(), orientation.median(), within])
     figures /= len(seeds)
     return [f"{p:.3f} / {o:.2f} ({100 * w:.0f} %)" for p, o, w in figures.tolist()]
