@@ -9,8 +9,11 @@ floor: where the scene model's best match lies) and starts of a good APR's error
 the scene's size and 1 deg, drawn as :func:`pae.core.pose_sampling.perturb_poses` draws).
 ``--ladder``: also, under run.py's settings, each rung of the any-start calibration's ladder
 (:func:`pae.render_compare.calibration.ladder_starts`): the starts' and the refined poses'
-medians and the share the refinement made worse. Only validation labels are read. One row per
-variant, printed and written to ``RUN/floor_val.json``.
+medians and the share the refinement made worse. ``--oracle [BLUR_PX]``: the same with the
+benchmark's own renderer instead of the fitted scene model, its renderings blurred by a
+Gaussian of that sigma (a bound: how sharp a scene model must be for a given floor). Only
+validation labels are read. One row per variant, printed and written to
+``RUN/floor_val.json`` (with ``--oracle``: ``RUN/floor_val_oracle.json``).
 
     python experiments/render_compare_real_starts/floor.py outputs/rs128/chess \\
         --variant final_reference_size=32 --variant '' --variant final_reference_size=96
@@ -30,17 +33,70 @@ import torch
 from run import chosen_steps, refiner_settings  # beside this script
 
 from pae.apps.localization import data_module, read_run, scene_model_path, split_queries
+from pae.callbacks.render_compare import oracle_scenes
 from pae.core.atomic import atomic_write
 from pae.core.checkpoints import load_scene_model
 from pae.core.geometry import pose_errors
 from pae.core.pose_sampling import perturb_poses
 from pae.render_compare import ACCEPT_ALL, Calibration, refine
 from pae.render_compare.calibration import LADDER, ladder_starts, scene_size
+from pae.render_compare.images import band_pass, gaussian_blur, grey, zncc
 from pae.render_compare.settings import RenderCompareSettings
+from pae.scene_model.base import SceneRendering
+from pae.scene_model.oracle import OracleSceneModel
 
 GOOD_START_SHARE = 0.01
 """A good APR's position error as a share of the scene's size (DFNet: 3 cm in a 3 m room)."""
 GOOD_START_DEG = 1.0
+
+
+class BlurredOracle(OracleSceneModel):
+    """The benchmark's own renderer, its images blurred by a Gaussian of ``blur_per_px`` ×
+    the rendered width (px): how sharp a scene model must be for a given floor."""
+
+    def __init__(self, scenes: list[Any] | None, blur_per_px: float) -> None:
+        if scenes is None:
+            raise SystemExit("--oracle: this run's data does not know its true scenes")
+        super().__init__(scenes)
+        self.blur_per_px = blur_per_px
+
+    def render(
+        self, poses: torch.Tensor, scenes: torch.Tensor, intrinsics: torch.Tensor,
+        width: int, height: int,
+    ) -> SceneRendering:  # fmt: skip
+        rendering = super().render(poses, scenes, intrinsics, width, height)
+        rgb = gaussian_blur(rendering.rgb, self.blur_per_px * width)
+        return rendering._replace(rgb=rgb)
+
+
+def explained(
+    model: Any, oracle: OracleSceneModel, queries: dict[str, torch.Tensor], settings: dict
+) -> dict[str, float]:
+    """How well ``model`` explains ``queries`` (``image``, ``pose``, ``intrinsics``,
+    ``scene``) at their true poses, beside the benchmark's own renderer ``oracle``: the mean
+    ZNCC of the grey images band-passed as ``settings`` compare at the finest level (blur,
+    high-pass, local contrast) between each query and each rendering, the model's mean opacity
+    and the median of its depth minus the oracle's (m; negative: the model's surfaces lie
+    nearer the camera)."""
+    height, width = queries["image"].shape[-2:]
+    args = (queries["pose"], queries["scene"], queries["intrinsics"], width, height)
+    with torch.no_grad():
+        ours, truth = model.render(*args), oracle.render(*args)
+
+    def filtered(rgb: torch.Tensor) -> torch.Tensor:
+        return band_pass(
+            grey(rgb), settings["blur_sigma_px"], settings["highpass_sigma_px"],
+            settings.get("contrast_sigma_px", 0.0),
+        ).flatten(1)  # fmt: skip
+
+    query = filtered(queries["image"])
+    ones = torch.ones_like(query)
+    return {
+        "zncc_model": float(zncc(query, filtered(ours.rgb), ones).mean()),
+        "zncc_oracle": float(zncc(query, filtered(truth.rgb), ones).mean()),
+        "opacity_model": float(ours.opacity.mean()),
+        "depth_minus_oracle_median_m": float((ours.depth - truth.depth).median()),
+    }
 
 
 def overridden(calibration: Calibration, variant: dict[str, Any]) -> Calibration:
@@ -96,13 +152,36 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--queries", type=int, default=400, help="val queries (evenly spaced)")
     parser.add_argument("--ladder", action="store_true", help="every val query, ladder starts")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--explain",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also, for N val queries at their true poses, how well the scene model and the "
+        "benchmark's own renderer explain them (explained())",
+    )
+    parser.add_argument(
+        "--oracle",
+        type=float,
+        nargs="?",
+        const=0.0,
+        metavar="BLUR_PX",
+        help="the benchmark's own renderer instead of the fitted scene model (a bound), its "
+        "renderings blurred by a Gaussian of this sigma (px at the run's image size; default "
+        "0); rows written to floor_val_oracle.json",
+    )
     args = parser.parse_args(argv)
     variants = [parse_variant(text) for text in args.variant or [""]]
     run = read_run(args.run)
     size = int(run.config.data.size)
     data = data_module(run, cache_images=False, crop=size)
     data.setup()
-    model = load_scene_model(scene_model_path(run), "scene_model_ckpt").model.eval()
+    if args.oracle is not None:
+        if args.oracle < 0:
+            parser.error("--oracle takes a blur sigma (px) >= 0")
+        model = BlurredOracle(oracle_scenes(data), args.oracle / size)
+    else:
+        model = load_scene_model(scene_model_path(run), "scene_model_ckpt").model.eval()
     every = split_queries(data, "val", size)
     count = min(args.queries, len(every["pose"]))
     rows = torch.linspace(0, len(every["pose"]) - 1, count).long()
@@ -118,7 +197,8 @@ def main(argv: list[str]) -> int:
         torch.full((count,), GOOD_START_DEG, dtype=torch.float64),
         torch.Generator().manual_seed(args.seed),
     ).to(truth)
-    out_path = args.run / "floor_val.json"
+    oracle = args.oracle is not None
+    out_path = args.run / ("floor_val_oracle.json" if oracle else "floor_val.json")
     results = json.loads(out_path.read_text()) if out_path.is_file() else {}
     print(f"{args.run.name}: {count} val queries, scene {extent:.2f} m, {calibration.steps}")
     print(f"start (1 % / 1 deg): {medians(good, truth)}")
@@ -132,7 +212,8 @@ def main(argv: list[str]) -> int:
             )  # fmt: skip
             row[name] = medians(refined.poses, truth)
             row[f"{name}_ms_per_query"] = 1000 * (time.perf_counter() - begin) / count
-        results[text or "(run.py's)"] = row
+        name = text or "(run.py's)"
+        results[f"blur {args.oracle:g} px: {name}" if oracle else name] = row
         print(
             f"{text or '(run.py settings)':60s} truth {100 * row['from_truth']['pos_median_m']:.2f}"
             f" cm / {row['from_truth']['rot_median_deg']:.2f} deg, good "
@@ -141,6 +222,14 @@ def main(argv: list[str]) -> int:
             f"{row['from_good_ms_per_query']:.1f} ms/query",
             flush=True,
         )
+    if args.explain:
+        picks = torch.linspace(0, count - 1, min(args.explain, count)).long()
+        chosen = base | overridden(calibration, {}).steps
+        results["explain"] = explained(
+            model, BlurredOracle(oracle_scenes(data), 0.0),
+            {key: value[picks] for key, value in val.items()}, chosen,
+        )  # fmt: skip
+        print("explained at the true val poses:", results["explain"])
     if args.ladder:
         truth = every["pose"]
         starts = ladder_starts(truth, extent, torch.Generator().manual_seed(args.seed))
