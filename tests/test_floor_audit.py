@@ -1,0 +1,61 @@
+"""experiments/render_compare_real_starts/floor.py's bounds: the benchmark's own renderer,
+blurred, and how well a scene model explains queries at their true poses."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+import torch
+
+from pae.synthetic import PinholeCamera, SyntheticSettings, make_scene, make_sequences
+
+FOLDER = Path(__file__).resolve().parents[1] / "experiments/render_compare_real_starts"
+SETTINGS = {"blur_sigma_px": 0.3, "highpass_sigma_px": 4.0}
+
+
+def _floor(monkeypatch: pytest.MonkeyPatch) -> ModuleType:
+    monkeypatch.syspath_prepend(str(FOLDER))  # floor.py imports run.py from beside it
+    spec = importlib.util.spec_from_file_location("floor", FOLDER / "floor.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _queries(floor: ModuleType) -> dict[str, torch.Tensor]:
+    """Four 48-px views of benchmark scene 0, rendered by its own renderer."""
+    scene = make_scene(0)
+    camera = PinholeCamera(48)
+    walks = make_sequences(0, scene, SyntheticSettings(train_frames=6, test_frames=16))
+    pose = torch.from_numpy(walks[-1].poses[::4]).float()
+    f, c = camera.focal_px, camera.principal_point
+    intrinsics = torch.tensor([f, f, c, c]).expand(len(pose), 4)
+    scenes = torch.zeros(len(pose), dtype=torch.long)
+    image = floor.BlurredOracle([scene], 0.0).render(pose, scenes, intrinsics, 48, 48).rgb
+    return {"image": image, "pose": pose, "intrinsics": intrinsics, "scene": scenes}
+
+
+def test_explained_ranks_a_blurred_renderer_below_the_sharp_one(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    floor = _floor(monkeypatch)
+    queries = _queries(floor)
+    scene = floor.BlurredOracle([make_scene(0)], 0.0)
+    same = floor.explained(scene, scene, queries, SETTINGS)
+    assert same["zncc_model"] == pytest.approx(1.0, abs=1e-4)
+    assert same["zncc_model"] == pytest.approx(same["zncc_oracle"])
+    assert same["depth_minus_oracle_median_m"] == 0.0
+    assert same["opacity_model"] == 1.0
+    blurred = floor.BlurredOracle([make_scene(0)], 2.0 / 48)
+    worse = floor.explained(blurred, scene, queries, SETTINGS)
+    assert worse["zncc_model"] < same["zncc_model"] - 0.05
+    assert worse["depth_minus_oracle_median_m"] == 0.0
+
+
+def test_blurred_oracle_needs_the_true_scenes(monkeypatch: pytest.MonkeyPatch) -> None:
+    floor = _floor(monkeypatch)
+    with pytest.raises(SystemExit, match="true scenes"):
+        floor.BlurredOracle(None, 0.0)
