@@ -11,9 +11,11 @@ the scene's size and 1 deg, drawn as :func:`pae.core.pose_sampling.perturb_poses
 (:func:`pae.render_compare.calibration.ladder_starts`): the starts' and the refined poses'
 medians and the share the refinement made worse. ``--oracle [BLUR_PX]``: the same with the
 benchmark's own renderer instead of the fitted scene model, its renderings blurred by a
-Gaussian of that sigma (a bound: how sharp a scene model must be for a given floor). Only
-validation labels are read. One row per variant, printed and written to
-``RUN/floor_val.json`` (with ``--oracle``: ``RUN/floor_val_oracle.json``).
+Gaussian of that sigma (a bound: how sharp a scene model must be for a given floor).
+``--explain N``: how well the model explains N val queries at their true poses, beside the
+benchmark's own renderer (:func:`explained`). Only validation labels are read. One row per
+variant, printed and written to ``RUN/floor_val.json`` (with ``--oracle``:
+``RUN/floor_val_oracle.json``).
 
     python experiments/render_compare_real_starts/floor.py outputs/rs128/chess \\
         --variant final_reference_size=32 --variant '' --variant final_reference_size=96
@@ -212,8 +214,8 @@ def main(argv: list[str]) -> int:
             )  # fmt: skip
             row[name] = medians(refined.poses, truth)
             row[f"{name}_ms_per_query"] = 1000 * (time.perf_counter() - begin) / count
-        name = text or "(run.py's)"
-        results[f"blur {args.oracle:g} px: {name}" if oracle else name] = row
+        key = text or "(run.py's)"
+        results[f"blur {args.oracle:g} px: {key}" if oracle else key] = row
         print(
             f"{text or '(run.py settings)':60s} truth {100 * row['from_truth']['pos_median_m']:.2f}"
             f" cm / {row['from_truth']['rot_median_deg']:.2f} deg, good "
