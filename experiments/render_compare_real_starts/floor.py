@@ -58,7 +58,10 @@ class BlurredOracle(OracleSceneModel):
 
     def __init__(self, scenes: list[Any] | None, blur_per_px: float) -> None:
         if scenes is None:
-            raise SystemExit("--oracle: this run's data does not know its true scenes")
+            raise SystemExit(
+                "--oracle and --explain need the benchmark's true scenes; this run's data "
+                "does not know them"
+            )
         super().__init__(scenes)
         self.blur_per_px = blur_per_px
 
@@ -173,14 +176,16 @@ def main(argv: list[str]) -> int:
         "0); rows written to floor_val_oracle.json",
     )
     args = parser.parse_args(argv)
+    if args.oracle is not None and args.oracle < 0:
+        parser.error("--oracle takes a blur sigma (px) >= 0")
+    if args.explain < 0:
+        parser.error("--explain takes a number of val queries >= 0")
     variants = [parse_variant(text) for text in args.variant or [""]]
     run = read_run(args.run)
     size = int(run.config.data.size)
     data = data_module(run, cache_images=False, crop=size)
     data.setup()
     if args.oracle is not None:
-        if args.oracle < 0:
-            parser.error("--oracle takes a blur sigma (px) >= 0")
         model = BlurredOracle(oracle_scenes(data), args.oracle / size)
     else:
         model = load_scene_model(scene_model_path(run), "scene_model_ckpt").model.eval()
@@ -226,7 +231,7 @@ def main(argv: list[str]) -> int:
         )
     if args.explain:
         picks = torch.linspace(0, count - 1, min(args.explain, count)).long()
-        chosen = base | overridden(calibration, {}).steps
+        chosen = base | calibration.steps
         results["explain"] = explained(
             model, BlurredOracle(oracle_scenes(data), 0.0),
             {key: value[picks] for key, value in val.items()}, chosen,
