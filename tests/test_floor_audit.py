@@ -59,3 +59,29 @@ def test_blurred_oracle_needs_the_true_scenes(monkeypatch: pytest.MonkeyPatch) -
     floor = _floor(monkeypatch)
     with pytest.raises(SystemExit, match="true scenes"):
         floor.BlurredOracle(None, 0.0)
+
+
+def test_oracle_depth_keeps_the_model_s_colours_on_the_benchmark_s_geometry(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """--oracle-depth: the model's colours, the true renderer's depth and opacity (here the
+    model: a blurred renderer whose surfaces lie at half their depth, half transparent)."""
+    floor = _floor(monkeypatch)
+    queries = _queries(floor)
+    sharp = floor.BlurredOracle([make_scene(0)], 0.0)
+
+    class Foggy(floor.BlurredOracle):
+        def render(self, *args: object, surface_share: float = 0.0) -> object:
+            rendering = super().render(*args)
+            return rendering._replace(depth=rendering.depth / 2, opacity=rendering.opacity / 2)
+
+    foggy = Foggy([make_scene(0)], 2.0 / 48)
+    args = (queries["pose"], queries["scene"], queries["intrinsics"], 48, 48)
+    hybrid = floor.WithOracleDepth(foggy, sharp).render(*args, surface_share=0.7)
+    truth = sharp.render(*args)
+    torch.testing.assert_close(hybrid.rgb, foggy.render(*args).rgb)
+    assert not torch.allclose(hybrid.rgb, truth.rgb)
+    torch.testing.assert_close(hybrid.depth, truth.depth)
+    torch.testing.assert_close(hybrid.opacity, truth.opacity)
+    with pytest.raises(SystemExit):
+        floor.main(["unused", "--oracle", "--oracle-depth"])

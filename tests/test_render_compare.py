@@ -110,6 +110,36 @@ def test_compiled_volume_rendering_equals_the_grid_sample_path(contract: bool) -
     for compiled, reference in zip(*outputs, strict=True):
         scale = reference.abs().max().clamp_min(1.0)
         assert (compiled - reference).abs().max() / scale < 2e-3
+    with torch.no_grad():
+        surfaces = [
+            grid.composite(origins, directions, 32, 0.05, False, engine, surface_share=0.7)[1]
+            for engine in ("numba", "torch")
+        ]
+    torch.testing.assert_close(*surfaces, atol=1e-4, rtol=1e-5)
+
+
+@pytest.mark.parametrize("engine", ["numba", "torch"])
+def test_the_surface_share_puts_the_depth_on_a_wall_behind_faint_fog(engine: str) -> None:
+    """A wall at x = 1.5 m behind faint fog: the light's mean depth is pulled 15 cm or more
+    towards the camera, the depth by which the ray has gathered 70 % of its opacity lies on
+    the wall's face (within a voxel, 10 cm)."""
+    grid = VoxelGrid([[-2, -2, -2], [2, 2, 2]], num_voxels=64_000)
+    nx = grid.grid.shape[-1]
+    x = torch.linspace(-2, 2, nx)
+    with torch.no_grad():
+        grid.grid[:, 0] = torch.where(x.sub(1.5).abs() < 0.1, 12.0, 0.5)
+    origins = torch.zeros(8, 3)
+    directions = torch.tensor([[1.0, 0.0, 0.0]]).expand(8, 3) + torch.randn(8, 3) * 0.01
+    with torch.no_grad():
+        _, mean_depth, opacity = grid.composite(origins, directions, 256, 0.05, False, engine)
+        _, share_depth, _ = grid.composite(
+            origins, directions, 256, 0.05, False, engine, surface_share=0.7
+        )
+    assert bool((opacity > 0.99).all())
+    assert bool((mean_depth < 1.35).all())
+    assert bool((share_depth - 1.45).abs().max() < 0.1)
+    with pytest.raises(ValueError, match="surface_share"):
+        RenderCompareRefiner.configured(OracleSceneModel([]), surface_share=1.0)
 
 
 def test_the_forward_kernels_polynomial_exp_and_log1p_match_the_library_ones() -> None:
@@ -369,12 +399,12 @@ def test_calibrating_for_any_start_never_makes_the_val_starts_worse_on_average(
     """calibrate_any_start on a tiny scene: starts at every scale of the ladder, the steps and
     gate chosen so that the mean log error ratio over those val starts is at most 0; every
     high-pass of ``highpass_px`` tried, at every level and at the finest only, each without
-    and with each local contrast of ``contrast_px``."""
+    and with each local contrast of ``contrast_px``, then each of ``surface_shares``."""
     from pae.render_compare import api, calibrate_any_start
     from pae.render_compare.calibration import HIGHPASS_PX
     from pae.render_compare.settings import RenderCompareSettings
 
-    tried = set()
+    tried, shares = set(), set()
     build = api.build_refiner
 
     def spy(scene_model: Any, settings: Any, steps: Any, features: Any) -> Any:
@@ -382,6 +412,7 @@ def test_calibrating_for_any_start_never_makes_the_val_starts_worse_on_average(
             tried.add(
                 (steps["highpass_sigma_px"], steps["highpass_levels"], steps["contrast_sigma_px"])
             )
+            shares.add(steps.get("surface_share"))
         return build(scene_model, settings, steps, features)
 
     monkeypatch.setattr(api, "build_refiner", spy)
@@ -390,7 +421,7 @@ def test_calibrating_for_any_start_never_makes_the_val_starts_worse_on_average(
     settings = {"rounds": 3, "candidates": 8, "resolution": 16, "reference_size": 12}
     calibration, refinement, starts = calibrate_any_start(
         model, images, intrinsics, scenes, truth, 2.0, settings,
-        highpass_px=(HIGHPASS_PX, 6.0), contrast_px=(3.0,),
+        highpass_px=(HIGHPASS_PX, 6.0), contrast_px=(3.0,), surface_shares=(0.6,),
     )  # fmt: skip
     before = pose_errors(starts, truth)[0]
     after = pose_errors(refinement.poses, truth)[0]
@@ -402,7 +433,8 @@ def test_calibrating_for_any_start_never_makes_the_val_starts_worse_on_average(
         "highpass_levels",
         "contrast_sigma_px",
     }
-    assert set(calibration.steps) == chosen
+    # the benchmark's renderer has exact depths: no surface share beats its own
+    assert set(calibration.steps) == chosen and shares == {None, 0.6}
     assert calibration.steps["highpass_sigma_px"] in (0.0, HIGHPASS_PX, 6.0)
     assert calibration.steps["contrast_sigma_px"] in (0.0, 3.0)
     own = RenderCompareSettings(**settings)

@@ -2,20 +2,21 @@
 
 For a fitted real-starts run (``run.py``), the validation queries are refined with settings
 variants (``--variant key=value,key=value`` over run.py's settings; ``''``: those alone), the
-first steps and high-pass that ``calibrate_any_start`` chose (``real_starts_DFNet.json``)
-under every variant (a key the variant sets overrides the chosen value), every refinement
-accepted, from two kinds of starts: the true poses (the
-floor: where the scene model's best match lies) and starts of a good APR's error scale (1 % of
-the scene's size and 1 deg, drawn as :func:`pae.core.pose_sampling.perturb_poses` draws).
+first steps, filter and surface share that ``calibrate_any_start`` chose
+(``real_starts_DFNet.json``) under every variant (a key the variant sets overrides the chosen
+value), every refinement accepted, from two kinds of starts: the true poses (the floor: where
+the scene model's best match lies) and starts of a good APR's error scale (1 % of the scene's
+size and 1 deg, drawn as :func:`pae.core.pose_sampling.perturb_poses` draws).
 ``--ladder``: also, under run.py's settings, each rung of the any-start calibration's ladder
 (:func:`pae.render_compare.calibration.ladder_starts`): the starts' and the refined poses'
 medians and the share the refinement made worse. ``--oracle [BLUR_PX]``: the same with the
 benchmark's own renderer instead of the fitted scene model, its renderings blurred by a
 Gaussian of that sigma (a bound: how sharp a scene model must be for a given floor).
-``--explain N``: how well the model explains N val queries at their true poses, beside the
-benchmark's own renderer (:func:`explained`). Only validation labels are read. One row per
-variant, printed and written to ``RUN/floor_val.json`` (with ``--oracle``:
-``RUN/floor_val_oracle.json``).
+``--oracle-depth``: the fitted model's colours on the benchmark renderer's depth and opacity
+(what the model's geometry costs). ``--explain N``: how well the model explains N val
+queries at their true poses, beside the benchmark's own renderer (:func:`explained`). Only
+validation labels are read. One row per variant, printed and written to
+``RUN/floor_val.json`` (with ``--oracle``: ``RUN/floor_val_oracle.json``).
 
     python experiments/render_compare_real_starts/floor.py outputs/rs128/chess \\
         --variant final_reference_size=32 --variant '' --variant final_reference_size=96
@@ -67,11 +68,30 @@ class BlurredOracle(OracleSceneModel):
 
     def render(
         self, poses: torch.Tensor, scenes: torch.Tensor, intrinsics: torch.Tensor,
-        width: int, height: int,
+        width: int, height: int, surface_share: float = 0.0,
     ) -> SceneRendering:  # fmt: skip
         rendering = super().render(poses, scenes, intrinsics, width, height)
         rgb = gaussian_blur(rendering.rgb, self.blur_per_px * width)
         return rendering._replace(rgb=rgb)
+
+
+class WithOracleDepth(torch.nn.Module):
+    """The fitted scene model's colours on the benchmark renderer's geometry (its depth and
+    opacity): what the model's own surfaces cost the floor."""
+
+    has_depth = True
+
+    def __init__(self, model: Any, oracle: OracleSceneModel) -> None:
+        super().__init__()
+        self.model, self.oracle = model, oracle
+
+    def render(
+        self, poses: torch.Tensor, scenes: torch.Tensor, intrinsics: torch.Tensor,
+        width: int, height: int, surface_share: float = 0.0,
+    ) -> SceneRendering:  # fmt: skip
+        colours = self.model.render(poses, scenes, intrinsics, width, height)
+        geometry = self.oracle.render(poses, scenes, intrinsics, width, height)
+        return colours._replace(depth=geometry.depth, opacity=geometry.opacity)
 
 
 def explained(
@@ -175,7 +195,15 @@ def main(argv: list[str]) -> int:
         "renderings blurred by a Gaussian of this sigma (px at the run's image size; default "
         "0); rows written to floor_val_oracle.json",
     )
+    parser.add_argument(
+        "--oracle-depth",
+        action="store_true",
+        help="the fitted model's colours on the benchmark renderer's depth and opacity (what "
+        "the model's geometry costs); rows keyed 'oracle depth: ...'",
+    )
     args = parser.parse_args(argv)
+    if args.oracle is not None and args.oracle_depth:
+        parser.error("--oracle already renders the benchmark's depth; drop --oracle-depth")
     if args.oracle is not None and args.oracle < 0:
         parser.error("--oracle takes a blur sigma (px) >= 0")
     if args.explain < 0:
@@ -189,6 +217,8 @@ def main(argv: list[str]) -> int:
         model = BlurredOracle(oracle_scenes(data), args.oracle / size)
     else:
         model = load_scene_model(scene_model_path(run), "scene_model_ckpt").model.eval()
+    if args.oracle_depth:
+        model = WithOracleDepth(model, BlurredOracle(oracle_scenes(data), 0.0))
     every = split_queries(data, "val", size)
     count = min(args.queries, len(every["pose"]))
     rows = torch.linspace(0, len(every["pose"]) - 1, count).long()
@@ -220,6 +250,7 @@ def main(argv: list[str]) -> int:
             row[name] = medians(refined.poses, truth)
             row[f"{name}_ms_per_query"] = 1000 * (time.perf_counter() - begin) / count
         key = text or "(run.py's)"
+        key = f"oracle depth: {key}" if args.oracle_depth else key
         results[f"blur {args.oracle:g} px: {key}" if oracle else key] = row
         print(
             f"{text or '(run.py settings)':60s} truth {100 * row['from_truth']['pos_median_m']:.2f}"

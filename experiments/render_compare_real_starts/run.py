@@ -34,7 +34,7 @@ from pae.core.geometry import pose_errors, transfer_error
 from pae.data.labels import LabelTable, read_labels
 from pae.data.starts import match_starts, read_starts
 from pae.render_compare import ACCEPT_ALL, Calibration, calibrate_any_start, refine
-from pae.render_compare.calibration import CONTRAST_PX, HIGHPASS_PX, scene_size
+from pae.render_compare.calibration import CONTRAST_PX, HIGHPASS_PX, SURFACE_SHARES, scene_size
 from pae.render_compare.settings import RenderCompareSettings
 
 SCENES = {
@@ -125,9 +125,9 @@ def refiner_settings(size: int) -> RenderCompareSettings:
 
 
 def chosen_steps(run_dir: Path) -> dict[str, float]:
-    """The first steps and high-pass that ``calibrate_any_start`` chose on the scene's val
-    images, read from its ``real_starts_<APR>.json`` (a one-line error where run.py has not
-    calibrated the scene yet)."""
+    """The first steps, filter and surface share that ``calibrate_any_start`` chose on the
+    scene's val images, read from its ``real_starts_<APR>.json`` (a one-line error where
+    run.py has not calibrated the scene yet)."""
     path = run_dir / f"real_starts_{APRS[0]}.json"
     if not path.is_file():
         raise SystemExit(f"{path} is missing: run run.py on this scene first (it calibrates)")
@@ -138,6 +138,7 @@ def chosen_steps(run_dir: Path) -> dict[str, float]:
         "highpass_sigma_px",
         "highpass_levels",
         "contrast_sigma_px",
+        "surface_share",
     )
     return {key: chosen[key] for key in keys if key in chosen}
 
@@ -185,6 +186,7 @@ def refine_scene(
     calibration, val_refined, val_starts = calibrate_any_start(
         model, val["image"], val["intrinsics"], val["scene"], val["pose"], extent, settings,
         highpass_px=args.highpass_px, contrast_px=args.contrast_px,
+        surface_shares=args.surface_shares,
     )  # fmt: skip
     calibrate_s = time.perf_counter() - start
     metrics = json.loads((run_dir / "metrics.json").read_text())
@@ -272,9 +274,19 @@ def main(argv: list[str]) -> int:
         help="the local contrasts (px) the calibration tries with each high-pass besides none "
         f"(default: {' '.join(f'{c:g}' for c in CONTRAST_PX)}; none given: none tried)",
     )
+    parser.add_argument(
+        "--surface-shares",
+        type=float,
+        nargs="*",
+        default=list(SURFACE_SHARES),
+        help="the references' surface shares the calibration tries besides the light's mean "
+        f"depth (default: {' '.join(f'{c:g}' for c in SURFACE_SHARES)}; none given: none)",
+    )
     args = parser.parse_args(own)
     if min(args.highpass_px + args.contrast_px, default=0.0) < 0:
         parser.error("--highpass-px and --contrast-px take sigmas (px) >= 0")
+    if not all(0 < share < 1 for share in args.surface_shares):
+        parser.error("--surface-shares take shares of a ray's opacity in (0, 1)")
     dataset_of = {scene: dataset for dataset, names in SCENES.items() for scene in names}
     for scene in args.scenes or list(dataset_of):
         if scene not in dataset_of:

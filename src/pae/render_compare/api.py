@@ -22,6 +22,7 @@ from pae.render_compare.calibration import (
     LADDER_DEG,
     RATIO_EPS_M,
     STEP_SHARES,
+    SURFACE_SHARES,
     Calibration,
     choose_gate,
     ladder_starts,
@@ -232,17 +233,19 @@ def calibrate_any_start(
     seed: int = 0,
     highpass_px: Sequence[float] = (HIGHPASS_PX,),
     contrast_px: Sequence[float] = CONTRAST_PX,
+    surface_shares: Sequence[float] = SURFACE_SHARES,
 ) -> tuple[Calibration, Refinement, Tensor]:
     """The calibration for starts from any APR, whose error scale the run cannot know: on
     validation queries (as :func:`calibrate`'s) with starts at every scale of the ladder
     (:func:`pae.render_compare.calibration.ladder_starts`, ``size_m``: the scene's size, m),
     the first steps among ``STEP_SHARES`` of the size, the filter among the settings' own and
     each of ``highpass_px`` (px) at every level or the finest only, with no local contrast or
-    each of ``contrast_px`` (px, ``contrast_sigma_px``), and the gate that
+    each of ``contrast_px`` (px, ``contrast_sigma_px``), then with those the references'
+    ``surface_share`` among the settings' own and ``surface_shares``, and the gate that
     minimise the mean log of each query's error over its start's
     (``choose_gate(objective="log_ratio")``), so that a good start is kept rather than
-    refined to the refiner's floor -> the calibration (its ``steps`` holding the chosen steps
-    and filter), the validation refinement under it and its starts [N, 7]."""
+    refined to the refiner's floor -> the calibration (its ``steps`` holding the chosen steps,
+    filter and surface share), the validation refinement under it and its starts [N, 7]."""
     _check(images, intrinsics, truth, scenes, None)
     starts = ladder_starts(truth, size_m, torch.Generator().manual_seed(seed))
     start_pos, _ = pose_errors(starts.float(), truth.float())
@@ -257,15 +260,8 @@ def calibrate_any_start(
             for contrast in (0.0, *contrast_px)
         ]
     )
-    best: tuple[float, Calibration, Refinement] | None = None
-    for (highpass, levels, contrast), share in itertools.product(filters, STEP_SHARES):
-        steps = {
-            "position_sigma_m": share * size_m,
-            "orientation_sigma_deg": share * deg_per_share,
-            "highpass_sigma_px": highpass,
-            "highpass_levels": levels,
-            "contrast_sigma_px": contrast,
-        }
+
+    def evaluate(steps: dict[str, float]) -> tuple[float, Calibration, Refinement]:
         result = build_refiner(scene_model, settings, steps, features)(
             images, intrinsics, starts, scenes
         )
@@ -277,10 +273,27 @@ def calibrate_any_start(
         gated = gate(result, starts, margin, floor)
         final = torch.where(gated.accepted, refined_pos, start_pos)
         value = float(((final + RATIO_EPS_M) / (start_pos + RATIO_EPS_M)).log().mean())
-        if best is None or value < best[0]:
-            refinement = Refinement(
-                gated.poses, gated.accepted, result, scenes, gated.accepted & False
+        refinement = Refinement(gated.poses, gated.accepted, result, scenes, gated.accepted & False)
+        return value, Calibration(margin, floor, steps), refinement
+
+    best = min(
+        (
+            evaluate(
+                {
+                    "position_sigma_m": share * size_m,
+                    "orientation_sigma_deg": share * deg_per_share,
+                    "highpass_sigma_px": highpass,
+                    "highpass_levels": levels,
+                    "contrast_sigma_px": contrast,
+                }
             )
-            best = (value, Calibration(margin, floor, steps), refinement)
-    assert best is not None
+            for (highpass, levels, contrast), share in itertools.product(filters, STEP_SHARES)
+        ),
+        key=lambda tried: tried[0],
+    )
+    chosen = dict(best[1].steps)
+    for surface in dict.fromkeys(surface_shares):
+        if surface != own.surface_share:
+            tried = evaluate(chosen | {"surface_share": surface})
+            best = tried if tried[0] < best[0] else best
     return best[1], best[2], starts

@@ -26,7 +26,8 @@ class Calibration:
     """The gate (``accept_margin``: a ZNCC gain; ``accept_score``: a ZNCC floor), the
     search's first steps and any other refiner setting chosen on val (``steps``:
     ``position_sigma_m``, ``orientation_sigma_deg``, ``highpass_sigma_px``,
-    ``highpass_levels``, ``contrast_sigma_px``; empty: the refiner's settings) and how a
+    ``highpass_levels``, ``contrast_sigma_px``, ``surface_share``; empty: the refiner's
+    settings) and how a
     multi-scene query's scene is decided (``scene``:
     :class:`pae.render_compare.scene_decision.SceneRule`; by default no query is checked in
     the other scenes), applied to queries without true poses."""
@@ -50,6 +51,13 @@ LADDER_DEG = (0.125, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
 STEP_SHARES = (0.01, 0.02, 0.05, 0.1, 0.2)
 """Candidate first position steps of :func:`pae.render_compare.calibrate_any_start`, as
 shares of the scene's size (orientation steps in proportion: LADDER_DEG / LADDER)."""
+SURFACE_SHARES = (0.5, 0.6, 0.7, 0.8)
+"""The references' surface shares (``surface_share``) that
+:func:`pae.render_compare.calibrate_any_start` tries besides the settings' own: a fitted
+volume keeps a faint fog in front of its surfaces (denser the fewer views saw a place), which
+pulls the light's mean depth towards the camera; the depth by which a ray has gathered 60-70 %
+of its opacity lies on the surface (experiments/render_compare_real_starts, "The surface
+depth")."""
 HIGHPASS_PX = 4.0
 """The high-pass that :func:`pae.render_compare.calibrate_any_start` tries beside the
 settings' own (``highpass_sigma_px``, px at the compare resolution), at every level and at

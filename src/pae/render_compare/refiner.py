@@ -96,11 +96,12 @@ class RenderCompareRefiner:
     filter (blur_sigma_px, highpass_sigma_px, contrast_sigma_px, highpass_levels:
     :func:`band_pass`). References: reference_size, reference_fov_scale (the start's
     rendering), final_reference_size, final_fov_scale (at the best hypothesis before the
-    finest level; 0: none). Polish: polish_steps, polish_damping. Score: min_overlap (else
-    ``NOT_SEEN_SCORE``), trim_sigma, trim_passes (:func:`trimmed_zncc`), score (``zncc``, or
-    ``features`` with ``features``). seed: of the draws; chunk, gpu_chunk: queries refined at
-    once (:meth:`chunk_for`); engine: ``ENGINES``. What each setting means and its default:
-    ``RenderCompareSettings`` (:meth:`configured`).
+    finest level; 0: none), surface_share (their surface points). Polish: polish_steps,
+    polish_damping. Score: min_overlap (else ``NOT_SEEN_SCORE``), trim_sigma, trim_passes
+    (:func:`trimmed_zncc`), score (``zncc``, or ``features`` with ``features``). seed: of the
+    draws; chunk, gpu_chunk: queries refined at once (:meth:`chunk_for`); engine:
+    ``ENGINES``. What each setting means and its default: ``RenderCompareSettings``
+    (:meth:`configured`).
     """
 
     from_run: ClassVar[tuple[str, ...]] = ("scene_model", "features")
@@ -127,6 +128,7 @@ class RenderCompareRefiner:
         reference_fov_scale: float,
         final_reference_size: int,
         final_fov_scale: float,
+        surface_share: float,
         polish_steps: int,
         polish_damping: float,
         min_overlap: float,
@@ -152,6 +154,7 @@ class RenderCompareRefiner:
         self.highpass_levels = highpass_levels
         self.reference_size, self.reference_fov_scale = reference_size, reference_fov_scale
         self.final_reference_size, self.final_fov_scale = final_reference_size, final_fov_scale
+        self.surface_share = surface_share
         self.polish_steps, self.polish_damping = polish_steps, polish_damping
         self.min_overlap = min_overlap
         self.trim_sigma, self.trim_passes = trim_sigma, trim_passes
@@ -257,7 +260,9 @@ class RenderCompareRefiner:
         explains the image."""
         intrinsics, width, height = self._reference_intrinsics(level, width, fov_scale)
         with self.work.timed("render"):
-            rendering = self.scene_model.render(poses, level.scenes, intrinsics, width, height)
+            rendering = self.scene_model.render(
+                poses, level.scenes, intrinsics, width, height, self.surface_share
+            )
         self.work.rendered_rays += len(poses) * width * height
         assert rendering.depth is not None and rendering.opacity is not None
         origins, directions = camera_rays(poses, intrinsics, width, height)

@@ -61,6 +61,11 @@ class RenderCompareSettings:
     points than the compared pixels; 96: 0.87 cm at twice the time;
     experiments/render_compare_real_starts/floor.py)."""
     final_fov_scale: float = 1.05
+    surface_share: float = 0.0
+    """The references' surface points: where each ray of a volumetric scene model has
+    gathered this share of its opacity (0: the light's mean depth), so that faint fog in
+    front of a surface does not pull its points towards the camera
+    (:meth:`pae.scene_model.base.SceneModel.render`)."""
     polish_steps: int = 5
     """Levenberg–Marquardt steps on each hypothesis's image residual at every level, damped
     by ``polish_damping``."""
@@ -105,6 +110,7 @@ def check_settings(
     final_reference_size: int,
     reference_fov_scale: float,
     final_fov_scale: float,
+    surface_share: float,
     blur_sigma_px: float,
     highpass_sigma_px: float,
     contrast_sigma_px: float,
@@ -153,6 +159,8 @@ def check_settings(
             "render_compare needs reference_fov_scale and final_fov_scale > 0, not "
             f"{reference_fov_scale:g} and {final_fov_scale:g}"
         )
+    if not 0 <= surface_share < 1:
+        raise ValueError(f"render_compare needs 0 <= surface_share < 1, not {surface_share:g}")
     if min(highpass_sigma_px, blur_sigma_px, contrast_sigma_px) < 0 or polish_damping <= 0:
         raise ValueError(
             "render_compare needs blur_sigma_px, highpass_sigma_px and contrast_sigma_px >= 0 "

@@ -78,10 +78,19 @@ class SceneModel(nn.Module):
         return cls(**config), config
 
     def render(
-        self, poses: Tensor, scenes: Tensor, intrinsics: Tensor, width: int, height: int
+        self,
+        poses: Tensor,
+        scenes: Tensor,
+        intrinsics: Tensor,
+        width: int,
+        height: int,
+        surface_share: float = 0.0,
     ) -> SceneRendering:
         """Render ``B`` cameras: poses [B, 7] (camera-to-world), scene ids [B], intrinsics
-        [B, 4] (fx, fy, cx, cy in px of ``width × height`` images)."""
+        [B, 4] (fx, fy, cx, cy in px of ``width × height`` images). ``surface_share``: a model
+        whose depth is a volume's light (the voxel grid) returns, for a share in (0, 1), the
+        depth by which each ray has gathered that share of its opacity instead of the light's
+        mean depth; others ignore it."""
         raise NotImplementedError
 
     def render_rays(
@@ -123,7 +132,13 @@ class PaeDecoderSceneModel(SceneModel):
         return cls(pae.model, decoder.model), None
 
     def render(
-        self, poses: Tensor, scenes: Tensor, intrinsics: Tensor, width: int, height: int
+        self,
+        poses: Tensor,
+        scenes: Tensor,
+        intrinsics: Tensor,
+        width: int,
+        height: int,
+        surface_share: float = 0.0,
     ) -> SceneRendering:
         images = self.decoder(self.pae(poses, scenes).joint())
         if images.shape[-2:] != (height, width):

@@ -40,7 +40,13 @@ class OracleSceneModel(SceneModel):
 
     @torch.no_grad()
     def render(
-        self, poses: Tensor, scenes: Tensor, intrinsics: Tensor, width: int, height: int
+        self,
+        poses: Tensor,
+        scenes: Tensor,
+        intrinsics: Tensor,
+        width: int,
+        height: int,
+        surface_share: float = 0.0,
     ) -> SceneRendering:
         origins, directions = camera_rays(poses.double(), intrinsics.double(), width, height)
         b, pixels = origins.shape[:2]

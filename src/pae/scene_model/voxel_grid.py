@@ -175,9 +175,12 @@ class VoxelGrid(nn.Module):
         near_m: float,
         jitter: bool,
         engine: Engine = "auto",
+        surface_share: float = 0.0,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Volume rendering of rays [R, 3] -> rgb [R, 3] in [0, 1], depth [R] (along the
-        directions, in their units), opacity [R]. ``engine``
+        directions, in their units), opacity [R]. The depth is the light's mean depth, or with
+        ``surface_share`` in (0, 1) the depth of the first sample by which the ray has gathered
+        that share of its opacity. ``engine``
         (:data:`pae.core.compiled.ENGINES`): ``numba`` the compiled renderer (CPU float32
         tensors), which stops each ray once its light is spent; ``torch`` ``grid_sample`` over
         every sample (any device); ``auto`` the first where it can run."""
@@ -204,6 +207,7 @@ class VoxelGrid(nn.Module):
                 offsets,
                 geometry,
                 self.density_shift,
+                surface_share,
             )
         depth, length = self.sample_depths(rays, offsets)
         points = origins[:, None] + depth[..., None] * directions[:, None]
@@ -217,7 +221,12 @@ class VoxelGrid(nn.Module):
         opacity = weights.sum(1)
         colour = torch.sigmoid(raw[1:]).permute(1, 2, 0)  # [R, S, 3]
         rgb = (weights[..., None] * colour).sum(1) + (1 - opacity)[:, None] * background
-        surface = (weights * depth).sum(1) / opacity.clamp_min(1e-6)
+        if surface_share > 0:
+            gathered = weights.detach().cumsum(1)
+            first = (gathered < surface_share * gathered[:, -1:]).sum(1)
+            surface = depth.gather(1, first.clamp(max=samples - 1)[:, None])[:, 0]
+        else:
+            surface = (weights * depth).sum(1) / opacity.clamp_min(1e-6)
         return rgb, surface, opacity
 
     def kernel_cells(self) -> np.ndarray:
@@ -320,10 +329,16 @@ class VoxelGridSceneModel(SceneModel):
         return cls(**config), config
 
     def render_rays(
-        self, origins: Tensor, directions: Tensor, scenes: Tensor, jitter: bool = False
+        self,
+        origins: Tensor,
+        directions: Tensor,
+        scenes: Tensor,
+        jitter: bool = False,
+        surface_share: float = 0.0,
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """Rays [R, 3] of scenes [R] -> rgb [R, 3], depth [R], opacity [R]; one grid call per
-        scene present (per chunk of ``chunk_rays``)."""
+        """Rays [R, 3] of scenes [R] -> rgb [R, 3], depth [R] (``surface_share``:
+        :meth:`VoxelGrid.composite`), opacity [R]; one grid call per scene present (per chunk
+        of ``chunk_rays``)."""
         rgb = origins.new_zeros(len(origins), 3)
         depth = origins.new_zeros(len(origins))
         opacity = origins.new_zeros(len(origins))
@@ -334,7 +349,12 @@ class VoxelGridSceneModel(SceneModel):
             grid = self.grids[scene]
             parts = [
                 grid.composite(
-                    origins[chunk], directions[chunk], self.samples_per_ray, self.near_m, jitter
+                    origins[chunk],
+                    directions[chunk],
+                    self.samples_per_ray,
+                    self.near_m,
+                    jitter,
+                    surface_share=surface_share,
                 )
                 for chunk in rows.split(self.chunk_rays)
             ]
@@ -352,7 +372,13 @@ class VoxelGridSceneModel(SceneModel):
         return torch.stack([grid.total_variation() for grid in self.grids]).mean()
 
     def render(
-        self, poses: Tensor, scenes: Tensor, intrinsics: Tensor, width: int, height: int
+        self,
+        poses: Tensor,
+        scenes: Tensor,
+        intrinsics: Tensor,
+        width: int,
+        height: int,
+        surface_share: float = 0.0,
     ) -> SceneRendering:
         origins, directions = camera_rays(poses, intrinsics, width, height)
         pixels = origins.shape[1]
@@ -360,6 +386,7 @@ class VoxelGridSceneModel(SceneModel):
             origins.reshape(-1, 3),
             directions.reshape(-1, 3),
             scenes.repeat_interleave(pixels),
+            surface_share=surface_share,
         )
         b = len(poses)
         return SceneRendering(

@@ -54,8 +54,9 @@ class GridGeometry(NamedTuple):
 class March(NamedTuple):
     """What the forward and backward kernels march: the grid [nz, ny, nx, 4] in their layout
     (``channels_last``), the rays (``RaySegments`` of float64 arrays), their sample offsets
-    [R, S], the grid's ``GridGeometry``, the shift added to the raw density and the
-    background colour [3] (after its sigmoid)."""
+    [R, S], the grid's ``GridGeometry``, the shift added to the raw density, the
+    background colour [3] (after its sigmoid) and the forward pass's ``surface_share``
+    (:func:`render_forward`)."""
 
     grid: np.ndarray
     rays: RaySegments
@@ -63,6 +64,7 @@ class March(NamedTuple):
     geometry: GridGeometry
     density_shift: float
     background: np.ndarray
+    surface_share: float = 0.0
 
 
 STOP_TRANSMITTANCE = 1e-4
@@ -243,7 +245,7 @@ def _marching(march: March) -> tuple:
     their strides along x, y and z, the rays' and the grid's fields as plain tuples (which the
     parallel loops read), the largest grid coordinates (x, y, z) and the density shift, both
     float32."""
-    grid, rays, _, geometry, density_shift, _ = march
+    grid, rays, _, geometry, density_shift, _, _ = march
     nz, ny, nx = grid.shape[0], grid.shape[1], grid.shape[2]
     origins, directions, nears, leaves, fars = rays
     lo, hi, per_axis, inverse_voxel_m, contract = geometry
@@ -279,9 +281,11 @@ def _ray_steps(
 def render_forward(
     march: March, rgb: np.ndarray, surface: np.ndarray, opacity: np.ndarray, used: np.ndarray
 ) -> None:
-    """Composite the rays of ``march`` -> rgb [R, 3], surface [R] (mean depth of the light),
-    opacity [R], used [R] (samples marched)."""
-    offsets, background = march.offsets, march.background
+    """Composite the rays of ``march`` -> rgb [R, 3], surface [R], opacity [R], used [R]
+    (samples marched). The surface is the light's mean depth, or with ``march.surface_share``
+    > 0 the depth of the first sample by which the ray has gathered that share of its
+    opacity (a quantile of the light: faint fog in front of a surface moves it little)."""
+    offsets, background, share = march.offsets, march.background, march.surface_share
     cells, (sx, sy, sz), segments, where, top, shift = _marching(march)
     nears, leaves, contract = segments[2], segments[3], where[4]
     n_rays, n = offsets.shape
@@ -310,6 +314,9 @@ def render_forward(
         transmit = np.ones(BLOCK_RAYS, np.float32)
         light = np.zeros((4, BLOCK_RAYS), np.float32)  # red, green, blue, depth
         marched = np.zeros(BLOCK_RAYS, np.int64)
+        gathered = np.zeros((n, BLOCK_RAYS), np.float32)  # opacity after each sample
+        sampled_depth = np.zeros((n, BLOCK_RAYS), np.float32)
+        last = n
         for s in range(n):
             if contract:
                 for j in range(BLOCK_RAYS):
@@ -335,7 +342,10 @@ def render_forward(
                 light[3, j] += weight * depth[j]
                 transmit[j] = transmit[j] - weight
                 marched[j] += 1 if live else 0
+                gathered[s, j] = _ONE - transmit[j]
+                sampled_depth[s, j] = depth[j]
             if transmit.max() < STOP_TRANSMITTANCE:
+                last = s + 1
                 break
         for j in range(min(BLOCK_RAYS, n_rays - block * BLOCK_RAYS)):
             r = rows[j]
@@ -343,6 +353,12 @@ def render_forward(
                 rgb[r, c] = light[c, j] + transmit[j] * background[c]
             opacity[r] = 1.0 - transmit[j]
             surface[r] = light[3, j] / max(1.0 - transmit[j], 1e-6)
+            if share > 0:
+                threshold = share * (1.0 - transmit[j])
+                k = 0
+                while k < last - 1 and gathered[k, j] < threshold:
+                    k += 1
+                surface[r] = sampled_depth[k, j]
             used[r] = marched[j]
 
 
@@ -465,11 +481,12 @@ class CompiledComposite(torch.autograd.Function):
         offsets: Tensor,
         geometry: GridGeometry,
         density_shift: float,
+        surface_share: float = 0.0,
     ) -> tuple[Tensor, Tensor, Tensor]:
         bg = background.detach().double().numpy()
         ray_array = RaySegments(*(part.detach().double().contiguous().numpy() for part in rays))
         offset_array = offsets.detach().float().contiguous().numpy()
-        march = March(cells, ray_array, offset_array, geometry, density_shift, bg)
+        march = March(cells, ray_array, offset_array, geometry, density_shift, bg, surface_share)
         r = offset_array.shape[0]
         rgb = np.empty((r, 3), np.float32)
         surface, opacity = np.empty(r, np.float32), np.empty(r, np.float32)
@@ -497,4 +514,4 @@ class CompiledComposite(torch.autograd.Function):
         render_backward(march, rgb, used, g, grad_cells, grad_bg)
         grad_grid = torch.from_numpy(grad_cells.sum(0)).permute(3, 0, 1, 2)[None]
         grad_background = torch.from_numpy(grad_bg.sum(0)).to(grid.dtype)
-        return grad_grid.to(grid.dtype), None, grad_background, None, None, None, None
+        return grad_grid.to(grid.dtype), None, grad_background, None, None, None, None, None
