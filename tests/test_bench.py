@@ -310,3 +310,24 @@ def test_contention_measures_both_works_in_this_process() -> None:
     figures = measure(repeats=1)
     assert set(figures) == set(WORKS)
     assert all(f["alone_s"] > 0 and f["busy_s"] > 0 for f in figures.values())
+
+
+def test_bench_real_starts_measures_the_experiment_s_scene_model_in_a_fresh_process() -> None:
+    """The refiner against conf/experiment/real_starts.yaml's scene model: its time per query
+    here, and a child process's peak memory and time per query."""
+    from omegaconf import OmegaConf
+
+    from pae import CONFIG_DIR
+    from pae.bench.real_starts import bench_real_starts, real_starts_grid
+
+    model = OmegaConf.load(Path(CONFIG_DIR) / "experiment" / "real_starts.yaml").scene_model.model
+    grid = real_starts_grid()
+    assert grid.samples_per_ray == model.samples_per_ray
+    assert 0.9 * model.num_voxels <= grid.grids[0].grid[0, 0].numel() <= 1.1 * model.num_voxels
+    figures = bench_real_starts(queries=4, held=6)
+    prefix = "bench/render_compare_real_starts"
+    assert set(figures) == {
+        f"{prefix}/{k}" for k in ("ms_per_query", "peak_rss_mb", "child_ms_per_query")
+    }
+    assert all(value > 0 for value in figures.values())
+    assert 200 < figures[f"{prefix}/peak_rss_mb"] < 4000

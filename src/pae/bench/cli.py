@@ -7,7 +7,9 @@ Benchmarks (``--only`` picks some): synthetic (rendering speed), student (cached
 latents), refine (the MLP weight refinement), pae (PAE latency, size, Adam step), index
 (pose retrieval over the reference labels), sweep (a student sweep of fresh commands),
 deploy (what each method keeps and its time per query), render_compare (the refiner's time
-per query and its compiled paths), render_compare_scale (the scene-model step run as
+per query and its compiled paths), render_compare_real_starts (the refiner at the real-starts
+experiment's scene model and 128-px comparison: its time per query, and the peak memory of a
+process refining the largest 7-Scenes test split), render_compare_scale (the scene-model step run as
 `pae-train stage=render_compare` on a dataset of 7-Scenes' size, 26,000 train and 17,000
 test images of 640x480: its peak resident memory, fit and refinement seconds; minutes, so
 only with --only; the --scale-* options shrink it), fingerprint (the train images'
@@ -37,6 +39,7 @@ from pae.bench.fingerprint import (
     demo_train_root,
 )
 from pae.bench.methods import bench_methods
+from pae.bench.real_starts import bench_real_starts
 from pae.bench.refinement import bench_first_layer_gain, bench_index, bench_refinement
 from pae.bench.render_compare import bench_render_compare
 from pae.bench.rendering import measure_render_speed
@@ -240,6 +243,7 @@ BENCHMARKS = (
     "sweep",
     "deploy",
     "render_compare",
+    "render_compare_real_starts",
     "render_compare_scale",
     "fingerprint",
     "contention",
@@ -331,6 +335,8 @@ def main(argv: list[str] | None = None) -> int:
         figures |= bench_methods()
     if "render_compare" in chosen:
         figures |= bench_render_compare(device=args.device)
+    if "render_compare_real_starts" in chosen:
+        figures |= bench_real_starts()
     if "contention" in chosen:
         figures |= bench_contention()
     if "render_compare_scale" in chosen:

@@ -1,0 +1,101 @@
+"""Render-and-compare at the real-starts experiment's settings and 7-Scenes' size: the scene
+model of ``conf/experiment/real_starts.yaml`` (460,000 voxels, 128 samples per ray) over a
+room the size of a 7-Scenes scene's bounds, queries compared at 128 px with a 64-px final
+reference, as experiments/render_compare_real_starts/run.py refines real APRs' starts, under
+the settings its calibration chose on most 7-Scenes scenes (``CHOSEN``).
+
+``bench/render_compare_real_starts/ms_per_query``: 250 queries in the bench's process;
+``peak_rss_mb`` and ``child_ms_per_query``: a fresh process that holds the largest 7-Scenes
+test split (redkitchen's 5,000 images) at 128 px, as run.py does, and refines it in one call
+(its peak resident set, :func:`pae.bench.scale.run_measured`). The room's walls are opaque
+and its inside empty (:func:`pae.bench.render_compare.room_grid`): a fitted grid's faint fog
+makes its rays march further, so run.py's figures on fitted grids are the ones to compare
+(experiments/bench/README.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+from pae import CONFIG_DIR
+from pae.bench.render_compare import bench_queries, room_grid
+from pae.bench.scale import run_measured
+from pae.core.threads import configure_threads
+from pae.render_compare import ACCEPT_ALL, Calibration, refine
+from pae.render_compare.settings import RenderCompareSettings
+
+SIZE_PX = 128
+"""The compare width (and the query images' size) of run.py's tables."""
+LARGEST_TEST_SPLIT = 5000
+"""redkitchen's test images, the most of any 7-Scenes scene."""
+CHOSEN = {
+    "position_sigma_m": 0.3,
+    "orientation_sigma_deg": 5.0,
+    "highpass_sigma_px": 4.0,
+    "highpass_levels": 1,
+    "surface_share": 0.7,
+}
+"""First steps, filter and surface share as run.py's calibration chose them on most 7-Scenes
+scenes (each scene's ``real_starts_DFNet.json``)."""
+
+
+def real_starts_grid() -> torch.nn.Module:
+    """:func:`room_grid` with ``conf/experiment/real_starts.yaml``'s scene model."""
+    path = Path(CONFIG_DIR) / "experiment" / "real_starts.yaml"
+    model = OmegaConf.load(path).scene_model.model
+    grid = room_grid(1, num_voxels=int(model.num_voxels))
+    grid.samples_per_ray = int(model.samples_per_ray)
+    return grid.eval()
+
+
+def refine_queries(n: int) -> float:
+    """Refine ``n`` queries of :func:`bench_queries` at ``SIZE_PX`` against
+    :func:`real_starts_grid` in one call -> seconds."""
+    model = real_starts_grid()
+    images, intrinsics, starts, scenes = bench_queries(n, 1, SIZE_PX, seed=0)
+    settings = RenderCompareSettings(resolution=SIZE_PX, final_reference_size=SIZE_PX // 2)
+    calibration = Calibration(ACCEPT_ALL, ACCEPT_ALL, CHOSEN)
+    few = slice(0, 4)
+    refine(model, images[few], intrinsics[few], starts[few], scenes[few], settings, calibration)
+    begin = time.perf_counter()
+    with torch.no_grad():
+        refine(model, images, intrinsics, starts, scenes, settings, calibration)
+    return time.perf_counter() - begin
+
+
+def bench_real_starts(queries: int = 250, held: int = LARGEST_TEST_SPLIT) -> dict[str, float]:
+    """``bench/render_compare_real_starts/...`` (the module's docstring): ``queries`` refined
+    here, ``held`` in a fresh process."""
+    prefix = "bench/render_compare_real_starts"
+    figures = {f"{prefix}/ms_per_query": 1000 * refine_queries(queries) / queries}
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "child.json"
+        command = [sys.executable, "-m", "pae.bench.real_starts", str(held), str(out)]
+        measured = run_measured(command, Path(tmp) / "child.log")
+        child_s = json.loads(out.read_text())["seconds"]
+    figures[f"{prefix}/peak_rss_mb"] = measured["rss_mb"]
+    figures[f"{prefix}/child_ms_per_query"] = 1000 * child_s / held
+    return figures
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="refine N queries; their seconds to OUT")
+    parser.add_argument("queries", type=int)
+    parser.add_argument("out", type=Path)
+    args = parser.parse_args(argv)
+    configure_threads()
+    seconds = refine_queries(args.queries)
+    args.out.write_text(json.dumps({"seconds": seconds}))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
