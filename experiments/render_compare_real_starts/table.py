@@ -21,7 +21,7 @@ COLUMNS = (
     "from truth (audit) cm / deg",
     "within 5 cm, 5° start → pae",
     "accepted",
-    "filter: high-pass px / levels / contrast px (val)",
+    "filter: high-pass px / levels / contrast px; surface share (val)",
     "PSNR dB",
     "fit s",
     "ms / query",
@@ -54,13 +54,15 @@ def row(record: dict) -> list[str]:
 
 def chosen_filter(calibration: dict[str, float]) -> str:
     """The filter chosen on val: the high-pass's sigma (px) and the finest levels it applies
-    at (all: every level), or none; then the local contrast's sigma (px) where one was
-    chosen."""
+    at (all: every level), or none; then the local contrast's sigma (px) and the references'
+    surface share where one was chosen."""
     sigma = calibration.get("highpass_sigma_px", 0.0)
     contrast = calibration.get("contrast_sigma_px", 0.0)
+    share = calibration.get("surface_share", 0.0)
     levels = int(calibration.get("highpass_levels", 0))
     chosen = f"{sigma:g} / {levels or 'all'}" if sigma else "none"
-    return f"{chosen} / c {contrast:g}" if contrast else chosen
+    chosen = f"{chosen} / c {contrast:g}" if contrast else chosen
+    return f"{chosen}; s {share:g}" if share else chosen
 
 
 def mean_row(dataset: str, records: list[dict]) -> list[str]:

@@ -55,9 +55,9 @@ SURFACE_SHARES = (0.5, 0.6, 0.7, 0.8)
 """The references' surface shares (``surface_share``) that
 :func:`pae.render_compare.calibrate_any_start` tries besides the settings' own: a fitted
 volume keeps a faint fog in front of its surfaces (denser the fewer views saw a place), which
-pulls the light's mean depth towards the camera; the depth by which a ray has gathered 60-70 %
-of its opacity lies on the surface (experiments/render_compare_real_starts, "The surface
-depth")."""
+pulls the light's mean depth towards the camera; the depth by which a ray has gathered 50-80 %
+of its opacity lies on the surface, the share that serves best differing from scene to scene
+(experiments/render_compare_real_starts, "The surface depth")."""
 HIGHPASS_PX = 4.0
 """The high-pass that :func:`pae.render_compare.calibrate_any_start` tries beside the
 settings' own (``highpass_sigma_px``, px at the compare resolution), at every level and at

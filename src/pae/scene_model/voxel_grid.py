@@ -25,12 +25,8 @@ from pae.core.checks import boolean, integer, is_int, number, setting
 from pae.core.compiled import ENGINES, Engine
 from pae.core.errors import ConfigError
 from pae.scene_model.base import SceneModel, SceneModelInputs, SceneRendering
-from pae.scene_model.voxel_render import (
-    CompiledComposite,
-    GridGeometry,
-    RaySegments,
-    channels_last,
-)
+from pae.scene_model.voxel_composite import CompiledComposite, channels_last
+from pae.scene_model.voxel_render import GridGeometry, RaySegments
 from pae.scene_model.voxel_variation import CompiledTotalVariation
 
 _EPS = 1e-9

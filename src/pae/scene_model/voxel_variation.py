@@ -1,6 +1,6 @@
 """The voxel grid's total variation compiled on the CPU (numba): the mean squared difference
 of neighbouring cells along each axis in one pass forward and one backward, reading the grid
-in the kernels' layout ``[nz, ny, nx, C]`` (:func:`pae.scene_model.voxel_render.channels_last`)
+in the kernels' layout ``[nz, ny, nx, C]`` (:func:`pae.scene_model.voxel_composite.channels_last`)
 instead of a dozen tensor passes (:meth:`VoxelGrid.total_variation`'s tensor engine, tested
 equal)."""
 
