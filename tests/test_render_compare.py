@@ -996,3 +996,5 @@ def test_calibrate_keeps_the_filter_with_the_lowest_val_error() -> None:
     assert float(pose_errors(best.poses, truth)[0].mean()) == pytest.approx(errors[kept])
     with pytest.raises(ValueError, match=r"render_compare\.filters_from_val: shrink is not"):
         CalibrationOptions(filters_from_val=[{"shrink": 0.5}])
+    chosen = CalibrationOptions(filters_from_val=[{}, {"surface_share": 0.7}]).arguments()
+    assert chosen["filters"][1] == {"surface_share": 0.7}  # a filter may place the surface

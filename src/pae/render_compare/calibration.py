@@ -106,9 +106,10 @@ FILTER_KEYS = (
     "trim_sigma",
     "trim_passes",
     "blur_sigma_px",
+    "surface_share",
 )
 """The refiner settings a filter tried on val may set: how the compared images are filtered
-and scored."""
+and scored, and where the references' surface points lie."""
 
 
 @dataclasses.dataclass(frozen=True)
