@@ -132,15 +132,8 @@ def chosen_steps(run_dir: Path) -> dict[str, float]:
     if not path.is_file():
         raise SystemExit(f"{path} is missing: run run.py on this scene first (it calibrates)")
     chosen = json.loads(path.read_text())["calibration"]
-    keys = (
-        "position_sigma_m",
-        "orientation_sigma_deg",
-        "highpass_sigma_px",
-        "highpass_levels",
-        "contrast_sigma_px",
-        "surface_share",
-    )
-    return {key: chosen[key] for key in keys if key in chosen}
+    gate = ("accept_margin", "accept_score")
+    return {key: value for key, value in chosen.items() if key not in gate}
 
 
 def truth_audit(

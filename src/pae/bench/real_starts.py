@@ -51,9 +51,7 @@ def real_starts_grid() -> torch.nn.Module:
     """:func:`room_grid` with ``conf/experiment/real_starts.yaml``'s scene model."""
     path = Path(CONFIG_DIR) / "experiment" / "real_starts.yaml"
     model = OmegaConf.load(path).scene_model.model
-    grid = room_grid(1, num_voxels=int(model.num_voxels))
-    grid.samples_per_ray = int(model.samples_per_ray)
-    return grid.eval()
+    return room_grid(1, int(model.num_voxels), int(model.samples_per_ray)).eval()
 
 
 def refine_queries(n: int) -> float:

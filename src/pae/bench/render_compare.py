@@ -27,17 +27,20 @@ ROOM_HALF_M = (3.5, 3.0)
 """Half the room's width and depth (m); the room spans z in [0, 2.8] m."""
 
 
-def room_grid(scenes: int = 2, num_voxels: int | None = None) -> VoxelGridSceneModel:
+def room_grid(
+    scenes: int = 2, num_voxels: int | None = None, samples_per_ray: int | None = None
+) -> VoxelGridSceneModel:
     """The default grid (conf/scene_model/voxel_grid.yaml; ``num_voxels``: another size, per
-    scene) over bounds [-4, 4] x [-4, 4] x [-0.5, 3.3] m per scene, uncontracted, dense (raw
-    density +8) outside the room and empty (-8) inside, colours random."""
+    scene; ``samples_per_ray``: another count) over bounds [-4, 4] x [-4, 4] x [-0.5, 3.3] m
+    per scene, uncontracted, dense (raw density +8) outside the room and empty (-8) inside,
+    colours random."""
     path = Path(CONFIG_DIR) / "scene_model" / "voxel_grid.yaml"
     settings = OmegaConf.to_container(OmegaConf.load(path).model)
     model = VoxelGridSceneModel(
         [[[-4.0, -4.0, -0.5], [4.0, 4.0, 3.3]]] * scenes,
         n_appearances=1,
         num_voxels=num_voxels or settings["num_voxels"],
-        samples_per_ray=settings["samples_per_ray"],
+        samples_per_ray=samples_per_ray or settings["samples_per_ray"],
         contract=False,
         near_m=settings["near_m"],
     )
