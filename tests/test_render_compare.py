@@ -17,7 +17,7 @@ from pae import CONFIG_DIR
 from pae.core.camera import Intrinsics, camera_rays, project, resized_size
 from pae.core.geometry import pose_errors
 from pae.core.pose_sampling import perturb
-from pae.render_compare.images import band_pass, trimmed_zncc, zncc
+from pae.render_compare.images import band_pass, clip_bright, trimmed_zncc, zncc
 from pae.render_compare.refiner import RenderCompareRefiner, RenderCompareResult, gate
 from pae.scene_model.oracle import OracleSceneModel
 from pae.scene_model.voxel_grid import VoxelGrid, VoxelGridSceneModel, camera_bounds
@@ -918,6 +918,37 @@ def test_the_local_contrast_evens_out_a_vignette_that_the_high_pass_leaves() -> 
     assert torch.isfinite(flat).all() and flat.abs().max() < 1e-3  # no texture: none made up
     with pytest.raises(ValueError, match="contrast_sigma_px"):
         RenderCompareRefiner.configured(OracleSceneModel([]), contrast_sigma_px=-1.0)
+
+
+def test_clipping_the_brightest_values_keeps_a_highlight_from_steering_the_score() -> None:
+    """A bright blob added to one image of a texture (a highlight the scene model does not
+    have) lowers their correlation; clipped at the images' 70 % quantile first, the texture
+    under it correlates again. Both engines clip the query and the renderings alike."""
+    torch.manual_seed(0)
+    texture = 0.3 + 0.2 * torch.rand(1, 1, 48, 48)
+    v, u = torch.meshgrid(torch.linspace(-1, 1, 48), torch.linspace(-1, 1, 48), indexing="ij")
+    lit = texture + 2.0 * torch.exp(-((u - 0.3).square() + v.square()) / 0.08)
+
+    def score(quantile: float) -> float:
+        x = band_pass(clip_bright(texture, quantile), 0.5, 4.0).flatten(1)
+        y = band_pass(clip_bright(lit, quantile), 0.5, 4.0).flatten(1)
+        return zncc(x, y, torch.ones_like(x)).item()
+
+    assert score(0.7) > score(0.0) + 0.2
+    assert torch.equal(clip_bright(lit, 0.0), lit)
+    assert clip_bright(lit, 0.7).max() < lit.max() / 2
+    with pytest.raises(ValueError, match="highlight_quantile"):
+        RenderCompareRefiner.configured(OracleSceneModel([]), highlight_quantile=1.0)
+    model, images, intrinsics, _, start = _oracle_queries(3)
+    settings = {"rounds": 2, "candidates": 6, "resolution": 16, "highlight_quantile": 0.7}
+    scenes = torch.zeros(3, dtype=torch.long)
+    poses = [
+        RenderCompareRefiner.configured(model, engine=engine, **settings)(
+            images, intrinsics, start, scenes
+        ).poses
+        for engine in ("numba", "torch")
+    ]
+    torch.testing.assert_close(poses[0], poses[1], atol=1e-3, rtol=0)
 
 
 def test_the_package_refines_without_lightning_as_the_callback_does(tmp_path: Path) -> None:

@@ -26,9 +26,9 @@ class Calibration:
     """The gate (``accept_margin``: a ZNCC gain; ``accept_score``: a ZNCC floor), the
     search's first steps and any other refiner setting chosen on val (``steps``:
     ``position_sigma_m``, ``orientation_sigma_deg``, ``highpass_sigma_px``,
-    ``highpass_levels``, ``contrast_sigma_px``, ``surface_share``; empty: the refiner's
-    settings) and how a
-    multi-scene query's scene is decided (``scene``:
+    ``highpass_levels``, ``contrast_sigma_px``, ``surface_share`` or any other of
+    ``FILTER_KEYS``; empty: the refiner's settings) and how a multi-scene query's scene is
+    decided (``scene``:
     :class:`pae.render_compare.scene_decision.SceneRule`; by default no query is checked in
     the other scenes), applied to queries without true poses."""
 
@@ -106,6 +106,7 @@ FILTER_KEYS = (
     "trim_sigma",
     "trim_passes",
     "blur_sigma_px",
+    "highlight_quantile",
     "surface_share",
 )
 """The refiner settings a filter tried on val may set: how the compared images are filtered

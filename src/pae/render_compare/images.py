@@ -26,6 +26,15 @@ def grey(images: Tensor) -> Tensor:
     return (images * weights).sum(1, keepdim=True)
 
 
+def clip_bright(images: Tensor, quantile: float) -> Tensor:
+    """[B, C, H, W] with every value above its image's ``quantile`` (over its C·H·W values)
+    lowered to it, so that highlights and saturated patches become flat; 0: unchanged."""
+    if not quantile:
+        return images
+    ceiling = images.flatten(1).quantile(quantile, dim=1)
+    return torch.minimum(images, ceiling.view(-1, *[1] * (images.dim() - 1)))
+
+
 @contextlib.contextmanager
 def float32_arithmetic() -> Iterator[None]:
     """A context in which convolutions and matrix products keep float32 on every device: no

@@ -43,6 +43,7 @@ from pae.core.pose_sampling import perturb
 from pae.render_compare.gate import ACCEPT_ALL, GatedPoses, RenderCompareResult, gate
 from pae.render_compare.images import (
     band_pass,
+    clip_bright,
     float32_arithmetic,
     grey,
     pyramid_widths,
@@ -93,15 +94,15 @@ class RenderCompareRefiner:
     hypotheses (chains kept until the finer levels decide), position_sigma_m,
     orientation_sigma_deg (the first round's steps per axis), shrink (a chain's step factor
     after a round without improvement). Pyramid: resolution, levels, and the compared images'
-    filter (blur_sigma_px, highpass_sigma_px, contrast_sigma_px, highpass_levels:
-    :func:`band_pass`). References: reference_size, reference_fov_scale (the start's
-    rendering), final_reference_size, final_fov_scale (at the best hypothesis before the
-    finest level; 0: none), surface_share (their surface points). Polish: polish_steps,
-    polish_damping. Score: min_overlap (else ``NOT_SEEN_SCORE``), trim_sigma, trim_passes
-    (:func:`trimmed_zncc`), score (``zncc``, or ``features`` with ``features``). seed: of the
-    draws; chunk, gpu_chunk: queries refined at once (:meth:`chunk_for`); engine:
-    ``ENGINES``. What each setting means and its default: ``RenderCompareSettings``
-    (:meth:`configured`).
+    filter (highlight_quantile: :func:`clip_bright`; blur_sigma_px, highpass_sigma_px,
+    contrast_sigma_px, highpass_levels: :func:`band_pass`). References: reference_size,
+    reference_fov_scale (the start's rendering), final_reference_size, final_fov_scale (at the
+    best hypothesis before the finest level; 0: none), surface_share (their surface points).
+    Polish: polish_steps, polish_damping. Score: min_overlap (else ``NOT_SEEN_SCORE``),
+    trim_sigma, trim_passes (:func:`trimmed_zncc`), score (``zncc``, or ``features`` with
+    ``features``). seed: of the draws; chunk, gpu_chunk: queries refined at once
+    (:meth:`chunk_for`); engine: ``ENGINES``. Each setting's meaning and default:
+    ``RenderCompareSettings`` (:meth:`configured`).
     """
 
     from_run: ClassVar[tuple[str, ...]] = ("scene_model", "features")
@@ -123,6 +124,7 @@ class RenderCompareRefiner:
         blur_sigma_px: float,
         highpass_sigma_px: float,
         contrast_sigma_px: float,
+        highlight_quantile: float,
         highpass_levels: int,
         reference_size: int,
         reference_fov_scale: float,
@@ -150,13 +152,11 @@ class RenderCompareRefiner:
         self.contrast_sigma_px, self.highpass_levels = contrast_sigma_px, highpass_levels
         self.reference_size, self.reference_fov_scale = reference_size, reference_fov_scale
         self.final_reference_size, self.final_fov_scale = final_reference_size, final_fov_scale
-        self.surface_share = surface_share
+        self.surface_share, self.highlight_quantile = surface_share, highlight_quantile
         self.polish_steps, self.polish_damping = polish_steps, polish_damping
-        self.min_overlap = min_overlap
-        self.trim_sigma, self.trim_passes = trim_sigma, trim_passes
+        self.min_overlap, self.trim_sigma, self.trim_passes = min_overlap, trim_sigma, trim_passes
         self.score, self.features, self.seed = score, features, seed
-        self.chunk, self.gpu_chunk = chunk, gpu_chunk
-        self.engine = engine
+        self.chunk, self.gpu_chunk, self.engine = chunk, gpu_chunk, engine
         self.work = RenderCompareWork()
 
     @classmethod
@@ -198,6 +198,9 @@ class RenderCompareRefiner:
         shape = (self.rounds, self.hypotheses * self.candidates, 6)
         return keyed_normals(self.seed, keys, math.prod(shape)).reshape(len(keys), *shape)
 
+    def _grey(self, rgb: Tensor) -> Tensor:  # the grey images the score compares
+        return clip_bright(grey(rgb), self.highlight_quantile)
+
     def _compiled(self, device: torch.device) -> bool:
         return self.engine == "numba" or (
             self.engine == "auto" and self.score == "zncc" and device.type == "cpu"
@@ -230,7 +233,7 @@ class RenderCompareRefiner:
                 self.highpass_sigma_px * scale,
                 self.contrast_sigma_px * scale,
             )
-            target = band_pass(grey(small), *sigmas)
+            target = band_pass(self._grey(small), *sigmas)
             levels.append(Level(target, scaled, scenes, sigmas))
         return levels
 
@@ -261,7 +264,7 @@ class RenderCompareRefiner:
         assert rendering.depth is not None and rendering.opacity is not None
         origins, directions = camera_rays(poses, intrinsics, width, height)
         points = origins + rendering.depth.flatten(1)[..., None] * directions
-        image = rendering.rgb if self.score == "features" else grey(rendering.rgb)
+        image = rendering.rgb if self.score == "features" else self._grey(rendering.rgb)
         valid = (rendering.opacity.flatten(1) > 0.5).to(points.dtype)
         return Reference(points, image, valid, intrinsics[:, 0])
 
@@ -332,7 +335,7 @@ class RenderCompareRefiner:
             maps = self.features(rendering.rgb).view(b, m, c, h * w)
             target = level.target.flatten(2)[:, None]
             return F.cosine_similarity(maps, target, dim=2).mean(-1)
-        rendered = band_pass(grey(rendering.rgb), *level.sigmas).view(b, m, h * w)
+        rendered = band_pass(self._grey(rendering.rgb), *level.sigmas).view(b, m, h * w)
         target = level.target.view(b, 1, h * w).expand_as(rendered)
         return trimmed_zncc(
             target, rendered, torch.ones_like(rendered), self.trim_sigma, self.trim_passes

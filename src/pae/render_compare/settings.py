@@ -47,6 +47,11 @@ class RenderCompareSettings:
     """Divide the compared images' (band-passed) values by their local contrast within this
     sigma (px at ``resolution``, :func:`pae.render_compare.images.band_pass`) so that dim and
     bright regions weigh alike; 0: off."""
+    highlight_quantile: float = 0.0
+    """Clip each compared grey image (the query's at every level, the scene model's
+    renderings) at this quantile of its values before the band-pass, so that highlights and
+    saturated patches, which move with the light and the view, carry no texture to match;
+    0: off."""
     highpass_levels: int = 0
     """The high-pass at the finest this many levels only (the coarser, where the search
     starts, compared whole: its reach); 0: at every level."""
@@ -111,6 +116,7 @@ def check_settings(
     reference_fov_scale: float,
     final_fov_scale: float,
     surface_share: float,
+    highlight_quantile: float,
     blur_sigma_px: float,
     highpass_sigma_px: float,
     contrast_sigma_px: float,
@@ -161,6 +167,10 @@ def check_settings(
         )
     if not 0 <= surface_share < 1:
         raise ValueError(f"render_compare needs 0 <= surface_share < 1, not {surface_share:g}")
+    if not 0 <= highlight_quantile < 1:
+        raise ValueError(
+            f"render_compare needs 0 <= highlight_quantile < 1, not {highlight_quantile:g}"
+        )
     if min(highpass_sigma_px, blur_sigma_px, contrast_sigma_px) < 0 or polish_damping <= 0:
         raise ValueError(
             "render_compare needs blur_sigma_px, highpass_sigma_px and contrast_sigma_px >= 0 "
