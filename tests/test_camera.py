@@ -39,3 +39,6 @@ def test_training_rays_are_the_camera_rays_of_their_pixels() -> None:
     row, within = index // (h * w), index % (h * w)
     assert torch.allclose(batch["origins"], origins[row, within])
     assert torch.allclose(batch["directions"], directions[row, within], atol=1e-6)
+    column, line = (batch["pixels"] * torch.tensor([w - 1, h - 1])).round().long().unbind(-1)
+    assert torch.equal(line * w + column, within)  # each ray's pixel, scaled to [0, 1]
+    assert batch["pixels"].min() >= 0 and batch["pixels"].max() <= 1

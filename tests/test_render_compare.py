@@ -878,6 +878,35 @@ def test_the_appearance_codes_get_their_own_learning_rate() -> None:
     assert len(_fit_module().trainable_parameters()) == len(list(module.scene_model.parameters()))
 
 
+def test_the_appearance_field_is_a_smooth_gain_over_the_image_fitted_with_the_codes() -> None:
+    """appearance_field 3: a code's field starts at gain 1; raising the top-left node's
+    log-gain brightens the top-left pixel by that factor, the image's centre by none and
+    the ray halfway between by half of it (bilinear, in log-gain); without pixels or with
+    no field the per-channel gain and bias alone apply. The field's log-gains are part of
+    the appearance codes (their learning rate), and a field of 1 node is refused."""
+    bounds = [[[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]]
+    model = VoxelGridSceneModel(
+        bounds, 2, num_voxels=1000, samples_per_ray=8, contract=False, near_m=0.05,
+        appearance_field=3,
+    )  # fmt: skip
+    assert model.appearance.weight.shape == (2, 6 + 9)
+    rgb = torch.full((3, 3), 0.5)
+    codes = torch.tensor([1, 1, 1])
+    pixels = torch.tensor([[0.0, 0.0], [0.5, 0.5], [0.25, 0.0]])
+    torch.testing.assert_close(model.with_appearance(rgb, codes, pixels), rgb)
+    with torch.no_grad():
+        model.appearance.weight[1, 6] = math.log(2.0)  # code 1, node (row 0, column 0)
+    seen = model.with_appearance(rgb, codes, pixels)[:, 0]
+    torch.testing.assert_close(seen, torch.tensor([1.0, 0.5, 0.5 * math.sqrt(2.0)]))
+    torch.testing.assert_close(model.with_appearance(rgb, codes), rgb)
+    torch.testing.assert_close(model.with_appearance(rgb, codes * 0, pixels), rgb)
+    with pytest.raises(ValueError, match="appearance_field"):
+        VoxelGridSceneModel(
+            bounds, 2, num_voxels=1000, samples_per_ray=8, contract=False, near_m=0.05,
+            appearance_field=1,
+        )  # fmt: skip
+
+
 def test_the_band_pass_score_ignores_smooth_shading_that_plain_zncc_does_not() -> None:
     """A light fall-off across the image (a ramp ten times the texture's contrast) halves
     the plain ZNCC of an image with itself; after the band pass it stays above 0.8 (the

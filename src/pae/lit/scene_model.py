@@ -109,7 +109,7 @@ class SceneModelModule(PaeModule):
             rgb, _, _ = self.scene_model.render_rays(
                 batch["origins"], batch["directions"], batch["scene"], jitter=True
             )
-        rgb = self.scene_model.with_appearance(rgb, batch["appearance"])
+        rgb = self.scene_model.with_appearance(rgb, batch["appearance"], batch.get("pixels"))
         errors = (rgb - batch["rgb"]).square().mean(1)  # [R]
         mse = errors.mean()
         loss = mse

@@ -100,8 +100,12 @@ class SceneModel(nn.Module):
         opacity [R]; ``jitter``: random sample offsets (training)."""
         raise NotImplementedError
 
-    def with_appearance(self, rgb: Tensor, appearance: Tensor) -> Tensor:
-        """Renderings [R, 3] as the train image (or sequence) ``appearance`` [R] saw them."""
+    def with_appearance(
+        self, rgb: Tensor, appearance: Tensor, pixels: Tensor | None = None
+    ) -> Tensor:
+        """Renderings [R, 3] as the train image (or sequence) ``appearance`` [R] saw them;
+        ``pixels`` [R, 2]: where each ray meets its image, (column, row) scaled to [0, 1]
+        (None: unknown)."""
         return rgb
 
     def total_variation(self) -> Tensor:

@@ -53,8 +53,9 @@ class RayBatches(Dataset):
     read, e.g. the trainer's), drawn from a generator seeded with (``seed``, n) alone
     (:mod:`pae.core.streams`), so a batch is the same whatever ran before it: a resumed run draws
     what an uninterrupted one would, and under DDP each process its share. Each is ``{"origins":
-    [R, 3], "directions": [R, 3] (camera z = 1), "rgb": [R, 3] in [0, 1], "scene": [R],
-    "appearance": [R], "seed": int}``, ``seed`` the one for the draws rendering the batch
+    [R, 3], "directions": [R, 3] (camera z = 1), "rgb": [R, 3] in [0, 1], "pixels": [R, 2]
+    (the pixel's column and row scaled to [0, 1]), "scene": [R], "appearance": [R], "seed":
+    int}``, ``seed`` the one for the draws rendering the batch
     makes (its samples' jitter).
 
     images: uint8 [N, 3, H, W] as the dataset holds them; poses [N, 7]; intrinsics [N, 4] of
@@ -106,6 +107,7 @@ class RayBatches(Dataset):
             "origins": self.positions[row],
             "directions": torch.einsum("rij,rj->ri", self.rotations[row], local),
             "rgb": self.images[row, :, v, u].float() / 255.0,
+            "pixels": torch.stack([u / max(w - 1, 1), v / max(h - 1, 1)], -1).float(),
             "scene": self.scenes[row],
             "appearance": self.appearance[row],
             "seed": streams.derived_seed(self.seed, "render", number),

@@ -21,7 +21,7 @@ from omegaconf import DictConfig, ListConfig
 from torch import Tensor, nn
 
 from pae.core.camera import camera_rays
-from pae.core.checks import boolean, integer, is_int, number, setting
+from pae.core.checks import boolean, integer, is_int, number, present, setting
 from pae.core.compiled import ENGINES, Engine
 from pae.core.errors import ConfigError
 from pae.scene_model.base import SceneModel, SceneModelInputs, SceneRendering
@@ -259,12 +259,15 @@ class VoxelGrid(nn.Module):
 
 class VoxelGridSceneModel(SceneModel):
     """One :class:`VoxelGrid` per scene plus a per-image-sequence appearance: per-channel
-    gain (``exp``) and bias, applied to training renderings only, so that a sequence's
-    lighting does not bake into the grid.
+    gain (``exp``) and bias and, with ``appearance_field`` = G >= 2, a gain that varies
+    smoothly over the image (``exp`` of a bilinear G × G field), applied to training
+    renderings only, so that a sequence's or an image's lighting (exposure, white balance,
+    vignetting, a lamp's fall-off) does not bake into the grid.
 
     bounds: per scene [2, 3] (lo, hi) in metres; n_appearances: the train sequences over all
     scenes; num_voxels: per scene; samples_per_ray: stratified samples; near_m: the nearest
-    depth rendered (their defaults: conf/scene_model/voxel_grid.yaml). Built by the
+    depth rendered; appearance_field: G (0: none) (their defaults:
+    conf/scene_model/voxel_grid.yaml). Built by the
     scene_model step from the train cameras (:func:`train_scale`: its config's ``margin_m``,
     ``auto_scale`` and ``contract: auto``) and the train images' appearance ids.
     """
@@ -282,11 +285,16 @@ class VoxelGridSceneModel(SceneModel):
         samples_per_ray: int,
         contract: bool,
         near_m: float,
+        appearance_field: int = 0,
         chunk_rays: int = 8192,
     ) -> None:
         super().__init__()
+        if appearance_field == 1 or appearance_field < 0:
+            raise ValueError(f"appearance_field must be 0 or >= 2, not {appearance_field}")
         self.grids = nn.ModuleList(VoxelGrid(b, num_voxels, contract) for b in bounds)
-        self.appearance = nn.Embedding(max(1, n_appearances), 6)
+        self.appearance_field = appearance_field
+        # per code: log-gain [3], bias [3], then the field's G x G log-gains, row by row
+        self.appearance = nn.Embedding(max(1, n_appearances), 6 + appearance_field**2)
         nn.init.zeros_(self.appearance.weight)
         self.samples_per_ray = samples_per_ray
         self.near_m = near_m
@@ -294,10 +302,15 @@ class VoxelGridSceneModel(SceneModel):
 
     @classmethod
     def check_config(cls, cfg: DictConfig, key: str) -> None:
-        """num_voxels >= 8, samples_per_ray >= 1, contract true, false or auto, margin_m auto,
-        one number >= 0 or three, auto_scale's numbers >= 0."""
+        """num_voxels >= 8, samples_per_ray >= 1, appearance_field 0 or >= 2, contract true,
+        false or auto, margin_m auto, one number >= 0 or three, auto_scale's numbers >= 0."""
         integer(cfg, f"{key}.num_voxels", 8)
         integer(cfg, f"{key}.samples_per_ray", 1)
+        if (
+            present(cfg, f"{key}.appearance_field")
+            and integer(cfg, f"{key}.appearance_field", 0) == 1
+        ):
+            raise ConfigError(f"{key}.appearance_field must be 0 (none) or >= 2, got 1")
         number(cfg, f"{key}.near_m", 0, strict=False)
         if setting(cfg, f"{key}.contract") != "auto":
             boolean(cfg, f"{key}.contract")
@@ -359,10 +372,27 @@ class VoxelGridSceneModel(SceneModel):
             opacity = opacity.index_put((rows,), torch.cat([p[2] for p in parts]))
         return rgb, depth, opacity
 
-    def with_appearance(self, rgb: Tensor, appearance: Tensor) -> Tensor:
-        """Renderings [R, 3] as train sequence ``appearance`` [R] saw them."""
+    def with_appearance(
+        self, rgb: Tensor, appearance: Tensor, pixels: Tensor | None = None
+    ) -> Tensor:
+        """Renderings [R, 3] as train sequence (or image) ``appearance`` [R] saw them, at
+        ``pixels`` [R, 2] ((column, row) in [0, 1]; needed by the field, else ignored)."""
         code = self.appearance(appearance)
-        return rgb * code[:, :3].exp() + code[:, 3:]
+        rgb = rgb * code[:, :3].exp() + code[:, 3:6]
+        if not self.appearance_field or pixels is None:
+            return rgb
+        g = self.appearance_field
+        cell = pixels.clamp(0, 1) * (g - 1)
+        corner = cell.floor().clamp(max=g - 2)
+        t = cell - corner  # [R, 2] within the cell
+        first = (corner[:, 1] * g + corner[:, 0]).long()  # the cell's top-left node
+        nodes = torch.stack([first, first + 1, first + g, first + g + 1], 1)
+        weights = torch.stack(
+            [(1 - t[:, 0]) * (1 - t[:, 1]), t[:, 0] * (1 - t[:, 1]),
+             (1 - t[:, 0]) * t[:, 1], t[:, 0] * t[:, 1]], 1,
+        )  # fmt: skip
+        field = code[:, 6:].gather(1, nodes)
+        return rgb * (field * weights).sum(1, keepdim=True).exp()
 
     def total_variation(self) -> Tensor:
         return torch.stack([grid.total_variation() for grid in self.grids]).mean()
