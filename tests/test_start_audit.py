@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 from types import ModuleType
 
+import pytest
 import torch
 from torch import Tensor
 
@@ -50,6 +51,10 @@ def test_a_variant_reads_whole_numbers_as_counts_and_the_rest_as_floats() -> Non
     assert audit.parse_variant("") == {}
     variant = audit.parse_variant("highpass_sigma_px=4.0")
     assert isinstance(variant["highpass_sigma_px"], float)
+    with pytest.raises(ValueError, match="'candidate' is not a refiner setting"):
+        audit.parse_variant("candidate=48")
+    with pytest.raises(ValueError, match="'rounds' is not key=number"):
+        audit.parse_variant("rounds")
 
 
 def test_the_renderings_stack_the_queries_above_each_models_rendering() -> None:

@@ -51,6 +51,7 @@ from pae.core.checkpoints import load_scene_model, load_teacher
 from pae.core.geometry import pose_errors
 from pae.data.datamodule import PoseDataModule
 from pae.render_compare import refine
+from pae.render_compare.settings import refiner_defaults
 from pae.scene_model.oracle import OracleSceneModel
 
 NEAR_M, NEAR_DEG = 0.25, 3.0
@@ -108,12 +109,19 @@ def cell(poses: Tensor, truth: Tensor) -> str:
 
 
 def parse_variant(text: str) -> dict[str, Any]:
-    """``key=value,key=value`` -> settings (numbers as floats, whole ones as ints)."""
+    """``key=value,key=value`` -> settings (numbers as floats, whole ones as ints); a
+    ValueError naming the item that is not a refiner setting set to a number."""
     settings: dict[str, Any] = {}
+    known = refiner_defaults()
     for item in filter(None, text.split(",")):
-        key, _, value = item.partition("=")
-        number = float(value)
-        settings[key.strip()] = int(number) if number.is_integer() and "." not in value else number
+        key, _, value = (part.strip() for part in item.partition("="))
+        try:
+            number = float(value)
+        except ValueError:
+            raise ValueError(f"--variant {text!r}: {item!r} is not key=number") from None
+        if key not in known:
+            raise ValueError(f"--variant {text!r}: {key!r} is not a refiner setting")
+        settings[key] = int(number) if number.is_integer() and "." not in value else number
     return settings
 
 
@@ -123,6 +131,10 @@ def main() -> None:
     parser.add_argument("--variant", action="append", default=[], help="key=value,...")
     parser.add_argument("--pictures", type=int, default=12, help="val queries rendered")
     args = parser.parse_args()
+    try:
+        variants = {"the run's settings": {}} | {v: parse_variant(v) for v in args.variant}
+    except ValueError as error:
+        parser.error(str(error))
     run = read_run(args.run)
     data = data_module(run, cache_images=False)
     data.setup()
@@ -144,7 +156,6 @@ def main() -> None:
         "scene model": load_scene_model(scene_model_path(run), "scene_model_ckpt").model,
         "oracle": OracleSceneModel(oracle_scenes(data)),
     }
-    variants = {"the run's settings": {}} | {v: parse_variant(v) for v in args.variant}
     columns = [f"{m}, from {s}" for m in models for s in starts]
     print(f"\n| variant | {' | '.join(columns)} |\n|---|{'---|' * len(columns)}")
     for label, variant in variants.items():
