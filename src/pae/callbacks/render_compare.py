@@ -14,11 +14,13 @@ import lightning as L
 import torch
 from torch import Tensor
 
+from pae.core.errors import ConfigError
 from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
 from pae.render_compare import Calibration, CalibrationOptions, Refinement, calibrate, refine
 from pae.render_compare.calibration import teacher_features
 from pae.render_compare.queries import refinement_figures, write_queries
 from pae.render_compare.refiner import ACCEPT_ALL, RenderCompareRefiner, refiner_defaults
+from pae.render_compare.sequences import SequenceOptions
 from pae.scene_model.base import SceneModel
 from pae.scene_model.oracle import OracleSceneModel
 
@@ -42,7 +44,11 @@ class RenderCompareCallback(L.Callback):
     settings replacing the defaults; the gate's options: :class:`CalibrationOptions`;
     ``feature_layers``: modules of the teacher backbone that make the features of
     ``refiner.score=features``; ``init``, ``init_axes``: another APR's starts file
-    (:class:`pae.callbacks.render_compare_init.RenderCompareFromFile`)."""
+    (:class:`pae.callbacks.render_compare_init.RenderCompareFromFile`);
+    ``sequence_passes``, ``sequence_window``, ``sequence_scene_vote``: how the refinement
+    uses each query's sequence
+    in the data (:class:`pae.render_compare.sequences.SequenceOptions`; 0: each query on
+    its own)."""
 
     def __init__(
         self,
@@ -57,6 +63,10 @@ class RenderCompareCallback(L.Callback):
         filters_from_val: list[dict[str, float]] | None = None,
         init: str | None = None,
         init_axes: str = "pae",
+        sequence_passes: int = 0,
+        sequence_window: int = 0,
+        sequence_scene_vote: bool = False,
+        gate_objective: str = "mean",
     ) -> None:
         super().__init__()
         settings = refiner.keywords if isinstance(refiner, functools.partial) else refiner
@@ -64,8 +74,14 @@ class RenderCompareCallback(L.Callback):
         self.oracle, self.every_n_val_epochs = oracle, max(1, every_n_val_epochs)
         self.feature_layers, self.init, self.init_axes = feature_layers, init, init_axes
         self.options = CalibrationOptions(
-            accept_margin, accept_score, step_from_val, scene_check_below, filters_from_val
+            accept_margin,
+            accept_score,
+            step_from_val,
+            scene_check_below,
+            filters_from_val,
+            gate_objective,
         )
+        self.sequence = SequenceOptions(sequence_passes, sequence_window, sequence_scene_vote)
         self.calibrations: dict[str, Calibration] = {}  # method -> the last chosen on val
         self.refined: dict[str, dict[str, Tensor]] = {}  # split -> method -> poses kept
         self.refinements: dict[str, dict[str, Refinement]] = {}  # split -> method -> the last
@@ -106,10 +122,16 @@ class RenderCompareCallback(L.Callback):
             models[ORACLE] = OracleSceneModel(scenes)
         truth, estimate = outputs[EVAL.pose].float(), outputs[EVAL.estimate].float()
         scene, predicted = outputs[EVAL.scene], outputs[EVAL.scene_estimate]
-        decided = predicted if EVAL.scene_poses in outputs else None
+        voted = self.sequence.vote_scene
+        decided = predicted if EVAL.scene_poses in outputs or voted else None
         queries = (outputs[EVAL.image], outputs[EVAL.intrinsics], estimate)
         common = {"settings": self.settings, "features": self.features(pl_module.teacher)}
         common |= {key: outputs.get(key) for key in (EVAL.scene_poses, EVAL.scene_logits)}
+        if self.sequence.active:
+            common |= {
+                "sequences": query_sequences(trainer.datamodule, split, outputs[EVAL.index]),
+                "sequence": self.sequence,
+            }
         figures: dict[str, Tensor] = {}
         self.refined[split] = {"teacher": estimate}
         self.refinements[split] = {}
@@ -141,6 +163,18 @@ class RenderCompareCallback(L.Callback):
         steps = self.calibration(HONEST if HONEST in models else ORACLE).steps
         figures |= {f"{split}/{HONEST}/{key}": torch.tensor(v) for key, v in steps.items()}
         pl_module.log_dict(figures)
+
+
+def query_sequences(data: Any, split: str, rows: Tensor) -> Tensor:
+    """The sequence [B] of each of ``split``'s queries at ``rows`` [B] of the data module's
+    split (its label rows: each sequence's frames in order)."""
+    sequences = getattr(data, "appearance_ids", None)
+    if sequences is None:
+        raise ConfigError(
+            f"render_compare.sequence_passes / sequence_window: the data module "
+            f"{type(data).__name__} does not say which sequence each query belongs to"
+        )
+    return sequences(split, "sequence")[0].to(rows.device)[rows]
 
 
 def oracle_scenes(data: Any) -> list[Any] | None:

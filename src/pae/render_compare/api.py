@@ -39,6 +39,12 @@ from pae.render_compare.scene_decision import (
     sharpness,
     try_scenes,
 )
+from pae.render_compare.sequences import (
+    SequenceOptions,
+    median_filter,
+    propagate,
+    vote_scenes,
+)
 from pae.render_compare.settings import RenderCompareSettings
 from pae.scene_model.base import SceneModel
 
@@ -79,11 +85,14 @@ def _check(
     scenes: Tensor,
     scene_poses: Tensor | None,
     scene_logits: Tensor | None = None,
+    sequences: Tensor | None = None,
 ) -> None:
     n = check_shape(images, "images", "B 3 H W")["B"]
     check_shape(intrinsics, "intrinsics", f"{n} 4")
     check_shape(starts, "starts", f"{n} 7")
     check_shape(scenes, "scenes", f"{n}")
+    if sequences is not None:
+        check_shape(sequences, "sequences", f"{n}")
     if scene_poses is not None:
         spec = f"{n} S 7" if scene_poses.dim() == 3 else f"{n} S K 7"
         s = check_shape(scene_poses, "scene_poses", spec)["S"]
@@ -93,6 +102,48 @@ def _check(
 
 def _log_prior(scene_logits: Tensor | None) -> Tensor | None:
     return None if scene_logits is None else scene_logits.float().log_softmax(-1)
+
+
+def _voted(
+    scenes: Tensor,
+    starts: Tensor,
+    scene_poses: Tensor | None,
+    sequences: Tensor | None,
+    options: SequenceOptions | None,
+) -> tuple[Tensor, Tensor]:
+    """Scenes [B] voted by sequence where the options say so, and the starts [B, 7] in them:
+    the multi-scene APR's pose for a query's new scene (its first start there)."""
+    if sequences is None or options is None or not options.vote_scene:
+        return scenes, starts
+    voted = vote_scenes(scenes, sequences)
+    if scene_poses is None:
+        return voted, starts
+    rows = torch.arange(len(voted), device=voted.device)
+    there = scene_poses[rows, voted]
+    there = there[:, 0] if there.dim() == 3 else there
+    return voted, torch.where((voted != scenes)[:, None], there.to(starts), starts)
+
+
+def _propagated(
+    refiner: RenderCompareRefiner,
+    images: Tensor,
+    intrinsics: Tensor,
+    scenes: Tensor,
+    result: RenderCompareResult,
+    sequences: Tensor | None,
+    options: SequenceOptions | None,
+) -> RenderCompareResult:
+    if sequences is None or options is None or not options.passes:
+        return result
+    return propagate(refiner, images, intrinsics, scenes, result, sequences, options.passes)
+
+
+def _filtered(
+    poses: Tensor, scenes: Tensor, sequences: Tensor | None, options: SequenceOptions | None
+) -> Tensor:
+    if sequences is None or options is None:
+        return poses
+    return median_filter(poses, sequences, scenes, options.window)
 
 
 def _refine_in_scenes(
@@ -127,6 +178,8 @@ def refine(
     features: FeatureExtractor | None = None,
     scene_poses: Tensor | None = None,
     scene_logits: Tensor | None = None,
+    sequences: Tensor | None = None,
+    sequence: SequenceOptions | None = None,
 ) -> Refinement:
     """Refine starts [B, 7] (camera-to-world, unit quaternions) of query images [B, 3, H, W]
     (RGB in [0, 1]) with intrinsics [B, 4] (fx, fy, cx, cy in px at the images' size) in
@@ -138,16 +191,21 @@ def refine(
     :mod:`pae.render_compare.scene_starts`) and its scene logits ``scene_logits`` [B, S] (the
     prior),
     the calibration's scene rule decides each query's scene
-    (:mod:`pae.render_compare.scene_decision`)."""
-    _check(images, intrinsics, starts, scenes, scene_poses, scene_logits)
+    (:mod:`pae.render_compare.scene_decision`). With each query's sequence ``sequences``
+    [B] (rows in frame order within each), ``sequence`` says how the refinement uses them
+    (:mod:`pae.render_compare.sequences`; default: it does not)."""
+    _check(images, intrinsics, starts, scenes, scene_poses, scene_logits, sequences)
+    scenes, starts = _voted(scenes, starts, scene_poses, sequences, sequence)
     calibration = calibration or Calibration()
     refiner = build_refiner(scene_model, settings, calibration.steps, features)
     result, decided, checked = _refine_in_scenes(
         refiner, images, intrinsics, starts, scenes, scene_poses, scene_logits,
         calibration.scene,
     )  # fmt: skip
+    result = _propagated(refiner, images, intrinsics, decided, result, sequences, sequence)
     gated = gate(result, starts, calibration.accept_margin, calibration.accept_score)
-    return Refinement(gated.poses, gated.accepted, result, decided, checked)
+    poses = _filtered(gated.poses, decided, sequences, sequence)
+    return Refinement(poses, gated.accepted, result, decided, checked)
 
 
 def calibrate(
@@ -167,6 +225,9 @@ def calibrate(
     scene_check_below: float | None = None,
     scene_logits: Tensor | None = None,
     filters: Sequence[Mapping[str, float]] | None = None,
+    sequences: Tensor | None = None,
+    sequence: SequenceOptions | None = None,
+    gate_objective: str = "mean",
 ) -> tuple[Calibration, Refinement]:
     """The calibration chosen on validation queries (as :func:`refine`'s arguments, with
     their true poses ``truth`` [B, 7]): with ``filters`` (refiner settings of
@@ -178,15 +239,23 @@ def calibrate(
     accuracy against ``true_scenes`` [B]
     (:func:`pae.render_compare.scene_decision.choose_scene_rule`; its check floor
     ``scene_check_below`` chosen where None, else kept); then the gate's margin and floor
-    that minimise the mean position error (None: chosen, :func:`choose_gate`; a number:
-    kept) -> the calibration and the validation queries' refinement under it."""
-    _check(images, intrinsics, starts, scenes, scene_poses, scene_logits)
+    that minimise the ``gate_objective`` (:func:`choose_gate`: the mean position error by
+    default; None: chosen; a number: kept) -> the calibration and the validation queries'
+    refinement under it. With ``sequences`` and ``sequence`` (as :func:`refine`'s), the
+    filter is chosen on the queries refined each on its own (the sequences multiply the
+    refiner's work), and the gate on the refinement that uses the sequences."""
+    _check(images, intrinsics, starts, scenes, scene_poses, scene_logits, sequences)
     check_shape(truth, "truth", f"{len(starts)} 7")
     if filters is not None and len(filters) > 1:
         arguments = dict(locals())  # every argument as given
-        tried = [calibrate(**arguments | {"filters": [chosen]}) for chosen in filters]
+        alone = {"sequences": None, "sequence": None}
+        tried = [calibrate(**arguments | alone | {"filters": [chosen]}) for chosen in filters]
         errors = [pose_errors(r.poses.float(), truth.float())[0].mean() for _, r in tried]
-        return tried[min(range(len(tried)), key=lambda i: float(errors[i]))]
+        best = min(range(len(tried)), key=lambda i: float(errors[i]))
+        if sequences is None or sequence is None or not sequence.active:
+            return tried[best]
+        return calibrate(**arguments | {"filters": [filters[best]]})
+    scenes, starts = _voted(scenes, starts, scene_poses, sequences, sequence)
     steps = {} if step_fractions is None else steps_from_errors(starts, truth, step_fractions)
     steps |= dict(filters[0]) if filters else {}
     refiner = build_refiner(scene_model, settings, steps, features)
@@ -206,6 +275,7 @@ def calibrate(
         keep = (first.score < rule.check_below).nonzero().flatten()
         decision = apply(first, scenes, keep, trials.rows(keep), prior, rule)
         result, decided, checked = decision.result, decision.scene, decision.checked
+    result = _propagated(refiner, images, intrinsics, decided, result, sequences, sequence)
     refined_pos, _ = pose_errors(result.poses.float(), truth.float())
     start_pos, _ = pose_errors(starts.float(), truth.float())
     margin, floor = choose_gate(
@@ -215,10 +285,12 @@ def calibrate(
         start_pos,
         margin=accept_margin,
         floor=accept_score,
+        objective=gate_objective,
     )
     calibration = Calibration(margin, floor, steps, rule)
     gated = gate(result, starts, margin, floor)
-    return calibration, Refinement(gated.poses, gated.accepted, result, decided, checked)
+    poses = _filtered(gated.poses, decided, sequences, sequence)
+    return calibration, Refinement(poses, gated.accepted, result, decided, checked)
 
 
 def calibrate_any_start(

@@ -135,6 +135,10 @@ class CalibrationOptions:
       (``{}``: the refiner's own; e.g. ``{"highpass_sigma_px": 4, "trim_sigma": 2.5}``);
       the one with the lowest mean val position error after the gate is kept. None: the
       refiner's own only.
+    - ``gate_objective``: what the automatic margin and floor minimise over the val queries
+      (:func:`choose_gate`): ``mean`` their mean position error, ``log_ratio`` the mean log
+      of each query's error over its start's (a few refinements that fly metres off then
+      weigh no more than a few that halve their start's error).
     """
 
     accept_margin: float | str = AUTO
@@ -142,8 +146,14 @@ class CalibrationOptions:
     step_from_val: Mapping[str, float] | None = None
     scene_check_below: float | str = AUTO
     filters_from_val: Sequence[Mapping[str, float]] | None = None
+    gate_objective: str = "mean"
 
     def __post_init__(self) -> None:
+        if self.gate_objective not in OBJECTIVES:
+            raise ValueError(
+                f"render_compare.gate_objective: unknown {self.gate_objective!r}; choose one "
+                f"of {list(OBJECTIVES)}"
+            )
         for key in ("accept_margin", "accept_score", "scene_check_below"):
             _number_or_auto(key, getattr(self, key))
         steps = self.step_from_val
@@ -174,6 +184,7 @@ class CalibrationOptions:
             "accept_score": self.fixed("accept_score"),
             "scene_check_below": self.fixed("scene_check_below"),
             "filters": self.filters_from_val,
+            "gate_objective": self.gate_objective,
         }
 
     def uncalibrated(self) -> Calibration:

@@ -1,0 +1,199 @@
+"""Render-and-compare over query sequences: neighbours along a sequence, the propagation of
+refined poses from frame to frame, the median filter and the scene vote."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from pae.core.errors import ConfigError
+from pae.core.geometry import pose_errors
+from pae.core.pose_sampling import perturb
+from pae.render_compare import refine
+from pae.render_compare.refiner import RenderCompareRefiner
+from pae.render_compare.sequences import (
+    SequenceOptions,
+    median_filter,
+    neighbour_rows,
+    propagate,
+    vote_scenes,
+)
+from pae.scene_model.oracle import OracleSceneModel
+from pae.synthetic import (
+    Appearance,
+    PinholeCamera,
+    SyntheticSettings,
+    make_scene,
+    make_sequences,
+    render_batch,
+)
+from tests.test_render_compare import _oracle_queries
+
+SMALL_SEARCH = {"rounds": 2, "candidates": 6, "resolution": 24, "reference_size": 16}
+
+
+def _walk(n: int) -> torch.Tensor:
+    """Poses [n, 7] 0.1 m apart along x, all facing the same way."""
+    poses = torch.zeros(n, 7)
+    poses[:, 0] = 0.1 * torch.arange(n)
+    poses[:, 3] = 1.0
+    return poses
+
+
+def test_neighbours_follow_each_sequence_in_row_order_and_stay_in_its_scene() -> None:
+    sequences = torch.tensor([5, 5, 7, 5, 7])
+    scenes = torch.zeros(5, dtype=torch.long)
+    assert neighbour_rows(sequences, scenes, 1).tolist() == [1, 3, 4, -1, -1]
+    assert neighbour_rows(sequences, scenes, -1).tolist() == [-1, 0, -1, 1, 2]
+    assert neighbour_rows(sequences, scenes, 2).tolist() == [3, -1, -1, -1, -1]
+    moved = torch.tensor([0, 1, 0, 0, 0])  # row 1 refined in another scene: nobody's neighbour
+    assert neighbour_rows(sequences, moved, 1).tolist() == [-1, -1, 4, -1, -1]
+
+
+def test_the_scene_vote_gives_each_sequence_its_most_common_scene() -> None:
+    scenes = torch.tensor([0, 0, 1, 1, 1, 0, 2])
+    sequences = torch.tensor([3, 3, 3, 8, 8, 8, 9])
+    assert vote_scenes(scenes, sequences).tolist() == [0, 0, 0, 1, 1, 1, 2]
+
+
+def test_the_median_filter_puts_a_lone_outlier_back_on_the_walk() -> None:
+    walk = _walk(9)
+    poses = walk.clone()
+    poses[4, :3] += torch.tensor([1.5, -2.0, 0.7])
+    poses[4, 3:] = torch.tensor([0.8, 0.6, 0.0, 0.0])  # 74 degrees off
+    sequences = torch.zeros(9, dtype=torch.long)
+    scenes = torch.zeros(9, dtype=torch.long)
+    filtered = median_filter(poses, sequences, scenes, 5)
+    position, orientation = pose_errors(filtered, walk)
+    assert float(position[4]) < 0.11 and float(orientation[4]) < 1e-3
+    torch.testing.assert_close(filtered[[0, 1, 7, 8]], walk[[0, 1, 7, 8]])
+    stacked = median_filter(torch.stack([poses, walk]), sequences, scenes, 5)
+    torch.testing.assert_close(stacked[0], filtered)  # leading dimensions filter alike
+    assert median_filter(poses, sequences, scenes, 1) is poses
+
+
+def _consecutive_frames(n: int) -> tuple[OracleSceneModel, torch.Tensor, ...]:
+    """n consecutive frames of benchmark scene 0's last walk (48 px, about 0.09 m and 5.5
+    degrees apart), their intrinsics and true poses."""
+    scene, camera = make_scene(0), PinholeCamera(48)
+    walks = make_sequences(0, scene, SyntheticSettings(train_frames=6, test_frames=120))
+    poses = walks[-1].poses[:n]
+    images = render_batch(scene, poses, camera, Appearance(), supersample=1)
+    f, c = camera.focal_px, camera.principal_point
+    return (
+        OracleSceneModel([scene]),
+        torch.from_numpy(images).float().div(255).permute(0, 3, 1, 2),
+        torch.tensor([f, f, c, c]).expand(n, 4),
+        torch.from_numpy(poses).float(),
+    )
+
+
+def test_propagation_finds_a_frame_from_its_neighbours_that_its_own_start_missed() -> None:
+    """One frame's start is 0.9 m and about 17 degrees off, beyond a small search's reach;
+    its neighbours start near the truth, and the passes refine it from their refined poses."""
+    model, images, intrinsics, truth = _consecutive_frames(6)
+    starts = perturb(truth, torch.tensor([0.02, 0.0, 0.0, 0.0, 0.01, 0.0]).expand(6, 6))
+    starts[3] = perturb(truth[3:4], torch.tensor([[0.6, -0.6, 0.3, 0.2, 0.2, 0.1]]))[0]
+    scenes = torch.zeros(6, dtype=torch.long)
+    sequences = torch.zeros(6, dtype=torch.long)
+    refiner = RenderCompareRefiner.configured(model, **SMALL_SEARCH)
+    alone = refiner(images, intrinsics, starts, scenes)
+    assert float(pose_errors(alone.poses, truth)[0][3]) > 0.5
+    found = propagate(refiner, images, intrinsics, scenes, alone, sequences, passes=2)
+    position, _ = pose_errors(found.poses, truth)
+    assert float(position[3]) < 0.15
+    assert bool((found.score >= alone.score).all())  # a pose is only ever replaced by a better
+    torch.testing.assert_close(found.initial_score, alone.initial_score)
+    apart = propagate(refiner, images, intrinsics, scenes, alone, torch.arange(6), passes=2)
+    torch.testing.assert_close(apart.poses, alone.poses)  # no neighbours: nothing moves
+
+
+def test_refine_uses_the_sequences_only_when_asked() -> None:
+    model, images, intrinsics, _, start = _oracle_queries(4)
+    scenes = torch.zeros(4, dtype=torch.long)
+    sequences = torch.zeros(4, dtype=torch.long)
+    plain = refine(model, images, intrinsics, start, scenes, SMALL_SEARCH)
+    same = refine(
+        model, images, intrinsics, start, scenes, SMALL_SEARCH, sequences=sequences,
+        sequence=SequenceOptions(),
+    )  # fmt: skip
+    torch.testing.assert_close(same.poses, plain.poses)
+    filtered = refine(
+        model, images, intrinsics, start, scenes, SMALL_SEARCH, sequences=sequences,
+        sequence=SequenceOptions(window=3),
+    )  # fmt: skip
+    expected = median_filter(plain.poses, sequences, scenes, 3)
+    torch.testing.assert_close(filtered.poses, expected)
+    with pytest.raises(ValueError, match=r"sequences must be \[4\], got \[3\]"):
+        refine(model, images, intrinsics, start, scenes, sequences=sequences[:3])
+
+
+def test_sequence_options_name_a_bad_value() -> None:
+    with pytest.raises(ValueError, match="sequence_window must be 0 or odd, not 4"):
+        SequenceOptions(window=4)
+    with pytest.raises(ValueError, match="sequence_passes must be >= 0, not -1"):
+        SequenceOptions(passes=-1)
+    assert not SequenceOptions(window=1).active and SequenceOptions(vote_scene=True).active
+
+
+def test_the_callback_refuses_sequences_from_data_that_has_none() -> None:
+    from pae.callbacks.render_compare import query_sequences
+
+    class Frames:
+        pass
+
+    with pytest.raises(ConfigError, match="data module Frames does not say which sequence"):
+        query_sequences(Frames(), "test", torch.arange(3))
+
+
+def test_the_gate_objective_is_a_calibration_option() -> None:
+    from pae.render_compare import CalibrationOptions
+
+    with pytest.raises(ValueError, match="gate_objective: unknown 'median'"):
+        CalibrationOptions(gate_objective="median")
+    chosen = CalibrationOptions(gate_objective="log_ratio").arguments()
+    assert chosen["gate_objective"] == "log_ratio"
+
+
+def test_the_vote_refines_a_sequence_in_the_scene_most_of_its_starts_are_in() -> None:
+    model, images, intrinsics, _, start = _oracle_queries(4)
+    predicted = torch.tensor([0, 1, 0, 0])  # the oracle holds scene 0 only
+    voted = refine(
+        model, images, intrinsics, start, predicted, SMALL_SEARCH,
+        sequences=torch.zeros(4, dtype=torch.long), sequence=SequenceOptions(vote_scene=True),
+    )  # fmt: skip
+    assert voted.scenes.tolist() == [0, 0, 0, 0]
+
+
+def test_the_callback_passes_each_querys_sequence_from_the_data(tmp_path: Path) -> None:
+    """The callback's test refinement under the sequence options is refine()'s with the
+    sequences the data module gives and the calibration chosen on val."""
+    from types import SimpleNamespace
+
+    from pae.callbacks.render_compare import ORACLE, RenderCompareCallback
+    from tests.test_render_compare import _fake_run
+
+    model, images, intrinsics, truth = _consecutive_frames(6)
+    start = perturb(truth, torch.tensor([0.1, 0.0, 0.05, 0.0, 0.03, 0.0]).expand(6, 6))
+    sequences = torch.tensor([0, 0, 0, 1, 1, 1])
+    callback = RenderCompareCallback(
+        SMALL_SEARCH, oracle=False, sequence_passes=2, sequence_window=3,
+        gate_objective="log_ratio",
+    )  # fmt: skip
+    for split in ("val", "test"):
+        trainer, module = _fake_run(model, images, intrinsics, start, truth, str(tmp_path))
+        trainer.datamodule = SimpleNamespace(appearance_ids=lambda split, per: (sequences, 2))
+        callback.refine(trainer, module, split)
+    expected = refine(
+        model, images, intrinsics, start, torch.zeros(6, dtype=torch.long),
+        callback.settings, callback.calibration(ORACLE), sequences=sequences,
+        sequence=SequenceOptions(2, 3),
+    )  # fmt: skip
+    torch.testing.assert_close(callback.refined["test"][ORACLE], expected.poses)
+    plain = refine(
+        model, images, intrinsics, start, torch.zeros(6, dtype=torch.long), callback.settings,
+        callback.calibration(ORACLE),
+    )  # fmt: skip
+    assert not torch.equal(plain.poses, expected.poses)
