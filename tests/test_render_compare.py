@@ -635,8 +635,8 @@ def test_render_compare_step_logs_its_rows_and_marks_the_oracle(
 
 
 def test_the_oracle_needs_synthetic_data(tiny_root: Path) -> None:
-    from pae.callbacks.render_compare import oracle_scenes
     from pae.data.datamodule import PoseDataModule
+    from pae.lit.eval_outputs import oracle_scenes
 
     plain = PoseDataModule(
         str(tiny_root),

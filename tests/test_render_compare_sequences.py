@@ -139,13 +139,14 @@ def test_sequence_options_name_a_bad_value() -> None:
 
 
 def test_the_callback_refuses_sequences_from_data_that_has_none() -> None:
-    from pae.callbacks.render_compare import query_sequences
+    from pae.lit.eval_outputs import sequence_arguments
 
     class Frames:
         pass
 
+    assert sequence_arguments(SequenceOptions(), Frames(), "test", torch.arange(3)) == {}
     with pytest.raises(ConfigError, match="data module Frames does not say which sequence"):
-        query_sequences(Frames(), "test", torch.arange(3))
+        sequence_arguments(SequenceOptions(passes=1), Frames(), "test", torch.arange(3))
 
 
 def test_the_gate_objective_is_a_calibration_option() -> None:

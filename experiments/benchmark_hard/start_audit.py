@@ -45,11 +45,11 @@ from pae.apps.localization import (
     scene_model_path,
     split_queries,
 )
-from pae.callbacks.render_compare import oracle_scenes
 from pae.core.atomic import atomic_write
 from pae.core.checkpoints import load_scene_model, load_teacher
 from pae.core.geometry import pose_errors
 from pae.data.datamodule import PoseDataModule
+from pae.lit.eval_outputs import oracle_scenes
 from pae.render_compare import refine
 from pae.render_compare.settings import refiner_defaults
 from pae.scene_model.oracle import OracleSceneModel

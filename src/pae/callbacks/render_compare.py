@@ -1,6 +1,5 @@
-"""Render-and-compare refinement as a Lightning callback for scene-model runs: an adapter
-that calls :func:`pae.render_compare.calibrate` on validation and
-:func:`pae.render_compare.refine` at test, and logs their figures."""
+"""Render-and-compare as a Lightning callback for scene-model runs: an adapter that calls
+:func:`pae.render_compare.calibrate` on validation and ``refine`` at test, and logs."""
 
 from __future__ import annotations
 
@@ -14,8 +13,13 @@ import lightning as L
 import torch
 from torch import Tensor
 
-from pae.core.errors import ConfigError
-from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
+from pae.lit.eval_outputs import (
+    EVAL,
+    SceneModelEvaluation,
+    collect_outputs,
+    oracle_scenes,
+    sequence_arguments,
+)
 from pae.render_compare import Calibration, CalibrationOptions, Refinement, calibrate, refine
 from pae.render_compare.calibration import teacher_features
 from pae.render_compare.queries import refinement_figures, write_queries
@@ -29,26 +33,20 @@ ORACLE = "render_compare_oracle"
 
 
 class RenderCompareCallback(L.Callback):
-    """Refines every evaluated query of a module with a scene model
-    (:class:`pae.lit.eval_outputs.SceneModelEvaluation`) from the teacher's estimate, after
-    every ``every_n_val_epochs``-th validation (:func:`pae.render_compare.calibrate`: the
-    gate, first steps and scene check chosen there, :class:`CalibrationOptions`) and every
-    test (:func:`pae.render_compare.refine` under the last calibration). It logs
+    """Refines every evaluated query of a module with a scene model (``SceneModelEvaluation``)
+    from the teacher's estimate, after every ``every_n_val_epochs``-th validation (``calibrate``:
+    the gate, first steps and scene check chosen there, :class:`CalibrationOptions`) and
+    every test (``refine`` under the last calibration). It logs
     ``{split}/render_compare/...`` (the scene model learned from the train images) and, with
     ``oracle`` on data that knows its scenes (or an oracle scene model alone),
     ``{split}/render_compare_oracle/...`` (the benchmark's own renderer, a bound); the gate's
     figures (:func:`refinement_figures`; each split's refinements kept in ``refinements``),
     ``bench/<method>/ms_per_query`` at test and ``queries_{split}_{method}.csv``.
-
     ``refiner``: the partial Hydra makes of ``render_compare.refiner`` or a mapping of
     settings replacing the defaults; the gate's options: :class:`CalibrationOptions`;
-    ``feature_layers``: modules of the teacher backbone that make the features of
-    ``refiner.score=features``; ``init``, ``init_axes``: another APR's starts file
-    (:class:`pae.callbacks.render_compare_init.RenderCompareFromFile`);
-    ``sequence_passes``, ``sequence_window``, ``sequence_scene_vote``: how the refinement
-    uses each query's sequence
-    in the data (:class:`pae.render_compare.sequences.SequenceOptions`; 0: each query on
-    its own)."""
+    ``feature_layers``: the teacher backbone's modules that make ``score=features``'s;
+    ``init``, ``init_axes``: another APR's starts file (``RenderCompareFromFile``);
+    ``sequence_*``: :class:`pae.render_compare.sequences.SequenceOptions`."""
 
     def __init__(
         self,
@@ -73,14 +71,8 @@ class RenderCompareCallback(L.Callback):
         self.settings = refiner_defaults() | dict(settings or {})
         self.oracle, self.every_n_val_epochs = oracle, max(1, every_n_val_epochs)
         self.feature_layers, self.init, self.init_axes = feature_layers, init, init_axes
-        self.options = CalibrationOptions(
-            accept_margin,
-            accept_score,
-            step_from_val,
-            scene_check_below,
-            filters_from_val,
-            gate_objective,
-        )
+        on_val = (accept_margin, accept_score, step_from_val, scene_check_below, filters_from_val)
+        self.options = CalibrationOptions(*on_val, gate_objective)
         self.sequence = SequenceOptions(sequence_passes, sequence_window, sequence_scene_vote)
         self.calibrations: dict[str, Calibration] = {}  # method -> the last chosen on val
         self.refined: dict[str, dict[str, Tensor]] = {}  # split -> method -> poses kept
@@ -98,9 +90,8 @@ class RenderCompareCallback(L.Callback):
 
     def features(self, teacher: torch.nn.Module | None) -> Any:
         """The teacher's features where the refiner scores features, else None."""
-        if self.settings["score"] != "features":
-            return None
-        return teacher_features(teacher, self.feature_layers)
+        scored = self.settings["score"] == "features"
+        return teacher_features(teacher, self.feature_layers) if scored else None
 
     def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: SceneModelEvaluation) -> None:
         self._val_runs += 1
@@ -122,19 +113,13 @@ class RenderCompareCallback(L.Callback):
             models[ORACLE] = OracleSceneModel(scenes)
         truth, estimate = outputs[EVAL.pose].float(), outputs[EVAL.estimate].float()
         scene, predicted = outputs[EVAL.scene], outputs[EVAL.scene_estimate]
-        voted = self.sequence.vote_scene
-        decided = predicted if EVAL.scene_poses in outputs or voted else None
+        decided = predicted if EVAL.scene_poses in outputs or self.sequence.vote_scene else None
         queries = (outputs[EVAL.image], outputs[EVAL.intrinsics], estimate)
         common = {"settings": self.settings, "features": self.features(pl_module.teacher)}
         common |= {key: outputs.get(key) for key in (EVAL.scene_poses, EVAL.scene_logits)}
-        if self.sequence.active:
-            common |= {
-                "sequences": query_sequences(trainer.datamodule, split, outputs[EVAL.index]),
-                "sequence": self.sequence,
-            }
+        common |= sequence_arguments(self.sequence, trainer.datamodule, split, outputs[EVAL.index])
         figures: dict[str, Tensor] = {}
-        self.refined[split] = {"teacher": estimate}
-        self.refinements[split] = {}
+        self.refined[split], self.refinements[split] = {"teacher": estimate}, {}
         for name, model in models.items():
             start = time.perf_counter()
             if split == "val":
@@ -163,22 +148,3 @@ class RenderCompareCallback(L.Callback):
         steps = self.calibration(HONEST if HONEST in models else ORACLE).steps
         figures |= {f"{split}/{HONEST}/{key}": torch.tensor(v) for key, v in steps.items()}
         pl_module.log_dict(figures)
-
-
-def query_sequences(data: Any, split: str, rows: Tensor) -> Tensor:
-    """The sequence [B] of each of ``split``'s queries at ``rows`` [B] of the data module's
-    split (its label rows: each sequence's frames in order)."""
-    sequences = getattr(data, "appearance_ids", None)
-    if sequences is None:
-        raise ConfigError(
-            f"render_compare.sequence_passes / sequence_window: the data module "
-            f"{type(data).__name__} does not say which sequence each query belongs to"
-        )
-    return sequences(split, "sequence")[0].to(rows.device)[rows]
-
-
-def oracle_scenes(data: Any) -> list[Any] | None:
-    """The true scenes of a data module that knows them (the synthetic benchmark), else None."""
-    source = getattr(data, "images", data)
-    scenes = getattr(source, "oracle_scenes", None)
-    return scenes() if callable(scenes) else None

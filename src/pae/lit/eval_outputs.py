@@ -12,8 +12,10 @@ import lightning as L
 import torch
 from torch import Tensor
 
+from pae.core.errors import ConfigError
 from pae.core.heap import release_free_heap
 from pae.core.metrics import first_occurrences
+from pae.render_compare.sequences import SequenceOptions
 from pae.scene_model.base import SceneModel
 
 
@@ -119,3 +121,29 @@ def collect_outputs(
         module.eval_outputs = [outputs]
         release_free_heap()
     return dict(outputs)
+
+
+def oracle_scenes(data: Any) -> list[Any] | None:
+    """The true scenes of a data module that knows them (the synthetic benchmark), else None."""
+    source = getattr(data, "images", data)
+    scenes = getattr(source, "oracle_scenes", None)
+    return scenes() if callable(scenes) else None
+
+
+def sequence_arguments(
+    options: SequenceOptions, data: Any, split: str, rows: Tensor
+) -> dict[str, Any]:
+    """What :func:`pae.render_compare.refine` and ``calibrate`` take of the queries' sequences
+    under ``options`` (none where inactive): the sequence [B] of each of ``split``'s queries
+    at ``rows`` [B] of the data module's split (its label rows: each sequence's frames in
+    order) and the options."""
+    if not options.active:
+        return {}
+    sequences = getattr(data, "appearance_ids", None)
+    if sequences is None:
+        raise ConfigError(
+            f"render_compare.sequence_*: the data module {type(data).__name__} does not say "
+            "which sequence each query belongs to"
+        )
+    ids = sequences(split, "sequence")[0].to(rows.device)[rows]
+    return {"sequences": ids, "sequence": options}
