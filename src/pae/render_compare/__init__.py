@@ -5,7 +5,9 @@ callable without a Trainer:
 - :func:`calibrate`: the gate, the search's first steps and the scene decision chosen on
   validation queries with their true poses, for :func:`refine` to apply at test;
 - :func:`calibrate_any_start`: the same for another APR's starts, whose error scale is
-  unknown: chosen on validation starts at every scale.
+  unknown: chosen on validation starts at every scale;
+- with the queries' sequences (``sequences=``), :class:`SequenceOptions` say how both use
+  the frame order of the walks (:mod:`pae.render_compare.sequences`).
 
 The refiner itself is :class:`pae.render_compare.refiner.RenderCompareRefiner`, its settings
 :class:`pae.render_compare.settings.RenderCompareSettings`."""
@@ -21,6 +23,7 @@ from pae.render_compare.api import (
 )
 from pae.render_compare.calibration import Calibration, CalibrationOptions
 from pae.render_compare.gate import ACCEPT_ALL, RenderCompareResult
+from pae.render_compare.sequences import SequenceOptions
 from pae.render_compare.settings import RenderCompareSettings
 
 __all__ = [
@@ -30,6 +33,7 @@ __all__ = [
     "Refinement",
     "RenderCompareResult",
     "RenderCompareSettings",
+    "SequenceOptions",
     "build_refiner",
     "calibrate",
     "calibrate_any_start",
