@@ -50,6 +50,7 @@ FILTER_NAMES = {
     "highpass_sigma_px": "high-pass",
     "contrast_sigma_px": "contrast",
     "trim_sigma": "trim",
+    "highlight_quantile": "clip",
 }
 """The filter settings a run logs when val chose them, and their names in the table."""
 
