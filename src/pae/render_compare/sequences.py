@@ -1,11 +1,13 @@
-"""Render-and-compare over query sequences: the frames of one walk lie close together (a
-tenth of a metre apart on the synthetic benchmark, a few centimetres in 7-Scenes), so a frame
-that its APR's start left outside the search's reach can be found from its neighbours'
-refined poses, and a frame that alone lands off the walk stands out from those around it.
+"""Render-and-compare over query sequences. The frames of one walk lie close together (a
+tenth of a metre apart on the synthetic benchmark, about a centimetre in 7-Scenes' test label
+files, 0.4-0.8 m on Cambridge's streets): a frame that its APR's start left outside the
+search's reach can be found from its neighbours' refined poses (:func:`propagate`), a frame
+that alone lands off the walk stands out from those around it (:func:`median_filter`), and a
+recording never leaves its scene (:func:`vote_scenes`).
 
-Neither reads a label: only which sequence each query belongs to (``sequences`` [B], any
-integer ids) and, within a sequence, the order of its frames, which is their row order (label
-and estimates files list each sequence's frames in order). Per-image refiners (NeFeS, the
+None reads a pose: only which sequence each query belongs to (``sequences`` [B], any integer
+ids) and, within a sequence, the order of its frames, which is their row order (label and
+estimates files list each sequence's frames in order). Per-image refiners (NeFeS, this
 refiner without these options) use neither."""
 
 from __future__ import annotations
