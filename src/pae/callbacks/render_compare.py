@@ -44,7 +44,7 @@ class RenderCompareCallback(L.Callback):
     ``bench/<method>/ms_per_query`` at test and ``queries_{split}_{method}.csv``.
     ``refiner``: the partial Hydra makes of ``render_compare.refiner`` or a mapping of
     settings replacing the defaults; the gate's options: :class:`CalibrationOptions`;
-    ``feature_layers``: the teacher backbone's modules that make ``score=features``'s;
+    ``feature_layers``: the teacher backbone's modules behind ``refiner.score=features``;
     ``init``, ``init_axes``: another APR's starts file (``RenderCompareFromFile``);
     ``sequence_*``: :class:`pae.render_compare.sequences.SequenceOptions`."""
 

@@ -87,11 +87,12 @@ def propagate(
 ) -> RenderCompareResult:
     """``result`` (of queries images [B, 3, H, W], intrinsics [B, 4] in scenes [B]) after up to
     ``passes`` propagation passes: each query whose previous or next frame changed pose in the
-    pass before is refined from that frame's pose, and the refined pose replaces its own where
-    it scores higher (scores at the finest level, each against a rendering at its own pose).
-    Stops early when a pass changes nothing. Every refinement of a pass runs as one batch;
-    its draws are keyed by the query's row, the pass and the side (the batch changes no
-    result). ``initial_score`` stays the start's."""
+    pass before is refined from that frame's pose as it stands, and the refined pose replaces
+    its own where it scores higher (scores at the finest level, each against a rendering at
+    its own pose). Stops early when a pass changes nothing. A pass refines the queries started
+    from their previous frames as one batch, then those started from their next frames; the
+    draws are keyed by the query's row, the pass and the side (the batch changes no result).
+    ``initial_score`` stays the start's."""
     n = len(scenes)
     device = result.poses.device
     sides = [neighbour_rows(sequences, scenes, offset) for offset in (-1, 1)]
