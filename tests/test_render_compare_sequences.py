@@ -128,6 +128,8 @@ def test_refine_uses_the_sequences_only_when_asked() -> None:
     torch.testing.assert_close(filtered.poses, expected)
     with pytest.raises(ValueError, match=r"sequences must be \[4\], got \[3\]"):
         refine(model, images, intrinsics, start, scenes, sequences=sequences[:3])
+    with pytest.raises(ValueError, match="no sequences were given"):
+        refine(model, images, intrinsics, start, scenes, sequence=SequenceOptions(window=3))
 
 
 def test_sequence_options_name_a_bad_value() -> None:

@@ -52,9 +52,11 @@ Settings = RenderCompareSettings | Mapping[str, Any] | None
 
 
 class Refinement(NamedTuple):
-    """poses [B, 7]: refined where the gate accepted, else the start; accepted [B] bool;
-    result: the refiner's output before the gate (poses, scores) in the decided scenes;
-    scenes [B]: the decided scene (the given one unless the scene decision moved it);
+    """poses [B, 7]: refined where the gate accepted, else the start (with a sequence window:
+    then each the median over its frames); accepted [B] bool; result: the refiner's output
+    before the gate (poses, scores) in the decided scenes, after any sequence passes;
+    scenes [B]: the decided scene (the given one unless the scene decision or the sequence
+    vote moved it);
     checked [B] bool: queries also refined in the other scenes."""
 
     poses: Tensor
@@ -86,7 +88,13 @@ def _check(
     scene_poses: Tensor | None,
     scene_logits: Tensor | None = None,
     sequences: Tensor | None = None,
+    sequence: SequenceOptions | None = None,
 ) -> None:
+    if sequences is None and sequence is not None and sequence.active:
+        raise ValueError(
+            f"render_compare: {sequence} uses the queries' sequences, but no sequences "
+            "were given (sequences=: an id per query, each sequence's frames in row order)"
+        )
     n = check_shape(images, "images", "B 3 H W")["B"]
     check_shape(intrinsics, "intrinsics", f"{n} 4")
     check_shape(starts, "starts", f"{n} 7")
@@ -194,7 +202,7 @@ def refine(
     (:mod:`pae.render_compare.scene_decision`). With each query's sequence ``sequences``
     [B] (rows in frame order within each), ``sequence`` says how the refinement uses them
     (:mod:`pae.render_compare.sequences`; default: it does not)."""
-    _check(images, intrinsics, starts, scenes, scene_poses, scene_logits, sequences)
+    _check(images, intrinsics, starts, scenes, scene_poses, scene_logits, sequences, sequence)
     scenes, starts = _voted(scenes, starts, scene_poses, sequences, sequence)
     calibration = calibration or Calibration()
     refiner = build_refiner(scene_model, settings, calibration.steps, features)
@@ -244,7 +252,7 @@ def calibrate(
     refinement under it. With ``sequences`` and ``sequence`` (as :func:`refine`'s), the
     filter is chosen on the queries refined each on its own (the sequences multiply the
     refiner's work), and the gate on the refinement that uses the sequences."""
-    _check(images, intrinsics, starts, scenes, scene_poses, scene_logits, sequences)
+    _check(images, intrinsics, starts, scenes, scene_poses, scene_logits, sequences, sequence)
     check_shape(truth, "truth", f"{len(starts)} 7")
     if filters is not None and len(filters) > 1:
         arguments = dict(locals())  # every argument as given
