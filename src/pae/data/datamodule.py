@@ -16,7 +16,7 @@ from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 from torch import Tensor
 from torch.utils.data import DataLoader
 
-from pae.core.camera import Intrinsics, resized_size
+from pae.core.camera import Intrinsics, resized_size, scale_intrinsics
 from pae.core.errors import ConfigError, LabelError
 from pae.core.run_context import current_run
 from pae.core.threads import loader_workers
@@ -256,6 +256,21 @@ class PoseDataModule(L.LightningDataModule):
             vectors[:, 0] = focal * (seen.fx / self.camera.fx)
             vectors[:, 1] = focal * (seen.fy / self.camera.fy)
         return vectors.float()
+
+    def images_at(self, split: str, width: int) -> tuple[Tensor, Tensor]:
+        """The split's images resized (not cropped) to ``width`` px wide, uint8 [N, 3, H, W],
+        and their intrinsics [N, 4] (px at that size), in the split's order: what a
+        correspondence stage detects keypoints on (``pae.render_compare.correspondences``)."""
+        dataset = self.datasets[split]
+        height, stored_width = dataset.image_size or (self.camera.height, self.camera.width)
+        shorter = round(width * min(height, stored_width) / stored_width)
+        sized = PoseDataset(dataset.table, self.root, self.scene_names, shorter, cache=True)
+        images = sized.images if len(sized) else torch.zeros(0, 3, shorter, width)
+        assert images is not None
+        own = self.intrinsics(split, crop=False)
+        h, w = resized_size(stored_width, height, self.shorter_edge)[::-1]
+        scale_x, scale_y = images.shape[-1] / w, images.shape[-2] / h
+        return images, scale_intrinsics(own, scale_x, scale_y)
 
     def appearance_ids(self, split: str = "train", per: str = "sequence") -> tuple[Tensor, int]:
         """Index [N] of each row's appearance among the split's, and their count: what a

@@ -26,8 +26,10 @@ from pae.render_compare.calibration import (
     Calibration,
     choose_gate,
     ladder_starts,
+    objective_value,
     steps_from_errors,
 )
+from pae.render_compare.correspondences import MatchQueries, MatchSettings, correspond
 from pae.render_compare.gate import ACCEPT_ALL, RenderCompareResult, gate
 from pae.render_compare.refiner import FeatureExtractor, RenderCompareRefiner
 from pae.render_compare.scene_decision import (
@@ -57,13 +59,17 @@ class Refinement(NamedTuple):
     before the gate (poses, scores) in the decided scenes, after any sequence passes;
     scenes [B]: the decided scene (the given one unless the scene decision or the sequence
     vote moved it);
-    checked [B] bool: queries also refined in the other scenes."""
+    checked [B] bool: queries also refined in the other scenes; matched [B] bool: queries
+    whose correspondences gave a pose (:mod:`pae.render_compare.correspondences`), None where
+    the stage did not run; from_match [B] bool: those whose kept refinement started there."""
 
     poses: Tensor
     accepted: Tensor
     result: RenderCompareResult
     scenes: Tensor
     checked: Tensor
+    matched: Tensor | None = None
+    from_match: Tensor | None = None
 
 
 def build_refiner(
@@ -106,6 +112,12 @@ def _check(
         s = check_shape(scene_poses, "scene_poses", spec)["S"]
         if scene_logits is not None:
             check_shape(scene_logits, "scene_logits", f"{n} {s}")
+
+
+def _check_matching(matching: MatchQueries | None, n: int) -> None:
+    if matching is not None:
+        check_shape(matching.images, "matching.images", f"{n} 3 H W")
+        check_shape(matching.intrinsics, "matching.intrinsics", f"{n} 4")
 
 
 def _log_prior(scene_logits: Tensor | None) -> Tensor | None:
@@ -175,6 +187,46 @@ def _refine_in_scenes(
     return decision.result, decision.scene, decision.checked
 
 
+class _Matched(NamedTuple):
+    result: RenderCompareResult
+    matched: Tensor | None
+    from_match: Tensor | None
+
+
+def _with_correspondences(
+    refiner: RenderCompareRefiner,
+    images: Tensor,
+    intrinsics: Tensor,
+    starts: Tensor,
+    scenes: Tensor,
+    decided: Tensor,
+    result: RenderCompareResult,
+    match: MatchSettings,
+    matching: MatchQueries | None,
+) -> _Matched:
+    """The refinement from the APR's starts, or where it scores lower, the refinement from
+    the pose the correspondences give (queries whose scene the decision kept)."""
+    if not match.active or matching is None:
+        return _Matched(result, None, None)
+    match = dataclasses.replace(match, surface_share=refiner.surface_share)
+    found = correspond(
+        refiner.scene_model, matching.images, matching.intrinsics, starts, scenes, match,
+        matching.views(refiner.scene_model, match), matching.describe,
+    )  # fmt: skip
+    rows = (found.found & (decided == scenes)).nonzero().flatten()
+    from_match = torch.zeros_like(found.found)
+    if not len(rows):
+        return _Matched(result, found.found, from_match)
+    second = refiner(images[rows], intrinsics[rows], found.poses[rows], decided[rows])
+    better = second.score > result.score[rows]
+    from_match[rows] = better
+    poses, score = result.poses.clone(), result.score.clone()
+    poses[rows] = torch.where(better[:, None], second.poses.to(poses), poses[rows])
+    score[rows] = torch.where(better, second.score.to(score), score[rows])
+    merged = RenderCompareResult(poses, score, result.initial_score)
+    return _Matched(merged, found.found, from_match)
+
+
 def refine(
     scene_model: SceneModel,
     images: Tensor,
@@ -188,6 +240,7 @@ def refine(
     scene_logits: Tensor | None = None,
     sequences: Tensor | None = None,
     sequence: SequenceOptions | None = None,
+    matching: MatchQueries | None = None,
 ) -> Refinement:
     """Refine starts [B, 7] (camera-to-world, unit quaternions) of query images [B, 3, H, W]
     (RGB in [0, 1]) with intrinsics [B, 4] (fx, fy, cx, cy in px at the images' size) in
@@ -201,8 +254,12 @@ def refine(
     the calibration's scene rule decides each query's scene
     (:mod:`pae.render_compare.scene_decision`). With each query's sequence ``sequences``
     [B] (rows in frame order within each), ``sequence`` says how the refinement uses them
-    (:mod:`pae.render_compare.sequences`; default: it does not)."""
+    (:mod:`pae.render_compare.sequences`; default: it does not). With the queries at their
+    match width ``matching`` (:class:`MatchQueries`), the calibration's correspondence stage
+    (``calibration.match``) gives each query a second start, refined too; the better-scoring
+    refinement is kept (:mod:`pae.render_compare.correspondences`)."""
     _check(images, intrinsics, starts, scenes, scene_poses, scene_logits, sequences, sequence)
+    _check_matching(matching, len(starts))
     scenes, starts = _voted(scenes, starts, scene_poses, sequences, sequence)
     calibration = calibration or Calibration()
     refiner = build_refiner(scene_model, settings, calibration.steps, features)
@@ -210,10 +267,15 @@ def refine(
         refiner, images, intrinsics, starts, scenes, scene_poses, scene_logits,
         calibration.scene,
     )  # fmt: skip
-    result = _propagated(refiner, images, intrinsics, decided, result, sequences, sequence)
+    matched = _with_correspondences(
+        refiner, images, intrinsics, starts, scenes, decided, result, calibration.match, matching
+    )
+    result = _propagated(refiner, images, intrinsics, decided, matched.result, sequences, sequence)
     gated = gate(result, starts, calibration.accept_margin, calibration.accept_score)
     poses = _filtered(gated.poses, decided, sequences, sequence)
-    return Refinement(poses, gated.accepted, result, decided, checked)
+    return Refinement(
+        poses, gated.accepted, result, decided, checked, matched.matched, matched.from_match
+    )
 
 
 def calibrate(
@@ -236,6 +298,8 @@ def calibrate(
     sequences: Tensor | None = None,
     sequence: SequenceOptions | None = None,
     gate_objective: str = "mean",
+    matching: MatchQueries | None = None,
+    matches: Sequence[Mapping[str, Any]] | None = None,
 ) -> tuple[Calibration, Refinement]:
     """The calibration chosen on validation queries (as :func:`refine`'s arguments, with
     their true poses ``truth`` [B, 7]): with ``filters`` (refiner settings of
@@ -251,18 +315,37 @@ def calibrate(
     default; None: chosen; a number: kept) -> the calibration and the validation queries'
     refinement under it. With ``sequences`` and ``sequence`` (as :func:`refine`'s), the
     filter is chosen on the queries refined each on its own (the sequences multiply the
-    refiner's work), and the gate on the refinement that uses the sequences."""
+    refiner's work), and the gate on the refinement that uses the sequences. With
+    ``matching`` (as :func:`refine`'s) and ``matches`` (correspondence stages, each a mapping
+    of :class:`MatchSettings`; ``{}``: none), each is tried with the chosen filter and the one
+    whose gated refinement minimises the ``gate_objective`` is kept in the calibration's
+    ``match``."""
     _check(images, intrinsics, starts, scenes, scene_poses, scene_logits, sequences, sequence)
     check_shape(truth, "truth", f"{len(starts)} 7")
+    _check_matching(matching, len(starts))
+    by_sequence = sequences is not None and sequence is not None and sequence.active
+    chooses_match = matching is not None and matches is not None and len(matches) > 1
     if filters is not None and len(filters) > 1:
         arguments = dict(locals())  # every argument as given
-        alone = {"sequences": None, "sequence": None}
+        alone = {"sequences": None, "sequence": None, "matches": None}
         tried = [calibrate(**arguments | alone | {"filters": [chosen]}) for chosen in filters]
         errors = [pose_errors(r.poses.float(), truth.float())[0].mean() for _, r in tried]
         best = min(range(len(tried)), key=lambda i: float(errors[i]))
-        if sequences is None or sequence is None or not sequence.active:
+        if not by_sequence and not chooses_match:
             return tried[best]
         return calibrate(**arguments | {"filters": [filters[best]]})
+    if chooses_match:
+        arguments = dict(locals())
+        alone = {"sequences": None, "sequence": None}
+        tried = [calibrate(**arguments | alone | {"matches": [chosen]}) for chosen in matches]
+        values = [
+            objective_value(r.poses, starts, truth, gate_objective) for _, r in tried
+        ]
+        best = min(range(len(tried)), key=lambda i: values[i])
+        if not by_sequence:
+            return tried[best]
+        return calibrate(**arguments | {"matches": [matches[best]]})
+    match = MatchSettings(**(matches[0] if matches else {}))
     scenes, starts = _voted(scenes, starts, scene_poses, sequences, sequence)
     steps = {} if step_fractions is None else steps_from_errors(starts, truth, step_fractions)
     steps |= dict(filters[0]) if filters else {}
@@ -283,7 +366,10 @@ def calibrate(
         keep = (first.score < rule.check_below).nonzero().flatten()
         decision = apply(first, scenes, keep, trials.rows(keep), prior, rule)
         result, decided, checked = decision.result, decision.scene, decision.checked
-    result = _propagated(refiner, images, intrinsics, decided, result, sequences, sequence)
+    matched = _with_correspondences(
+        refiner, images, intrinsics, starts, scenes, decided, result, match, matching
+    )
+    result = _propagated(refiner, images, intrinsics, decided, matched.result, sequences, sequence)
     refined_pos, _ = pose_errors(result.poses.float(), truth.float())
     start_pos, _ = pose_errors(starts.float(), truth.float())
     margin, floor = choose_gate(
@@ -295,10 +381,13 @@ def calibrate(
         floor=accept_score,
         objective=gate_objective,
     )
-    calibration = Calibration(margin, floor, steps, rule)
+    calibration = Calibration(margin, floor, steps, rule, match)
     gated = gate(result, starts, margin, floor)
     poses = _filtered(gated.poses, decided, sequences, sequence)
-    return calibration, Refinement(poses, gated.accepted, result, decided, checked)
+    refinement = Refinement(
+        poses, gated.accepted, result, decided, checked, matched.matched, matched.from_match
+    )
+    return calibration, refinement
 
 
 def calibrate_any_start(

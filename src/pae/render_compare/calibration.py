@@ -13,6 +13,7 @@ from torch import Tensor
 from pae.core.geometry import pose_errors
 from pae.core.pose_sampling import perturb_poses
 from pae.data.transforms import ImageTransform
+from pae.render_compare.correspondences import MatchSettings
 from pae.render_compare.gate import ACCEPT_ALL
 from pae.render_compare.scene_decision import SceneRule
 
@@ -30,12 +31,15 @@ class Calibration:
     ``FILTER_KEYS``; empty: the refiner's settings) and how a multi-scene query's scene is
     decided (``scene``:
     :class:`pae.render_compare.scene_decision.SceneRule`; by default no query is checked in
-    the other scenes), applied to queries without true poses."""
+    the other scenes) and the correspondence stage (``match``:
+    :class:`pae.render_compare.correspondences.MatchSettings`; by default off), applied to
+    queries without true poses."""
 
     accept_margin: float = 0.0
     accept_score: float = ACCEPT_ALL
     steps: Mapping[str, float] = dataclasses.field(default_factory=dict)
     scene: SceneRule = dataclasses.field(default_factory=SceneRule)
+    match: MatchSettings = dataclasses.field(default_factory=MatchSettings)
 
 
 KEEP_ALL = 4.0
@@ -135,6 +139,10 @@ class CalibrationOptions:
       (``{}``: the refiner's own; e.g. ``{"highpass_sigma_px": 4, "trim_sigma": 2.5}``);
       the one with the lowest mean val position error after the gate is kept. None: the
       refiner's own only.
+    - ``matches_from_val``: correspondence stages to try on val with the chosen filter, each
+      a mapping of :class:`pae.render_compare.correspondences.MatchSettings` (``{}``: none);
+      the one whose gated refinement minimises the ``gate_objective`` is kept (a single one:
+      used without validation too). None: none.
     - ``gate_objective``: what the automatic margin and floor minimise over the val queries
       (:func:`choose_gate`): ``mean`` their mean position error, ``log_ratio`` the mean log
       of each query's error over its start's (a few refinements that fly metres off then
@@ -147,6 +155,7 @@ class CalibrationOptions:
     scene_check_below: float | str = AUTO
     filters_from_val: Sequence[Mapping[str, float]] | None = None
     gate_objective: str = "mean"
+    matches_from_val: Sequence[Mapping[str, Any]] | None = None
 
     def __post_init__(self) -> None:
         if self.gate_objective not in OBJECTIVES:
@@ -171,6 +180,15 @@ class CalibrationOptions:
                     f"render_compare.filters_from_val: {unknown[0]} is not a filter setting; "
                     f"choose among {list(FILTER_KEYS)}"
                 )
+        for chosen in self.matches_from_val or ():
+            known = {field.name for field in dataclasses.fields(MatchSettings)}
+            unknown = sorted(set(chosen) - known)
+            if unknown:
+                raise ValueError(
+                    f"render_compare.matches_from_val: {unknown[0]} is not a match setting; "
+                    f"choose among {sorted(known)}"
+                )
+            MatchSettings(**chosen)
 
     def fixed(self, key: str) -> float | None:
         """The option ``key`` as a number, None where it is ``auto``."""
@@ -185,6 +203,7 @@ class CalibrationOptions:
             "scene_check_below": self.fixed("scene_check_below"),
             "filters": self.filters_from_val,
             "gate_objective": self.gate_objective,
+            "matches": self.matches_from_val,
         }
 
     def uncalibrated(self) -> Calibration:
@@ -193,12 +212,25 @@ class CalibrationOptions:
         score decides, without prior or margin)."""
         margin, floor = self.fixed("accept_margin"), self.fixed("accept_score")
         below = self.fixed("scene_check_below")
+        matches = self.matches_from_val or ()
         return Calibration(
             0.0 if margin is None else margin,
             ACCEPT_ALL if floor is None else floor,
             {},
             SceneRule(ACCEPT_ALL if below is None else below),
+            MatchSettings(**matches[0]) if len(matches) == 1 else MatchSettings(),
         )
+
+
+def objective_value(poses: Tensor, starts: Tensor, truth: Tensor, objective: str) -> float:
+    """The calibration's ``objective`` over refined poses [N, 7] from starts [N, 7] with true
+    poses [N, 7]: ``mean`` the mean position error (m), ``log_ratio`` the mean log of each
+    query's position error over its start's."""
+    refined, _ = pose_errors(poses.float(), truth.float())
+    if objective == "mean":
+        return float(refined.mean())
+    start, _ = pose_errors(starts.float(), truth.float())
+    return float(((refined + RATIO_EPS_M) / (start + RATIO_EPS_M)).log().mean())
 
 
 def choose_gate(
