@@ -37,6 +37,10 @@ FOCAL_RATIO_TOLERANCE = 1e-3
 """Largest relative difference of ``fx`` and ``fy`` written as one focal length (their mean)."""
 PRINCIPAL_POINT_TOLERANCE_PX = 1.0
 """Largest distance (px) of an image's principal point from the scene's (the median)."""
+CORNER_CENTRE_PX = 0.5
+"""Where COLMAP and the ACE layout put the centre of the top-left pixel (``(0.5, 0.5)``: a
+pixel's corner at integer coordinates); pae puts it at ``(0, 0)`` (:mod:`pae.core.camera`),
+so their principal point minus this is pae's (an image's centre ``W/2`` -> ``(W - 1)/2``)."""
 
 
 @dataclass(frozen=True)
