@@ -25,13 +25,17 @@ the labels hold whichever the converted folder holds.
 from __future__ import annotations
 
 import os
-import re
 from pathlib import Path
 
 import numpy as np
 
 from pae.core.errors import LabelError
-from pae.data.converted import CORNER_CENTRE_PX, SceneFrames, unequal_focal_lengths
+from pae.data.converted import (
+    CORNER_CENTRE_PX,
+    NAMED_SEQUENCE,
+    SceneFrames,
+    unequal_focal_lengths,
+)
 from pae.data.holdout import natural_key
 from pae.data.raw import parse_numbers, rigid_problem
 
@@ -39,7 +43,6 @@ __all__ = ["IMAGE_SUFFIXES", "read_ace_scene"]
 
 SPLITS = ("train", "test")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
-_SEQUENCE = re.compile(r"(.+?)[-_]frame[-_]?\d+", re.IGNORECASE)
 
 
 def _frame_key(path: Path, inner: str) -> str:
@@ -139,7 +142,7 @@ def read_ace_scene(root: str | os.PathLike[str]) -> SceneFrames:
     for split, rows in frames.items():
         for name, image, pose_file, calibration_file in rows:
             img_path.append(image.relative_to(root).as_posix())
-            match = _SEQUENCE.fullmatch(name)
+            match = NAMED_SEQUENCE.fullmatch(name)
             seq.append(match.group(1) if match else "")
             split_of.append(split)
             matrices.append(_pose(pose_file))
