@@ -33,7 +33,8 @@ def benchmark_scene(tiny_root: Path, scene: str = "scene00") -> dict[str, LabelT
 
 def write_ace_scene(tiny_root: Path, root: Path) -> dict[str, LabelTable]:
     """scene00 of the tiny benchmark in the ACE layout: train calibrations one focal length,
-    test ones a 3×3 matrix (principal point at the image centre as ACE places it)."""
+    test ones a 3×3 matrix (principal point at the image centre in ACE's pixel convention,
+    ``SIZE / 2``: the top-left pixel's centre at (0.5, 0.5))."""
     tables = benchmark_scene(tiny_root)
     for split, table in tables.items():
         rotations = quaternion_to_matrix(torch.from_numpy(table.poses[:, 3:])).numpy()
@@ -62,7 +63,7 @@ def test_ace_layout_of_the_benchmark_converts_to_its_poses_and_focal_length(
     (root / "train" / "depth").mkdir()
     assert main(["convert", "ace", str(root), str(root / "labels")]) == 0
     printed = capsys.readouterr().out
-    assert "cx: 16, cy: 16, width: 32, height: 32}" in printed
+    assert "cx: 15.5, cy: 15.5, width: 32, height: 32}" in printed  # CENTRE: pae's convention
     assert f"data.root={root} 'data.camera=" in printed  # OUT_DIR is ROOT/labels: no label paths
     for split, original in tables.items():
         converted = read_labels(root / "labels" / f"7scenes_scene00_{split}.csv")

@@ -19,6 +19,9 @@ from pae.data_cli import main
 from tests.test_convert_ace import CENTRE, FOCAL, SIZE, benchmark_scene
 
 MODEL_IDS = {name: model_id for model_id, (name, _) in CAMERA_MODELS.items()}
+COLMAP_CENTRE = SIZE / 2
+"""The benchmark's principal point in COLMAP's pixel convention (top-left pixel centre at
+(0.5, 0.5)): the image centre, pae's ``CENTRE`` + 0.5."""
 
 
 def world_to_camera(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -77,7 +80,7 @@ def benchmark_model(tiny_root: Path, model: Path, kind: str) -> Path:
     names = [*tables["train"].img_path, *tables["test"].img_path]
     q, t = world_to_camera(np.concatenate([tables["train"].poses, tables["test"].poses]))
     images = [(len(names) - i, q[i], t[i], 1, names[i]) for i in range(len(names))][::-1]
-    cameras = {1: ("PINHOLE", SIZE, SIZE, [FOCAL, FOCAL, CENTRE, CENTRE])}
+    cameras = {1: ("PINHOLE", SIZE, SIZE, [FOCAL, FOCAL, COLMAP_CENTRE, COLMAP_CENTRE])}
     WRITERS[kind](model, cameras, images)
     split_list = model.parent / "test_images.txt"
     split_list.write_text("# the test sequences\n" + "\n".join(tables["test"].img_path) + "\n")
@@ -93,6 +96,7 @@ def test_colmap_model_of_the_benchmark_converts_to_its_poses_and_focal_length(
     argv = ["convert", "colmap", str(tmp_path / "sparse"), str(tiny_root), str(out)]
     assert main([*argv, "--split-list", str(split_list), "--scene", "scene00"]) == 0
     printed = capsys.readouterr().out
+    assert CENTRE == 15.5  # the benchmark's own camera: pixel centres at integers
     assert f"data.camera={{fx: {FOCAL:.10g}, fy: {FOCAL:.10g}, cx: 15.5, cy: 15.5, width: 32" in (
         printed
     )
@@ -157,7 +161,7 @@ def small_model(
     poses = np.concatenate([positions, rotations / np.linalg.norm(rotations, axis=1)[:, None]], 1)
     q, t = world_to_camera(poses)
     images = [(i + 1, q[i], t[i], 1, name) for i, name in enumerate(names)]
-    camera = camera or ("SIMPLE_PINHOLE", SIZE, SIZE, [FOCAL, CENTRE, CENTRE])
+    camera = camera or ("SIMPLE_PINHOLE", SIZE, SIZE, [FOCAL, COLMAP_CENTRE, COLMAP_CENTRE])
     write_colmap_text(tmp_path / "sparse", {1: camera}, images)
     for name in names:
         write_png(tmp_path / "images" / name)
@@ -195,6 +199,25 @@ def test_colmap_accepts_a_radial_camera_without_distortion(tmp_path: Path) -> No
     small_model(tmp_path, ["train/0.png", "test/0.png"], camera)
     assert convert_colmap(tmp_path) == 0
     assert read_labels(tmp_path / "out" / "all_test.csv").focal.tolist() == [30.0]
+
+
+def test_colmap_s_image_centre_is_pae_s_image_centre(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A 40 × 24 model whose principal point is the image centre in COLMAP's convention (the
+    top-left pixel's centre at (0.5, 0.5): ``W/2, H/2``) converts to pae's image centre (the
+    top-left pixel's centre at (0, 0): ``(W - 1)/2, (H - 1)/2``)."""
+    from pae.data.colmap import read_colmap_scene
+
+    width, height = 40, 24
+    camera = ("PINHOLE", width, height, [30.0, 30.0, width / 2, height / 2])
+    small_model(tmp_path, ["train/0.png", "test/0.png"], camera)
+    for name in ("train/0.png", "test/0.png"):
+        write_png(tmp_path / "images" / name, size=(width, height))
+    frames = read_colmap_scene(tmp_path / "sparse", tmp_path / "images")
+    np.testing.assert_array_equal(frames.principal, [[19.5, 11.5]] * 2)
+    assert convert_colmap(tmp_path) == 0
+    assert "cx: 19.5, cy: 11.5, width: 40, height: 24}" in capsys.readouterr().out
 
 
 BAD_CAMERAS = {

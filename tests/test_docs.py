@@ -114,7 +114,7 @@ OVERRIDES = {
     ),
     "own_scene_teacher": (
         "stage=teacher data=converted data.root=scene/undistorted/images "
-        "'data.camera={fx: 1210.4, fy: 1210.4, cx: 960, cy: 540, width: 1920, height: 1080}' "
+        "'data.camera={fx: 1210.4, fy: 1210.4, cx: 959.5, cy: 539.5, width: 1920, height: 1080}' "
         "backbone=efficientnet_b0 backbone.pretrained=true trainer=gpu "
         "hydra.run.dir=outputs/scene/teacher",
         {

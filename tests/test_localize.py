@@ -289,7 +289,8 @@ def test_render_compare_from_a_file_of_the_teachers_estimates_is_the_runs(
     ]
     results = tmp_path / "results.txt"
     results.write_text("\n".join(lines) + "\n")
-    from_lines = localize(tmp_path / "b.csv", "--refine", "render_compare", "--init", str(results))
+    init = ["--init", str(results), "--init-format", "lines"]
+    from_lines = localize(tmp_path / "b.csv", "--refine", "render_compare", *init)
     # starts as a label file rounds them (3e-8): the same refinement, but for a query or two of
     # this barely trained run, whose float32 search can tip into another basin
     same = (from_lines - refined).abs().amax(1) < 2e-3
@@ -303,7 +304,7 @@ def test_render_compare_from_a_file_of_the_teachers_estimates_is_the_runs(
     capsys.readouterr()
     results.write_text("\n".join(lines[1:]) + "\n")
     with pytest.raises(SystemExit):
-        localize(tmp_path / "c.csv", "--refine", "render_compare", "--init", str(results))
+        localize(tmp_path / "c.csv", "--refine", "render_compare", *init)
     errors = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
     assert len(errors) == 1 and "no start for 1 of 24 images" in errors[0], errors
     assert Path(table.img_path[0]).name in errors[0]
@@ -335,7 +336,8 @@ def test_another_apr_s_starts_get_the_gate_chosen_for_any_start(
     for gate, expected in (("auto", "any"), ("run", "run")):
         out = tmp_path / f"{gate}.csv"
         argv = [str(finished_run), str(labels), "--out", str(out), "--refine", "render_compare"]
-        assert main([*argv, "--init", str(starts), "--init-gate", gate]) == 0
+        init = ["--init", str(starts), "--init-format", "lines", "--init-gate", gate]
+        assert main([*argv, *init]) == 0
         assert f"(render_compare gate: {expected})" in capsys.readouterr().err
         assert read_labels(out).poses.shape == moved.shape
 
@@ -377,6 +379,11 @@ def test_pae_eval_refines_another_apr_s_starts_beside_the_teachers(
         cfg = compose("eval", overrides=[*overrides, "render_compare.init_axes=gl"])
     with pytest.raises(ConfigError, match=r"render_compare.init_axes=gl: choose"):
         evaluate_checkpoints(cfg, tmp_path / "axes")
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("eval", overrides=[*overrides, "render_compare.init_format=hloc"])
+    message = rf"^{starts}: render_compare.init_format=hloc, but its header states the pae"
+    with pytest.raises(ConfigError, match=message):
+        evaluate_checkpoints(cfg, tmp_path / "format")
 
 
 def test_an_unwritable_out_is_one_line_before_any_work(
@@ -401,8 +408,9 @@ def test_an_unwritable_out_is_one_line_before_any_work(
 def test_a_bad_starts_file_is_one_line_before_any_work(
     finished_run: Path, tiny_root: Path, tmp_path: Path, capsys
 ) -> None:
-    """--init FILE with an image named twice: one line naming the file's line, before the
-    teacher runs, and nothing written."""
+    """--init FILE with an image named twice, or lines of 7 numbers without a stated
+    convention: one line naming the file's line, before the teacher runs, and nothing
+    written."""
     labels = tiny_root / "labels" / "all_test.csv"
     table = read_labels(labels)
     rows = [f"{name} 0 0 0 1 0 0 0" for name in [*table.img_path, table.img_path[0]]]
@@ -410,21 +418,26 @@ def test_a_bad_starts_file_is_one_line_before_any_work(
     starts.write_text("\n".join(rows) + "\n")
     out = tmp_path / "out.csv"
     argv = [str(finished_run), str(labels), "--out", str(out), "--refine", "render_compare"]
-    capsys.readouterr()
-    with pytest.raises(SystemExit):
-        main([*argv, "--init", str(starts)])
-    err = capsys.readouterr().err
-    errors = [line for line in err.splitlines() if "error:" in line]
-    message = f"{starts}:{len(rows)}: image {table.img_path[0]} repeats line 1"
-    assert errors == [f"pae-localize: error: {message}"], err
-    assert "pae-localize: render_compare" not in err and not out.exists()
+    unstated = f"{starts}:1: 7 numbers a line and no header stating their convention: give "
+    for init, message in (
+        (["--init-format", "lines"], f"{starts}:{len(rows)}: image {table.img_path[0]} repeats"),
+        ([], unstated + "--init-format lines (NAME x y z qw qx qy qz, camera-to-world) or "),
+    ):
+        capsys.readouterr()
+        with pytest.raises(SystemExit):
+            main([*argv, "--init", str(starts), *init])
+        err = capsys.readouterr().err
+        errors = [line for line in err.splitlines() if "error:" in line]
+        assert len(errors) == 1 and errors[0].startswith(f"pae-localize: error: {message}"), err
+        assert "pae-localize: render_compare" not in err and not out.exists()
 
 
 def test_each_output_format_round_trips_the_same_poses(
     finished_run: Path, tiny_root: Path, tmp_path: Path
 ) -> None:
-    """--format lines is read back by --init's reader and --format ace holds each image's
-    4x4 matrix: both give the poses of the label file written by --format csv."""
+    """--format lines and --format hloc are read back by --init's reader and --format ace
+    holds each image's 4x4 matrix: all give the poses of the label file written by --format
+    csv."""
     import numpy as np
 
     from pae.core.geometry import quaternion_to_matrix
@@ -433,7 +446,8 @@ def test_each_output_format_round_trips_the_same_poses(
 
     labels = tiny_root / "labels" / "all_test.csv"
     written = {}
-    for form, out in (("csv", "poses.csv"), ("lines", "poses.txt"), ("ace", "ace")):
+    outs = (("csv", "poses.csv"), ("lines", "poses.txt"), ("hloc", "hloc.txt"), ("ace", "ace"))
+    for form, out in outs:
         written[form] = tmp_path / out
         argv = [str(finished_run), str(labels), "--out", str(tmp_path / out), "--format", form]
         assert main(argv) == 0
@@ -442,6 +456,9 @@ def test_each_output_format_round_trips_the_same_poses(
     lines = read_starts(written["lines"])
     assert lines.names == table.img_path
     np.testing.assert_allclose(lines.poses, table.poses, atol=1e-12)
+    hloc = read_starts(written["hloc"], form="hloc")
+    assert hloc.names == table.img_path
+    np.testing.assert_allclose(hloc.poses, table.poses, atol=1e-9)
     rotations = quaternion_to_matrix(torch.from_numpy(table.poses[:, 3:])).numpy()
     for row, image in enumerate(table.img_path):
         matrix = np.loadtxt(written["ace"] / "poses" / ace_pose_name(image))

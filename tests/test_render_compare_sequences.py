@@ -187,7 +187,7 @@ def test_the_callback_passes_each_querys_sequence_from_the_data(tmp_path: Path) 
     )  # fmt: skip
     for split in ("val", "test"):
         trainer, module = _fake_run(model, images, intrinsics, start, truth, str(tmp_path))
-        trainer.datamodule = SimpleNamespace(appearance_ids=lambda split, per: (sequences, 2))
+        trainer.datamodule = SimpleNamespace(recording_ids=lambda split: sequences)
         callback.refine(trainer, module, split)
     expected = refine(
         model, images, intrinsics, start, torch.zeros(6, dtype=torch.long),
@@ -200,3 +200,36 @@ def test_the_callback_passes_each_querys_sequence_from_the_data(tmp_path: Path) 
         callback.calibration(ORACLE),
     )  # fmt: skip
     assert not torch.equal(plain.poses, expected.poses)
+
+
+def test_recordings_come_from_where_each_frame_came_from_never_a_label() -> None:
+    """A recording is a frame's folder, or the sequence an ACE-layout name holds."""
+    from pae.data.converted import recording_of
+
+    assert recording_of("chess/seq-03/frame-000000.color.png") == "chess/seq-03"
+    assert recording_of("KingsCollege/seq2/frame00001.png") == "KingsCollege/seq2"
+    assert recording_of("test/rgb/seq-01-frame-000007.color.png") == "test/rgb/seq-01"
+    assert recording_of("test/rgb/seq2_frame00001.png") == "test/rgb/seq2"
+    assert recording_of("a.png") == "."
+
+
+def test_the_data_module_s_recordings_ignore_the_label_columns(tiny_root: Path) -> None:
+    """The test split's recording ids follow its images' folders: relabelling every test
+    row's scene and sequence (the labels a user would not have) changes none of them."""
+    import dataclasses
+
+    from pae.synthetic.datamodule import SyntheticDataModule
+    from tests.conftest import TINY
+
+    data = SyntheticDataModule(root=str(tiny_root), **TINY, crop=28, shorter_edge=TINY["size"])
+    data.setup()
+    table = data.tables["test"]
+    ids = data.recording_ids("test")
+    folders = [str(Path(path).parent) for path in table.img_path]
+    assert len(set(folders)) > 1 and len(ids) == len(table)
+    for a in range(len(ids)):
+        for b in range(len(ids)):
+            assert (ids[a] == ids[b]) == (folders[a] == folders[b])
+    blank = [""] * len(table)
+    data.tables["test"] = dataclasses.replace(table, scene=["scene00"] * len(table), seq=blank)
+    assert torch.equal(data.recording_ids("test"), ids)

@@ -21,7 +21,7 @@ def test_result_lines_and_matrices_read_alike(tmp_path: Path) -> None:
     lines.write_text(f"# comment\nseq-01/frame-000.color.png 1 2 3 {' '.join(map(str, q))}\n")
     grid = tmp_path / "m.txt"
     grid.write_text(f"seq-01/frame-000.color.png {' '.join(map(str, matrix.ravel()))}\n")
-    a, b = read_starts(lines), read_starts(grid)
+    a, b = read_starts(lines, form="lines"), read_starts(grid)
     assert a.names == b.names == ["seq-01/frame-000.color.png"]
     np.testing.assert_allclose(a.poses, b.poses, atol=1e-9)
 
@@ -36,11 +36,11 @@ def test_opengl_axes_turn_the_camera_about_x() -> None:
 def test_matching_by_the_longest_path_suffix(tmp_path: Path) -> None:
     path = tmp_path / "r.txt"
     path.write_text("seq-01/f.png 0 0 0 1 0 0 0\nseq-02/f.png 1 0 0 1 0 0 0\n")
-    starts = read_starts(path)
+    starts = read_starts(path, form="lines")
     rows = match_starts(["/data/chess/seq-02/f.png", "/data/chess/seq-01/f.png"], starts, "r")
     assert rows.tolist() == [1, 0]
     with pytest.raises(ConfigError, match="1 images have no unique start"):
-        match_starts(["f.png"], read_starts(path), "r")
+        match_starts(["f.png"], starts, "r")
     with pytest.raises(ConfigError, match="2 images have no unique start"):
         match_starts(["/a/seq-01/f.png", "/b/seq-01/f.png", "seq-02/f.png"], starts, "r")
     with pytest.raises(ConfigError, match=r"no start for 1 of 2 images, e\.g\. /x/g\.png"):
@@ -54,7 +54,7 @@ def test_matching_by_the_longest_path_suffix(tmp_path: Path) -> None:
     [
         ("a.png 1 2 3 0 0 0 0\n", r"r.txt:1: zero quaternion"),
         ("a.png 1 2 3 nan 0 0 1\n", r"r.txt:1: a value is NaN"),
-        ("a.png 1 2 3\n", r"r.txt:1: expected 'NAME x y z qw qx qy qz'"),
+        ("a.png 1 2 3\n", r"r.txt:1: expected 'NAME x y z qw qx qy qz' \(lines\), got 3"),
         ("a.png 1 2 x 1 0 0 0\n", r"r.txt:1: not a number"),
     ],
 )
@@ -62,11 +62,11 @@ def test_bad_lines_are_named(tmp_path: Path, text: str, message: str) -> None:
     path = tmp_path / "r.txt"
     path.write_text(text)
     with pytest.raises(LabelError, match=message):
-        read_starts(path)
+        read_starts(path, form="lines")
 
 
-def _matrix_line(matrix: np.ndarray) -> str:
-    return "a.png " + " ".join(f"{value:.9g}" for value in matrix.ravel()) + "\n"
+def _matrix_line(matrix: np.ndarray, name: str = "a.png") -> str:
+    return f"{name} " + " ".join(f"{value:.9g}" for value in matrix.ravel()) + "\n"
 
 
 def _rigid(scale: float = 1.0, shear: float = 0.0, last: float = 1.0) -> np.ndarray:
@@ -85,7 +85,7 @@ def _rigid(scale: float = 1.0, shear: float = 0.0, last: float = 1.0) -> np.ndar
         (_matrix_line(_rigid() @ np.diag([1.0, 1.0, -1.0, 1.0])), r"r.txt:1: .* determinant -1"),
         (_matrix_line(_rigid(last=2.0)), r"r.txt:1: .* its last row is 0 0 0 2, not 0 0 0 1"),
         (
-            "a.png 0 0 0 1 0 0 0\nb.png 1 0 0 1 0 0 0\na.png 2 0 0 1 0 0 0\n",
+            "".join(_matrix_line(_rigid(), name) for name in ("a.png", "b.png", "a.png")),
             r"r.txt:3: image a.png repeats line 1",
         ),
     ],
@@ -154,3 +154,81 @@ def test_pose_files_name_ace_poses_as_the_layout_does_and_refuse_what_they_canno
     with pytest.raises(ConfigError, match=r"would both write poses/x-f\.pose\.txt"):
         write_poses(tmp_path / "ace", table(["x/f.png", "x/f.jpg"]), "ace")
     assert not (tmp_path / "out.txt").exists() and not (tmp_path / "ace").exists()
+
+
+def _world_to_camera_line(name: str, rotation: Rotation, centre: np.ndarray) -> str:
+    """hloc's line of a camera with camera-to-world ``rotation`` and ``centre``, computed as
+    hloc does from COLMAP's world-to-camera pose (``x_cam = R x_world + t``)."""
+    to_camera = rotation.inv()
+    t = -to_camera.apply(centre)
+    numbers = [*to_camera.as_quat(scalar_first=True), *t]
+    return " ".join([name, *(repr(float(value)) for value in numbers)])
+
+
+def test_hloc_results_read_as_world_to_camera_and_write_back(tmp_path: Path) -> None:
+    """A results file as hloc's localize_sfm writes it (``name qw qx qy qz tx ty tz``,
+    world-to-camera) gives the cameras' camera-to-world poses; pae-localize's --format hloc
+    writes the same lines back."""
+    from pae.data.labels import LabelTable
+    from pae.data.pose_files import write_poses
+
+    rotations = Rotation.random(6, random_state=3)
+    centres = np.random.default_rng(3).normal(0.0, 5.0, (6, 3))
+    names = [f"query/night/IMG_{i:04d}.jpg" for i in range(6)]
+    path = tmp_path / "results_hloc.txt"
+    lines = [
+        _world_to_camera_line(n, r, c) for n, r, c in zip(names, rotations, centres, strict=True)
+    ]
+    path.write_text("\n".join(lines) + "\n")
+    starts = read_starts(path, form="hloc")
+    assert starts.names == names and starts.scenes is None
+    np.testing.assert_allclose(starts.poses[:, :3], centres, atol=1e-6)
+    found = Rotation.from_quat(starts.poses[:, 3:], scalar_first=True)
+    np.testing.assert_allclose(found.as_matrix(), rotations.as_matrix(), atol=1e-6)
+
+    table = LabelTable(["s"] * 6, ["query"] * 6, ["night"] * 6, names, starts.poses)
+    out = tmp_path / "written.txt"
+    write_poses(out, table, "hloc")
+    written = [line.split() for line in out.read_text().splitlines()]
+    assert [row[0] for row in written] == names  # no header: hloc's own format
+    numbers = np.array([[float(v) for v in row[1:]] for row in written])
+    expected = np.array([[float(v) for v in line.split()[1:]] for line in lines])
+    sign = np.sign(expected[:, :1] * numbers[:, :1])  # q and -q: one rotation
+    np.testing.assert_allclose(
+        numbers * np.c_[np.tile(sign, 4), np.ones((6, 3))], expected, atol=1e-6
+    )
+    np.testing.assert_allclose(read_starts(out, form="hloc").poses, starts.poses, atol=1e-6)
+
+
+def test_seven_numbers_a_line_need_a_stated_convention(tmp_path: Path) -> None:
+    """Lines of 7 numbers read as camera-to-world ``x y z q`` and as hloc's world-to-camera
+    ``q t`` alike: without pae's header or a stated format they are refused in one line
+    naming the file and the choices; a header the stated format contradicts is refused too."""
+    from pae.data.pose_files import LINES_HEADER
+
+    bare = tmp_path / "results.txt"
+    bare.write_text("# some APR\nseq-01/a.png 1 2 3 1 0 0 0\n")
+    message = (
+        rf"^{bare}:2: 7 numbers a line and no header stating their convention: give "
+        r"--init-format lines \(NAME x y z qw qx qy qz, camera-to-world\) or --init-format "
+        r"hloc \(NAME qw qx qy qz tx ty tz, world-to-camera\); formats: pae, lines, hloc, "
+        r"matrix$"
+    )
+    with pytest.raises(ConfigError, match=message):
+        read_starts(bare)
+    with pytest.raises(ConfigError, match=r"or render_compare.init_format=hloc \(NAME"):
+        read_starts(bare, option="render_compare.init_format={}")
+    assert read_starts(bare, form="lines").poses[0, :3].tolist() == [1.0, 2.0, 3.0]
+
+    headed = tmp_path / "pae_lines.txt"
+    headed.write_text(LINES_HEADER + "seq-01/a.png 1 2 3 1 0 0 0\n")
+    assert read_starts(headed).poses[0, :3].tolist() == [1.0, 2.0, 3.0]
+    with pytest.raises(ConfigError, match=rf"^{headed}: --init-format hloc, but its header "):
+        read_starts(headed, form="hloc")
+    labels = tmp_path / "starts.csv"
+    labels.write_text(LABEL_HEADER + _label_row("a.png"))
+    with pytest.raises(ConfigError, match=rf"^{labels}: --init-format lines, but .* pae format$"):
+        read_starts(labels, form="lines")
+    with pytest.raises(ConfigError, match=rf"^{bare}: --init-format pae, but it has no label"):
+        read_starts(bare, form="pae")
+    assert read_starts(labels, form="pae").names == ["seq-01/a.png"]

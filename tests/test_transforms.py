@@ -217,3 +217,79 @@ def test_crop_turns_camera_must_be_a_boolean(compose_train) -> None:
 
     with pytest.raises(ConfigCompositionException, match=r"data\.crop_turns_camera=maybe"):
         compose_train("data.crop_turns_camera=maybe")
+
+
+def _with_orientation(encoded: bytes, orientation: int) -> bytes:
+    """A JPEG's bytes with an EXIF APP1 segment (big-endian TIFF, one IFD entry: the
+    orientation tag) after its start-of-image marker, as a phone camera writes it."""
+    import struct
+
+    entry = struct.pack(">HHIHH", 0x0112, 3, 1, orientation, 0)
+    tiff = b"MM\x00\x2a" + struct.pack(">I", 8) + struct.pack(">H", 1) + entry + bytes(4)
+    app1 = b"Exif\x00\x00" + tiff
+    return encoded[:2] + b"\xff\xe1" + struct.pack(">H", len(app1) + 2) + app1 + encoded[2:]
+
+
+def test_an_exif_turned_photo_is_refused_by_the_size_check_the_loader_and_check(
+    tmp_path,
+) -> None:
+    """A landscape JPEG tagged EXIF orientation 6 (a phone's portrait photo), which OpenCV's
+    IMREAD_COLOR turns and IMREAD_UNCHANGED does not: image_size, the loader and
+    ``pae-data check`` refuse it alike, in one line naming the file and the command that
+    bakes the turn in; untagged or tagged 1, both read the stored pixels."""
+    import cv2
+
+    from pae.data.exif import exif_orientation
+    from pae.data.label_images import find_image_problems
+    from pae.data.labels import LabelTable
+    from pae.data.transforms import image_size
+
+    bgr = np.zeros((24, 40, 3), np.uint8)
+    bgr[:, :20] = 255
+    encoded = cv2.imencode(".jpg", bgr)[1].tobytes()
+    turned, upright = tmp_path / "portrait.jpg", tmp_path / "upright.jpg"
+    turned.write_bytes(_with_orientation(encoded, 6))
+    upright.write_bytes(_with_orientation(encoded, 1))
+    assert exif_orientation(turned.read_bytes()) == 6 and exif_orientation(encoded) == 1
+    # the hazard: one decoder turns the photo, the other does not
+    assert cv2.imread(str(turned), cv2.IMREAD_COLOR).shape[:2] == (40, 24)
+    assert cv2.imread(str(turned), cv2.IMREAD_UNCHANGED).shape[:2] == (24, 40)
+    message = (
+        rf"^{turned}: EXIF orientation 6 \(the stored pixels shown turned 90° clockwise\): "
+        r".* bake the turn into the pixels with exiftran -ai FILE .*$"
+    )
+    with pytest.raises(ImageError, match=message) as size_error:
+        image_size(str(turned))
+    assert "\n" not in str(size_error.value)
+    with pytest.raises(ImageError, match=message):
+        load_image(str(turned), 24)
+    table = LabelTable(
+        ["s"] * 2,
+        ["train"] * 2,
+        [""] * 2,
+        ["portrait.jpg", "upright.jpg"],
+        np.tile([0, 0, 0, 1, 0, 0, 0], (2, 1)),
+        source="l.csv",
+    )
+    [problem] = find_image_problems(table, tmp_path)
+    assert problem.startswith("l.csv:2: EXIF orientation 6") and "'portrait.jpg'" in problem
+    assert image_size(str(upright)) == (24, 40)
+    assert load_image(str(upright), 24, (24, 40)).shape == (24, 40, 3)
+
+
+def test_a_png_exif_chunk_is_read_too() -> None:
+    """PNG's eXIf chunk (before the image data) holds the same TIFF block."""
+    import struct
+    import zlib
+
+    import cv2
+
+    from pae.data.exif import exif_orientation
+
+    encoded = cv2.imencode(".png", np.zeros((4, 6, 3), np.uint8))[1].tobytes()
+    tiff = _with_orientation(b"\xff\xd8", 8)[2 + 4 + 6 :]  # the TIFF block alone
+    chunk = struct.pack(">I", len(tiff)) + b"eXIf" + tiff
+    chunk += struct.pack(">I", zlib.crc32(b"eXIf" + tiff))
+    idat = encoded.index(b"IDAT") - 4
+    assert exif_orientation(encoded[:idat] + chunk + encoded[idat:]) == 8
+    assert exif_orientation(encoded) == 1

@@ -87,11 +87,11 @@ def real_starts(
     """Each image's start with its real error (the APR's file against its ground truth, in
     the camera frame, applied to the label pose ``truth`` [N, 7]), and NeFeS50's refinement
     of it likewise, in the order of ``img_paths``."""
-    gt = read_starts(folder / f"{scene}_test_gt.txt", axes="opengl")
+    gt = read_starts(folder / f"{scene}_test_gt.txt", axes="opengl", form="lines")
     gt_poses = torch.as_tensor(gt.poses[match_starts(img_paths, gt, "gt")], dtype=torch.float64)
     poses = {}
     for name, suffix in (("start", "predict"), ("nefes50", "Nefes_50")):
-        found = read_starts(folder / f"{scene}_{suffix}.txt", axes="opengl")
+        found = read_starts(folder / f"{scene}_{suffix}.txt", axes="opengl", form="lines")
         rows = match_starts(img_paths, found, suffix)
         estimate = torch.as_tensor(found.poses[rows], dtype=torch.float64)
         poses[name] = transfer_error(gt_poses, estimate, truth.double()).float()

@@ -39,9 +39,10 @@ def parser() -> argparse.ArgumentParser:
     parse.add_argument(
         "--format",
         default="csv",
-        choices=("csv", "lines", "ace"),
+        choices=("csv", "lines", "hloc", "ace"),
         help="csv: a pae label file; lines: 'NAME x y z qw qx qy qz' per image; ace: "
-        "OUT/poses/<name>.pose.txt, a 4x4 matrix per image (all camera-to-world, pae's axes)",
+        "OUT/poses/<name>.pose.txt, a 4x4 matrix per image (all camera-to-world, pae's axes); "
+        "hloc: 'NAME qw qx qy qz tx ty tz' world-to-camera, as hloc's localize_sfm writes",
     )
     parse.add_argument("--refine", default="teacher", help="the method (default: teacher)")
     parse.add_argument("--root", type=Path, help="dataset root of a label file's img_path")
@@ -57,9 +58,16 @@ def parser() -> argparse.ArgumentParser:
         "--init",
         type=Path,
         metavar="FILE",
-        help="refine the poses in FILE instead of the teacher's: a pae label file, or lines "
-        "'NAME x y z qw qx qy qz' (or NAME and a row-major 4x4 camera-to-world matrix), "
-        "matched to the images by the longest common path suffix",
+        help="refine the poses in FILE instead of the teacher's (--init-format), matched to "
+        "the images by the longest common path suffix",
+    )
+    parse.add_argument(
+        "--init-format",
+        choices=("pae", "lines", "hloc", "matrix"),
+        help="what --init FILE holds: pae, a pae label file; lines, 'NAME x y z qw qx qy qz' "
+        "camera-to-world; hloc, 'NAME qw qx qy qz tx ty tz' world-to-camera (hloc's "
+        "localize_sfm); matrix, NAME and a row-major 4x4 camera-to-world matrix (default: "
+        "what FILE's header states, else matrix; lines of 7 numbers must state theirs)",
     )
     parse.add_argument(
         "--init-axes",
@@ -146,7 +154,9 @@ def localize(args: argparse.Namespace) -> None:
     if args.init is not None:  # read before any work: a bad row is one line, nothing run
         from pae.data.starts import starts_for
 
-        starts = starts_for(queries.shown, args.init, teacher.scene_names, args.init_axes)
+        starts = starts_for(
+            queries.shown, args.init, teacher.scene_names, args.init_axes, args.init_format
+        )
     device = torch.device(args.device)
     emit = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
     found = loc.estimate(

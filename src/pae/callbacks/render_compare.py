@@ -45,7 +45,9 @@ class RenderCompareCallback(L.Callback):
     ``refiner``: the partial Hydra makes of ``render_compare.refiner`` or a mapping of
     settings replacing the defaults; the gate's options: :class:`CalibrationOptions`;
     ``feature_layers``: the teacher backbone's modules behind ``refiner.score=features``;
-    ``init``, ``init_axes``: another APR's starts file (``RenderCompareFromFile``);
+    ``init``, ``init_axes``, ``init_format``: another APR's starts file, its camera axes and
+    format (``RenderCompareFromFile``; :data:`pae.data.starts.FORMATS`, None: the file's
+    header's);
     ``sequence_*``: :class:`pae.render_compare.sequences.SequenceOptions`."""
 
     def __init__(
@@ -61,6 +63,7 @@ class RenderCompareCallback(L.Callback):
         filters_from_val: list[dict[str, float]] | None = None,
         init: str | None = None,
         init_axes: str = "pae",
+        init_format: str | None = None,
         sequence_passes: int = 0,
         sequence_window: int = 0,
         sequence_scene_vote: bool = False,
@@ -71,6 +74,7 @@ class RenderCompareCallback(L.Callback):
         self.settings = refiner_defaults() | dict(settings or {})
         self.oracle, self.every_n_val_epochs = oracle, max(1, every_n_val_epochs)
         self.feature_layers, self.init, self.init_axes = feature_layers, init, init_axes
+        self.init_format = init_format
         on_val = (accept_margin, accept_score, step_from_val, scene_check_below, filters_from_val)
         self.options = CalibrationOptions(*on_val, gate_objective)
         self.sequence = SequenceOptions(sequence_passes, sequence_window, sequence_scene_vote)

@@ -14,7 +14,7 @@ import torch
 from pae.callbacks.render_compare import HONEST, RenderCompareCallback
 from pae.core.errors import ConfigError
 from pae.core.metrics import summarise_errors
-from pae.data.starts import AXES, starts_for
+from pae.data.starts import AXES, FORMATS, Starts, placed_starts, read_starts
 from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
 from pae.render_compare import Calibration, calibrate_any_start, refine
 from pae.render_compare.calibration import scene_size
@@ -22,8 +22,9 @@ from pae.render_compare.queries import method_from, refinement_figures
 
 
 class RenderCompareFromFile(L.Callback):
-    """With ``refinement.init`` (a starts file: a pae label file or ``name x y z qw qx qy
-    qz`` lines, ``refinement.init_axes``; every test image needs one, matched by path), logs
+    """With ``refinement.init`` (a starts file in the format ``refinement.init_format``,
+    :data:`pae.data.starts.FORMATS`, read here, before any work; camera axes
+    ``refinement.init_axes``; every test image needs one, matched by path), logs
     ``test/<method>/...`` for ``<method>`` = ``render_compare_from_<file stem>`` (the gate's
     figures and ``worse_than_start_share`` too) and the starts' own figures under
     ``test/start_from_<file stem>/...``, with the gate and first steps chosen on each
@@ -34,10 +35,22 @@ class RenderCompareFromFile(L.Callback):
         super().__init__()
         self.refinement = refinement
         self.calibration: Calibration | None = None
+        self.starts: Starts | None = None
         if refinement.init is not None and not Path(refinement.init).is_file():
             raise ConfigError(f"render_compare.init={refinement.init}: no such starts file")
         if refinement.init_axes not in AXES:
             raise ConfigError(f"render_compare.init_axes={refinement.init_axes}: choose {AXES}")
+        if refinement.init_format not in (None, *FORMATS):
+            raise ConfigError(
+                f"render_compare.init_format={refinement.init_format}: choose {FORMATS}"
+            )
+        if refinement.init is not None:
+            self.starts = read_starts(
+                refinement.init,
+                refinement.init_axes,
+                refinement.init_format,
+                "render_compare.init_format={}",
+            )
 
     @property
     def method(self) -> str:
@@ -61,11 +74,11 @@ class RenderCompareFromFile(L.Callback):
 
     def on_test_epoch_end(self, trainer: L.Trainer, pl_module: SceneModelEvaluation) -> None:
         outputs = collect_outputs(trainer, pl_module)
-        if self.refinement.init is None or outputs is None:
+        if self.starts is None or outputs is None:
             return
         data, names = trainer.datamodule, pl_module.scene_names
         images = [data.tables["test"].img_path[i] for i in outputs[EVAL.index].tolist()]
-        starts, scenes = starts_for(images, self.refinement.init, names, self.refinement.init_axes)
+        starts, scenes = placed_starts(images, self.starts, str(self.refinement.init), names)
         scenes = outputs[EVAL.scene_estimate] if scenes is None else scenes
         calibration = self.calibration or self.refinement.calibration(HONEST)
         begin = time.perf_counter()

@@ -8,8 +8,11 @@
 Other folders (``depth/``, ``eye/``, ``init/``) are not read. An image, its pose and its
 calibration are one frame when their names agree once the suffixes are dropped (``.color.png``,
 ``.pose.txt``, ``.calibration.txt``; a plain ``.png`` / ``.jpg`` / ``.txt`` too); a file
-without its two partners is an error naming it. A calibration of one number has its principal
-point at the image centre ``(W / 2, H / 2)``, as ACE reads it. The sequence of a frame is what
+without its two partners is an error naming it. ACE, like COLMAP, puts the centre of the
+top-left pixel at ``(0.5, 0.5)`` (its pixel grid and its scaling ``c·s`` of the principal point
+say so), pae at ``(0, 0)``: a calibration of one number has its principal point at the image
+centre, ACE's ``(W/2, H/2)``, pae's ``((W - 1)/2, (H - 1)/2)``, and a 3×3 matrix's is moved
+by ``-0.5`` px on both axes (``CORNER_CENTRE_PX``). The sequence of a frame is what
 its name holds before ``frame`` (``seq-01-frame-000000`` -> ``seq-01``; Cambridge's
 ``seq1_frame00001`` -> ``seq1``).
 
@@ -22,13 +25,17 @@ the labels hold whichever the converted folder holds.
 from __future__ import annotations
 
 import os
-import re
 from pathlib import Path
 
 import numpy as np
 
 from pae.core.errors import LabelError
-from pae.data.converted import SceneFrames, unequal_focal_lengths
+from pae.data.converted import (
+    CORNER_CENTRE_PX,
+    NAMED_SEQUENCE,
+    SceneFrames,
+    unequal_focal_lengths,
+)
 from pae.data.holdout import natural_key
 from pae.data.raw import parse_numbers, rigid_problem
 
@@ -36,7 +43,6 @@ __all__ = ["IMAGE_SUFFIXES", "read_ace_scene"]
 
 SPLITS = ("train", "test")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
-_SEQUENCE = re.compile(r"(.+?)[-_]frame[-_]?\d+", re.IGNORECASE)
 
 
 def _frame_key(path: Path, inner: str) -> str:
@@ -77,14 +83,16 @@ def _pose(path: Path) -> np.ndarray:
 
 
 def _calibration(path: Path, width: int, height: int) -> tuple[float, float, float, float]:
-    """``fx, fy, cx, cy`` (px) of a calibration file: one focal length (principal point at
-    the centre of ``width × height`` images) or a 3×3 matrix."""
+    """``fx, fy, cx, cy`` (px; ``cx, cy`` in pae's pixel convention) of a calibration file:
+    one focal length (principal point at the centre of ``width × height`` images) or a 3×3
+    matrix in ACE's convention."""
     values = _numbers(path)
     if values.size == 1:
         fx = fy = float(values[0])
-        cx, cy = width / 2, height / 2
+        cx, cy = width / 2 - CORNER_CENTRE_PX, height / 2 - CORNER_CENTRE_PX
     elif values.size == 9:
         fx, fy, cx, cy = (float(values[i]) for i in (0, 4, 2, 5))
+        cx, cy = cx - CORNER_CENTRE_PX, cy - CORNER_CENTRE_PX
     else:
         raise LabelError(
             path, None, f"expected a focal length or a 3×3 matrix, got {values.size} numbers"
@@ -134,7 +142,7 @@ def read_ace_scene(root: str | os.PathLike[str]) -> SceneFrames:
     for split, rows in frames.items():
         for name, image, pose_file, calibration_file in rows:
             img_path.append(image.relative_to(root).as_posix())
-            match = _SEQUENCE.fullmatch(name)
+            match = NAMED_SEQUENCE.fullmatch(name)
             seq.append(match.group(1) if match else "")
             split_of.append(split)
             matrices.append(_pose(pose_file))

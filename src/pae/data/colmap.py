@@ -6,7 +6,9 @@ and ``images.bin`` / ``images.txt`` (each registered image's world-to-camera rot
 ``QW QX QY QZ``, translation ``TX TY TZ``, camera id and name relative to the image folder);
 binary files are read where both exist, as COLMAP does, and ``points3D`` is not needed. The
 camera frame is pae's (x right, y down, z forward); each pose is turned camera-to-world:
-``q_c2w = conj(q)``, centre ``-R(q)^T t``.
+``q_c2w = conj(q)``, centre ``-R(q)^T t``. COLMAP puts the centre of the top-left pixel at
+``(0.5, 0.5)`` and pae at ``(0, 0)``: the principal point is moved by ``-0.5`` px on both axes
+(``CORNER_CENTRE_PX``; COLMAP's image centre ``W/2`` is pae's ``(W - 1)/2``).
 
 pae renders and compares with pinhole cameras: ``SIMPLE_PINHOLE`` and ``PINHOLE`` are read as
 they are, ``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV`` and ``FULL_OPENCV`` only with zero
@@ -26,7 +28,7 @@ import numpy as np
 
 from pae.core.errors import LabelError
 from pae.core.quaternion_sign import canonical_sign
-from pae.data.converted import SceneFrames, sequence_of, unequal_focal_lengths
+from pae.data.converted import CORNER_CENTRE_PX, SceneFrames, sequence_of, unequal_focal_lengths
 from pae.data.holdout import natural_key
 from pae.data.orientation import conjugate
 
@@ -265,7 +267,8 @@ def undistort_command(model_dir: Path, image_dir: Path) -> str:
 
 
 def pinhole(camera: ColmapCamera, model_dir: Path, image_dir: Path) -> tuple[float, ...]:
-    """``fx, fy, cx, cy`` (px) of a pinhole camera, or of one whose distortion is zero;
+    """``fx, fy, cx, cy`` (px, COLMAP's pixel centres) of a pinhole camera, or of one whose
+    distortion is zero;
     ValueError naming the camera, with the command that undistorts the model, otherwise."""
     params = camera.params
     if camera.model in _ONE_FOCAL:
@@ -354,7 +357,8 @@ def read_colmap_scene(
     test_folders: Sequence[str] | None = None,
 ) -> SceneFrames:
     """The registered images of a model as frames in name order (see :func:`split_images`
-    for the splits), positions times ``scale``. ValueError (LabelError), one line naming the
+    for the splits), positions times ``scale``, principal points in pae's pixel convention.
+    ValueError (LabelError), one line naming the
     file and entry, for a distorted or non-pinhole camera, ``fx != fy``, cameras of several
     sizes, an image missing from ``image_dir`` or of another size than its camera."""
     from pae.data.transforms import image_size
@@ -409,7 +413,7 @@ def read_colmap_scene(
         split=split,
         poses=poses,
         focal=table[:, :2].mean(1),
-        principal=table[:, 2:],
+        principal=table[:, 2:] - CORNER_CENTRE_PX,
         width=width,
         height=height,
         origin=origins,

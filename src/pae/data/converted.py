@@ -11,6 +11,7 @@ length per row and one principal point for the whole dataset.
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
@@ -37,6 +38,13 @@ FOCAL_RATIO_TOLERANCE = 1e-3
 """Largest relative difference of ``fx`` and ``fy`` written as one focal length (their mean)."""
 PRINCIPAL_POINT_TOLERANCE_PX = 1.0
 """Largest distance (px) of an image's principal point from the scene's (the median)."""
+NAMED_SEQUENCE = re.compile(r"(.+?)[-_]frame[-_]?\d+", re.IGNORECASE)
+"""A frame name holding its sequence before ``frame`` (``seq-01-frame-000000``,
+Cambridge's ``seq1_frame00001``): group 1 is the sequence."""
+CORNER_CENTRE_PX = 0.5
+"""Where COLMAP and the ACE layout put the centre of the top-left pixel (``(0.5, 0.5)``: a
+pixel's corner at integer coordinates); pae puts it at ``(0, 0)`` (:mod:`pae.core.camera`),
+so their principal point minus this is pae's (an image's centre ``W/2`` -> ``(W - 1)/2``)."""
 
 
 @dataclass(frozen=True)
@@ -61,6 +69,16 @@ class SceneFrames:
 
     def __len__(self) -> int:
         return len(self.img_path)
+
+
+def recording_of(img_path: str) -> str:
+    """The recording an image came from, by its path alone: its folder, and the sequence its
+    name holds before ``frame`` where it holds one (the ACE layout's flat folders:
+    ``test/rgb/seq-01-frame-000000.color.png`` -> ``test/rgb/seq-01``; 7-Scenes'
+    ``chess/seq-03/frame-000000.color.png`` -> ``chess/seq-03``)."""
+    path = PurePosixPath(img_path.replace("\\", "/"))
+    named = NAMED_SEQUENCE.fullmatch(path.name.split(".")[0])
+    return str(path.parent / named.group(1)) if named else str(path.parent)
 
 
 def sequence_of(relative: str) -> str:

@@ -20,6 +20,7 @@ from pae.core.camera import Intrinsics, resized_size, scale_intrinsics
 from pae.core.errors import ConfigError, LabelError
 from pae.core.run_context import current_run
 from pae.core.threads import loader_workers
+from pae.data.converted import recording_of
 from pae.data.dataset import PoseDataset, collate_batch
 from pae.data.fingerprint import images_blake2b, sampled_images_sha256
 from pae.data.holdout import HeldOut, held_out_rows, scenes_short_of_sequences
@@ -286,6 +287,15 @@ class PoseDataModule(L.LightningDataModule):
         names = sorted(set(keys))
         index = {key: i for i, key in enumerate(names)}
         return torch.tensor([index[key] for key in keys], dtype=torch.long), len(names)
+
+    def recording_ids(self, split: str) -> Tensor:
+        """Index [N] of each row's recording among the split's (:func:`recording_of`: its
+        image's folder, or the sequence an ACE-layout name holds), what the render-and-compare
+        sequence options group queries by: a user's recording is where a frame came from,
+        never a label column (the ``scene`` of a test row is its true scene)."""
+        keys = [recording_of(path) for path in self.tables[split].img_path]
+        index = {key: i for i, key in enumerate(dict.fromkeys(keys))}
+        return torch.tensor([index[key] for key in keys], dtype=torch.long)
 
     def fingerprint(self) -> dict[str, Any]:
         """What identifies the training data: its scene names, a SHA-256 of its train poses

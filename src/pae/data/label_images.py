@@ -11,6 +11,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from pae.core.errors import LabelError
+from pae.data.exif import orientation_problem
 from pae.data.labels import LabelTable, focal_problems
 
 __all__ = ["find_image_problems", "odd_sizes", "outside_root"]
@@ -32,9 +33,10 @@ def outside_root(img_paths: Sequence[str], root: str | os.PathLike[str]) -> list
 def find_image_problems(
     table: LabelTable, root: str | os.PathLike[str], workers: int | None = None
 ) -> list[str]:
-    """One message per row whose image is outside ``root``, missing, not decodable, or of
-    another size than most images (loaders need one size per label file), or whose focal
-    length is implausible for the width of most images (``focal_problems``).
+    """One message per row whose image is outside ``root``, missing, not decodable, turned by
+    its EXIF orientation (:func:`pae.data.exif.orientation_problem`), or of another size than
+    most images (loaders need one size per label file), or whose focal length is implausible
+    for the width of most images (``focal_problems``).
 
     Images are fully decoded with OpenCV, on ``workers`` threads.
     """
@@ -100,4 +102,4 @@ def _image_problem(path: str) -> tuple[str, tuple[int, ...]]:
         image = None
     if image is None:
         return "image is corrupt (cannot be decoded)", ()
-    return "", image.shape[:2]
+    return orientation_problem(data), image.shape[:2]

@@ -1,7 +1,10 @@
 """Starting poses from any APR (``pae-localize --init FILE``, ``pae-eval
-render_compare.init=FILE``): a pae label file, or the field's result files (one line
-``name x y z qw qx qy qz``, or ``name`` and a row-major 4×4 camera-to-world matrix), matched
-to the queries by the longest common path suffix."""
+render_compare.init=FILE``): a pae label file, or the field's result files (:data:`FORMATS`:
+``name x y z qw qx qy qz`` camera-to-world, hloc's ``name qw qx qy qz tx ty tz``
+world-to-camera, or ``name`` and a row-major 4×4 camera-to-world matrix), matched to the
+queries by the longest common path suffix. Lines of 7 numbers read either way, so a file of
+them must state its convention: pae's header (``pae-localize --format lines``) or the
+format given with the file (``--init-format``)."""
 
 from __future__ import annotations
 
@@ -17,12 +20,28 @@ from torch import Tensor
 
 from pae.core.errors import ConfigError, LabelError, RepeatedImageWarning
 from pae.core.geometry import matrix_to_quaternion
+from pae.data.colmap import camera_to_world
 from pae.data.labels import LABEL_COLUMNS, read_labels
+from pae.data.pose_files import LINES_CONVENTION
 from pae.data.raw import rigid_problem
 
 AXES = ("pae", "opengl")
 """The camera axes of a starts file: pae's (x right, y down, z forward) or OpenGL's (x right,
 y up, z backward: DFNet's and NeFeS's result files)."""
+FORMATS = ("pae", "lines", "hloc", "matrix")
+"""What a starts file holds: ``pae``, a pae label file (its header names the columns);
+``lines``, ``NAME x y z qw qx qy qz`` (camera-to-world, ``pae-localize --format lines``);
+``hloc``, ``NAME qw qx qy qz tx ty tz`` (world-to-camera, ``x_cam = R(q) x_world + t``, as
+hloc's ``localize_sfm`` and COLMAP's ``images.txt`` write it); ``matrix``, ``NAME`` and a
+row-major 4×4 camera-to-world matrix."""
+LAYOUTS = {
+    "lines": "NAME x y z qw qx qy qz",
+    "hloc": "NAME qw qx qy qz tx ty tz",
+    "matrix": "NAME and a row-major 4x4 matrix (16 numbers)",
+}
+"""The line of each line format."""
+COUNTS = {"lines": 7, "hloc": 7, "matrix": 16}
+"""The numbers after the name on a line of each line format."""
 SHOWN = 5
 """How many unmatched names an error lists."""
 
@@ -44,66 +63,125 @@ def opengl_to_pae(quaternions: np.ndarray) -> np.ndarray:
     return np.stack([-x, w, z, -y], 1)
 
 
-def _line_pose(tokens: list[str], path: Path, line: int) -> np.ndarray:
+def _line_numbers(tokens: list[str], path: Path, line: int) -> np.ndarray:
+    """The numbers after a line's name [K]; LabelError naming the line if one is not a finite
+    number."""
     try:
         numbers = np.array([float(token) for token in tokens[1:]])
     except ValueError as error:
         raise LabelError(path, line, f"not a number: {error}") from None
     if not np.isfinite(numbers).all():
         raise LabelError(path, line, "a value is NaN or infinite")
-    if len(numbers) == 7:
-        pose = numbers
-    elif len(numbers) == 16:
+    return numbers
+
+
+def _line_pose(numbers: np.ndarray, form: str, path: Path, line: int) -> np.ndarray:
+    """The camera-to-world pose [7] of a line's ``numbers`` in the line format ``form``."""
+    if form == "matrix":
         matrix = numbers.reshape(4, 4)
         problem = rigid_problem(matrix)
         if problem is not None:
             raise LabelError(path, line, problem)
         rotation = torch.from_numpy(matrix[:3, :3])
-        pose = np.concatenate([matrix[:3, 3], matrix_to_quaternion(rotation).numpy()])
-    else:
-        raise LabelError(
-            path,
-            line,
-            f"expected 'NAME x y z qw qx qy qz' or 'NAME' and a 4x4 matrix (16 numbers), got "
-            f"{len(numbers)} numbers",
-        )
-    norm = float(np.linalg.norm(pose[3:]))
-    if norm < 1e-8:
+        return np.concatenate([matrix[:3, 3], matrix_to_quaternion(rotation).numpy()])
+    quaternion = numbers[:4] if form == "hloc" else numbers[3:]
+    if float(np.linalg.norm(quaternion)) < 1e-8:
         raise LabelError(path, line, "zero quaternion")
-    pose[3:] /= norm
-    return pose
+    if form == "hloc":
+        return camera_to_world(numbers[None, :4], numbers[None, 4:])[0]
+    return np.concatenate([numbers[:3], quaternion / np.linalg.norm(quaternion)])
 
 
-def read_starts(path: str | Path, axes: str = "pae") -> Starts:
+def _stated_format(path: Path, first: str, form: str | None, option: str) -> str | None:
+    """The format of the file at ``path`` whose first line is ``first``: the one its header
+    states (a pae label file's, or ``pae-localize --format lines``'s), which ``form`` (the
+    user's, None: not given) must not contradict, else ``form``."""
+    if first.replace(" ", "").startswith(",".join(LABEL_COLUMNS[:4])):
+        header = "pae"
+    elif first.startswith(LINES_CONVENTION):
+        header = "lines"
+    else:
+        header = None
+    if form is not None and form not in FORMATS:
+        raise ConfigError(f"{option.format(form)}: choose one of {FORMATS}")
+    if header is not None and form not in (None, header):
+        raise ConfigError(
+            f"{path}: {option.format(form)}, but its header states the {header} format"
+        )
+    if form == "pae" and header is None:
+        raise ConfigError(
+            f"{path}: {option.format(form)}, but it has no label-file header "
+            f"({','.join(LABEL_COLUMNS)})"
+        )
+    return header or form
+
+
+def _lines(
+    text: str, path: Path, form: str | None, option: str
+) -> tuple[list[str], np.ndarray, list[int]]:
+    """Names, camera-to-world poses [N, 7] and line numbers of a file of pose lines in the
+    format ``form`` (None: not stated, then lines of 16 numbers are matrices and lines of 7 a
+    ConfigError naming the line and the choices)."""
+    names, rows, lines = [], [], []
+    for line, row_text in enumerate(text.splitlines(), start=1):
+        tokens = row_text.split()
+        if not tokens or tokens[0].startswith("#"):
+            continue
+        numbers = _line_numbers(tokens, path, line)
+        if form is None:
+            if len(numbers) == 7:
+                raise ConfigError(
+                    f"{path}:{line}: 7 numbers a line and no header stating their convention: "
+                    f"give {option.format('lines')} ({LAYOUTS['lines']}, camera-to-world) or "
+                    f"{option.format('hloc')} ({LAYOUTS['hloc']}, world-to-camera); formats: "
+                    f"{', '.join(FORMATS)}"
+                )
+            if len(numbers) != COUNTS["matrix"]:
+                raise LabelError(
+                    path,
+                    line,
+                    f"expected '{LAYOUTS['matrix']}', or 7 numbers in a stated format "
+                    f"({option.format('lines')} or hloc), got {len(numbers)} numbers",
+                )
+            form = "matrix"
+        if len(numbers) != COUNTS[form]:
+            raise LabelError(
+                path, line, f"expected '{LAYOUTS[form]}' ({form}), got {len(numbers)} numbers"
+            )
+        names.append(tokens[0])
+        rows.append(_line_pose(numbers, form, path, line))
+        lines.append(line)
+    if not rows:
+        raise LabelError(path, None, "no poses")
+    return names, np.stack(rows), lines
+
+
+def read_starts(
+    path: str | Path, axes: str = "pae", form: str | None = None, option: str = "--init-format {}"
+) -> Starts:
     """The starting poses in ``path``: a pae label file (its ``img_path`` and ``scene``
-    columns), or result-file lines (``#`` comments and blank lines skipped); ``axes``: the
-    camera axes of the file's orientations (``AXES``). A NaN or zero quaternion, a matrix that
-    is not a rigid transform or an image named twice is a LabelError naming the file's line."""
+    columns), or pose lines (``#`` comments and blank lines skipped) in the format ``form``
+    (:data:`FORMATS`; None: the one the file's header states, else 4×4 matrices); ``axes``:
+    the camera axes of the file's orientations (``AXES``); ``option``: how errors name the
+    format's setting, ``{}`` for its value. A NaN or zero quaternion, a matrix that is not a
+    rigid transform or an image named twice is a LabelError naming the file's line; lines of
+    7 numbers of no stated format, or a format the header contradicts, a ConfigError naming
+    the file."""
     path = Path(path)
     if axes not in AXES:
         raise ConfigError(f"--init-axes {axes!r}: choose one of {AXES}")
     if not path.is_file():
         raise ConfigError(f"{path}: no such starts file")
     text = path.read_text()
-    first = text.lstrip().split("\n", 1)[0]
-    if first.replace(" ", "").startswith(",".join(LABEL_COLUMNS[:4])):
+    form = _stated_format(path, text.lstrip().split("\n", 1)[0], form, option)
+    if form == "pae":
         with warnings.catch_warnings():  # a repeated image is an error here, not a warning
             warnings.simplefilter("ignore", RepeatedImageWarning)
             table = read_labels(path)
         names, poses, scenes = list(table.img_path), table.poses.copy(), list(table.scene)
         lines = [table.file_line(row) for row in range(len(names))]
     else:
-        names, rows, lines = [], [], []
-        for line, row_text in enumerate(text.splitlines(), start=1):
-            tokens = row_text.split()
-            if not tokens or tokens[0].startswith("#"):
-                continue
-            names.append(tokens[0])
-            rows.append(_line_pose(tokens, path, line))
-            lines.append(line)
-        if not rows:
-            raise LabelError(path, None, "no poses")
-        poses, scenes = np.stack(rows), None
+        (names, poses, lines), scenes = _lines(text, path, form, option), None
     first_line: dict[str, int] = {}
     for name, line in zip(names, lines, strict=True):
         if name in first_line:
@@ -179,18 +257,29 @@ def match_starts(images: Sequence[str], starts: Starts, source: str) -> np.ndarr
     return np.asarray(rows)
 
 
-def starts_for(
-    images: Sequence[str], path: str | Path, scene_names: Sequence[str], axes: str = "pae"
+def placed_starts(
+    images: Sequence[str], starts: Starts, source: str, scene_names: Sequence[str]
 ) -> tuple[Tensor, Tensor | None]:
-    """The starting poses [N, 7] of ``images`` from the file at ``path``, and their scene ids
-    [N] into ``scene_names`` where the file names scenes (None otherwise)."""
-    starts = read_starts(path, axes)
-    rows = match_starts(images, starts, str(path))
+    """The starting poses [N, 7] of ``images`` from ``starts`` (read from the file
+    ``source``), and their scene ids [N] into ``scene_names`` where the file names scenes
+    (None otherwise)."""
+    rows = match_starts(images, starts, source)
     poses = torch.as_tensor(starts.poses[rows], dtype=torch.float32)
     if starts.scenes is None:
         return poses, None
     unknown = sorted({starts.scenes[r] for r in rows} - set(scene_names))
     if unknown:
-        raise ConfigError(f"{path}: scenes {unknown} are not the run's {list(scene_names)}")
+        raise ConfigError(f"{source}: scenes {unknown} are not the run's {list(scene_names)}")
     scene = torch.as_tensor([list(scene_names).index(starts.scenes[r]) for r in rows])
     return poses, scene
+
+
+def starts_for(
+    images: Sequence[str],
+    path: str | Path,
+    scene_names: Sequence[str],
+    axes: str = "pae",
+    form: str | None = None,
+) -> tuple[Tensor, Tensor | None]:
+    """:func:`placed_starts` of the file at ``path`` (:func:`read_starts`)."""
+    return placed_starts(images, read_starts(path, axes, form), str(path), scene_names)

@@ -17,25 +17,40 @@ from torch import Tensor, nn
 from pae.core.errors import ImageError
 from pae.core.geometry import quaternion_to_matrix, rotation_vector_to_quaternion
 from pae.core.pose_sampling import perturb
+from pae.data.exif import orientation_problem
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
-def image_size(path: str) -> tuple[int, int]:
-    """(h, w) in px of the image at `path` (ImageError if it cannot be decoded)."""
-    image = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+def read_image(path: str, flags: int) -> np.ndarray:
+    """The image at ``path`` decoded by OpenCV with ``flags``, the pixels as stored (EXIF
+    orientation ignored); ImageError naming ``path`` if it is missing or cannot be decoded, or
+    if its EXIF orientation turns it (:func:`pae.data.exif.orientation_problem`): the size
+    check and the loaders see one image."""
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+        image = cv2.imdecode(data, flags | cv2.IMREAD_IGNORE_ORIENTATION)
+    except (OSError, cv2.error):
+        image = None
     if image is None:
         raise ImageError(f"{path}: missing or unreadable image")
+    problem = orientation_problem(data)
+    if problem:
+        raise ImageError(f"{path}: {problem}")
+    return image
+
+
+def image_size(path: str) -> tuple[int, int]:
+    """(h, w) in px of the image at `path` (ImageError as :func:`read_image`)."""
+    image = read_image(path, cv2.IMREAD_UNCHANGED)
     return image.shape[0], image.shape[1]
 
 
 def load_sized_image(path: str, shorter_edge: int) -> tuple[np.ndarray, tuple[int, int]]:
-    """Read an image with OpenCV (BGR -> RGB) and resize its shorter edge -> (uint8 [H, W, 3],
-    the (h, w) in px it had in the file)."""
-    image = cv2.imread(path, cv2.IMREAD_COLOR)
-    if image is None:
-        raise ImageError(f"{path}: missing or unreadable image")
+    """Read an image with OpenCV (:func:`read_image`, BGR -> RGB) and resize its shorter edge
+    -> (uint8 [H, W, 3], the (h, w) in px it had in the file)."""
+    image = read_image(path, cv2.IMREAD_COLOR)
     h, w = image.shape[:2]
     scale = shorter_edge / min(h, w)
     if scale != 1.0:

@@ -134,16 +134,17 @@ def sequence_arguments(
     options: SequenceOptions, data: Any, split: str, rows: Tensor
 ) -> dict[str, Any]:
     """What :func:`pae.render_compare.refine` and ``calibrate`` take of the queries' sequences
-    under ``options`` (none where inactive): the sequence [B] of each of ``split``'s queries
-    at ``rows`` [B] of the data module's split (its label rows: each sequence's frames in
-    order) and the options."""
+    under ``options`` (none where inactive): the recording [B] of each of ``split``'s queries
+    at ``rows`` [B] of the data module's split (its label rows: each recording's frames in
+    order; the data module's ``recording_ids``, from where each frame came from, never a
+    label) and the options."""
     if not options.active:
         return {}
-    sequences = getattr(data, "appearance_ids", None)
-    if sequences is None:
+    recordings = getattr(data, "recording_ids", None)
+    if recordings is None:
         raise ConfigError(
             f"render_compare.sequence_*: the data module {type(data).__name__} does not say "
             "which sequence each query belongs to"
         )
-    ids = sequences(split, "sequence")[0].to(rows.device)[rows]
+    ids = recordings(split).to(rows.device)[rows]
     return {"sequences": ids, "sequence": options}
