@@ -36,11 +36,11 @@ import torch
 from run import chosen_steps, refiner_settings  # beside this script
 
 from pae.apps.localization import data_module, read_run, scene_model_path, split_queries
-from pae.callbacks.render_compare import oracle_scenes
 from pae.core.atomic import atomic_write
 from pae.core.checkpoints import load_scene_model
 from pae.core.geometry import pose_errors
 from pae.core.pose_sampling import perturb_poses
+from pae.lit.eval_outputs import oracle_scenes
 from pae.render_compare import ACCEPT_ALL, Calibration, refine
 from pae.render_compare.calibration import LADDER, ladder_starts, scene_size
 from pae.render_compare.images import band_pass, gaussian_blur, grey, zncc

@@ -15,9 +15,12 @@ from torch import Tensor
 
 from pae.lit.eval_outputs import (
     EVAL,
+    HONEST,
+    ORACLE,
+    MatchInputs,
     SceneModelEvaluation,
     collect_outputs,
-    oracle_scenes,
+    scene_models,
     sequence_arguments,
 )
 from pae.render_compare import Calibration, CalibrationOptions, Refinement, calibrate, refine
@@ -26,29 +29,20 @@ from pae.render_compare.queries import refinement_figures, write_queries
 from pae.render_compare.refiner import ACCEPT_ALL, RenderCompareRefiner, refiner_defaults
 from pae.render_compare.sequences import SequenceOptions
 from pae.scene_model.base import SceneModel
-from pae.scene_model.oracle import OracleSceneModel
-
-HONEST = "render_compare"
-ORACLE = "render_compare_oracle"
 
 
 class RenderCompareCallback(L.Callback):
     """Refines every evaluated query of a module with a scene model (``SceneModelEvaluation``)
-    from the teacher's estimate, after every ``every_n_val_epochs``-th validation (``calibrate``:
-    the gate, first steps and scene check chosen there, :class:`CalibrationOptions`) and
-    every test (``refine`` under the last calibration). It logs
-    ``{split}/render_compare/...`` (the scene model learned from the train images) and, with
-    ``oracle`` on data that knows its scenes (or an oracle scene model alone),
-    ``{split}/render_compare_oracle/...`` (the benchmark's own renderer, a bound); the gate's
-    figures (:func:`refinement_figures`; each split's refinements kept in ``refinements``),
-    ``bench/<method>/ms_per_query`` at test and ``queries_{split}_{method}.csv``.
-    ``refiner``: the partial Hydra makes of ``render_compare.refiner`` or a mapping of
-    settings replacing the defaults; the gate's options: :class:`CalibrationOptions`;
+    from the teacher's estimate after every ``every_n_val_epochs``-th validation (``calibrate``,
+    :class:`CalibrationOptions`) and every test (``refine`` under the last calibration); logs
+    ``{split}/{method}/...`` (:func:`scene_models`; :func:`refinement_figures`, the
+    refinements kept in ``refinements``), ``bench/<method>/ms_per_query`` at test and
+    ``queries_{split}_{method}.csv``. ``refiner``: the partial Hydra makes of
+    ``render_compare.refiner`` or a mapping of settings replacing the defaults;
     ``feature_layers``: the teacher backbone's modules behind ``refiner.score=features``;
-    ``init``, ``init_axes``, ``init_format``: another APR's starts file, its camera axes and
-    format (``RenderCompareFromFile``; :data:`pae.data.starts.FORMATS`, None: the file's
-    header's);
-    ``sequence_*``: :class:`pae.render_compare.sequences.SequenceOptions`."""
+    ``init``, ``init_axes``, ``init_format``: another APR's starts file, its axes and format
+    (``RenderCompareFromFile``); ``sequence_*``: :class:`SequenceOptions`;
+    ``matches_from_val``, ``match_descriptor``: :class:`pae.lit.eval_outputs.MatchInputs`."""
 
     def __init__(
         self,
@@ -68,15 +62,18 @@ class RenderCompareCallback(L.Callback):
         sequence_window: int = 0,
         sequence_scene_vote: bool = False,
         gate_objective: str = "mean",
+        matches_from_val: list[dict[str, Any]] | None = None,
+        match_descriptor: str = "teacher",
     ) -> None:
         super().__init__()
         settings = refiner.keywords if isinstance(refiner, functools.partial) else refiner
         self.settings = refiner_defaults() | dict(settings or {})
         self.oracle, self.every_n_val_epochs = oracle, max(1, every_n_val_epochs)
-        self.feature_layers, self.init, self.init_axes = feature_layers, init, init_axes
-        self.init_format = init_format
+        self.feature_layers, self.init = feature_layers, init
+        self.init_axes, self.init_format = init_axes, init_format
         on_val = (accept_margin, accept_score, step_from_val, scene_check_below, filters_from_val)
-        self.options = CalibrationOptions(*on_val, gate_objective)
+        self.options = CalibrationOptions(*on_val, gate_objective, matches_from_val)
+        self.match_inputs = MatchInputs(matches_from_val, match_descriptor)
         self.sequence = SequenceOptions(sequence_passes, sequence_window, sequence_scene_vote)
         self.calibrations: dict[str, Calibration] = {}  # method -> the last chosen on val
         self.refined: dict[str, dict[str, Tensor]] = {}  # split -> method -> poses kept
@@ -110,11 +107,7 @@ class RenderCompareCallback(L.Callback):
         outputs = collect_outputs(trainer, pl_module)
         if outputs is None:
             return
-        models = {HONEST: pl_module.scene_model}
-        if isinstance(pl_module.scene_model, OracleSceneModel):
-            models = {ORACLE: pl_module.scene_model}
-        elif self.oracle and (scenes := oracle_scenes(trainer.datamodule)) is not None:
-            models[ORACLE] = OracleSceneModel(scenes)
+        models = scene_models(pl_module.scene_model, trainer.datamodule, self.oracle)
         truth, estimate = outputs[EVAL.pose].float(), outputs[EVAL.estimate].float()
         scene, predicted = outputs[EVAL.scene], outputs[EVAL.scene_estimate]
         decided = predicted if EVAL.scene_poses in outputs or self.sequence.vote_scene else None
@@ -122,6 +115,9 @@ class RenderCompareCallback(L.Callback):
         common = {"settings": self.settings, "features": self.features(pl_module.teacher)}
         common |= {key: outputs.get(key) for key in (EVAL.scene_poses, EVAL.scene_logits)}
         common |= sequence_arguments(self.sequence, trainer.datamodule, split, outputs[EVAL.index])
+        common |= self.match_inputs.arguments(
+            trainer.datamodule, pl_module.teacher, split, outputs[EVAL.index]
+        )
         figures: dict[str, Tensor] = {}
         self.refined[split], self.refinements[split] = {"teacher": estimate}, {}
         for name, model in models.items():

@@ -5,18 +5,23 @@ once each (:func:`collect_outputs`)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
 import lightning as L
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from pae.core.errors import ConfigError
 from pae.core.heap import release_free_heap
 from pae.core.metrics import first_occurrences
+from pae.data.transforms import ImageTransform
+from pae.render_compare.correspondences import Describer, MatchQueries, TrainImages
 from pae.render_compare.sequences import SequenceOptions
 from pae.scene_model.base import SceneModel
+from pae.scene_model.oracle import OracleSceneModel
 
 
 @dataclass(frozen=True)
@@ -148,3 +153,94 @@ def sequence_arguments(
         )
     ids = recordings(split).to(rows.device)[rows]
     return {"sequences": ids, "sequence": options}
+
+
+DESCRIPTORS = ("teacher", "thumbnail")
+"""The train views' global descriptor for the correspondence stage: the teacher backbone's
+pooled features, or the classical band-passed thumbnail."""
+
+
+def match_width(matches: Sequence[Mapping[str, Any]] | None) -> int:
+    """The one match width (px) of the correspondence stages tried on val (0: none); a
+    ConfigError where two differ."""
+    widths = {int(m.get("width", 0)) for m in matches or ()} - {0}
+    if len(widths) > 1:
+        raise ConfigError(
+            f"render_compare.matches_from_val: one width for every stage, not {sorted(widths)}"
+        )
+    return widths.pop() if widths else 0
+
+
+def teacher_descriptor(teacher: torch.nn.Module, size: int) -> Describer:
+    """The teacher backbone's pooled features as a global descriptor: RGB images
+    [B, 3, H, W] in [0, 1] area-resized to ``size`` px on their shorter edge, normalised as
+    the teacher's inputs -> unit vectors [B, G]."""
+
+    @torch.no_grad()
+    def describe(rgb: Tensor) -> Tensor:
+        h, w = rgb.shape[-2:]
+        scale = size / min(h, w)
+        small = F.interpolate(rgb, size=(round(h * scale), round(w * scale)), mode="area")
+        return F.normalize(teacher.backbone(ImageTransform.normalize_batch(small)), dim=1)
+
+    return describe
+
+
+def match_queries(
+    data: Any, split: str, rows: Tensor, width: int, train: TrainImages
+) -> MatchQueries:
+    """What the correspondence stage reads of ``split``'s queries at ``rows`` [B] of the
+    data module's split: their images at ``width`` px (the loader's files, not the compare
+    width) with intrinsics, and the train views ``train``."""
+    images, intrinsics = data.images_at(split, width)
+    return MatchQueries(images[rows.cpu()].float() / 255, intrinsics[rows.cpu()], train)
+
+
+def train_images(data: Any, width: int, describe: Describer | None) -> TrainImages:
+    """The data module's train views at ``width`` px for the correspondence stage."""
+    images, intrinsics = data.images_at("train", width)
+    poses, scenes = data.train_poses()
+    return TrainImages(images, intrinsics, poses, scenes, describe)
+
+
+class MatchInputs:
+    """What a render-and-compare callback gives the correspondence stages it tries on val
+    (``matches``: mappings of ``MatchSettings``): the queries at their one match width and
+    the train views, retrieved by ``descriptor`` (``DESCRIPTORS``), read once per run."""
+
+    def __init__(self, matches: Sequence[Mapping[str, Any]] | None, descriptor: str) -> None:
+        if descriptor not in DESCRIPTORS:
+            raise ValueError(
+                f"render_compare.match_descriptor: unknown {descriptor!r}; choose one of "
+                f"{list(DESCRIPTORS)}"
+            )
+        self.width, self.descriptor = match_width(matches), descriptor
+        self.train: TrainImages | None = None
+
+    def arguments(
+        self, data: Any, teacher: torch.nn.Module, split: str, rows: Tensor
+    ) -> dict[str, Any]:
+        """``matching=`` for ``split``'s queries at ``rows`` [B] (none without a stage)."""
+        if not self.width:
+            return {}
+        if self.train is None:
+            size = int(getattr(data, "shorter_edge", 64))
+            describe = teacher_descriptor(teacher, size) if self.descriptor == "teacher" else None
+            self.train = train_images(data, self.width, describe)
+        return {"matching": match_queries(data, split, rows, self.width, self.train)}
+
+
+HONEST = "render_compare"
+"""The method refining against the scene model learned from the train images."""
+ORACLE = "render_compare_oracle"
+"""The method refining against the benchmark's own renderer (a bound)."""
+
+
+def scene_models(scene_model: SceneModel, data: Any, oracle: bool) -> dict[str, SceneModel]:
+    """The scene models a render-and-compare callback refines against, by method: the run's
+    (an oracle scene model under ``ORACLE``), and with ``oracle`` on data that knows its
+    scenes the benchmark's own renderer."""
+    if isinstance(scene_model, OracleSceneModel):
+        return {ORACLE: scene_model}
+    scenes = oracle_scenes(data) if oracle else None
+    return {HONEST: scene_model} | ({} if scenes is None else {ORACLE: OracleSceneModel(scenes)})

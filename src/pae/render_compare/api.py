@@ -29,8 +29,9 @@ from pae.render_compare.calibration import (
     objective_value,
     steps_from_errors,
 )
-from pae.render_compare.correspondences import MatchQueries, MatchSettings, correspond
+from pae.render_compare.correspondences import MatchQueries, MatchSettings
 from pae.render_compare.gate import ACCEPT_ALL, RenderCompareResult, gate
+from pae.render_compare.other_starts import with_other_starts
 from pae.render_compare.refiner import FeatureExtractor, RenderCompareRefiner
 from pae.render_compare.scene_decision import (
     PROBE_SCALES,
@@ -187,46 +188,6 @@ def _refine_in_scenes(
     return decision.result, decision.scene, decision.checked
 
 
-class _Matched(NamedTuple):
-    result: RenderCompareResult
-    matched: Tensor | None
-    from_match: Tensor | None
-
-
-def _with_correspondences(
-    refiner: RenderCompareRefiner,
-    images: Tensor,
-    intrinsics: Tensor,
-    starts: Tensor,
-    scenes: Tensor,
-    decided: Tensor,
-    result: RenderCompareResult,
-    match: MatchSettings,
-    matching: MatchQueries | None,
-) -> _Matched:
-    """The refinement from the APR's starts, or where it scores lower, the refinement from
-    the pose the correspondences give (queries whose scene the decision kept)."""
-    if not match.active or matching is None:
-        return _Matched(result, None, None)
-    match = dataclasses.replace(match, surface_share=refiner.surface_share)
-    found = correspond(
-        refiner.scene_model, matching.images, matching.intrinsics, starts, scenes, match,
-        matching.views(refiner.scene_model, match), matching.describe,
-    )  # fmt: skip
-    rows = (found.found & (decided == scenes)).nonzero().flatten()
-    from_match = torch.zeros_like(found.found)
-    if not len(rows):
-        return _Matched(result, found.found, from_match)
-    second = refiner(images[rows], intrinsics[rows], found.poses[rows], decided[rows])
-    better = second.score > result.score[rows]
-    from_match[rows] = better
-    poses, score = result.poses.clone(), result.score.clone()
-    poses[rows] = torch.where(better[:, None], second.poses.to(poses), poses[rows])
-    score[rows] = torch.where(better, second.score.to(score), score[rows])
-    merged = RenderCompareResult(poses, score, result.initial_score)
-    return _Matched(merged, found.found, from_match)
-
-
 def refine(
     scene_model: SceneModel,
     images: Tensor,
@@ -267,7 +228,7 @@ def refine(
         refiner, images, intrinsics, starts, scenes, scene_poses, scene_logits,
         calibration.scene,
     )  # fmt: skip
-    matched = _with_correspondences(
+    matched = with_other_starts(
         refiner, images, intrinsics, starts, scenes, decided, result, calibration.match, matching
     )
     result = _propagated(refiner, images, intrinsics, decided, matched.result, sequences, sequence)
@@ -320,13 +281,13 @@ def calibrate(
     of :class:`MatchSettings`; ``{}``: none), each is tried with the chosen filter and the one
     whose gated refinement minimises the ``gate_objective`` is kept in the calibration's
     ``match``."""
+    arguments = dict(locals())  # every argument as given, before any local variable
     _check(images, intrinsics, starts, scenes, scene_poses, scene_logits, sequences, sequence)
     check_shape(truth, "truth", f"{len(starts)} 7")
     _check_matching(matching, len(starts))
     by_sequence = sequences is not None and sequence is not None and sequence.active
     chooses_match = matching is not None and matches is not None and len(matches) > 1
     if filters is not None and len(filters) > 1:
-        arguments = dict(locals())  # every argument as given
         alone = {"sequences": None, "sequence": None, "matches": None}
         tried = [calibrate(**arguments | alone | {"filters": [chosen]}) for chosen in filters]
         errors = [pose_errors(r.poses.float(), truth.float())[0].mean() for _, r in tried]
@@ -335,12 +296,9 @@ def calibrate(
             return tried[best]
         return calibrate(**arguments | {"filters": [filters[best]]})
     if chooses_match:
-        arguments = dict(locals())
         alone = {"sequences": None, "sequence": None}
         tried = [calibrate(**arguments | alone | {"matches": [chosen]}) for chosen in matches]
-        values = [
-            objective_value(r.poses, starts, truth, gate_objective) for _, r in tried
-        ]
+        values = [objective_value(r.poses, starts, truth, gate_objective) for _, r in tried]
         best = min(range(len(tried)), key=lambda i: values[i])
         if not by_sequence:
             return tried[best]
@@ -366,7 +324,7 @@ def calibrate(
         keep = (first.score < rule.check_below).nonzero().flatten()
         decision = apply(first, scenes, keep, trials.rows(keep), prior, rule)
         result, decided, checked = decision.result, decision.scene, decision.checked
-    matched = _with_correspondences(
+    matched = with_other_starts(
         refiner, images, intrinsics, starts, scenes, decided, result, match, matching
     )
     result = _propagated(refiner, images, intrinsics, decided, matched.result, sequences, sequence)

@@ -97,7 +97,10 @@ def refinement_figures(
     ``worse_than_start_share`` and, where scenes were decided from the teacher's
     ``predicted`` scenes [N] (None: not), ``scene_accuracy``, the scene rule's settings
     (:class:`pae.render_compare.scene_decision.SceneRule`), ``scene_checked_share`` and
-    ``scene_moved_share`` -> the figures and the position (m)
+    ``scene_moved_share``; where a correspondence stage ran (``calibration.match``), its
+    ``match_start_views``, ``match_render_width``, ``match_found_share`` (queries whose
+    keypoints gave a pose) and ``match_kept_share`` (those whose kept refinement started
+    from another start than the APR's) -> the figures and the position (m)
     and orientation (deg) errors [N] of the starts and of the refined poses before the gate."""
     start_errors = pose_errors(starts.float(), truth.float())
     refined_errors = pose_errors(refinement.result.poses.float(), truth.float())
@@ -116,6 +119,12 @@ def refinement_figures(
         figures[f"{prefix}/scene_move_margin"] = torch.tensor(rule.margin)
         figures[f"{prefix}/scene_checked_share"] = refinement.checked.float().mean()
         figures[f"{prefix}/scene_moved_share"] = (refinement.scenes != predicted).float().mean()
+    match = getattr(calibration, "match", None)
+    if match is not None and getattr(refinement, "matched", None) is not None:
+        figures[f"{prefix}/match_start_views"] = torch.tensor(float(match.start_views))
+        figures[f"{prefix}/match_render_width"] = torch.tensor(float(match.render_width))
+        figures[f"{prefix}/match_found_share"] = refinement.matched.float().mean()
+        figures[f"{prefix}/match_kept_share"] = refinement.from_match.float().mean()
     return figures, start_errors, refined_errors
 
 

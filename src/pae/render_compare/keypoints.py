@@ -1,0 +1,209 @@
+"""Keypoints for the correspondence stage (:mod:`pae.render_compare.correspondences`): its
+settings, OpenCV's classical detectors (no weights), mutual nearest-neighbour matching with
+Lowe's ratio test batched over images, and the lifting of pixels to world points through a
+rendered depth."""
+
+from __future__ import annotations
+
+import dataclasses
+from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+from pae.core.geometry import quaternion_to_matrix
+from pae.core.threads import current_budget
+
+DETECTORS = ("sift", "orb")
+MIN_DEPTH_M = 0.05
+"""Rendered depths below this (m) lift no keypoint."""
+
+
+@dataclasses.dataclass(frozen=True)
+class MatchSettings:
+    """The correspondence stage's settings (``render_compare.match``); ``width`` 0: off."""
+
+    width: int = 0
+    """The query's width (px) where keypoints are detected; 0: the stage is off."""
+    detector: str = "sift"
+    """OpenCV's ``sift`` or ``orb``."""
+    contrast: float = 0.01
+    """SIFT's contrast threshold (OpenCV's default 0.04 keeps few keypoints on soft images);
+    ORB's FAST threshold is ``contrast`` × 500 grey levels."""
+    keypoints: int = 1000
+    """At most this many keypoints per image."""
+    ratio: float = 0.85
+    """Lowe's ratio test: a match's distance below this share of the second nearest's."""
+    render_width: int = 128
+    """The scene model's rendering at the start (px; 0: none), with ``render_fov_scale`` ×
+    the query's field of view."""
+    render_fov_scale: float = 1.3
+    views: int = 0
+    """Train views retrieved by global descriptor per query (0: none)."""
+    near_views: int = 0
+    """Train views whose cameras lie nearest the start per query (0: none)."""
+    start_views: int = 0
+    """The poses of this many train views nearest the query by global descriptor, each
+    refined as a start of its own beside the APR's (0: none)."""
+    below_score: float = 2.0
+    """Only queries whose refinement from the APR's start scores below this ZNCC get the
+    other starts (2: every query): a query the scene model already explains keeps its own."""
+    depth_width: int = 64
+    """The train views' depth rendering (px) that lifts their keypoints."""
+    iterations: int = 2
+    """Render -> match -> solve rounds (the train views' matches are kept in each)."""
+    reprojection_px: float = 1.5
+    """The solver's inlier threshold, px at ``width``."""
+    min_inliers: int = 15
+    """Fewer inliers: no pose from correspondences (the query keeps its start)."""
+    surface_share: float = 0.0
+    """The depth that lifts a keypoint (:meth:`SceneModel.render`'s)."""
+
+    def __post_init__(self) -> None:
+        if self.detector not in DETECTORS:
+            raise ValueError(
+                f"render_compare.match.detector must be one of {DETECTORS}, not {self.detector!r}"
+            )
+        if self.width < 0 or (0 < self.width < 32):
+            raise ValueError(f"render_compare.match.width must be 0 or >= 32, not {self.width}")
+        if self.render_width < 0 or (0 < self.render_width < 32) or self.depth_width < 8:
+            raise ValueError(
+                "render_compare.match needs render_width 0 or >= 32 and depth_width >= 8, not "
+                f"{self.render_width} and {self.depth_width}"
+            )
+        counts = (self.views, self.near_views, self.start_views, self.iterations)
+        if min(counts) < 0 or self.keypoints < 8:
+            raise ValueError(
+                "render_compare.match needs views, near_views, start_views, iterations >= 0 "
+                f"and keypoints >= 8, not {counts[:3]}, {self.iterations}, {self.keypoints}"
+            )
+        if not 0 < self.ratio <= 1 or self.reprojection_px <= 0 or self.min_inliers < 4:
+            raise ValueError(
+                "render_compare.match needs 0 < ratio <= 1, reprojection_px > 0 and "
+                f"min_inliers >= 4, not {self.ratio}, {self.reprojection_px}, {self.min_inliers}"
+            )
+        if self.render_fov_scale <= 0 or not 0 <= self.surface_share < 1:
+            raise ValueError(
+                "render_compare.match needs render_fov_scale > 0 and 0 <= surface_share < 1"
+            )
+
+    @property
+    def solves(self) -> bool:
+        """Whether poses are solved from keypoint correspondences."""
+        return self.width > 0 and bool(self.render_width or self.views or self.near_views)
+
+    @property
+    def active(self) -> bool:
+        return self.solves or (self.width > 0 and self.start_views > 0)
+
+    @property
+    def uses_views(self) -> bool:
+        return self.width > 0 and bool(self.views or self.near_views)
+
+
+class Keypoints(NamedTuple):
+    """Keypoints of ``B`` images, padded to ``K``: xy [B, K, 2] px, descriptors [B, K, D]
+    (float; binary ones as 0/1 bits), count [B]."""
+
+    xy: Tensor
+    descriptors: Tensor
+    count: Tensor
+
+    @property
+    def mask(self) -> Tensor:  # [B, K] real keypoints
+        return torch.arange(self.xy.shape[1])[None] < self.count[:, None]
+
+
+def _grey_uint8(images: Tensor) -> np.ndarray:
+    """RGB [B, 3, H, W] in [0, 1] -> uint8 grey [B, H, W]."""
+    grey = 0.299 * images[:, 0] + 0.587 * images[:, 1] + 0.114 * images[:, 2]
+    return (grey.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()
+
+
+def _detector(settings: MatchSettings) -> cv2.Feature2D:
+    if settings.detector == "sift":
+        return cv2.SIFT_create(settings.keypoints, contrastThreshold=settings.contrast)
+    fast = max(1, round(settings.contrast * 500))
+    return cv2.ORB_create(settings.keypoints, edgeThreshold=15, patchSize=15, fastThreshold=fast)
+
+
+def worker_threads() -> int:
+    return max(1, current_budget().threads)
+
+
+def detect(images: Tensor, settings: MatchSettings, masks: Tensor | None = None) -> Keypoints:
+    """Keypoints of RGB images [B, 3, H, W] in [0, 1], at most ``settings.keypoints`` each
+    (the strongest); ``masks`` [B, H, W] bool: only where True."""
+    grey = _grey_uint8(images)
+    allowed = None if masks is None else masks.to(torch.uint8).mul(255).cpu().numpy()
+    binary = settings.detector != "sift"
+
+    def one(index: int) -> tuple[np.ndarray, np.ndarray]:
+        detector = _detector(settings)
+        mask = None if allowed is None else allowed[index]
+        found, described = detector.detectAndCompute(grey[index], mask)
+        if described is None or not found:
+            return np.zeros((0, 2), np.float32), np.zeros((0, 0), np.float32)
+        strength = np.array([k.response for k in found], np.float32)
+        keep = np.argsort(-strength, kind="stable")[: settings.keypoints]
+        xy = np.array([found[i].pt for i in keep], np.float32)
+        chosen = described[keep]
+        if binary:
+            chosen = np.unpackbits(chosen, axis=1)
+        return xy, chosen.astype(np.float32)
+
+    with ThreadPoolExecutor(worker_threads()) as pool:
+        found = list(pool.map(one, range(len(grey))))
+    size = max([len(xy) for xy, _ in found] + [1])
+    dim = max([d.shape[1] for _, d in found] + [1])
+    xy = torch.zeros(len(found), size, 2)
+    descriptors = torch.zeros(len(found), size, dim)
+    count = torch.zeros(len(found), dtype=torch.long)
+    for row, (points, described) in enumerate(found):
+        xy[row, : len(points)] = torch.from_numpy(points)
+        if len(points):
+            descriptors[row, : len(points), : described.shape[1]] = torch.from_numpy(described)
+        count[row] = len(points)
+    return Keypoints(xy, descriptors, count)
+
+
+def mutual_matches(
+    query: Keypoints, reference: Keypoints, ratio: float, binary: bool
+) -> tuple[Tensor, Tensor]:
+    """For each query keypoint [B, K] the index [B, K] of its match among the reference's
+    (mutual nearest neighbours passing the ratio test) and whether it has one [B, K]."""
+    a, b = query.descriptors, reference.descriptors
+    if binary:  # Hamming distances of 0/1 bits
+        distance = a.sum(-1)[..., None] + b.sum(-1)[:, None] - 2 * a @ b.transpose(1, 2)
+    else:
+        distance = torch.cdist(a, b)
+    far = torch.finfo(distance.dtype).max
+    distance = distance.masked_fill(~reference.mask[:, None], far)
+    distance = distance.masked_fill(~query.mask[..., None], far)
+    if distance.shape[2] < 2:
+        empty = torch.zeros(query.xy.shape[:2], dtype=torch.bool)
+        return torch.zeros_like(empty, dtype=torch.long), empty
+    two, nearest = distance.topk(2, dim=2, largest=False)
+    back = distance.argmin(1)  # [B, M]: each reference keypoint's nearest query keypoint
+    mutual = back.gather(1, nearest[..., 0]) == torch.arange(distance.shape[1])[None]
+    passes = two[..., 0] < ratio * two[..., 1]
+    return nearest[..., 0], mutual & passes & query.mask & (two[..., 0] < far)
+
+
+def lift(xy: Tensor, depth: Tensor, opacity: Tensor, poses: Tensor, intrinsics: Tensor):
+    """World points [B, K, 3] of pixels xy [B, K, 2] (px of ``depth`` [B, H, W]) and where
+    the model saw a surface there [B, K] (opacity [B, H, W] > 0.5, depth > MIN_DEPTH_M);
+    poses [B, 7] camera-to-world, intrinsics [B, 4] of the depth images."""
+    h, w = depth.shape[-2:]
+    column = xy[..., 0].round().long().clamp(0, w - 1)
+    row = xy[..., 1].round().long().clamp(0, h - 1)
+    at = row * w + column
+    z = depth.flatten(1).gather(1, at)
+    seen = (opacity.flatten(1).gather(1, at) > 0.5) & (z > MIN_DEPTH_M)
+    fx, fy, cx, cy = intrinsics[:, None].unbind(-1)
+    local = torch.stack([(xy[..., 0] - cx) / fx * z, (xy[..., 1] - cy) / fy * z, z], -1)
+    rotation = quaternion_to_matrix(poses[:, 3:])
+    return torch.einsum("bij,bkj->bki", rotation, local) + poses[:, None, :3], seen

@@ -1,0 +1,101 @@
+"""Other starts than the APR's for each query (:mod:`pae.render_compare.correspondences`):
+the pose its keypoint correspondences give and the poses of the train views nearest it by
+appearance, each refined, the best-scoring refinement kept."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from pae.render_compare.correspondences import MatchQueries, MatchSettings, correspond
+from pae.render_compare.gate import RenderCompareResult
+from pae.render_compare.refiner import RenderCompareRefiner
+from pae.scene_model.base import SceneModel
+
+
+class OtherStarts(NamedTuple):
+    """A refinement after the other starts: its result, which queries' correspondences gave
+    a pose [B] and which kept a refinement from another start [B] (None: no stage ran)."""
+
+    result: RenderCompareResult
+    matched: Tensor | None
+    from_match: Tensor | None
+
+
+def _extra_starts(
+    scene_model: SceneModel,
+    starts: Tensor,
+    scenes: Tensor,
+    match: MatchSettings,
+    matching: MatchQueries,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Each query's starts beside its APR's [B, H, 7], which of them to refine [B, H] and
+    whether correspondences gave it a pose [B]: the pose its correspondences give, then the
+    poses of its ``start_views`` train views nearest by descriptor."""
+    extra, usable = [], []
+    found = torch.zeros(len(starts), dtype=torch.bool)
+    if match.solves:
+        solved = correspond(
+            scene_model, matching.images, matching.intrinsics, starts, scenes, match,
+            matching.views(scene_model, match), matching.describe,
+        )  # fmt: skip
+        found = solved.found
+        extra.append(solved.poses[:, None])
+        usable.append(found[:, None])
+    if match.start_views:
+        if matching.train is None:
+            raise ValueError("render_compare.match.start_views needs MatchQueries.train")
+        rows = matching.train.nearest(matching.images, scenes, match.start_views)
+        extra.append(matching.train.poses[rows].to(starts))
+        usable.append(torch.ones(rows.shape, dtype=torch.bool))
+    return torch.cat(extra, 1), torch.cat(usable, 1), found
+
+
+def with_other_starts(
+    refiner: RenderCompareRefiner,
+    images: Tensor,
+    intrinsics: Tensor,
+    starts: Tensor,
+    scenes: Tensor,
+    decided: Tensor,
+    result: RenderCompareResult,
+    match: MatchSettings,
+    matching: MatchQueries | None,
+) -> OtherStarts:
+    """The refinement from the APR's starts, or where one scores higher, a refinement from
+    another start (:func:`_extra_starts`), for the queries whose scene the decision kept."""
+    if not match.active or matching is None:
+        return OtherStarts(result, None, None)
+    match = dataclasses.replace(match, surface_share=refiner.surface_share)
+    found = torch.zeros(len(starts), dtype=torch.bool)
+    from_match = torch.zeros_like(found)
+    needy = ((decided == scenes) & (result.score < match.below_score)).nonzero().flatten()
+    if not len(needy):
+        return OtherStarts(result, found, from_match)
+    subset = MatchQueries(matching.images[needy], matching.intrinsics[needy], matching.train)
+    extra, usable, found[needy] = _extra_starts(
+        refiner.scene_model, starts[needy], scenes[needy], match, subset
+    )
+    query, which = usable.nonzero(as_tuple=True)
+    if not len(query):
+        return OtherStarts(result, found, from_match)
+    rows = needy[query]
+    second = refiner(images[rows], intrinsics[rows], extra[query, which], decided[rows])
+    scores = torch.full(usable.shape, -math.inf)
+    scores[query, which] = second.score.float()
+    best_score, best = scores.max(1)
+    better = (best_score > result.score[needy].float()).nonzero().flatten()
+    pick = torch.full(usable.shape, -1, dtype=torch.long)
+    pick[query, which] = torch.arange(len(query))
+    chosen = pick[better, best[better]]
+    kept = needy[better]
+    poses, score = result.poses.clone(), result.score.clone()
+    poses[kept] = second.poses[chosen].to(poses)
+    score[kept] = second.score[chosen].to(score)
+    from_match[kept] = True
+    merged = RenderCompareResult(poses, score, result.initial_score)
+    return OtherStarts(merged, found, from_match)

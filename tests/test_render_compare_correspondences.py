@@ -1,0 +1,182 @@
+"""The correspondence stage: keypoint matches against the scene model's renderings and the
+train views, lifted through its depth, the pose solved by PnP; the train views' poses as
+starts of their own; how refine() and calibrate() use both."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from pae.core.camera import project
+from pae.core.geometry import pose_errors, quaternion_to_matrix
+from pae.core.pose_sampling import perturb
+from pae.render_compare import Calibration, CalibrationOptions, calibrate, refine
+from pae.render_compare.correspondences import (
+    Keypoints,
+    MatchQueries,
+    MatchSettings,
+    TrainImages,
+    correspond,
+    lift,
+    mutual_matches,
+)
+from pae.scene_model.oracle import OracleSceneModel
+from pae.synthetic import (
+    Appearance,
+    PinholeCamera,
+    SyntheticSettings,
+    make_scene,
+    make_sequences,
+    render_batch,
+)
+
+SMALL_SEARCH = {"rounds": 2, "candidates": 6, "resolution": 24, "reference_size": 16}
+
+
+def _frames(size: int, rows: slice) -> tuple[OracleSceneModel, torch.Tensor, ...]:
+    """Frames ``rows`` of benchmark scene 0's last walk at ``size`` px: the oracle, images
+    [N, 3, size, size] in [0, 1], intrinsics [N, 4] and true poses [N, 7]."""
+    scene, camera = make_scene(0), PinholeCamera(size)
+    walks = make_sequences(0, scene, SyntheticSettings(train_frames=6, test_frames=120))
+    poses = walks[-1].poses[rows]
+    images = render_batch(scene, poses, camera, Appearance(), supersample=1)
+    f, c = camera.focal_px, camera.principal_point
+    return (
+        OracleSceneModel([scene]),
+        torch.from_numpy(images).float().div(255).permute(0, 3, 1, 2),
+        torch.tensor([f, f, c, c]).expand(len(poses), 4).clone(),
+        torch.from_numpy(poses).float(),
+    )
+
+
+def test_mutual_matches_keep_the_mutual_unambiguous_nearest_neighbours() -> None:
+    reference = torch.eye(6)[None]  # six distinct descriptors
+    order = torch.tensor([3, 0, 5, 1, 4, 2])
+    query = reference[:, order].clone()
+    query[0, 5] = (reference[0, 2] + reference[0, 4]) / 2  # halfway between two: ambiguous
+    count = torch.tensor([6])
+    index, matched = mutual_matches(
+        Keypoints(torch.zeros(1, 6, 2), query, count),
+        Keypoints(torch.zeros(1, 6, 2), reference, count),
+        ratio=0.8,
+        binary=False,
+    )
+    assert matched[0, :5].all() and not matched[0, 5]
+    assert torch.equal(index[0, :5], order[:5])
+    short = Keypoints(torch.zeros(1, 6, 2), reference, torch.tensor([4]))  # 2 are padding
+    query_keypoints = Keypoints(torch.zeros(1, 6, 2), query, count)
+    index, matched = mutual_matches(query_keypoints, short, 0.8, False)
+    # without reference 4 the halfway descriptor is no longer ambiguous: it matches 2
+    assert index[matched].tolist() == [3, 0, 1, 2]
+
+
+def test_lift_puts_a_pixel_at_its_depth_along_its_ray() -> None:
+    pose = torch.tensor([[0.3, -0.2, 1.0, 0.9, 0.1, 0.3, -0.2]])
+    pose[:, 3:] = pose[:, 3:] / pose[:, 3:].norm()
+    intrinsics = torch.tensor([[40.0, 40.0, 15.5, 11.5]])
+    depth = torch.full((1, 24, 32), 2.5)
+    opacity = torch.ones(1, 24, 32)
+    opacity[0, 0, 0] = 0.0  # the model sees nothing at the top-left pixel
+    xy = torch.tensor([[[7.0, 5.0], [0.0, 0.0]]])
+    world, seen = lift(xy, depth, opacity, pose, intrinsics)
+    assert seen.tolist() == [[True, False]]
+    local = torch.einsum("ij,kj->ki", quaternion_to_matrix(pose[0, 3:]).T, world[0] - pose[0, :3])
+    torch.testing.assert_close(local[0, 2], torch.tensor(2.5))
+    torch.testing.assert_close(project(local[:1], intrinsics[0]), xy[0, :1])
+
+
+def test_correspondences_solve_the_pose_far_beyond_a_photometric_basin() -> None:
+    """Starts 0.45 m and about 14 degrees off; keypoints on the query matched against the
+    oracle's rendering at the start give the pose within a few centimetres; a blank image
+    finds nothing and keeps its start."""
+    model, images, intrinsics, truth = _frames(128, slice(0, 48, 12))
+    offset = torch.tensor([0.3, -0.25, 0.2, 0.15, -0.15, 0.1])
+    starts = perturb(truth, offset.expand(len(truth), 6))
+    scenes = torch.zeros(len(truth), dtype=torch.long)
+    settings = MatchSettings(width=128, render_width=128, min_inliers=10)
+    images[-1] = 0.5
+    found = correspond(model, images, intrinsics, starts, scenes, settings)
+    position, orientation = pose_errors(found.poses, truth)
+    start_position, _ = pose_errors(starts, truth)
+    assert float(start_position.min()) > 0.4
+    assert found.found[:-1].all() and not found.found[-1]
+    assert float(position[found.found].max()) < 0.05 and float(orientation[found.found].max()) < 1
+    torch.testing.assert_close(found.poses[~found.found], starts[~found.found])
+
+
+def test_train_views_nearest_in_appearance_become_starts_of_their_own() -> None:
+    """A query whose start is 1.5 m off, beyond the search; the train views include a frame
+    next to it on the walk: refined from that view's pose it is found, the refinement from
+    the start is not; with the stage off refine() is unchanged."""
+    model, images, intrinsics, truth = _frames(48, slice(0, 40))
+    train = TrainImages(images[::2], intrinsics[::2], truth[::2], torch.zeros(20, dtype=torch.long))
+    query = slice(21, 22)  # between train frames 20 and 22
+    starts = perturb(truth[query], torch.tensor([[1.0, -0.9, 0.6, 0.3, 0.2, -0.2]]))
+    scenes = torch.zeros(1, dtype=torch.long)
+    matching = MatchQueries(images[query], intrinsics[query], train)
+    match = MatchSettings(width=48, render_width=0, start_views=2)
+    alone = refine(model, images[query], intrinsics[query], starts, scenes, SMALL_SEARCH)
+    found = refine(
+        model, images[query], intrinsics[query], starts, scenes, SMALL_SEARCH,
+        Calibration(match=match), matching=matching,
+    )  # fmt: skip
+    assert float(pose_errors(alone.result.poses, truth[query])[0][0]) > 0.5
+    assert float(pose_errors(found.result.poses, truth[query])[0][0]) < 0.1
+    assert found.from_match.tolist() == [True] and found.matched.tolist() == [False]
+    assert bool((found.result.score >= alone.result.score).all())
+    off = refine(
+        model, images[query], intrinsics[query], starts, scenes, SMALL_SEARCH,
+        matching=matching,
+    )  # fmt: skip
+    torch.testing.assert_close(off.poses, alone.poses)
+    assert off.matched is None
+
+
+def test_calibrate_keeps_the_stage_val_prefers_and_refine_applies_it() -> None:
+    model, images, intrinsics, truth = _frames(48, slice(0, 40))
+    train = TrainImages(images[::2], intrinsics[::2], truth[::2], torch.zeros(20, dtype=torch.long))
+    rows = torch.tensor([5, 13, 21, 29])
+    offset = torch.tensor([1.0, -0.9, 0.6, 0.3, 0.2, -0.2])
+    starts = perturb(truth[rows], offset.expand(4, 6))
+    scenes = torch.zeros(4, dtype=torch.long)
+    matching = MatchQueries(images[rows], intrinsics[rows], train)
+    stages = [{}, {"width": 48, "render_width": 0, "start_views": 2}]
+    calibration, refinement = calibrate(
+        model, images[rows], intrinsics[rows], starts, scenes, truth[rows], SMALL_SEARCH,
+        matching=matching, matches=stages,
+    )  # fmt: skip
+    assert calibration.match.start_views == 2
+    again = refine(
+        model, images[rows], intrinsics[rows], starts, scenes, SMALL_SEARCH, calibration,
+        matching=matching,
+    )  # fmt: skip
+    torch.testing.assert_close(again.poses, refinement.poses)
+
+
+@pytest.mark.parametrize(
+    ("settings", "named"),
+    [
+        ({"detector": "akaze"}, "detector"),
+        ({"width": 16}, "width"),
+        ({"ratio": 1.5}, "ratio"),
+        ({"start_views": -1}, "start_views"),
+    ],
+)
+def test_match_settings_name_a_bad_value(settings: dict, named: str) -> None:
+    with pytest.raises(ValueError, match=named):
+        MatchSettings(**settings)
+
+
+def test_matches_from_val_names_an_unknown_key() -> None:
+    with pytest.raises(ValueError, match="radius is not a match setting"):
+        CalibrationOptions(matches_from_val=[{"radius": 3}])
+
+
+def test_views_without_train_images_are_a_one_line_error() -> None:
+    model, images, intrinsics, truth = _frames(48, slice(0, 2))
+    match = MatchSettings(width=48, render_width=0, start_views=2)
+    with pytest.raises(ValueError, match=r"start_views needs MatchQueries\.train"):
+        refine(
+            model, images, intrinsics, truth, torch.zeros(2, dtype=torch.long), SMALL_SEARCH,
+            Calibration(match=match), matching=MatchQueries(images, intrinsics),
+        )  # fmt: skip
