@@ -466,3 +466,36 @@ def test_each_output_format_round_trips_the_same_poses(
         np.testing.assert_allclose(matrix[:3, 3], table.poses[row, :3], atol=1e-12)
         assert matrix[3].tolist() == [0.0, 0.0, 0.0, 1.0]
     assert len(list((written["ace"] / "poses").iterdir())) == len(table.img_path)
+
+
+def test_the_correspondence_stage_the_run_chose_is_read_back_and_fed_as_in_the_run(
+    finished_run: Path, tiny_root: Path
+) -> None:
+    """The stage val chose, recorded in metrics.json, is what pae-localize applies; its
+    queries are the files at the match width with the intrinsics the run's data gives them,
+    and the run's train views; a run whose metrics record none runs none."""
+    from pae.apps import localization as loc
+    from pae.render_compare.correspondences import MatchSettings
+    from pae.render_compare.queries import match_figures
+
+    run = loc.read_run(finished_run)
+    chosen = MatchSettings(width=32, start_views=3, below_score=0.5, render_width=0)
+    recorded = {f"test/render_compare/{k}": v for k, v in match_figures(chosen).items()}
+    run = run._replace(metrics=recorded)
+    assert loc.render_compare_settings(run)[1].match == chosen
+    data = loc.data_module(run)
+    data.setup()
+    queries = loc.gather_queries([tiny_root / "labels" / "all_test.csv"], run.data_root)
+    from pae.core.checkpoints import load_teacher
+
+    teacher = load_teacher(run.checkpoint("teacher", "test")).model.eval()
+
+    def uncropped(size: tuple[int, int], focal: object, shorter: int) -> torch.Tensor:
+        return loc.query_intrinsics(data.camera, size, shorter, None, focal)
+
+    matching = loc.match_queries(run, queries, data, teacher, uncropped)
+    images, intrinsics = data.images_at("test", 32)
+    torch.testing.assert_close(matching.images, images.float() / 255)
+    torch.testing.assert_close(matching.intrinsics, intrinsics)
+    assert len(matching.train.poses) == len(data.datasets["train"])
+    assert loc.match_queries(run._replace(metrics={}), queries, data, teacher, uncropped) is None

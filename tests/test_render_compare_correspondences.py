@@ -175,8 +175,26 @@ def test_matches_from_val_names_an_unknown_key() -> None:
 def test_views_without_train_images_are_a_one_line_error() -> None:
     model, images, intrinsics, truth = _frames(48, slice(0, 2))
     match = MatchSettings(width=48, render_width=0, start_views=2)
-    with pytest.raises(ValueError, match=r"start_views needs MatchQueries\.train"):
+    with pytest.raises(ValueError, match=r"near_start_views need MatchQueries\.train"):
         refine(
             model, images, intrinsics, truth, torch.zeros(2, dtype=torch.long), SMALL_SEARCH,
             Calibration(match=match), matching=MatchQueries(images, intrinsics),
         )  # fmt: skip
+
+
+def test_the_train_cameras_nearest_the_start_are_starts_too() -> None:
+    """near_start_views: the train cameras nearest the APR's start (not by appearance)."""
+    from pae.render_compare.train_views import nearest_cameras
+
+    model, images, intrinsics, truth = _frames(48, slice(0, 40))
+    scenes = torch.zeros(40, dtype=torch.long)
+    rows = nearest_cameras(truth[21:22], scenes[:1], truth[::2], scenes[::2], 2)
+    assert sorted(rows[0].tolist()) == [10, 11]  # train frames 20 and 22 of the walk
+    train = TrainImages(images[::2], intrinsics[::2], truth[::2], scenes[::2])
+    start = perturb(truth[21:22], torch.tensor([[0.3, -0.3, 0.2, 0.1, 0.05, -0.05]]))
+    match = MatchSettings(width=48, render_width=0, near_start_views=2)
+    found = refine(
+        model, images[21:22], intrinsics[21:22], start, scenes[:1], SMALL_SEARCH,
+        Calibration(match=match), matching=MatchQueries(images[21:22], intrinsics[21:22], train),
+    )  # fmt: skip
+    assert float(pose_errors(found.result.poses, truth[21:22])[0][0]) < 0.1

@@ -150,6 +150,9 @@ def localize(args: argparse.Namespace) -> None:
                 data.camera, size, data.shorter_edge, data.crop, focal, args.focal
             )
 
+        def uncropped(size: tuple[int, int], focal: object, shorter: int) -> torch.Tensor:
+            return loc.query_intrinsics(data.camera, size, shorter, None, focal, args.focal)
+
     starts = None
     if args.init is not None:  # read before any work: a bad row is one line, nothing run
         from pae.data.starts import starts_for
@@ -185,7 +188,10 @@ def localize(args: argparse.Namespace) -> None:
                 "render_compare gate or steps: the configured ones are used"
             )
         emit(f"pae-localize: render_compare of {len(found.pose)} images")
-        poses, scenes = loc.render_compare(run, teacher.model.to(device), found, device, gate)
+        matching = loc.match_queries(run, queries, data, teacher.model.eval(), uncropped)
+        poses, scenes = loc.render_compare(
+            run, teacher.model.to(device), found, device, gate, matching
+        )
         found = found._replace(scene=scenes)
     else:
         poses = loc.student_poses(run, method, teacher.model.cpu(), found)

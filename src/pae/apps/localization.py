@@ -15,7 +15,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
-from pae.core.camera import Intrinsics
+from pae.core.camera import Intrinsics, resized_size
 from pae.core.checkpoints import load_pae, load_scene_model
 from pae.core.errors import CheckpointError, ConfigError, ImageError
 from pae.core.geometry import canonicalize_quaternion, normalize_pose, pose_errors
@@ -25,12 +25,14 @@ from pae.data.datamodule import PoseDataModule
 from pae.data.dataset import PoseDataset
 from pae.data.labels import LabelTable, read_labels
 from pae.data.transforms import ImageTransform
-from pae.lit.eval_outputs import EVAL
+from pae.lit.eval_outputs import EVAL, teacher_descriptor, train_images
 from pae.lit.scene_model import compare_queries
 from pae.models.base import Latents
 from pae.models.latents import compute_teacher_latents
-from pae.render_compare import Calibration, calibrate_any_start, refine
+from pae.render_compare import Calibration, CalibrationOptions, calibrate_any_start, refine
 from pae.render_compare.calibration import scene_size, teacher_features
+from pae.render_compare.correspondences import MatchQueries
+from pae.render_compare.queries import recorded_match
 from pae.render_compare.refiner import ACCEPT_ALL, BUILD_KEYS, refiner_defaults
 from pae.render_compare.scene_decision import SceneRule
 from pae.render_compare.scene_starts import latent_starts
@@ -157,12 +159,13 @@ def query_intrinsics(
     camera: Intrinsics | None,
     size: tuple[int, int],
     shorter_edge: int,
-    crop: int,
+    crop: int | None,
     focal: np.ndarray | None = None,
     focal_px: float | None = None,
 ) -> Tensor:
     """Intrinsics [N, 4] (fx, fy, cx, cy in px) of N images of ``size`` (h, w) px on disk, as
-    the teacher sees them (shorter edge resized to ``shorter_edge``, centre ``crop``):
+    the teacher sees them (shorter edge resized to ``shorter_edge``, centre ``crop``; None:
+    not cropped):
     ``camera`` (the run's ``data.camera``) scaled to that size, with a label file's focal
     lengths ``focal`` [N] (px at the camera's width) where given. ``focal_px``: the images'
     focal length in px at their size on disk instead (principal point: the camera's, else
@@ -177,7 +180,11 @@ def query_intrinsics(
             "the run's data has no camera (data.camera): give --focal PX, the images' focal "
             "length in px"
         )
-    seen = camera.resized(w, h).preprocessed(shorter_edge, crop)
+    on_disk = camera.resized(w, h)
+    if crop is None:
+        seen = on_disk.resized(*resized_size(w, h, shorter_edge))
+    else:
+        seen = on_disk.preprocessed(shorter_edge, crop)
     vectors = torch.tensor([seen.vector()], dtype=torch.float64)
     if focal is not None:
         vectors = vectors.repeat(len(focal), 1)
@@ -291,7 +298,12 @@ def render_compare_settings(run: Run) -> tuple[dict[str, Any], Calibration]:
         chosen("scene_move_margin", 0.0),
     )
     gate = chosen("accept_margin", 0.0), chosen("accept_score", ACCEPT_ALL)
-    return settings, Calibration(*gate, scene=rule)
+    match = recorded_match(run.metrics, f"test/{RENDER_COMPARE}")
+    if match is None:  # unrecorded: the one configured stage, if any
+        stages = config.get("matches_from_val") or []
+        listed = OmegaConf.to_container(stages) if OmegaConf.is_config(stages) else stages
+        match = CalibrationOptions(matches_from_val=listed).uncalibrated().match
+    return settings, Calibration(*gate, scene=rule, match=match)
 
 
 def compare_width(settings: dict[str, Any]) -> int:
@@ -375,19 +387,52 @@ def are_estimates_of(starts: Tensor, estimates: Tensor) -> bool:
     return bool((position <= SAME_START_M).all() and (orientation <= SAME_START_DEG).all())
 
 
+def match_queries(
+    run: Run,
+    queries: Queries,
+    data: PoseDataModule,
+    teacher: torch.nn.Module,
+    intrinsics: Callable[[tuple[int, int], np.ndarray | None, int], Tensor],
+) -> MatchQueries | None:
+    """What the correspondence stage the run chose on val (:func:`render_compare_settings`)
+    reads of the queries: their files at its match width, uncropped, with ``intrinsics``
+    ((h, w) on disk, the rows' focal lengths or None, the shorter edge in px -> [N, 4]), and
+    the run's train views at that width (its data, set up here); None where no stage runs."""
+    match = render_compare_settings(run)[1].match
+    if not match.active:
+        return None
+    table = queries.table
+    size = PoseDataset(table, queries.root, table.scene_names, 1).image_size
+    if size is None:
+        raise ImageError("no images to localise")
+    shorter = round(match.width * min(size) / size[1])
+    dataset = PoseDataset(table, queries.root, table.scene_names, shorter, cache=True)
+    assert dataset.images is not None
+    data.setup()
+    descriptor = run.config.render_compare.get("match_descriptor", "teacher")
+    describe = teacher_descriptor(teacher, data.shorter_edge) if descriptor == "teacher" else None
+    vectors = intrinsics(size, table.focal, shorter).expand(len(table), 4)
+    return MatchQueries(
+        dataset.images.float() / 255, vectors, train_images(data, match.width, describe)
+    )
+
+
 def render_compare(
     run: Run,
     teacher: torch.nn.Module,
     found: Estimates,
     device: torch.device,
     gate: str = "run",
+    matching: MatchQueries | None = None,
 ) -> tuple[Tensor, Tensor]:
     """The render-and-compare poses [N, 7] of the queries against the run's scene model and
     their scenes [N], from ``found.pose`` (the teacher's estimates, or another APR's),
     through ``gate``: ``run`` the gate, steps and scene decision the run chose on val for its
     teacher and applied at test (a multi-scene teacher's queries decided between scenes as
     in the run), ``any`` those chosen on the run's validation split for starts of any error
-    scale (:func:`any_start_calibration`; in the scene given)."""
+    scale (:func:`any_start_calibration`; in the scene given); ``matching``
+    (:func:`match_queries`): the correspondence stage the run chose on val runs too (not
+    with ``any``, whose calibration chooses none)."""
     loaded = load_scene_model(scene_model_path(run), "scene_model_ckpt")
     settings, calibration = render_compare_settings(run)
     features = None
@@ -412,6 +457,7 @@ def render_compare(
         features,
         scene_poses=scene_poses,
         scene_logits=scene_logits,
+        matching=None if gate == "any" else matching,
     )
     return refined.poses.cpu(), refined.scenes.cpu()
 

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pae.core.geometry import matrix_to_quaternion, normalize_quaternion, quaternion_to_matrix
+from pae.core.geometry import matrix_to_quaternion, normalize_quaternion
 from pae.render_compare.keypoints import (
     DETECTORS,
     MIN_DEPTH_M,
@@ -44,6 +44,7 @@ from pae.render_compare.train_views import (
     MatchQueries,
     TrainImages,
     TrainViews,
+    nearest_cameras,
     thumbnail_descriptors,
     train_views,
 )
@@ -107,13 +108,9 @@ def _retrieve(
         similarity = (descriptors @ views.descriptors.T).masked_fill(other, -math.inf)
         chosen.append(similarity.topk(min(settings.views, similarity.shape[1]), 1).indices)
     if settings.near_views:
-        distance = torch.cdist(starts[:, :3], views.poses[:, :3])
-        facing = quaternion_to_matrix(starts[:, 3:])[:, :, 2] @ (
-            quaternion_to_matrix(views.poses[:, 3:])[:, :, 2].T
-        )  # cos of the angle between the optical axes
-        cost = (distance + (1 - facing) * 2.0).masked_fill(other, math.inf)
-        k = min(settings.near_views, cost.shape[1])
-        chosen.append(cost.topk(k, 1, largest=False).indices)
+        chosen.append(
+            nearest_cameras(starts, scenes, views.poses, views.scenes, settings.near_views)
+        )
     return torch.cat(chosen, 1)
 
 

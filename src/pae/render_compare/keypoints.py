@@ -48,6 +48,8 @@ class MatchSettings:
     start_views: int = 0
     """The poses of this many train views nearest the query by global descriptor, each
     refined as a start of its own beside the APR's (0: none)."""
+    near_start_views: int = 0
+    """And the poses of this many train cameras nearest the APR's start (0: none)."""
     below_score: float = 2.0
     """Only queries whose refinement from the APR's start scores below this ZNCC get the
     other starts (2: every query): a query the scene model already explains keeps its own."""
@@ -74,11 +76,12 @@ class MatchSettings:
                 "render_compare.match needs render_width 0 or >= 32 and depth_width >= 8, not "
                 f"{self.render_width} and {self.depth_width}"
             )
-        counts = (self.views, self.near_views, self.start_views, self.iterations)
+        counts = (self.views, self.near_views, self.start_views, self.near_start_views)
+        counts += (self.iterations,)
         if min(counts) < 0 or self.keypoints < 8:
             raise ValueError(
-                "render_compare.match needs views, near_views, start_views, iterations >= 0 "
-                f"and keypoints >= 8, not {counts[:3]}, {self.iterations}, {self.keypoints}"
+                "render_compare.match needs views, near_views, start_views, near_start_views, "
+                f"iterations >= 0 and keypoints >= 8, not {counts}, {self.keypoints}"
             )
         if not 0 < self.ratio <= 1 or self.reprojection_px <= 0 or self.min_inliers < 4:
             raise ValueError(
@@ -97,7 +100,7 @@ class MatchSettings:
 
     @property
     def active(self) -> bool:
-        return self.solves or (self.width > 0 and self.start_views > 0)
+        return self.solves or (self.width > 0 and self.start_views + self.near_start_views > 0)
 
     @property
     def uses_views(self) -> bool:

@@ -14,6 +14,7 @@ from torch import Tensor
 from pae.render_compare.correspondences import MatchQueries, MatchSettings, correspond
 from pae.render_compare.gate import RenderCompareResult
 from pae.render_compare.refiner import RenderCompareRefiner
+from pae.render_compare.train_views import nearest_cameras
 from pae.scene_model.base import SceneModel
 
 
@@ -35,7 +36,8 @@ def _extra_starts(
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Each query's starts beside its APR's [B, H, 7], which of them to refine [B, H] and
     whether correspondences gave it a pose [B]: the pose its correspondences give, then the
-    poses of its ``start_views`` train views nearest by descriptor."""
+    poses of its ``start_views`` train views nearest by descriptor and of the
+    ``near_start_views`` train cameras nearest its start."""
     extra, usable = [], []
     found = torch.zeros(len(starts), dtype=torch.bool)
     if match.solves:
@@ -46,12 +48,21 @@ def _extra_starts(
         found = solved.found
         extra.append(solved.poses[:, None])
         usable.append(found[:, None])
-    if match.start_views:
-        if matching.train is None:
-            raise ValueError("render_compare.match.start_views needs MatchQueries.train")
-        rows = matching.train.nearest(matching.images, scenes, match.start_views)
-        extra.append(matching.train.poses[rows].to(starts))
-        usable.append(torch.ones(rows.shape, dtype=torch.bool))
+    if match.start_views or match.near_start_views:
+        train = matching.train
+        if train is None:
+            raise ValueError(
+                "render_compare.match.start_views and near_start_views need MatchQueries.train"
+            )
+        rows = []
+        if match.start_views:
+            rows.append(train.nearest(matching.images, scenes, match.start_views))
+        rows.append(
+            nearest_cameras(starts, scenes, train.poses, train.scenes, match.near_start_views)
+        )
+        chosen = torch.cat(rows, 1)
+        extra.append(train.poses[chosen].to(starts))
+        usable.append(torch.ones(chosen.shape, dtype=torch.bool))
     return torch.cat(extra, 1), torch.cat(usable, 1), found
 
 

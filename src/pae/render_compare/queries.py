@@ -4,6 +4,8 @@ figures."""
 from __future__ import annotations
 
 import csv
+import dataclasses
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +15,7 @@ from torch import Tensor
 from pae.core.atomic import atomic_write
 from pae.core.geometry import pose_errors
 from pae.core.metrics import summarise_errors
+from pae.render_compare.keypoints import DETECTORS, MatchSettings
 
 QUERY_COLUMNS = (
     "index",
@@ -98,8 +101,8 @@ def refinement_figures(
     ``predicted`` scenes [N] (None: not), ``scene_accuracy``, the scene rule's settings
     (:class:`pae.render_compare.scene_decision.SceneRule`), ``scene_checked_share`` and
     ``scene_moved_share``; where a correspondence stage ran (``calibration.match``), its
-    ``match_start_views``, ``match_render_width``, ``match_found_share`` (queries whose
-    keypoints gave a pose) and ``match_kept_share`` (those whose kept refinement started
+    settings (``match_<setting>``: :func:`match_figures`), ``match_found_share`` (queries
+    whose keypoints gave a pose) and ``match_kept_share`` (those whose kept refinement started
     from another start than the APR's) -> the figures and the position (m)
     and orientation (deg) errors [N] of the starts and of the refined poses before the gate."""
     start_errors = pose_errors(starts.float(), truth.float())
@@ -121,11 +124,32 @@ def refinement_figures(
         figures[f"{prefix}/scene_moved_share"] = (refinement.scenes != predicted).float().mean()
     match = getattr(calibration, "match", None)
     if match is not None and getattr(refinement, "matched", None) is not None:
-        figures[f"{prefix}/match_start_views"] = torch.tensor(float(match.start_views))
-        figures[f"{prefix}/match_render_width"] = torch.tensor(float(match.render_width))
+        figures |= {f"{prefix}/{k}": torch.tensor(v) for k, v in match_figures(match).items()}
         figures[f"{prefix}/match_found_share"] = refinement.matched.float().mean()
         figures[f"{prefix}/match_kept_share"] = refinement.from_match.float().mean()
     return figures, start_errors, refined_errors
+
+
+def match_figures(match: MatchSettings) -> dict[str, float]:
+    """A correspondence stage's settings as numbers, ``match_<setting>`` (the detector as its
+    index in ``DETECTORS``): what a run records of the stage val chose."""
+    values = dataclasses.asdict(match) | {"detector": DETECTORS.index(match.detector)}
+    return {f"match_{key}": float(value) for key, value in values.items()}
+
+
+def recorded_match(figures: Mapping[str, Any], prefix: str) -> MatchSettings | None:
+    """The stage :func:`match_figures` recorded under ``prefix`` in ``figures`` (None: none)."""
+    values = {
+        field.name: figures.get(f"{prefix}/match_{field.name}")
+        for field in dataclasses.fields(MatchSettings)
+    }
+    if any(value is None for value in values.values()):
+        return None
+    values["detector"] = DETECTORS[int(values["detector"])]
+    default = MatchSettings()
+    return MatchSettings(
+        **{k: v if k == "detector" else type(getattr(default, k))(v) for k, v in values.items()}
+    )
 
 
 def method_from(path: str | Path) -> str:

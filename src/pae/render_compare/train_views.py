@@ -12,6 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from pae.core.geometry import quaternion_to_matrix
 from pae.render_compare.keypoints import Keypoints, MatchSettings, detect, lift
 from pae.scene_model.base import SceneModel
 
@@ -34,6 +35,26 @@ class TrainViews(NamedTuple):
     descriptors: Tensor
     poses: Tensor
     scenes: Tensor
+
+
+AXIS_M = 2.0
+"""How the nearest train cameras weigh the optical axes' angle: metres per unit of
+``1 - cos`` (30 degrees weigh as 0.27 m)."""
+
+
+def nearest_cameras(
+    poses: Tensor, scenes: Tensor, cameras: Tensor, camera_scenes: Tensor, count: int
+) -> Tensor:
+    """Rows [B, k] of the ``count`` cameras [N, 7] of each pose's scene (scenes [B], camera
+    scenes [N]) nearest poses [B, 7]: by distance (m) plus ``AXIS_M`` × (1 - the cosine of
+    the angle between the optical axes); nearest first."""
+    distance = torch.cdist(poses[:, :3].float(), cameras[:, :3].float())
+    axes = quaternion_to_matrix(poses[:, 3:].float())[:, :, 2]
+    facing = axes @ quaternion_to_matrix(cameras[:, 3:].float())[:, :, 2].T
+    cost = (distance + (1 - facing) * AXIS_M).masked_fill(
+        scenes[:, None] != camera_scenes[None], math.inf
+    )
+    return cost.topk(min(count, cost.shape[1]), 1, largest=False).indices
 
 
 def thumbnail_descriptors(images: Tensor) -> Tensor:
