@@ -475,6 +475,7 @@ def test_the_correspondence_stage_the_run_chose_is_read_back_and_fed_as_in_the_r
     queries are the files at the match width with the intrinsics the run's data gives them,
     and the run's train views; a run whose metrics record none runs none."""
     from pae.apps import localization as loc
+    from pae.apps.queries import gather_queries
     from pae.render_compare.correspondences import MatchSettings
     from pae.render_compare.queries import match_figures
 
@@ -485,7 +486,7 @@ def test_the_correspondence_stage_the_run_chose_is_read_back_and_fed_as_in_the_r
     assert loc.render_compare_settings(run)[1].match == chosen
     data = loc.data_module(run)
     data.setup()
-    queries = loc.gather_queries([tiny_root / "labels" / "all_test.csv"], run.data_root)
+    queries = gather_queries([tiny_root / "labels" / "all_test.csv"], run.data_root)
     from pae.core.checkpoints import load_teacher
 
     teacher = load_teacher(run.checkpoint("teacher", "test")).model.eval()

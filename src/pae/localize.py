@@ -108,6 +108,7 @@ def localize(args: argparse.Namespace) -> None:
     from omegaconf import OmegaConf
 
     from pae.apps import localization as loc
+    from pae.apps.queries import gather_queries
     from pae.core.atomic import check_writable_dir, check_writable_file
     from pae.core.checkpoints import load_teacher
     from pae.core.console import Progress
@@ -137,7 +138,7 @@ def localize(args: argparse.Namespace) -> None:
         teacher_path = run.checkpoint("teacher", method)
     else:  # a later step's checkpoint holds a copy of its teacher
         teacher_path = run.checkpoint(run.steps[0], method)
-    queries = loc.gather_queries(args.inputs, args.root or run.data_root)
+    queries = gather_queries(args.inputs, args.root or run.data_root)
     teacher = load_teacher(teacher_path)
     data = loc.data_module(run)
     intrinsics = None

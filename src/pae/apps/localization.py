@@ -5,7 +5,7 @@ student's test-time refinements, read exactly as the run evaluated its test spli
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -15,6 +15,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
+from pae.apps.queries import Queries
 from pae.core.camera import Intrinsics, resized_size
 from pae.core.checkpoints import load_pae, load_scene_model
 from pae.core.errors import CheckpointError, ConfigError, ImageError
@@ -23,7 +24,7 @@ from pae.core.metrics import summarise_errors
 from pae.core.provenance import DATA_RECORD
 from pae.data.datamodule import PoseDataModule
 from pae.data.dataset import PoseDataset
-from pae.data.labels import LabelTable, read_labels
+from pae.data.labels import LabelTable
 from pae.data.transforms import ImageTransform
 from pae.lit.eval_outputs import EVAL, teacher_descriptor, train_images
 from pae.lit.scene_model import compare_queries
@@ -42,9 +43,6 @@ TEACHER = "teacher"
 RENDER_COMPARE = "render_compare"
 STUDENT_METHODS = ("student", "refined", "knn_mean")
 """Methods of the student step's checkpoint besides the ``refine.alternatives`` by name."""
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
-QUERY_SPLIT = "query"
-"""The ``split`` column of the rows written for images given without a label file."""
 SAME_START_M = 2e-3
 SAME_START_DEG = 0.2
 """Starts within these of the teacher's estimates are its estimates (a label file's rounding)."""
@@ -97,55 +95,6 @@ def methods_of(run: Run) -> list[str]:
     trained their steps): teacher, render_compare, the student's and its alternatives."""
     alternatives = list((run.config.get("refine") or {}).get("alternatives") or {})
     return [TEACHER, RENDER_COMPARE, *STUDENT_METHODS, *alternatives]
-
-
-class Queries(NamedTuple):
-    """The images to localise as label-file rows (``img_path`` joined to ``root``), whether
-    their poses are labels (a label file was given) or placeholders, and each image's path
-    as the output names it."""
-
-    table: LabelTable
-    root: Path
-    labelled: bool
-    shown: list[str]
-
-
-def image_files(inputs: Sequence[str | Path]) -> list[Path]:
-    """Image files given directly, and those under given folders (recursively, sorted)."""
-    files: list[Path] = []
-    for item in map(Path, inputs):
-        if item.is_dir():
-            found = sorted(p for p in item.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
-            if not found:
-                raise ImageError(f"{item}: a folder without images ({', '.join(IMAGE_SUFFIXES)})")
-            files += found
-        elif item.exists():
-            files.append(item)
-        else:
-            raise ImageError(f"{item}: no such image, folder or label file")
-    return files
-
-
-def gather_queries(inputs: Sequence[str | Path], root: str | Path | None) -> Queries:
-    """Label files (``*.csv``: their rows, ``img_path`` under ``root``), or image files and
-    folders (one row each, ``split`` ``query``, ``seq`` the image's folder name)."""
-    labels = [Path(p) for p in inputs if Path(p).suffix.lower() == ".csv"]
-    if labels and len(labels) < len(inputs):
-        raise ConfigError("give label files or images and folders, not both")
-    if labels:
-        if root is None:
-            raise ConfigError(f"{labels[0]}: a label file's img_path needs --root")
-        table = LabelTable.concat(read_labels(p) for p in labels)
-        return Queries(table, Path(root), True, table.img_path)
-    files = image_files(inputs)
-    table = LabelTable(
-        scene=[""] * len(files),
-        split=[QUERY_SPLIT] * len(files),
-        seq=[p.resolve().parent.name for p in files],
-        img_path=[str(p.resolve()) for p in files],
-        poses=np.tile([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0], (len(files), 1)),
-    )
-    return Queries(table, Path(Path.cwd().anchor), False, [str(p) for p in files])
 
 
 def data_module(run: Run, **overrides: Any) -> PoseDataModule:

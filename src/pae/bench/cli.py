@@ -41,7 +41,7 @@ from pae.bench.fingerprint import (
 from pae.bench.methods import bench_methods
 from pae.bench.real_starts import bench_real_starts
 from pae.bench.refinement import bench_first_layer_gain, bench_index, bench_refinement
-from pae.bench.render_compare import bench_render_compare
+from pae.bench.render_compare import bench_other_starts, bench_render_compare
 from pae.bench.rendering import measure_render_speed
 from pae.bench.scale import (
     SEVEN_SCENES,
@@ -243,6 +243,7 @@ BENCHMARKS = (
     "sweep",
     "deploy",
     "render_compare",
+    "render_compare_per_image",
     "render_compare_real_starts",
     "render_compare_scale",
     "fingerprint",
@@ -335,6 +336,8 @@ def main(argv: list[str] | None = None) -> int:
         figures |= bench_methods()
     if "render_compare" in chosen:
         figures |= bench_render_compare(device=args.device)
+    if "render_compare_per_image" in chosen:
+        figures |= bench_other_starts()
     if "render_compare_real_starts" in chosen:
         figures |= bench_real_starts()
     if "contention" in chosen:

@@ -195,3 +195,53 @@ def bench_render_compare(
         p.numel() * p.element_size() for p in model.parameters()
     )
     return figures
+
+
+DEMO_HARD_SEARCH = {"levels": 2, "reference_size": 32, "rounds": 8, "candidates": 24}
+"""``experiment=demo_hard``'s wider search (conf/experiment/demo_hard.yaml), with its
+``hypotheses: 8``."""
+
+
+def bench_other_starts(
+    queries: int = 100, train_views: int = 400, match_width: int = 256
+) -> dict[str, float]:
+    """Per image at ``experiment=demo_hard``'s refiner settings (64-px queries, the wider
+    search), side by side on the same queries: the refinement from the APR's start alone,
+    with the other starts of the stage demo_hard tries (4 train views nearest by descriptor
+    and 4 nearest the start), and with keypoint correspondences against a
+    ``match_width``-px rendering too: ms per query (the train views' descriptors and
+    keypoints made once before, as a run makes them once)."""
+    from pae.render_compare import Calibration, refine
+    from pae.render_compare.correspondences import MatchQueries, MatchSettings, TrainImages
+
+    model = room_grid(2)
+    settings = DEMO_HARD_SEARCH | {"hypotheses": 8}
+    images, intrinsics, start, scenes = bench_queries(queries, 2, 64, seed=0)
+    large, large_k, _, _ = bench_queries(queries, 2, match_width, seed=0)
+    views, views_k, view_poses, view_scenes = bench_queries(train_views, 2, match_width, seed=1)
+    train = TrainImages((views * 255).to(torch.uint8), views_k, view_poses, view_scenes)
+    matching = MatchQueries(large, large_k, train)
+    stages = {
+        "alone": MatchSettings(),
+        "other_starts": MatchSettings(width=match_width, start_views=4, near_start_views=4),
+        "keypoints": MatchSettings(
+            width=match_width, start_views=4, near_start_views=4, render_width=match_width,
+            min_inliers=10, iterations=1,
+        ),
+    }  # fmt: skip
+    figures = {}
+    for name, match in stages.items():
+        calibration = Calibration(match=match)
+        refine(model, images[:2], intrinsics[:2], start[:2], scenes[:2], settings, calibration,
+               matching=MatchQueries(large[:2], large_k[:2], train))  # fmt: skip
+        seconds = _seconds(
+            lambda c=calibration: refine(
+                model, images, intrinsics, start, scenes, settings, c, matching=matching
+            )
+        )
+        figures[f"bench/render_compare_per_image/{name}_ms_per_query"] = 1000 * seconds / queries
+    alone = figures["bench/render_compare_per_image/alone_ms_per_query"]
+    for name in ("other_starts", "keypoints"):
+        key = f"bench/render_compare_per_image/{name}_ms_per_query"
+        figures[f"bench/render_compare_per_image/{name}_cost_ratio"] = figures[key] / alone
+    return figures
