@@ -7,11 +7,13 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
 
 from pae.core.geometry import quaternion_to_matrix
+from pae.data.holdout import natural_key
 from pae.data.labels import LabelTable, read_labels
 from pae.data_cli import main
 from pae.synthetic import PinholeCamera
@@ -106,5 +108,11 @@ def test_ace_bad_frames_are_one_line_naming_the_file(
     image.rename(tmp_path / "moved.png")
     fails(f"{pose}: no image in rgb/ for this frame")
     (tmp_path / "moved.png").rename(image)
+    first_test = min((root / "test" / "rgb").iterdir(), key=lambda p: natural_key(p.name))
+    first_train = min((root / "train" / "rgb").iterdir(), key=lambda p: natural_key(p.name))
+    kept = first_test.read_bytes()
+    cv2.imwrite(str(first_test), np.zeros((SIZE - 8, SIZE, 3), np.uint8))
+    fails(f"{first_test}: {SIZE}x{SIZE - 8} px, but {first_train} is {SIZE}x{SIZE} px")
+    first_test.write_bytes(kept)
     shutil.rmtree(root / "test" / "calibration")
     fails(f"{root / 'test' / 'calibration'}: folder not found")

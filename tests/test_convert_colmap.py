@@ -173,11 +173,16 @@ def convert_colmap(tmp_path: Path, *options: str) -> int:
     return main(["convert", "colmap", *argv, *options])
 
 
-def test_colmap_splits_by_folder_list_and_every_kth_image(tmp_path: Path) -> None:
+def test_colmap_splits_by_folder_list_and_every_kth_image(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The three splits; --every K, whose test images lie between train images of their
+    walk, says in one warning line that the split is leaky for localisation."""
     names = ["train/a/000.png", "test/b/001.png", "train/b/000.png", "train/b/001.png"]
     names += ["test/c/000.png"]
     small_model(tmp_path, names)
     assert convert_colmap(tmp_path) == 0
+    assert "warning" not in capsys.readouterr().err
     test = read_labels(tmp_path / "out" / "all_test.csv")
     train = read_labels(tmp_path / "out" / "all_train.csv")
     assert test.img_path == ["test/b/001.png", "test/c/000.png"] and test.seq == ["b", "c"]
@@ -187,6 +192,9 @@ def test_colmap_splits_by_folder_list_and_every_kth_image(tmp_path: Path) -> Non
     assert convert_colmap(tmp_path, "--every", "2") == 0
     test = read_labels(tmp_path / "out" / "all_test.csv")
     assert test.img_path == ["test/c/000.png", "train/b/000.png"]  # 2nd and 4th by name
+    err = capsys.readouterr().err
+    assert err.startswith("pae-data: warning: --every 2 puts each test image between train")
+    assert "a leaky split for localisation" in err and err.count("\n") == 1, err
 
     shutil.rmtree(tmp_path / "out")
     assert convert_colmap(tmp_path, "--test-folders", "test") == 0

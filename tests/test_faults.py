@@ -1304,6 +1304,65 @@ def test_scene_model_and_score_settings_are_checked_before_any_work(
         validate_train_config(cfg)
 
 
+@pytest.mark.parametrize("held_out", ["data.val_sequences=null", "data.val_labels=TEST"])
+def test_render_compare_never_calibrates_on_the_test_split(
+    compose_train, tiny_root: Path, tmp_path: Path, held_out: str
+) -> None:
+    """Validation on the test split (data.val_sequences=null, or the test labels as
+    data.val_labels) would choose render-and-compare's gate, filters and scene rule on the
+    test labels: pae-train's scene-model step and pae-eval with a scene model stop in one line
+    naming data.val_sequences before anything is written; a run without render-and-compare
+    still validates on the test split (with the data module's warning)."""
+    from hydra import compose, initialize_config_dir
+
+    from pae import CONFIG_DIR
+    from pae.config.validation import validate_eval_config, validate_train_config
+
+    override = held_out.replace("TEST", str(tiny_root / "labels" / "all_test.csv"))
+    message = r"^render_compare: the validation split is the test split \(data.val_sequences="
+    for stage in ("render_compare", "full"):
+        with pytest.raises(ConfigError, match=message) as refused:
+            run(compose_train(f"stage={stage}", override, run_dir=tmp_path), tmp_path)
+        assert "\n" not in str(refused.value) and "data.val_sequences=1" in str(refused.value)
+    assert list(tmp_path.iterdir()) == [], "nothing was trained or written"
+    validate_train_config(compose_train("stage=pipeline", override))
+    checkpoint = tmp_path / "scene_model.ckpt"
+    checkpoint.touch()
+    overrides = [*tiny_data_overrides(tiny_root), "student_ckpt=" + str(checkpoint)]
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("eval", overrides=[*overrides, override, f"scene_model_ckpt={checkpoint}"])
+        without = compose("eval", overrides=[*overrides, override])
+    with pytest.raises(ConfigError, match=message):
+        validate_eval_config(cfg)
+    validate_eval_config(without)
+
+
+def test_the_render_compare_callback_refuses_a_data_module_that_validates_on_test(
+    tiny_root: Path,
+) -> None:
+    """The callback itself, given a data module whose validation split is its test split,
+    stops at the setup of a fit or a validation (before any work) in that one line; a test
+    alone calibrates nothing and runs."""
+    from types import SimpleNamespace
+
+    from pae.callbacks.render_compare import RenderCompareCallback
+    from pae.data.datamodule import PoseDataModule
+
+    labels = [str(tiny_root / "labels" / f"all_{split}.csv") for split in ("train", "test")]
+    callback = RenderCompareCallback({"rounds": 2})
+    for settings in ({"val_sequences": None}, {"val_labels": labels[1]}):
+        data = PoseDataModule(str(tiny_root), *labels, crop=28, shorter_edge=32, **settings)
+        trainer = SimpleNamespace(datamodule=data)
+        assert data.val_is_test
+        for stage in ("fit", "validate"):
+            with pytest.raises(ConfigError, match=r"^render_compare: the validation split is"):
+                callback.setup(trainer, None, stage)
+        callback.setup(trainer, None, "test")
+    held = PoseDataModule(str(tiny_root), *labels, crop=28, shorter_edge=32)
+    assert not held.val_is_test
+    callback.setup(SimpleNamespace(datamodule=held), None, "fit")
+
+
 @pytest.mark.slow
 def test_a_teacher_killed_after_an_epoch_and_resumed_reports_the_uninterrupted_figures(
     tiny_root: Path, tmp_path: Path

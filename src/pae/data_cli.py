@@ -116,6 +116,14 @@ def _convert_colmap(args: argparse.Namespace) -> int:
         f"COLMAP's units are arbitrary: positions were multiplied by {args.scale:g} and pae "
         "reads them as metres (--scale S makes one unit S metres)"
     )
+    if args.every is not None:
+        print(
+            f"{PROG}: warning: --every {args.every} puts each test image between train images "
+            "of the same walk, a frame or two away: a leaky split for localisation (the test "
+            "figures flatter a method that recalls its train views); --test-folders NAME or "
+            "--split-list FILE holds out whole walks",
+            file=sys.stderr,
+        )
     scene = args.scene or args.image_dir.resolve().name
     return _write_converted(frames, scene, args.image_dir, args)
 

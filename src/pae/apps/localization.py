@@ -296,7 +296,7 @@ def any_start_calibration(
     scene's size, from its train cameras)."""
     data = data_module(run, cache_images=False)
     data.setup()
-    if data.datasets["val"] is data.datasets["test"] or not len(data.datasets["val"]):
+    if data.val_is_test or not len(data.datasets["val"]):
         raise ConfigError(
             f"{run.folder}: the run has no validation split held out of its train data "
             "(data.val_sequences), so no gate can be chosen for another APR's starts without "

@@ -19,6 +19,7 @@ from pae.lit.eval_outputs import (
     ORACLE,
     MatchInputs,
     SceneModelEvaluation,
+    check_held_out,
     collect_outputs,
     scene_models,
     sequence_arguments,
@@ -80,10 +81,7 @@ class RenderCompareCallback(L.Callback):
         self.refinements: dict[str, dict[str, Refinement]] = {}  # split -> method -> the last
         self._val_runs = 0
         RenderCompareRefiner(SceneModel(), features=lambda x: x, **self.settings)  # checks
-
-    @property
-    def query_width(self) -> int:  # the refiner's compare width: what evaluation keeps (px)
-        return int(self.settings["resolution"])
+        self.query_width = int(self.settings["resolution"])  # the compare width evaluation keeps
 
     def calibration(self, name: str) -> Calibration:
         """Method ``name``'s calibration: the last chosen on val, else the fixed options."""
@@ -93,6 +91,9 @@ class RenderCompareCallback(L.Callback):
         """The teacher's features where the refiner scores features, else None."""
         scored = self.settings["score"] == "features"
         return teacher_features(teacher, self.feature_layers) if scored else None
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        check_held_out(trainer.datamodule, stage)  # before any work: val is not the test split
 
     def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: SceneModelEvaluation) -> None:
         self._val_runs += 1
@@ -132,8 +133,7 @@ class RenderCompareCallback(L.Callback):
                     model, *queries, predicted, **common, calibration=self.calibration(name),
                 )  # fmt: skip
             seconds = time.perf_counter() - start
-            self.refined[split][name] = refinement.poses
-            self.refinements[split][name] = refinement
+            self.refined[split][name], self.refinements[split][name] = refinement.poses, refinement
             found, starts, refined = refinement_figures(
                 f"{split}/{name}", refinement, self.calibration(name), estimate, truth, scene,
                 pl_module.scene_names, decided,

@@ -20,6 +20,7 @@ from pae.core.checks import (
     setting,
 )
 from pae.core.errors import ConfigError
+from pae.data.holdout import CALIBRATION_ON_TEST, validation_is_test
 from pae.data.labels import read_labels
 
 SYNTHETIC_LAYOUT_BOUNDS = {
@@ -286,3 +287,16 @@ def validate_data(cfg: DictConfig, train: bool = True) -> None:
             f"data.batch_size={batch_size} is larger than the train set ({n_train} rows): "
             "training would get no full batch"
         )
+
+
+def check_calibration_held_out(cfg: DictConfig) -> None:
+    """A run whose render-and-compare calibrates on the validation split (its
+    ``render_compare`` group set) holds one out of the train labels: ConfigError
+    (CALIBRATION_ON_TEST) where the validation split is the test split."""
+    if setting(cfg, "render_compare") is None:
+        return
+    test = None if _renders(cfg) else _label_files(cfg)["test"]
+    if validation_is_test(
+        setting(cfg, "data.val_sequences"), setting(cfg, "data.val_labels"), test
+    ):
+        raise ConfigError(CALIBRATION_ON_TEST)

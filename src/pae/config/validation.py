@@ -9,7 +9,7 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
-from pae.config.data_checks import validate_data
+from pae.config.data_checks import check_calibration_held_out, validate_data
 from pae.config.novel_views import novel_view_needs
 from pae.core.checks import (
     boolean,
@@ -206,6 +206,8 @@ def validate_train_config(cfg: DictConfig, overrides: list[str] | None = None) -
     for key in CHECKPOINTS:
         existing_file(cfg, key)
     _validate_scene_model(cfg)
+    if "scene_model" in steps:
+        check_calibration_held_out(cfg)
     needs = _model_needs(cfg, steps)
     for step, keys in novel_view_needs(cfg, steps).items():
         needs[step] = (*needs[step], *keys)
@@ -267,6 +269,8 @@ def validate_eval_config(cfg: DictConfig) -> None:
         )
     for key in ("student_ckpt", "teacher_ckpt", "scene_model_ckpt"):
         existing_file(cfg, key)
+    if setting(cfg, "scene_model_ckpt") is not None:
+        check_calibration_held_out(cfg)
     methods = setting(cfg, "method_ckpts")
     if methods is not None and not isinstance(methods, ListConfig):
         raise ConfigError(f"method_ckpts must be a list of checkpoint paths, got {methods!r}")

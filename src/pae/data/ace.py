@@ -124,20 +124,38 @@ def _split_frames(root: Path, split: str) -> list[tuple[str, Path, Path, Path]]:
     return [(name, images[name], poses[name], calibrations[name]) for name in names]
 
 
+def _one_image_size(images: list[Path]) -> tuple[int, int]:
+    """(h, w) in px that ``images`` (one per split, the first in name order) share;
+    LabelError naming the first of another size than the first image (the loaders check
+    every other image against the label file's first)."""
+    from pae.data.transforms import image_size
+
+    height, width = image_size(str(images[0]))
+    for image in images[1:]:
+        h, w = image_size(str(image))
+        if (h, w) != (height, width):
+            raise LabelError(
+                image,
+                None,
+                f"{w}x{h} px, but {images[0]} is {width}x{height} px: pae reads one image size "
+                "per scene (resize the images, and their calibrations, to one size)",
+            )
+    return height, width
+
+
 def read_ace_scene(root: str | os.PathLike[str]) -> SceneFrames:
     """The train and test frames of an ACE-layout scene folder, ``img_path`` relative to
     ``root`` (``train/rgb/...``), each with its own focal length. LabelError (one line naming
     the file) for a missing folder, a file without its partners, a pose that is not a rigid
-    4×4 matrix or holds NaN, a calibration that is not one number or a 3×3 matrix, and
-    ``fx != fy``."""
+    4×4 matrix or holds NaN, a calibration that is not one number or a 3×3 matrix,
+    ``fx != fy``, and a split whose first image differs in size from the train split's."""
     from pae.core.geometry import matrix_to_quaternion
-    from pae.data.transforms import image_size
 
     root = Path(root)
     if not root.is_dir():
         raise ValueError(f"{root}: ROOT is not a directory")
     frames = {split: _split_frames(root, split) for split in SPLITS}
-    height, width = image_size(str(frames["train"][0][1]))
+    height, width = _one_image_size([rows[0][1] for rows in frames.values()])
     img_path, seq, split_of, matrices, intrinsics, origin = [], [], [], [], [], []
     for split, rows in frames.items():
         for name, image, pose_file, calibration_file in rows:

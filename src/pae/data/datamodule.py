@@ -23,7 +23,12 @@ from pae.core.threads import loader_workers
 from pae.data.converted import recording_of
 from pae.data.dataset import PoseDataset, collate_batch
 from pae.data.fingerprint import images_blake2b, sampled_images_sha256
-from pae.data.holdout import HeldOut, held_out_rows, scenes_short_of_sequences
+from pae.data.holdout import (
+    HeldOut,
+    held_out_rows,
+    scenes_short_of_sequences,
+    validation_is_test,
+)
 from pae.data.image_store import ImageStore
 from pae.data.labels import LabelTable, focal_column_mismatch, focal_problems, read_labels
 from pae.data.order import EpochOrder, trainer_epoch
@@ -39,7 +44,8 @@ class PoseDataModule(L.LightningDataModule):
     `val_sequences` whole train sequences per scene and, for scenes with too few sequences
     (or label files without them), the last `val_fraction` of their rows (pae.data.holdout).
     `val_sequences` None: validation reads the test split (said once on stderr), for
-    comparisons with runs that had no validation split only.
+    comparisons with runs that had no validation split only (`val_is_test`; render-and-compare,
+    which calibrates on validation, refuses it).
     Augmentation (random crop, its corner at most `crop_shift_px` from the centre crop's, +
     colour jitter) runs batched on the device after transfer,
     for training batches only when `augment` is true; evaluation uses the centre crop. With
@@ -72,8 +78,10 @@ class PoseDataModule(L.LightningDataModule):
         self.root = Path(root)
         self.label_paths = {"train": train_labels, "val": s.val_labels or test_labels}
         self.label_paths["test"] = test_labels
-        carve = s.val_labels is None and s.val_sequences is not None
+        carve = not s.val_labels and s.val_sequences is not None
         self.holdout = (s.val_sequences, s.val_fraction) if carve else None
+        self.val_is_test = validation_is_test(s.val_sequences, s.val_labels, test_labels)
+        """Whether validation reads the test split (render-and-compare then refuses to run)."""
         self.shorter_edge = s.shorter_edge
         self.batch_size = s.batch_size
         self.eval_batch_size = s.eval_batch_size
@@ -129,7 +137,7 @@ class PoseDataModule(L.LightningDataModule):
                 )
         if self.holdout is not None:
             self._hold_out(*self.holdout)
-        elif self.tables["val"] is self.tables["test"]:
+        elif self.val_is_test:
             _warn_val_is_test()
         datasets: dict[int, PoseDataset] = {}
         for split, table in self.tables.items():

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -15,6 +16,27 @@ from pae.data.labels import LabelTable
 HeldOut = int | Sequence[str]
 """``data.val_sequences``: n (the last n train sequences of every scene, in numeric order), or
 sequence names (``seq-06`` in every scene that has it, ``scene/seq`` in one)."""
+
+CALIBRATION_ON_TEST = (
+    "render_compare: the validation split is the test split (data.val_sequences=null, or "
+    "data.val_labels the test labels), and render-and-compare would choose its gate, filters "
+    "and scene rule on the test labels: hold out a validation split of the train labels "
+    "(data.val_sequences=1, the last train sequence of each scene) or give data.val_labels=FILE"
+)
+"""Why a run with render-and-compare stops before any work when validation reads the test
+split (the config check and the callback's setup say the same)."""
+
+
+def validation_is_test(
+    val_sequences: HeldOut | None, val_labels: str | Path | None, test_labels: str | Path | None
+) -> bool:
+    """Whether the validation split is the test split: no ``val_labels`` and ``val_sequences``
+    None, or ``val_labels`` the test labels' file (the same file by its resolved path)."""
+    if not val_labels:
+        return val_sequences is None
+    if test_labels is None:
+        return False
+    return Path(str(val_labels)).resolve() == Path(str(test_labels)).resolve()
 
 
 def natural_key(name: str) -> list[int | str]:

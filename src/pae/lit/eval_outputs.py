@@ -17,6 +17,7 @@ from torch import Tensor
 from pae.core.errors import ConfigError
 from pae.core.heap import release_free_heap
 from pae.core.metrics import first_occurrences
+from pae.data.holdout import CALIBRATION_ON_TEST
 from pae.data.transforms import ImageTransform
 from pae.render_compare.correspondences import Describer, MatchQueries, TrainImages
 from pae.render_compare.sequences import SequenceOptions
@@ -126,6 +127,14 @@ def collect_outputs(
         module.eval_outputs = [outputs]
         release_free_heap()
     return dict(outputs)
+
+
+def check_held_out(data: Any, stage: str) -> None:
+    """Before a ``fit`` or ``validate`` (``stage``) that calibrates render-and-compare on the
+    validation split: ConfigError where ``data`` (a data module) validates on its test split
+    (``val_is_test``), whose labels would choose the gate, filters and scene rule."""
+    if stage in ("fit", "validate") and getattr(data, "val_is_test", False):
+        raise ConfigError(CALIBRATION_ON_TEST)
 
 
 def oracle_scenes(data: Any) -> list[Any] | None:
