@@ -50,6 +50,10 @@ class MatchSettings:
     refined as a start of its own beside the APR's (0: none)."""
     near_start_views: int = 0
     """And the poses of this many train cameras nearest the APR's start (0: none)."""
+    near_best_rounds: int = 0
+    """Then, this many times, the ``near_start_views`` train cameras nearest each query's
+    best-scoring pose so far refined as starts too (a walk over the train cameras towards
+    where the score points)."""
     below_score: float = 2.0
     """Only queries whose refinement from the APR's start scores below this ZNCC get the
     other starts (2: every query): a query the scene model already explains keeps its own."""
@@ -77,11 +81,12 @@ class MatchSettings:
                 f"{self.render_width} and {self.depth_width}"
             )
         counts = (self.views, self.near_views, self.start_views, self.near_start_views)
-        counts += (self.iterations,)
+        counts += (self.iterations, self.near_best_rounds)
         if min(counts) < 0 or self.keypoints < 8:
             raise ValueError(
                 "render_compare.match needs views, near_views, start_views, near_start_views, "
-                f"iterations >= 0 and keypoints >= 8, not {counts}, {self.keypoints}"
+                f"iterations, near_best_rounds >= 0 and keypoints >= 8, not {counts}, "
+                f"{self.keypoints}"
             )
         if not 0 < self.ratio <= 1 or self.reprojection_px <= 0 or self.min_inliers < 4:
             raise ValueError(

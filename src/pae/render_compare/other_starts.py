@@ -66,6 +66,38 @@ def _extra_starts(
     return torch.cat(extra, 1), torch.cat(usable, 1), found
 
 
+def _keep_better(
+    refiner: RenderCompareRefiner,
+    queries: tuple[Tensor, Tensor, Tensor],
+    rows: Tensor,
+    extra: Tensor,
+    usable: Tensor,
+    best: RenderCompareResult,
+) -> tuple[RenderCompareResult, Tensor]:
+    """Refine the other starts extra [n, H, 7] of the queries at ``rows`` [n] (of images,
+    intrinsics and scenes ``queries``) where ``usable`` [n, H], and keep each query's
+    best-scoring refinement where it beats ``best``'s score -> the result and which of the
+    ``rows`` it moved [n]."""
+    images, intrinsics, scenes = queries
+    query, which = usable.nonzero(as_tuple=True)
+    moved = torch.zeros(len(rows), dtype=torch.bool)
+    if not len(query):
+        return best, moved
+    at = rows[query]
+    refined = refiner(images[at], intrinsics[at], extra[query, which], scenes[at])
+    scores = torch.full(usable.shape, -math.inf)
+    scores[query, which] = refined.score.float()
+    top, pick = scores.max(1)
+    moved = top > best.score[rows].float()
+    index = torch.full(usable.shape, -1, dtype=torch.long)
+    index[query, which] = torch.arange(len(query))
+    chosen = index[moved, pick[moved]]
+    poses, score = best.poses.clone(), best.score.clone()
+    poses[rows[moved]] = refined.poses[chosen].to(poses)
+    score[rows[moved]] = refined.score[chosen].to(score)
+    return RenderCompareResult(poses, score, best.initial_score), moved
+
+
 def with_other_starts(
     refiner: RenderCompareRefiner,
     images: Tensor,
@@ -78,7 +110,9 @@ def with_other_starts(
     matching: MatchQueries | None,
 ) -> OtherStarts:
     """The refinement from the APR's starts, or where one scores higher, a refinement from
-    another start (:func:`_extra_starts`), for the queries whose scene the decision kept."""
+    another start (:func:`_extra_starts`), for the queries whose scene the decision kept;
+    then ``match.near_best_rounds`` times, from the ``near_start_views`` train cameras
+    nearest each query's best pose so far."""
     if not match.active or matching is None:
         return OtherStarts(result, None, None)
     match = dataclasses.replace(match, surface_share=refiner.surface_share)
@@ -91,22 +125,17 @@ def with_other_starts(
     extra, usable, found[needy] = _extra_starts(
         refiner.scene_model, starts[needy], scenes[needy], match, subset
     )
-    query, which = usable.nonzero(as_tuple=True)
-    if not len(query):
-        return OtherStarts(result, found, from_match)
-    rows = needy[query]
-    second = refiner(images[rows], intrinsics[rows], extra[query, which], decided[rows])
-    scores = torch.full(usable.shape, -math.inf)
-    scores[query, which] = second.score.float()
-    best_score, best = scores.max(1)
-    better = (best_score > result.score[needy].float()).nonzero().flatten()
-    pick = torch.full(usable.shape, -1, dtype=torch.long)
-    pick[query, which] = torch.arange(len(query))
-    chosen = pick[better, best[better]]
-    kept = needy[better]
-    poses, score = result.poses.clone(), result.score.clone()
-    poses[kept] = second.poses[chosen].to(poses)
-    score[kept] = second.score[chosen].to(score)
-    from_match[kept] = True
-    merged = RenderCompareResult(poses, score, result.initial_score)
-    return OtherStarts(merged, found, from_match)
+    queries = (images, intrinsics, decided)
+    result, moved = _keep_better(refiner, queries, needy, extra, usable, result)
+    from_match[needy[moved]] = True
+    train = matching.train
+    for _ in range(match.near_best_rounds if train is not None else 0):
+        rows = nearest_cameras(
+            result.poses[needy], scenes[needy], train.poses, train.scenes, match.near_start_views
+        )
+        near = train.poses[rows].to(starts)
+        result, moved = _keep_better(
+            refiner, queries, needy, near, torch.ones(rows.shape, dtype=torch.bool), result
+        )
+        from_match[needy[moved]] = True
+    return OtherStarts(result, found, from_match)
