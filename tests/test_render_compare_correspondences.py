@@ -198,3 +198,23 @@ def test_the_train_cameras_nearest_the_start_are_starts_too() -> None:
         Calibration(match=match), matching=MatchQueries(images[21:22], intrinsics[21:22], train),
     )  # fmt: skip
     assert float(pose_errors(found.result.poses, truth[21:22])[0][0]) < 0.1
+
+
+def test_a_round_from_the_cameras_nearest_the_best_pose_never_lowers_a_score() -> None:
+    model, images, intrinsics, truth = _frames(48, slice(0, 40))
+    scenes = torch.zeros(40, dtype=torch.long)
+    train = TrainImages(images[::2], intrinsics[::2], truth[::2], scenes[::2])
+    rows = torch.tensor([5, 13, 21, 29])
+    starts = perturb(truth[rows], torch.tensor([1.0, -0.9, 0.6, 0.3, 0.2, -0.2]).expand(4, 6))
+    matching = MatchQueries(images[rows], intrinsics[rows], train)
+
+    def refined(rounds: int) -> torch.Tensor:
+        match = MatchSettings(width=48, render_width=0, near_start_views=1, near_best_rounds=rounds)
+        return refine(
+            model, images[rows], intrinsics[rows], starts, scenes[:4], SMALL_SEARCH,
+            Calibration(match=match), matching=matching,
+        ).result  # fmt: skip
+
+    once, twice = refined(0), refined(1)
+    assert bool((twice.score >= once.score).all())
+    torch.testing.assert_close(twice.initial_score, once.initial_score)

@@ -114,7 +114,7 @@ class MatchSettings:
 
 class Keypoints(NamedTuple):
     """Keypoints of ``B`` images, padded to ``K``: xy [B, K, 2] px, descriptors [B, K, D]
-    (float; binary ones as 0/1 bits), count [B]."""
+    (uint8 from :func:`detect`: SIFT's bytes, or ORB's 0/1 bits), count [B]."""
 
     xy: Tensor
     descriptors: Tensor
@@ -154,21 +154,21 @@ def detect(images: Tensor, settings: MatchSettings, masks: Tensor | None = None)
         mask = None if allowed is None else allowed[index]
         found, described = detector.detectAndCompute(grey[index], mask)
         if described is None or not found:
-            return np.zeros((0, 2), np.float32), np.zeros((0, 0), np.float32)
+            return np.zeros((0, 2), np.float32), np.zeros((0, 0), np.uint8)
         strength = np.array([k.response for k in found], np.float32)
         keep = np.argsort(-strength, kind="stable")[: settings.keypoints]
         xy = np.array([found[i].pt for i in keep], np.float32)
         chosen = described[keep]
         if binary:
-            chosen = np.unpackbits(chosen, axis=1)
-        return xy, chosen.astype(np.float32)
+            return xy, np.unpackbits(chosen, axis=1)
+        return xy, np.clip(np.rint(chosen), 0, 255).astype(np.uint8)  # SIFT's are whole bytes
 
     with ThreadPoolExecutor(worker_threads()) as pool:
         found = list(pool.map(one, range(len(grey))))
     size = max([len(xy) for xy, _ in found] + [1])
     dim = max([d.shape[1] for _, d in found] + [1])
     xy = torch.zeros(len(found), size, 2)
-    descriptors = torch.zeros(len(found), size, dim)
+    descriptors = torch.zeros(len(found), size, dim, dtype=torch.uint8)
     count = torch.zeros(len(found), dtype=torch.long)
     for row, (points, described) in enumerate(found):
         xy[row, : len(points)] = torch.from_numpy(points)
@@ -183,7 +183,7 @@ def mutual_matches(
 ) -> tuple[Tensor, Tensor]:
     """For each query keypoint [B, K] the index [B, K] of its match among the reference's
     (mutual nearest neighbours passing the ratio test) and whether it has one [B, K]."""
-    a, b = query.descriptors, reference.descriptors
+    a, b = query.descriptors.float(), reference.descriptors.float()
     if binary:  # Hamming distances of 0/1 bits
         distance = a.sum(-1)[..., None] + b.sum(-1)[:, None] - 2 * a @ b.transpose(1, 2)
     else:
