@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from pae.core.errors import ImageError
-from pae.data import fingerprint, image_store
+from pae.data import image_store
 from pae.data.dataset import PoseDataset
 from pae.data.image_store import ImageStore
 from pae.data.labels import LabelTable
@@ -103,44 +103,6 @@ def test_a_dataset_reads_the_same_batches_through_a_store(tmp_path) -> None:
     _write_image(tmp_path / paths[3], 3, size=(40, 64))
     with pytest.raises(ImageError, match="frame-000003"):
         stored.__getitems__([3])
-
-
-def test_the_train_images_fingerprint_hashes_each_file_once_through_a_store(
-    tmp_path, monkeypatch
-) -> None:
-    paths, table = _frames(tmp_path, 4)
-    store = ImageStore(tmp_path / "store")
-    plain = fingerprint.images_blake2b(table, tmp_path)
-    hashed: list[str] = []
-    whole_file = fingerprint._whole_file
-
-    def counted(handle):
-        hashed.append(handle.name)
-        return whole_file(handle)
-
-    monkeypatch.setattr(fingerprint, "_whole_file", counted)
-    assert fingerprint.images_blake2b(table, tmp_path, store) == plain
-    assert len(hashed) == 4
-    assert fingerprint.images_blake2b(table, tmp_path, store) == plain
-    assert len(hashed) == 4, "every file's BLAKE2b read back from the store"
-    _write_image(tmp_path / paths[1], 9)  # edited: hashed anew, the fingerprint changes
-    stat = (tmp_path / paths[1]).stat()
-    os.utime(tmp_path / paths[1], ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
-    edited = fingerprint.images_blake2b(table, tmp_path, store)
-    assert edited != plain and hashed[4:] == [str(tmp_path / paths[1])]
-    monkeypatch.setattr(fingerprint, "_whole_file", whole_file)
-    assert edited == fingerprint.images_blake2b(table, tmp_path)
-    for entry in (tmp_path / "store").rglob("*.blake2b"):
-        entry.write_bytes(entry.read_bytes()[:5])  # cut short: hashed again
-    assert fingerprint.images_blake2b(table, tmp_path, store) == edited
-    for entry in (tmp_path / "store").rglob("*.blake2b"):
-        entry.write_bytes(entry.read_bytes()[:40])  # cut inside the digest: hashed again
-    assert fingerprint.images_blake2b(table, tmp_path, store) == edited
-    sizes = [e.stat().st_size for e in (tmp_path / "store").rglob("*.blake2b")]
-    assert sizes.count(16 + 64) == 4, "the four files' entries written whole again"
-    (tmp_path / paths[2]).unlink()
-    with pytest.raises(ImageError, match=r"frame-000002.*row:"):
-        fingerprint.images_blake2b(table, tmp_path, store)
 
 
 def test_pae_data_store_fills_the_folder_once_and_names_a_missing_image(tmp_path, capsys) -> None:

@@ -15,6 +15,7 @@
     pae-data convert ace ROOT OUT_DIR [--scene NAME]
     pae-data convert colmap MODEL_DIR IMAGE_DIR OUT_DIR [--split-list FILE | --every K |
                             --test-folders NAME ...] [--scale S] [--scene NAME]
+    pae-data convert kapture ROOT OUT_DIR [--train NAME] [--test NAME] [--scene NAME]
     pae-data check LABELS.csv [LABELS.csv ...] ROOT
     pae-data store LABELS.csv [LABELS.csv ...] ROOT --store STORE [--shorter-edge PX]
     pae-data audit-guess --test TEST.csv [...] --train TRAIN.csv [...] [--sigma M --k K --seed S]
@@ -126,6 +127,15 @@ def _convert_colmap(args: argparse.Namespace) -> int:
         )
     scene = args.scene or args.image_dir.resolve().name
     return _write_converted(frames, scene, args.image_dir, args)
+
+
+def _convert_kapture(args: argparse.Namespace) -> int:
+    from pae.core.atomic import check_writable_dir
+    from pae.data.kapture import read_kapture_scene
+
+    check_writable_dir(args.out_dir, "OUT_DIR")
+    frames = read_kapture_scene(args.root, args.train, args.test)
+    return _write_converted(frames, args.scene or args.root.resolve().name, args.root, args)
 
 
 def _write_converted(frames: SceneFrames, scene: str, root: Path, args: argparse.Namespace) -> int:
@@ -258,7 +268,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     convert = commands.add_parser(
         "convert",
-        help="write label files from a raw download, an ACE-layout folder or a COLMAP model",
+        help="write label files from a raw download, an ACE-layout folder, a COLMAP model or "
+        "kapture folders",
         description="Write label files (OUT_DIR/<scene>_{train,test}.csv and "
         "OUT_DIR/all_{train,test}.csv) from another layout.",
     )
@@ -331,6 +342,26 @@ def build_parser() -> argparse.ArgumentParser:
     colmap.add_argument(
         "--scene", metavar="NAME", help="the scene's name (default: IMAGE_DIR's name)"
     )
+
+    kapture = _add_command(
+        formats,
+        "kapture",
+        "kapture folders (sensors.txt, records_camera.txt, trajectories.txt): train and test",
+        "Two kapture folders under ROOT, the train split's (--train, default mapping) and the "
+        "test split's (--test, default query): each one's sensors/sensors.txt cameras "
+        "(pinhole), records_camera.txt images under sensors/records_data/ and "
+        "trajectories.txt world-to-camera poses, written camera-to-world; img_path relative "
+        "to ROOT, each row with its own focal length.",
+        _convert_kapture,
+        ("root", "out_dir"),
+    )
+    kapture.add_argument(
+        "--train", default="mapping", metavar="NAME", help="the train split's kapture folder"
+    )
+    kapture.add_argument(
+        "--test", default="query", metavar="NAME", help="the test split's kapture folder"
+    )
+    kapture.add_argument("--scene", metavar="NAME", help="the scene's name (default: ROOT's name)")
 
     check = _add_command(
         commands,

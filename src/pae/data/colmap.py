@@ -18,6 +18,7 @@ writes an undistorted model and images.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import struct
 from collections.abc import Sequence
@@ -126,18 +127,18 @@ def _finite(values: Sequence[float], where: str) -> list[float]:
     return list(values)
 
 
-def _camera(
-    camera_id: int, model: str, size: tuple[int, int], params: list[float], where: str
+def checked_camera(
+    camera_id: int, model: str, size: tuple[int, int], params: Sequence[float], where: str
 ) -> ColmapCamera:
-    """A checked camera: its model known and its parameter count that model's."""
+    """A checked camera (``where`` names its file, line and id): its model known and its
+    parameter count that model's."""
     if model not in _PARAMETER_COUNTS:
-        raise ValueError(f"{where}: camera {camera_id}: unknown camera model {model}")
+        raise ValueError(f"{where}: unknown camera model {model}")
     if len(params) != _PARAMETER_COUNTS[model]:
         raise ValueError(
-            f"{where}: camera {camera_id}: {model} has {_PARAMETER_COUNTS[model]} parameters, "
-            f"got {len(params)}"
+            f"{where}: {model} has {_PARAMETER_COUNTS[model]} parameters, got {len(params)}"
         )
-    return ColmapCamera(camera_id, model, *size, tuple(params), f"{where}: camera {camera_id}")
+    return ColmapCamera(camera_id, model, *size, tuple(params), where)
 
 
 def _read_cameras_text(path: Path) -> dict[int, ColmapCamera]:
@@ -150,7 +151,8 @@ def _read_cameras_text(path: Path) -> dict[int, ColmapCamera]:
             raise LabelError(path, line, "expected 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS...'")
         params = _numbers(tokens[4:], f"{path}:{line}: camera {tokens[0]}")
         size = (int(tokens[2]), int(tokens[3]))
-        cameras[int(tokens[0])] = _camera(int(tokens[0]), tokens[1], size, params, f"{path}:{line}")
+        where = f"{path}:{line}: camera {tokens[0]}"
+        cameras[int(tokens[0])] = checked_camera(int(tokens[0]), tokens[1], size, params, where)
     return cameras
 
 
@@ -170,7 +172,8 @@ def _read_cameras_binary(path: Path) -> dict[int, ColmapCamera]:
             params = struct.unpack_from(f"<{n_params}d", data, offset)
             offset += 8 * n_params
             values = _finite(params, f"{path}: camera {camera_id}")
-            cameras[camera_id] = _camera(camera_id, model, (width, height), values, str(path))
+            where = f"{path}: camera {camera_id}"
+            cameras[camera_id] = checked_camera(camera_id, model, (width, height), values, where)
     except struct.error:
         raise LabelError(
             path, None, f"ends early (byte {offset}): not a COLMAP cameras.bin"
@@ -266,10 +269,10 @@ def undistort_command(model_dir: Path, image_dir: Path) -> str:
     )
 
 
-def pinhole(camera: ColmapCamera, model_dir: Path, image_dir: Path) -> tuple[float, ...]:
+def pinhole(camera: ColmapCamera, remedy: str) -> tuple[float, ...]:
     """``fx, fy, cx, cy`` (px, COLMAP's pixel centres) of a pinhole camera, or of one whose
-    distortion is zero;
-    ValueError naming the camera, with the command that undistorts the model, otherwise."""
+    distortion is zero; ValueError naming the camera, and ``remedy`` (how to undistort the
+    images), otherwise."""
     params = camera.params
     if camera.model in _ONE_FOCAL:
         intrinsics, distortion = (params[0], params[0], params[1], params[2]), params[3:]
@@ -281,7 +284,7 @@ def pinhole(camera: ColmapCamera, model_dir: Path, image_dir: Path) -> tuple[flo
         what = "a non-pinhole" if not intrinsics else "a distorted"
         raise ValueError(
             f"{camera.origin} is {what} {camera.model} camera: pae needs undistorted pinhole "
-            f"images: {undistort_command(model_dir, image_dir)}"
+            f"images: {remedy}"
         )
     return tuple(float(v) for v in intrinsics)
 
@@ -348,37 +351,27 @@ def split_images(
     return tops, [sequence_of(name.split("/", 1)[1]) for name in names]
 
 
-def read_colmap_scene(
-    model_dir: str | os.PathLike[str],
-    image_dir: str | os.PathLike[str],
-    scale: float = 1.0,
-    split_list: Path | None = None,
-    every: int | None = None,
-    test_folders: Sequence[str] | None = None,
+def model_frames(
+    model: ColmapModel,
+    image_dir: Path,
+    split: Sequence[str],
+    seqs: Sequence[str],
+    remedy: str,
 ) -> SceneFrames:
-    """The registered images of a model as frames in name order (see :func:`split_images`
-    for the splits), positions times ``scale``, principal points in pae's pixel convention.
-    ValueError (LabelError), one line naming the
-    file and entry, for a distorted or non-pinhole camera, ``fx != fy``, cameras of several
-    sizes, an image missing from ``image_dir`` or of another size than its camera."""
+    """The images of ``model`` in its order as frames (``img_path`` its names, relative to
+    ``image_dir``; ``split`` [N] and ``seqs`` [N] as given), camera-to-world poses in the
+    model's units, principal points in pae's pixel convention. ValueError, one line naming
+    the file and entry, for a distorted or non-pinhole camera (with ``remedy``), ``fx !=
+    fy``, cameras of several sizes, an image missing from ``image_dir`` or of another size
+    than its camera (one image per camera is read)."""
     from pae.data.transforms import image_size
 
-    model_dir, image_dir = Path(model_dir), Path(image_dir)
-    if not scale > 0:
-        raise ValueError(f"--scale must be > 0, got {scale}")
-    if not image_dir.is_dir():
-        raise ValueError(f"{image_dir}: IMAGE_DIR is not a directory")
-    model = read_colmap_model(model_dir)
-    order = sorted(range(len(model.names)), key=lambda i: natural_key(model.names[i]))
-    names = [model.names[i] for i in order]
-    origins = [model.origins[i] for i in order]
-    camera_ids = model.camera_ids[order]
-    used = [model.cameras[int(c)] for c in dict.fromkeys(camera_ids.tolist())]
-    intrinsics = {c.camera_id: pinhole(c, model_dir, image_dir) for c in used}
-    table = np.array([intrinsics[int(c)] for c in camera_ids], dtype=np.float64)
+    used = [model.cameras[int(c)] for c in dict.fromkeys(model.camera_ids.tolist())]
+    intrinsics = {c.camera_id: pinhole(c, remedy) for c in used}
+    table = np.array([intrinsics[int(c)] for c in model.camera_ids], dtype=np.float64)
     unequal = unequal_focal_lengths(table[:, 0], table[:, 1])
     if unequal.size:
-        camera = model.cameras[int(camera_ids[unequal[0]])]
+        camera = model.cameras[int(model.camera_ids[unequal[0]])]
         fx, fy = table[unequal[0], :2]
         raise ValueError(
             f"{camera.origin}: fx {fx:g} != fy {fy:g} px: pae's label files hold one focal "
@@ -392,7 +385,9 @@ def read_colmap_scene(
             "pae reads one image size per scene"
         )
     (width, height), checked = next(iter(sizes)), set()
-    for name, origin, camera_id in zip(names, origins, camera_ids.tolist(), strict=True):
+    for name, origin, camera_id in zip(
+        model.names, model.origins, model.camera_ids.tolist(), strict=True
+    ):
         path = image_dir / name
         if not path.is_file():
             raise ValueError(f"{origin}: no image {path}")
@@ -404,17 +399,48 @@ def read_colmap_scene(
                     f"{origin}: {path} is {w}x{h} px, its camera {camera_id} {width}x{height} "
                     "px: convert the model that was reconstructed from these images"
                 )
-    split, seqs = split_images(names, origins, split_list, every, test_folders)
-    poses = camera_to_world(model.rotations[order], model.translations[order])
-    poses[:, :3] *= scale
     return SceneFrames(
-        img_path=names,
-        seq=seqs,
-        split=split,
-        poses=poses,
+        img_path=list(model.names),
+        seq=list(seqs),
+        split=list(split),
+        poses=camera_to_world(model.rotations, model.translations),
         focal=table[:, :2].mean(1),
         principal=table[:, 2:] - CORNER_CENTRE_PX,
         width=width,
         height=height,
-        origin=origins,
+        origin=list(model.origins),
     )
+
+
+def read_colmap_scene(
+    model_dir: str | os.PathLike[str],
+    image_dir: str | os.PathLike[str],
+    scale: float = 1.0,
+    split_list: Path | None = None,
+    every: int | None = None,
+    test_folders: Sequence[str] | None = None,
+) -> SceneFrames:
+    """The registered images of a model as frames in name order (see :func:`split_images`
+    for the splits), positions times ``scale``, principal points in pae's pixel convention.
+    ValueError (LabelError), one line naming the file and entry, for what
+    :func:`model_frames` refuses (a distorted camera with the ``colmap image_undistorter``
+    command)."""
+    model_dir, image_dir = Path(model_dir), Path(image_dir)
+    if not scale > 0:
+        raise ValueError(f"--scale must be > 0, got {scale}")
+    if not image_dir.is_dir():
+        raise ValueError(f"{image_dir}: IMAGE_DIR is not a directory")
+    model = read_colmap_model(model_dir)
+    order = sorted(range(len(model.names)), key=lambda i: natural_key(model.names[i]))
+    model = dataclasses.replace(
+        model,
+        names=[model.names[i] for i in order],
+        camera_ids=model.camera_ids[order],
+        rotations=model.rotations[order],
+        translations=model.translations[order],
+        origins=[model.origins[i] for i in order],
+    )
+    split, seqs = split_images(model.names, model.origins, split_list, every, test_folders)
+    frames = model_frames(model, image_dir, split, seqs, undistort_command(model_dir, image_dir))
+    frames.poses[:, :3] *= scale
+    return frames

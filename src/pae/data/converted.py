@@ -1,9 +1,10 @@
-"""One scene's label files from another tool's layout (a COLMAP model, the ACE / DSAC* folders):
-its frames, the one camera every row shares, and what the poses say about scale and up.
+"""One scene's label files from another tool's layout (a COLMAP model, the ACE / DSAC* folders,
+kapture folders): its frames, the one camera every row shares, and what the poses say about
+scale and up.
 
-Both converters (:mod:`pae.data.colmap`, :mod:`pae.data.ace`) read their files into
-:class:`SceneFrames`; :func:`write_scene` writes ``<scene>_{train,test}.csv`` and
-``all_{train,test}.csv`` with a ``focal`` column (each image's own focal length), and
+The converters (:mod:`pae.data.colmap`, :mod:`pae.data.ace`, :mod:`pae.data.kapture`) read
+their files into :class:`SceneFrames`; :func:`write_scene` writes ``<scene>_{train,test}.csv``
+and ``all_{train,test}.csv`` with a ``focal`` column (each image's own focal length), and
 :func:`camera_of` gives the ``data.camera`` those rows refer to: label files hold one focal
 length per row and one principal point for the whole dataset.
 """

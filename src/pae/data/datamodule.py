@@ -22,7 +22,7 @@ from pae.core.run_context import current_run
 from pae.core.threads import loader_workers
 from pae.data.converted import recording_of
 from pae.data.dataset import PoseDataset, collate_batch
-from pae.data.fingerprint import images_blake2b, sampled_images_sha256
+from pae.data.fingerprint import DigestCache, images_blake2b, sampled_images_sha256
 from pae.data.holdout import (
     HeldOut,
     held_out_rows,
@@ -309,15 +309,18 @@ class PoseDataModule(L.LightningDataModule):
         """What identifies the training data: its scene names, a SHA-256 of its train poses
         (float64 [N, 7], as read from the train label file) and a BLAKE2b of its train images
         (:func:`pae.data.fingerprint.images_blake2b`: paths, sizes, every byte of each file),
-        computed once (each file's BLAKE2b kept in the image store where one is set).
-        Checkpoints record it."""
+        computed once; each file's BLAKE2b is kept beside the data (or in the image store
+        where the root is read-only, :meth:`pae.data.fingerprint.DigestCache.beside`), so a
+        later step or run hashes only the files that changed. Checkpoints record it."""
         if self._fingerprint is None:
             train = self.tables["train"]
             poses = np.ascontiguousarray(train.poses, dtype=np.float64)
+            spare = None if self.image_store is None else self.image_store.folder
+            cache = DigestCache.beside(self.root, spare)
             self._fingerprint = {
                 "scenes": list(self.scene_names),
                 "train_poses_sha256": hashlib.sha256(poses.tobytes()).hexdigest(),
-                "train_images_blake2b": images_blake2b(train, self.root, self.image_store),
+                "train_images_blake2b": images_blake2b(train, self.root, cache),
             }
         return dict(self._fingerprint)
 

@@ -1,17 +1,25 @@
 """The train images' part of a dataset's identity: a hash over every image's path, byte size
 and every byte of its file, so that checkpoints notice other images at the same poses and any
 edit of an image. Checkpoints written before recorded a sampled hash (4 KiB of each file), still
-computed to check them."""
+computed to check them.
+
+Each file's BLAKE2b is kept in a :class:`DigestCache`, one JSON file beside the data
+(``CACHE_NAME`` in its root), keyed by the file's path under the root, size and modification
+time (ns): every later step and run reads back the digest of an unchanged file and hashes only
+the files that changed or are new (an edit that keeps a file's size and modification time is
+not seen)."""
 
 from __future__ import annotations
 
 import hashlib
+import json
+import os
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import BinaryIO
 
+from pae.core.atomic import write_text_atomic
 from pae.core.errors import ImageError
-from pae.data.image_store import ImageStore
 from pae.data.labels import LabelTable
 
 CHUNK_BYTES = 1 << 20
@@ -20,16 +28,79 @@ CHUNK_BYTES = 1 << 20
 SAMPLE_BYTES = 4096
 """Bytes read from the middle of each image file by the sampled hash (all of a smaller one)."""
 
+CACHE_NAME = ".pae_fingerprint_cache.json"
+"""The file in a dataset's root (in the image store, one per root, where the root is
+read-only) that keeps each image file's BLAKE2b: ``{"blake2b": {path under the root: [size in bytes,
+modification time in ns, digest hex]}}``."""
+
+
+class DigestCache:
+    """Each image file's BLAKE2b under ``root``, kept in the JSON file at ``path``
+    (``CACHE_NAME``); read on creation (an absent or unreadable file: an empty cache),
+    written by :meth:`save`."""
+
+    def __init__(self, path: str | os.PathLike[str], root: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        self.root = Path(root)
+        self.changed = False
+        try:
+            kept = json.loads(self.path.read_text(encoding="utf-8"))["blake2b"]
+        except (OSError, ValueError, KeyError, TypeError):
+            kept = {}
+        self.files: dict[str, list] = kept if isinstance(kept, dict) else {}
+
+    @classmethod
+    def beside(cls, root: Path, spare: Path | None = None) -> DigestCache | None:
+        """The cache of the images under ``root``: ``CACHE_NAME`` in ``root`` where it is a
+        writable folder, else in ``spare`` (the image store's folder), named by ``root``'s
+        absolute path, where one is given, else None (every file hashed each time)."""
+        if os.access(root, os.W_OK | os.X_OK):
+            return cls(root / CACHE_NAME, root)
+        if spare is None:
+            return None
+        name = hashlib.sha1(os.path.abspath(root).encode(), usedforsecurity=False).hexdigest()
+        return cls(spare / f"{Path(CACHE_NAME).stem}.{name[:16]}.json", root)
+
+    def file_digest(
+        self, path: Path, compute: Callable[[], tuple[int, bytes]]
+    ) -> tuple[int, bytes]:
+        """(size in bytes, BLAKE2b) of the file at ``path``: the kept one where the file's
+        size and modification time are those it was hashed at, else ``compute()`` (which
+        reads the file) and kept. OSError where the file cannot be read."""
+        stat = os.stat(path)
+        key = os.path.relpath(path, self.root)
+        kept = self.files.get(key)
+        if isinstance(kept, list) and kept[:2] == [stat.st_size, stat.st_mtime_ns]:
+            try:
+                return stat.st_size, bytes.fromhex(kept[2])
+            except (IndexError, TypeError, ValueError):
+                pass  # a damaged entry: hashed again
+        size, digest = compute()
+        self.files[key] = [stat.st_size, stat.st_mtime_ns, digest.hex()]
+        self.changed = True
+        return size, digest
+
+    def save(self) -> None:
+        """Write the cache whole where a digest was added since it was read; a failed write
+        (a read-only folder, a full disk) leaves the old one, and later runs hash again."""
+        if not self.changed:
+            return
+        try:
+            text = json.dumps({"blake2b": self.files}, separators=(",", ":"), sort_keys=True)
+            write_text_atomic(self.path, text + "\n")
+        except OSError:
+            return
+        self.changed = False
+
 
 def _each_image(
     table: LabelTable,
     root: Path,
     summary: Callable[[BinaryIO], tuple[int, bytes]],
-    store: ImageStore | None = None,
-    name: str = "",
+    cache: DigestCache | None = None,
 ) -> Iterator[tuple[str, int, bytes]]:
     """(path as the label file gives it, size in bytes, ``summary``'s digest) per row, in row
-    order (kept in ``store`` under ``name`` where a store is given); an unreadable image is an
+    order (read from and kept in ``cache`` where one is given); an unreadable image is an
     ImageError naming it and its row."""
     for row, relative in enumerate(table.img_path):
         path = root / relative
@@ -39,10 +110,7 @@ def _each_image(
                 return summary(handle)
 
         try:
-            if store is None:
-                size, digest = compute()
-            else:
-                size, digest = store.file_digest(str(path), compute, name)
+            size, digest = compute() if cache is None else cache.file_digest(path, compute)
         except OSError as err:
             where = f"{table.source or 'row'}:{table.file_line(row)}"
             raise ImageError(f"{path} ({where}): cannot be read ({err.strerror})") from None
@@ -66,17 +134,21 @@ def _middle_sample(handle: BinaryIO) -> tuple[int, bytes]:
     return size, hashlib.sha256(handle.read(SAMPLE_BYTES)).digest()
 
 
-def images_blake2b(table: LabelTable, root: Path, store: ImageStore | None = None) -> str:
+def images_blake2b(table: LabelTable, root: Path, cache: DigestCache | None = None) -> str:
     """BLAKE2b (hex, 128 characters) over each row's ``img_path`` (as the label file gives it,
     so a copied dataset keeps its hash), its file's size in bytes and the BLAKE2b of every byte
-    of the file, in row order: any edit of an image changes it. With an image ``store`` each
-    file's BLAKE2b is read from it where the file's size and modification time are those it
-    was hashed at (:meth:`pae.data.image_store.ImageStore.file_digest`). An unreadable image
-    is an ImageError naming it and its row."""
+    of the file, in row order: any edit of an image changes it. With a ``cache`` each file's
+    BLAKE2b is read from it where the file's size and modification time are those it was
+    hashed at, the others hashed and the cache saved (:class:`DigestCache`); the hash is the
+    same. An unreadable image is an ImageError naming it and its row."""
     digest = hashlib.blake2b()
-    for relative, size, file_digest in _each_image(table, root, _whole_file, store, "blake2b"):
-        digest.update(f"{relative}\0{size}\0".encode())
-        digest.update(file_digest)
+    try:
+        for relative, size, file_digest in _each_image(table, root, _whole_file, cache):
+            digest.update(f"{relative}\0{size}\0".encode())
+            digest.update(file_digest)
+    finally:
+        if cache is not None:
+            cache.save()
     return digest.hexdigest()
 
 

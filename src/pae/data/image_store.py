@@ -10,9 +10,8 @@ temporary name and renamed (two loader workers writing one entry leave one whole
 one whose length disagrees with its header is decoded again and rewritten. Nothing is
 evicted: the folder holds about ``3 h w`` bytes per image (262 kB at 256 × 341 px).
 
-The store also keeps each train image file's BLAKE2b (:func:`pae.data.fingerprint.images_blake2b`,
-the data's identity that checkpoints record), keyed the same way: a file is hashed once, not
-once per step and run (an edit that keeps a file's size and modification time is not seen).
+Where the data's root is read-only, the store's folder also holds the cache of each train
+image file's BLAKE2b (:class:`pae.data.fingerprint.DigestCache`).
 """
 
 from __future__ import annotations
@@ -20,7 +19,7 @@ from __future__ import annotations
 import hashlib
 import os
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -32,9 +31,6 @@ from pae.data.transforms import load_sized_image
 
 HEADER = np.dtype("<u4")
 """The header's four numbers: the file's height and width, the entry's height and width."""
-DIGEST_HEADER = np.dtype("<u8")
-"""A file digest entry's header, two of these: the file's size and the digest's length in
-bytes, before the digest's bytes."""
 
 
 class ImageStore:
@@ -44,37 +40,13 @@ class ImageStore:
         self.folder = Path(folder)
 
     def entry(self, path: str, shorter_edge: int) -> Path:
-        """Where the image at ``path`` resized to ``shorter_edge`` px is kept."""
-        return self._keyed(path, str(shorter_edge), ".rgb")
-
-    def _keyed(self, path: str, what: str, suffix: str) -> Path:
-        """The entry of ``what`` of the file at ``path``, named by the file's absolute path,
-        size and modification time (FileNotFoundError where it is missing)."""
+        """Where the image at ``path`` resized to ``shorter_edge`` px is kept, named by the
+        file's absolute path, size, modification time and ``shorter_edge``
+        (FileNotFoundError where the file is missing)."""
         stat = os.stat(path)
-        name = f"{os.path.abspath(path)}\0{stat.st_size}\0{stat.st_mtime_ns}\0{what}"
+        name = f"{os.path.abspath(path)}\0{stat.st_size}\0{stat.st_mtime_ns}\0{shorter_edge}"
         digest = hashlib.sha1(name.encode(), usedforsecurity=False).hexdigest()
-        return self.folder / digest[:2] / f"{digest}{suffix}"
-
-    def file_digest(
-        self, path: str, compute: Callable[[], tuple[int, bytes]], name: str
-    ) -> tuple[int, bytes]:
-        """(size in bytes, digest) of the file at ``path`` by the hash ``name``: from its
-        entry where one is whole (its length the header's), else ``compute()`` (which reads
-        the file) and kept, so an unchanged file is read once for every later step and run.
-        OSError where the file cannot be read."""
-        entry = self._keyed(path, name, f".{name}")
-        try:
-            data = entry.read_bytes()
-        except OSError:
-            data = b""
-        start = 2 * DIGEST_HEADER.itemsize
-        if len(data) > start:
-            size, length = (int(v) for v in np.frombuffer(data, DIGEST_HEADER, 2))
-            if len(data) == start + length:
-                return size, data[start:]
-        size, digest = compute()
-        _write_entry(entry, np.array([size, len(digest)], DIGEST_HEADER).tobytes(), digest)
-        return size, digest
+        return self.folder / digest[:2] / f"{digest}.rgb"
 
     def read(self, path: str, shorter_edge: int) -> tuple[np.ndarray, tuple[int, int]]:
         """The image at ``path`` resized so its shorter edge is ``shorter_edge`` px, as

@@ -47,8 +47,9 @@ class PoseDataSettings:
     image_store: str | None = None
     """A folder where each image, once decoded and resized, is kept for every later epoch,
     step and run to read back (:mod:`pae.data.image_store`; about 262 kB per image at the
-    default size), and each train image file's BLAKE2b for the data fingerprint; None:
-    decoded and hashed each time."""
+    default size), and, where ``root`` is read-only, the cache of each train image file's
+    BLAKE2b for the data fingerprint (:class:`pae.data.fingerprint.DigestCache`); None:
+    decoded each time."""
     balance_scenes: bool = False
     """Sample scenes equally often in multi-scene training."""
     pose_loss_init: dict[str, float] | None = None
