@@ -207,8 +207,9 @@ def bench_other_starts(
 ) -> dict[str, float]:
     """Per image at ``experiment=demo_hard``'s refiner settings (64-px queries, the wider
     search), side by side on the same queries: the refinement from the APR's start alone,
-    with the other starts of the stage demo_hard tries (4 train views nearest by descriptor
-    and 4 nearest the start), and with keypoint correspondences against a
+    with the other starts of the stages demo_hard tries (4 train views nearest by descriptor,
+    4 nearest the start, a round of 4 nearest the best pose), and with keypoint
+    correspondences against a
     ``match_width``-px rendering too: ms per query (the train views' descriptors and
     keypoints made once before, as a run makes them once)."""
     from pae.render_compare import Calibration, refine
@@ -223,10 +224,12 @@ def bench_other_starts(
     matching = MatchQueries(large, large_k, train)
     stages = {
         "alone": MatchSettings(),
-        "other_starts": MatchSettings(width=match_width, start_views=4, near_start_views=4),
+        "other_starts": MatchSettings(
+            width=match_width, start_views=4, near_start_views=4, near_best_rounds=1
+        ),
         "keypoints": MatchSettings(
-            width=match_width, start_views=4, near_start_views=4, render_width=match_width,
-            min_inliers=10, iterations=1,
+            width=match_width, start_views=4, near_start_views=4, near_best_rounds=1,
+            render_width=match_width, min_inliers=10, iterations=1,
         ),
     }  # fmt: skip
     figures = {}
