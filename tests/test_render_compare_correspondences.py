@@ -218,3 +218,15 @@ def test_a_round_from_the_cameras_nearest_the_best_pose_never_lowers_a_score() -
     once, twice = refined(0), refined(1)
     assert bool((twice.score >= once.score).all())
     torch.testing.assert_close(twice.initial_score, once.initial_score)
+
+
+def test_the_callback_names_a_second_width_and_an_unknown_descriptor() -> None:
+    from pae.callbacks.render_compare import RenderCompareCallback
+
+    with pytest.raises(ValueError, match=r"one width for every stage, not \[128, 256\]"):
+        RenderCompareCallback(matches_from_val=[{"width": 256}, {"width": 128}])
+    with pytest.raises(ValueError, match="match_descriptor: unknown 'gist'"):
+        RenderCompareCallback(match_descriptor="gist")
+    callback = RenderCompareCallback(matches_from_val=[{}, {"width": 64, "start_views": 2}])
+    assert callback.match_inputs.width == 64
+    assert not callback.options.uncalibrated().match.active  # two stages: val chooses
