@@ -195,16 +195,6 @@ def teacher_descriptor(teacher: torch.nn.Module, size: int) -> Describer:
     return describe
 
 
-def match_queries(
-    data: Any, split: str, rows: Tensor, width: int, train: TrainImages
-) -> MatchQueries:
-    """What the correspondence stage reads of ``split``'s queries at ``rows`` [B] of the
-    data module's split: their images at ``width`` px (the loader's files, not the compare
-    width) with intrinsics, and the train views ``train``."""
-    images, intrinsics = data.images_at(split, width)
-    return MatchQueries(images[rows.cpu()].float() / 255, intrinsics[rows.cpu()], train)
-
-
 def train_images(data: Any, width: int, describe: Describer | None) -> TrainImages:
     """The data module's train views at ``width`` px for the correspondence stage."""
     images, intrinsics = data.images_at("train", width)
@@ -225,6 +215,7 @@ class MatchInputs:
             )
         self.width, self.descriptor = match_width(matches), descriptor
         self.train: TrainImages | None = None
+        self.loaded: dict[str, tuple[Tensor, Tensor]] = {}  # split -> its images, intrinsics
 
     def arguments(
         self, data: Any, teacher: torch.nn.Module, split: str, rows: Tensor
@@ -236,7 +227,12 @@ class MatchInputs:
             size = int(getattr(data, "shorter_edge", 64))
             describe = teacher_descriptor(teacher, size) if self.descriptor == "teacher" else None
             self.train = train_images(data, self.width, describe)
-        return {"matching": match_queries(data, split, rows, self.width, self.train)}
+        if split not in self.loaded:  # each validation reads the same files: once a run
+            self.loaded[split] = data.images_at(split, self.width)
+        images, intrinsics = self.loaded[split]
+        at = rows.cpu()
+        queries = MatchQueries(images[at].float() / 255, intrinsics[at], self.train)
+        return {"matching": queries}
 
 
 HONEST = "render_compare"
