@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.utils import JobReturn, JobStatus
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 from pae import CONFIG_DIR
 from pae.core.errors import ConfigError
@@ -57,9 +57,7 @@ def test_search_space_reads_hydra_sweep_syntax() -> None:
 
 
 def test_a_space_the_study_cannot_sample_names_its_key() -> None:
-    with pytest.raises(
-        ConfigError, match=r"hydra.sweeper.params.backbone=glob\(\*\): not a search space"
-    ):
+    with pytest.raises(ConfigError, match=r"^backbone=glob\(\*\): not a search space"):
         search_space({"backbone": "glob(*)"}, [])
 
 
@@ -70,6 +68,10 @@ def _returns(values: list[float | Exception]) -> list[JobReturn]:
         status = JobStatus.FAILED if failed else JobStatus.COMPLETED
         results.append(JobReturn(status=status, _return_value=value))
     return results
+
+
+def _random_sampler(seed: int) -> DictConfig:
+    return OmegaConf.create({"_target_": "optuna.samplers.RandomSampler", "seed": seed})
 
 
 def test_a_stopped_study_continues_to_n_trials(tmp_path: Path) -> None:
@@ -87,10 +89,10 @@ def test_a_stopped_study_continues_to_n_trials(tmp_path: Path) -> None:
             [ConfigError("diverged") if first + i == 3 else v for i, v in enumerate(values)]
         )
 
-    study = open_study(storage, "s", "minimize", optuna.samplers.RandomSampler(seed=0))
+    study = open_study(storage, "s", "minimize", _random_sampler(seed=0))
     assert run_study(study, space, ["stage=student"], 2, launch) is None
     study.ask(space)  # trial 2: the sweep is killed while it runs
-    again = open_study(storage, "s", "minimize", optuna.samplers.RandomSampler(seed=1))
+    again = open_study(storage, "s", "minimize", _random_sampler(seed=1))
     failure = run_study(again, space, ["stage=student"], 5, launch, batch=2)
     assert isinstance(failure, ConfigError)
     states = [t.state for t in again.get_trials()]

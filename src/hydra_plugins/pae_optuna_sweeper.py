@@ -6,9 +6,9 @@ neither optuna nor pae until a study runs."""
 from __future__ import annotations
 
 import logging
-from typing import Any
 
 from hydra.core.plugins import Plugins
+from hydra.errors import CompactHydraException
 from hydra.plugins.sweeper import Sweeper
 from hydra.types import HydraContext, TaskFunction
 from omegaconf import DictConfig, OmegaConf
@@ -29,7 +29,7 @@ class PaeOptunaSweeper(Sweeper):
         n_trials: int,
         n_jobs: int,
         direction: str,
-        sampler: Any,
+        sampler: DictConfig | None,
         params: DictConfig | None = None,
     ) -> None:
         self.storage = storage
@@ -51,10 +51,15 @@ class PaeOptunaSweeper(Sweeper):
         )
 
     def sweep(self, arguments: list[str]) -> None:
+        """Run the study; a setting it cannot use (its space, no optuna) is said in one line."""
         from pae.config.optuna_study import best_line, open_study, run_study, search_space
+        from pae.core.errors import ConfigError
 
-        space, fixed = search_space(self.params, arguments)
-        study = open_study(self.storage, self.study_name, self.direction, self.sampler)
+        try:
+            space, fixed = search_space(self.params, arguments)
+            study = open_study(self.storage, self.study_name, self.direction, self.sampler)
+        except ConfigError as err:
+            raise CompactHydraException(str(err)) from None
         log.info(f"study {self.study_name} in {self.storage}: {len(space)} searched settings")
         failure = run_study(study, space, fixed, self.n_trials, self.launcher.launch, self.n_jobs)
         log.info(best_line(study))

@@ -21,7 +21,7 @@ from hydra.core.override_parser.types import (
 from hydra.core.utils import JobReturn
 from omegaconf import DictConfig, OmegaConf
 
-from pae.core.error_reporting import first_line
+from pae.core.error_reporting import SweepJobFailed, first_line
 from pae.core.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -73,8 +73,9 @@ def _distribution(override: Override) -> BaseDistribution:
             list(override.sweep_iterator(transformer=Transformer.encode))
         )
     raise ConfigError(
-        f"hydra.sweeper.params.{override.input_line}: not a search space of the study; use "
-        "choice(...), range(a, b, step), interval(a, b) or tag(log, interval(a, b))"
+        f"{override.input_line}: not a search space the study can sample (in "
+        "hydra.sweeper.params or on the command line); use choice(...), range(a, b, step), "
+        "interval(a, b) or tag(log, interval(a, b))"
     )
 
 
@@ -104,12 +105,17 @@ def search_space(
     return space, fixed
 
 
-def open_study(
-    storage: str, name: str, direction: str, sampler: optuna.samplers.BaseSampler | None
-) -> optuna.Study:
-    """The study `name` in `storage` (a database URL), created if new; a SQLite file's folder
-    is made first."""
-    import optuna
+def open_study(storage: str, name: str, direction: str, sampler: DictConfig | None) -> optuna.Study:
+    """The study `name` in `storage` (a database URL), created if new, sampled by `sampler`
+    (a Hydra config of an Optuna sampler; None: Optuna's default); a SQLite file's folder is
+    made first."""
+    try:
+        import optuna
+    except ImportError:
+        raise ConfigError(
+            "hydra/sweeper=pae_optuna (hparams_search=...) needs optuna: pip install 'pae[optuna]'"
+        ) from None
+    from hydra.utils import instantiate
 
     if storage.startswith(SQLITE):
         Path(storage.removeprefix(SQLITE)).parent.mkdir(parents=True, exist_ok=True)
@@ -118,7 +124,7 @@ def open_study(
         storage=storage,
         study_name=name,
         direction=direction,
-        sampler=sampler,
+        sampler=None if sampler is None else instantiate(sampler),
         load_if_exists=True,
     )
 
@@ -185,7 +191,10 @@ def run_study(
             try:
                 value = result.return_value
                 if value is None:
-                    raise ConfigError("the run gave no validation figure to minimise")
+                    raise SweepJobFailed(
+                        f"a sweep job failed (trial {trial.number}): the run gave no "
+                        "validation figure to minimise"
+                    )
             except Exception as err:
                 trial.set_user_attr(ERROR_ATTR, first_line(err))
                 study.tell(trial, state=TrialState.FAIL)
