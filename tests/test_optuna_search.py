@@ -170,6 +170,7 @@ def test_student_search_writes_its_study_and_pae_report_reads_it(
     table, problems = sweep_report(sweep_dir, "val")
     rows = [line for line in table.splitlines() if "pae.L=" in line]
     assert problems == 0 and len(rows) == 2
+    assert rows[0].split(" | ")[0] in (sweep_dir / "report.md").read_text()  # SweepReport
     assert all("student.optimizer.lr=" in row for row in rows)
 
 
