@@ -8,6 +8,8 @@ exported at and compared with the model before anything is written."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import re
 import warnings
 from collections.abc import Iterator
@@ -87,6 +89,12 @@ def _reason(err: BaseException) -> str:
     return line[:240]
 
 
+def _shown(model: nn.Module, module: nn.Module) -> str:
+    """``module`` as the error names it: its name in ``model`` and its class."""
+    name = next(name for name, found in model.named_modules() if found is module)
+    return f"{name} ({type(module).__name__})" if name else type(module).__name__
+
+
 def _module_in_traceback(model: nn.Module, err: BaseException) -> str | None:
     """The innermost submodule of ``model`` whose code the error was raised in (``model``'s
     own class name for itself), or None when none was running."""
@@ -100,7 +108,7 @@ def _module_in_traceback(model: nn.Module, err: BaseException) -> str | None:
                 found = owner
             trace = trace.tb_next
         if found is not None:
-            return names[id(found)] or type(found).__name__
+            return _shown(model, found)
     return None
 
 
@@ -120,11 +128,15 @@ def _module_calling(model: nn.Module, operator: str, example: tuple[Tensor, ...]
                 found.append(running[-1])
             return func(*args, **(kwargs or {}))
 
+    def entered(module: nn.Module, args: Any) -> None:
+        running.append(_shown(model, module))
+
+    def left(module: nn.Module, args: Any, output: Any) -> None:
+        running.pop()
+
     hooks = []
-    for name, module in model.named_modules():
-        shown = name or type(module).__name__
-        hooks.append(module.register_forward_pre_hook(lambda *_, n=shown: running.append(n)))
-        hooks.append(module.register_forward_hook(lambda *_: running.pop()))
+    for module in model.modules():
+        hooks += [module.register_forward_pre_hook(entered), module.register_forward_hook(left)]
     try:
         with torch.no_grad(), Calls():
             model(*example)
@@ -160,8 +172,8 @@ def onnx_bytes(
     the exporter failed at, or the output that differs."""
     graph = graph.eval()
     batch = torch.export.Dim("batch", min=1)
-    try:
-        with warnings.catch_warnings():
+    try:  # torch.export writes the graph of a model it refuses to stderr: the error says it
+        with warnings.catch_warnings(), contextlib.redirect_stderr(io.StringIO()):
             warnings.filterwarnings("ignore", message=".*axis name.*")  # inputs share the batch
             program = torch.onnx.export(
                 graph,
