@@ -194,7 +194,8 @@ def onnx_bytes(
 
 
 def _resized(example: Tensor, batch: int, generator: torch.Generator) -> Tensor:
-    """An input like ``example`` with ``batch`` rows: random values of its dtype."""
+    """An input like ``example`` with ``batch`` rows: random values of its dtype (integers:
+    from 0 to ``example``'s largest)."""
     shape = (batch, *example.shape[1:])
     if example.is_floating_point():
         return torch.randn(shape, generator=generator, dtype=example.dtype)
@@ -296,7 +297,7 @@ def export_run(run_dir: str | Path, out: str | Path) -> dict[str, Any]:
     if "student" in run.steps:
         student_path = run.checkpoint("student", "pae-export")
         pae = load_pae(student_path)
-        example = (torch.zeros(EXPORT_BATCH, 7), torch.zeros(EXPORT_BATCH, dtype=torch.long))
+        example = (torch.zeros(EXPORT_BATCH, 7), torch.arange(EXPORT_BATCH) % len(scenes))
         example = example if multi else example[:1]
         inputs = ["pose", "scene"][: len(example)]
         model = onnx_bytes(PaeGraph(pae.model), example, inputs, ["latent"], "student's PAE")
