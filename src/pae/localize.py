@@ -11,6 +11,7 @@ EPILOG = """examples:
   pae-localize outputs/demo my_images/ --out poses.csv
   pae-localize outputs/demo DATA/labels/all_test.csv --root DATA --refine render_compare \\
       --out poses.csv
+  pae-localize outputs/demo my_images/ --onnx outputs/demo/onnx --out poses.csv
 INPUT: image files, folders of images (searched recursively) or label files (their img_path
 read under --root, by default the run's data root; their poses only give the printed errors).
 The teacher's estimates by default, or another APR's with --init FILE; --refine
@@ -54,6 +55,13 @@ def parser() -> argparse.ArgumentParser:
         "rounding the run's own figures carry)",
     )
     parse.add_argument("--device", default="cpu", help="torch device (default: cpu)")
+    parse.add_argument(
+        "--onnx",
+        type=Path,
+        metavar="EXPORT",
+        help="run the teacher exported by pae-export (its folder or teacher.onnx) with "
+        "onnxruntime on the CPU instead of its checkpoint (--refine teacher only)",
+    )
     parse.add_argument(
         "--init",
         type=Path,
@@ -138,8 +146,15 @@ def localize(args: argparse.Namespace) -> None:
         teacher_path = run.checkpoint("teacher", method)
     else:  # a later step's checkpoint holds a copy of its teacher
         teacher_path = run.checkpoint(run.steps[0], method)
+    if args.onnx is not None and method != loc.TEACHER:
+        raise ConfigError(f"--onnx runs the teacher only, not --refine {method}")
     queries = gather_queries(args.inputs, args.root or run.data_root)
-    teacher = load_teacher(teacher_path)
+    if args.onnx is not None:
+        from pae.apps.onnx_teacher import load_onnx_teacher
+
+        teacher = load_onnx_teacher(args.onnx, run, teacher_path)
+    else:
+        teacher = load_teacher(teacher_path)
     data = loc.data_module(run)
     intrinsics = None
     width = None
