@@ -193,19 +193,19 @@ def _finish(
     starts: Tensor,
     sequences: Sequences | None,
     decided: tuple[RenderCompareResult, Tensor, Tensor],
-    chosen: tuple[MatchSettings, Callable[[RenderCompareResult], tuple[float, float]]],
+    match: MatchSettings,
+    gate_for: Callable[[RenderCompareResult], tuple[float, float]],
 ) -> tuple[Calibration, Refinement]:
     """After the scene decision (``decided``: result, scenes, checked): the other starts of
-    the correspondence stage, the sequence passes, the gate (``chosen``: the stage and what
-    gives the gate's margin and floor from the result) and the sequence window."""
+    the correspondence stage ``match``, the sequence passes, the gate whose margin and floor
+    ``gate_for`` gives for the result, and the sequence window."""
     result, scenes, checked = decided
-    match, choose = chosen
     matched = with_other_starts(
         refiner, queries.images, queries.intrinsics, starts, queries.scenes, scenes, result,
         match, queries.matching,
     )  # fmt: skip
     result = _propagated(refiner, queries, scenes, matched.result, sequences)
-    margin, floor = choose(result)
+    margin, floor = gate_for(result)
     gated = gate(result, starts, margin, floor)
     poses = _filtered(gated.poses, scenes, sequences)
     refinement = Refinement(
@@ -237,10 +237,8 @@ def refine(
     refiner = build_refiner(scene_model, settings, calibration.steps)
     decided = _refine_in_scenes(refiner, queries, starts, scenes, calibration.scene)
     kept = (calibration.accept_margin, calibration.accept_score)
-    return _finish(
-        refiner, queries._replace(scenes=scenes), starts, sequences, decided,
-        (calibration.match, lambda _: kept),
-    )[1]  # fmt: skip
+    voted = queries._replace(scenes=scenes)
+    return _finish(refiner, voted, starts, sequences, decided, calibration.match, lambda _: kept)[1]
 
 
 class _Trial(NamedTuple):
@@ -288,7 +286,7 @@ def _calibrate_once(
         decided = decision.result, decision.scene, decision.checked
     start_pos, _ = pose_errors(starts.float(), truth.float())
 
-    def choose(result: RenderCompareResult) -> tuple[float, float]:
+    def chosen_gate(result: RenderCompareResult) -> tuple[float, float]:
         refined_pos, _ = pose_errors(result.poses.float(), truth.float())
         return choose_gate(
             result.score - result.initial_score, result.score, refined_pos, start_pos,
@@ -298,8 +296,8 @@ def _calibrate_once(
 
     match = MatchSettings(**trial.match)
     gated, refinement = _finish(
-        refiner, queries._replace(scenes=scenes), starts, trial.sequences, decided,
-        (match, choose),
+        refiner, queries._replace(scenes=scenes), starts, trial.sequences, decided, match,
+        chosen_gate,
     )  # fmt: skip
     calibration = dataclasses.replace(gated, steps=steps, scene=rule, match=match)
     return calibration, refinement
@@ -334,7 +332,8 @@ def calibrate(
     matches = list(options.matches_from_val or [{}])
     if val.queries.matching is None:
         matches = matches[:1]
-    active = sequences if sequences is not None and sequences.options.active else None
+    staged = len(matches) > 1 or bool(matches[0])
+    by_sequence = sequences is not None and sequences.options.active
 
     def best(trials: list[_Trial]) -> tuple[_Trial, tuple[Calibration, Refinement]]:
         tried = [_calibrate_once(scene_model, val, options, settings, t) for t in trials]
@@ -345,15 +344,15 @@ def calibrate(
         chosen = min(range(len(tried)), key=values.__getitem__)
         return trials[chosen], tried[chosen]
 
-    found = None
+    found = None  # the chosen trial's calibration, where it ran as it is to be kept
     chosen = _Trial(filters[0], matches[0], sequences)
-    if len(filters) > 1:
+    if len(filters) > 1:  # each query on its own, without a stage
         chosen, found = best([_Trial(f, {}, None) for f in filters])
-        if len(matches) > 1 or matches[0] or active is not None:
+        if staged or by_sequence:
             chosen, found = chosen._replace(match=matches[0], sequences=sequences), None
-    if len(matches) > 1:
+    if len(matches) > 1:  # with the chosen filter, each query on its own
         chosen, found = best([chosen._replace(match=m, sequences=None) for m in matches])
-        if active is not None:
+        if by_sequence:
             chosen, found = chosen._replace(sequences=sequences), None
     return found or _calibrate_once(scene_model, val, options, settings, chosen)
 
