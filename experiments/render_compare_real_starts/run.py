@@ -33,7 +33,14 @@ from pae.core.checkpoints import load_scene_model
 from pae.core.geometry import pose_errors, transfer_error
 from pae.data.labels import LabelTable, read_labels
 from pae.data.starts import match_starts, read_starts
-from pae.render_compare import ACCEPT_ALL, Calibration, calibrate_any_start, refine
+from pae.render_compare import (
+    ACCEPT_ALL,
+    AnyStartOptions,
+    Calibration,
+    Queries,
+    calibrate_any_start,
+    refine,
+)
 from pae.render_compare.calibration import CONTRAST_PX, HIGHPASS_PX, SURFACE_SHARES, scene_size
 from pae.render_compare.settings import RenderCompareSettings
 
@@ -144,9 +151,8 @@ def truth_audit(
     accepted) -> ``OUT/<scene>/truth_audit.json`` (``from_truth_oracle``)."""
     calibration = Calibration(ACCEPT_ALL, ACCEPT_ALL, chosen_steps(run_dir))
     truth = test["pose"]
-    refined = refine(
-        model, test["image"], test["intrinsics"], truth, test["scene"], settings, calibration
-    )
+    queries = Queries(test["image"], test["intrinsics"], test["scene"])
+    refined = refine(model, queries, truth, calibration, settings=settings)
     with atomic_write(run_dir / "truth_audit.json") as handle:
         json.dump({"from_truth_oracle": figures(refined.poses, truth)}, handle, indent=1)
 
@@ -176,10 +182,10 @@ def refine_scene(
     train_positions, _ = data.train_poses()
     extent = scene_size(train_positions[:, :3].double())
     start = time.perf_counter()
+    tried = AnyStartOptions(args.highpass_px, args.contrast_px, args.surface_shares)
     calibration, val_refined, val_starts = calibrate_any_start(
-        model, val["image"], val["intrinsics"], val["scene"], val["pose"], extent, settings,
-        highpass_px=args.highpass_px, contrast_px=args.contrast_px,
-        surface_shares=args.surface_shares,
+        model, Queries(val["image"], val["intrinsics"], val["scene"]), val["pose"], extent,
+        settings, tried,
     )  # fmt: skip
     calibrate_s = time.perf_counter() - start
     metrics = json.loads((run_dir / "metrics.json").read_text())
@@ -187,10 +193,8 @@ def refine_scene(
     for apr in todo:
         starts = real_starts(args.estimates / apr / dataset, scene, img_paths, test["pose"])
         start = time.perf_counter()
-        refined = refine(
-            model, test["image"], test["intrinsics"], starts["start"], test["scene"],
-            settings, calibration,
-        )  # fmt: skip
+        queries = Queries(test["image"], test["intrinsics"], test["scene"])
+        refined = refine(model, queries, starts["start"], calibration, settings=settings)
         seconds = time.perf_counter() - start
         ungated = refined.result.poses
         record = {

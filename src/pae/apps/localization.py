@@ -31,6 +31,7 @@ from pae.lit.scene_model import compare_queries
 from pae.models.base import Latents
 from pae.models.latents import compute_teacher_latents
 from pae.render_compare import Calibration, CalibrationOptions, calibrate_any_start, refine
+from pae.render_compare import Queries as CompareQueries
 from pae.render_compare.calibration import scene_size, teacher_features
 from pae.render_compare.correspondences import MatchQueries
 from pae.render_compare.queries import recorded_match
@@ -305,10 +306,12 @@ def any_start_calibration(
     val = split_queries(data, "val", compare_width(settings))
     positions, _ = data.train_poses()
     size = scene_size(positions[:, :3].double())
+    queries = CompareQueries(
+        val["image"].to(device), val["intrinsics"].to(device), val["scene"].to(device)
+    )
     calibration, _, _ = calibrate_any_start(
-        model, val["image"].to(device), val["intrinsics"].to(device), val["scene"].to(device),
-        val["pose"].to(device), size, settings, features,
-    )  # fmt: skip
+        model, queries, val["pose"].to(device), size, settings | {"features": features}
+    )
     return calibration
 
 
@@ -395,18 +398,20 @@ def render_compare(
         scene_poses = scene_starts(run, teacher, found, device)
         scene_logits = found.scene_logits.to(device)
     assert found.images is not None and found.intrinsics is not None
-    refined = refine(
-        model,
+    queries = CompareQueries(
         found.images.to(device),
         found.intrinsics.to(device),
-        found.pose.to(device),
         found.scene.to(device),
-        settings,
-        calibration,
-        features,
         scene_poses=scene_poses,
         scene_logits=scene_logits,
         matching=None if gate == "any" else matching,
+    )
+    refined = refine(
+        model,
+        queries,
+        found.pose.to(device),
+        calibration,
+        settings=settings | {"features": features},
     )
     return refined.poses.cpu(), refined.scenes.cpu()
 
