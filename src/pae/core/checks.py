@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import re
 import typing
 from collections.abc import Callable
 from pathlib import Path
@@ -57,20 +58,28 @@ def choice(cfg: DictConfig, key: str, choices: tuple[str, ...]) -> None:
     _checked(check_choice, cfg, key, choices)
 
 
-def check_record(cfg: DictConfig, key: str, record_type: type, **given: Any) -> Any:
+def check_record(
+    cfg: DictConfig,
+    key: str,
+    record_type: type,
+    renamed: dict[str, str] | None = None,
+    **given: Any,
+) -> Any:
     """The settings record ``record_type`` (a dataclass whose ``__post_init__`` checks its
-    ranges) built from the config at ``key``: the fields it has, interpolations resolved, and
-    ``given``, the others their defaults; its ValueError a ConfigError naming the setting."""
+    ranges) built from the config at ``key``: the fields it has (a field's key there:
+    ``renamed`` or its name), interpolations resolved, and ``given``, the others their
+    defaults; its ValueError a ConfigError, each setting it names named with its key
+    (``crop`` -> ``data.crop``)."""
     node = setting(cfg, key)
     values = OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else {}
-    names = {spec.name for spec in dataclasses.fields(record_type)}
-    values = {name: value for name, value in values.items() if name in names} | given
+    keys = {spec.name: spec.name for spec in dataclasses.fields(record_type)} | (renamed or {})
+    values = {name: values[k] for name, k in keys.items() if k in values} | given
     try:
         return record_type(**values)
     except ValueError as err:
-        message = str(err)
-        lead = "unknown " if message.startswith("unknown ") else ""
-        raise ConfigError(f"{lead}{key}.{message.removeprefix(lead)}") from None
+        names = "|".join(sorted(keys, key=len, reverse=True))
+        named = re.sub(rf"(?<![\w.'])({names})(?![\w'])", lambda m: f"{key}.{keys[m[1]]}", str(err))
+        raise ConfigError(named) from None
 
 
 def existing_file(cfg: DictConfig, key: str) -> None:

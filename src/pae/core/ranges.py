@@ -1,7 +1,6 @@
 """The range checks of the settings records' ``__post_init__``: each raises a one-line
-ValueError that starts with the setting's name, or with ``unknown`` and its name (the config
-checks prefix its group: ``data.batch_size must be an integer >= 1, got 0``). Imports neither
-numpy nor torch."""
+ValueError naming the setting (the config checks name it with its key:
+``data.batch_size must be an integer >= 1, got 0``). Imports neither numpy nor torch."""
 
 from __future__ import annotations
 
