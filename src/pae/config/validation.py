@@ -160,9 +160,9 @@ def validate_train_config(cfg: DictConfig, overrides: list[str] | None = None) -
     validate_groups(cfg)
     _validate_common(cfg)
     boolean(cfg, "resume")
-    for group in GROUPS:
+    for group, record_type in STEP_SETTINGS.items():
         if setting(cfg, group) is not None:
-            check_record(cfg, group, STEP_SETTINGS[group])
+            check_record(cfg, group, record_type)
         if setting(cfg, f"{group}.optimizer") is not None:
             check_record(cfg, f"{group}.optimizer", OptimizerSettings)
     for key in ("backbone.weights_path", *CHECKPOINTS):

@@ -137,8 +137,9 @@ STEP_SETTINGS: dict[str, type] = {
     "teacher": TeacherSettings,
     "student": StudentSettings,
     "decoder": StepSettings,
-    "rpr": RPRSettings,
     "iapr": IAPRSettings,
+    "rpr": RPRSettings,
     "scene_model": SceneModelStepSettings,
 }
-"""Each step group -> its settings record."""
+"""Each step group -> its settings record (``iapr`` before ``rpr``, whose ``pair_offset`` is
+``${iapr.start}``: a bad start is named where it is set)."""
