@@ -5,6 +5,7 @@ own, or a config file of the user's; the class is checked against its own constr
 from __future__ import annotations
 
 import math
+import os
 import re
 import subprocess
 import sys
@@ -76,6 +77,9 @@ def user_modules(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     return modules
 
 
+PYTHON_PATH = [path for path in os.environ.get("PYTHONPATH", "").split(os.pathsep) if path]
+"""The test run's own PYTHONPATH (pae's source where tests run it so)."""
+
 PAE_OVERRIDES = (
     "pae._target_=user_models.NarrowPAE",
     "~pae.hidden",
@@ -108,7 +112,7 @@ def test_pae_train_trains_a_users_pae_given_on_the_command_line(
         capture_output=True,
         text=True,
         timeout=300,
-        env={**_environment(), "PYTHONPATH": _python_path(user_modules)},
+        env={**os.environ, "PYTHONPATH": os.pathsep.join([str(user_modules), *PYTHON_PATH])},
     )
     assert result.returncode == 0, result.stderr[-2000:]
     checkpoint = read_checkpoint(run_dir / "student" / "checkpoints" / "last.ckpt")
@@ -186,16 +190,3 @@ def test_a_users_config_file_for_a_group_with_a_schema_composes(
     )
     assert cfg.pae.width == 8
     validate_models(cfg)
-
-
-def _environment() -> dict[str, str]:
-    import os
-
-    return dict(os.environ)
-
-
-def _python_path(*folders: Path) -> str:
-    """``folders`` before the current PYTHONPATH (pae's own source where tests run it so)."""
-    import os
-
-    return os.pathsep.join([*map(str, folders), os.environ.get("PYTHONPATH", "")])

@@ -1,8 +1,9 @@
 """The steps' own settings (``teacher.*``, ``student.*``, ``rpr.*``, ``iapr.*``,
 ``scene_model.*`` besides their models) as records whose ``__post_init__`` checks their
-ranges, each a one-line ValueError starting with the setting's name: the one home of those
-ranges, built by :mod:`pae.config.validation` from a run's config. Imports neither numpy nor
-torch."""
+ranges, each a one-line ValueError naming the setting: the one home of those ranges, built
+by :mod:`pae.config.validation` from a run's config. A record's defaults stand in only for a
+key its group lacks (``conf/<group>/*.yaml`` hold the configured values). Imports neither
+numpy nor torch."""
 
 from __future__ import annotations
 
