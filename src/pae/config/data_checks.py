@@ -168,15 +168,19 @@ def _train_set_size(cfg: DictConfig) -> int:
 
 def validate_data(cfg: DictConfig, train: bool = True) -> None:
     """data.*: paths (a given data.root holds label files; synthetic data read from one
-    gets the settings of what it holds), sizes, batch sizes (train: at most the train set),
-    workers."""
+    gets the settings of what it holds), the loaders' record, the crop and batch sizes."""
     n_train = _train_set_size(cfg)
     scenes = {"scenes": None} if _is_synthetic(cfg) else {}
-    batch_size = check_record(cfg, "data", PoseDataSettings, **scenes).batch_size
-    if train and batch_size > n_train:
+    loading = check_record(cfg, "data", PoseDataSettings, **scenes)
+    if loading.crop > loading.shorter_edge:
         raise ConfigError(
-            f"data.batch_size={batch_size} is larger than the train set ({n_train} rows): "
-            "training would get no full batch"
+            f"data.crop={loading.crop} is larger than the images' shorter edge after resizing "
+            f"(data.shorter_edge={loading.shorter_edge})"
+        )
+    if train and loading.batch_size > n_train:
+        raise ConfigError(
+            f"data.batch_size={loading.batch_size} is larger than the train set ({n_train} "
+            "rows): training would get no full batch"
         )
 
 
@@ -186,8 +190,6 @@ def check_calibration_held_out(cfg: DictConfig) -> None:
     (CALIBRATION_ON_TEST) where the validation split is the test split."""
     if setting(cfg, "render_compare") is None:
         return
-    test = None if _renders(cfg) else _label_files(cfg)["test"]
-    if validation_is_test(
-        setting(cfg, "data.val_sequences"), setting(cfg, "data.val_labels"), test
-    ):
+    held = setting(cfg, "data.val_sequences"), setting(cfg, "data.val_labels")
+    if validation_is_test(*held, None if _renders(cfg) else _label_files(cfg)["test"]):
         raise ConfigError(CALIBRATION_ON_TEST)

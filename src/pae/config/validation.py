@@ -51,15 +51,13 @@ def apply_renamed_keys(cfg: DictConfig, program: str | None = None) -> None:
 
 
 def validate_models(cfg: DictConfig) -> None:
-    """Every model config a step builds (``pae.steps.MODELS``) against its class's
-    constructor (and its ``check_config``: pae's classes build their settings records)."""
+    """Every model config a step builds (``pae.steps.MODELS``) against its own class."""
     for key, supplied in MODELS.items():
         check_constructor(cfg, key, supplied)
 
 
 def _validate_common(cfg: DictConfig) -> None:
-    """The run's seed and flags, the trainer's validation period and ``refine.*`` (its
-    record's ranges; the choices by building its callback)."""
+    """Seed, flags, the validation period and ``refine.*`` (its record, then its callback)."""
     integer(cfg, "seed", 0)
     boolean(cfg, "allow_other_data")
     if "check_val_every_n_epoch" in cfg.trainer:

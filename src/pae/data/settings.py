@@ -88,11 +88,6 @@ class PoseDataSettings:
     def __post_init__(self) -> None:
         check_integer("shorter_edge", self.shorter_edge, 1, optional=True)
         check_integer("crop", self.crop, 1)
-        if self.shorter_edge is not None and self.crop > self.shorter_edge:
-            raise ValueError(
-                f"crop={self.crop} is larger than the images' shorter edge after resizing "
-                f"(shorter_edge={self.shorter_edge})"
-            )
         for name, low in (("batch_size", 1), ("eval_batch_size", 1), ("num_workers", 0)):
             check_integer(name, getattr(self, name), low)
         for name in ("augment", "cache_images", "balance_scenes", "crop_turns_camera"):
