@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -16,7 +17,31 @@ from pae.config.schemas import register_schemas
 
 register_schemas()  # every test composes pae's configs as pae-train does
 
-REFERENCE_LABELS = Path(__file__).resolve().parents[2] / "shared" / "reference" / "labels"
+REFERENCE_LABELS = Path(
+    os.environ.get("PAE_REFERENCE_LABELS")
+    or Path(__file__).resolve().parents[2] / "shared" / "reference" / "labels"
+)
+"""The real Cambridge Landmarks and 7-Scenes label files (``7Scenes/chess_train.csv``, ...):
+the folder ``PAE_REFERENCE_LABELS`` names, else ``../shared/reference/labels`` beside the
+repository. Tests marked ``reference_labels`` read them, and skip where the folder is absent."""
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Tests marked ``reference_labels`` skip where REFERENCE_LABELS is absent, naming it."""
+    if REFERENCE_LABELS.is_dir():
+        return
+    skip = pytest.mark.skip(reason=f"no reference label files in {REFERENCE_LABELS}")
+    for item in items:
+        if "reference_labels" in item.keywords:
+            item.add_marker(skip)
+
+
+def pytest_report_collectionfinish(config: pytest.Config, items: list[pytest.Item]) -> str:
+    """One line: whether the reference label files were found, and how many tests read them."""
+    using = sum("reference_labels" in item.keywords for item in items)
+    found = "found" if REFERENCE_LABELS.is_dir() else "absent (those tests skip)"
+    return f"reference labels: {found} at {REFERENCE_LABELS}; {using} tests read them"
+
 
 TINY = {"scenes": 2, "train_frames": 24, "test_frames": 12, "size": 32}
 

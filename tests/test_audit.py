@@ -66,7 +66,7 @@ def test_audit_guess_command_prints_the_table(
     assert "no train rows for the test scenes ['b']" in capsys.readouterr().err
 
 
-@pytest.mark.skipif(not REFERENCE_LABELS.is_dir(), reason="reference labels not available")
+@pytest.mark.reference_labels
 def test_on_real_cambridge_labels_the_test_store_beats_the_train_store() -> None:
     folder = REFERENCE_LABELS / "CambridgeLandmarks"
     test = read_labels(folder / "ShopFacade_test.csv")

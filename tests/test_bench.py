@@ -24,6 +24,22 @@ def test_mlp_flops_per_query_on_known_sizes() -> None:
     assert mlp_flops_per_query(1, 2, 0) == 2 * (2 * 64 + 64 * 32 + 32 * 16 + 16 * 1)
 
 
+def test_matmul_speed_is_the_products_flops_over_its_time(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A 1024 x 1024 float32 product is 2 * 1024^3 FLOP: timed at 2 ms, 1073.74 GFLOP/s."""
+    from pae.bench import refinement
+
+    timed = []
+
+    def two_milliseconds(run, repeats=1):
+        timed.append(tuple(run().shape))
+        return 0.002
+
+    monkeypatch.setattr(refinement, "_seconds", two_milliseconds)
+    assert refinement.matmul_gflops(size=1024) == pytest.approx(1073.741824)
+    assert timed == [(1024, 1024)], "the product it times"
+
+
+REFINE = "bench/refine/"
 REFINEMENT_TIMES = (
     "batched",
     "tensor_ops",
@@ -51,7 +67,14 @@ def test_bench_refinement_reports_times_work_and_their_direction() -> None:
     # the arithmetic done: the closed-form first layer and the skipped units do far less
     done = figures["bench/refine/mflop_done_per_query"]
     assert 0.01 < done < 6.36192 / 3
-    assert 0.1 < figures["bench/refine/matmul_gflops"] < 1e5
+    # both ratios are arithmetic at the measured matrix-product speed over the batched time
+    gflops, batched = (
+        figures["bench/refine/matmul_gflops"],
+        figures[f"{REFINE}batched_ms_per_query"],
+    )
+    for ratio, mflop in (("roofline_fraction", done), ("stored_weight_ratio", 6.36192)):
+        at_matmul_speed_ms = mflop * 1e6 / (gflops * 1e9) * 1e3
+        assert figures[f"{REFINE}{ratio}"] == pytest.approx(at_matmul_speed_ms / batched)
     assert figures["bench/refine/roofline_fraction"] < 1
     # one batched call against 40 optimiser loops or 10 public loops: faster under any load
     assert figures["bench/refine/speedup"] > 1 and figures["bench/refine/speedup_vs_per_query"] > 1

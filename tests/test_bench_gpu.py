@@ -68,11 +68,41 @@ def test_the_check_fails_on_moved_poses_or_other_start_scores(cpu_answers) -> No
     ] == pytest.approx(0.0)
 
 
-def test_the_stage_differences_are_zero_when_both_sides_run_on_the_cpu() -> None:
+def test_the_stage_differences_measure_the_device_side_against_the_cpu(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Both sides on the CPU: every difference 0. A device whose renderer gives other grey
+    levels and depths (the scene model, once moved there, renders them 5 % darker and 10 %
+    deeper) shows in the reference figures, and in them only."""
+    import pae.bench.render_compare as room
+
     figures = gpu.stage_differences(queries=4, device="cpu")
     assert len([k for k in figures if "target_level" in k]) >= 2
     assert "bench/gpu/stages/reference_depth_max_diff_m" in figures
     assert all(value == 0.0 for value in figures.values())
+
+    room_grid = room.room_grid
+
+    def grid_that_renders_otherwise_once_moved(*args, **kwargs):
+        model = room_grid(*args, **kwargs)
+        to, render, moved = model.to, model.render, [False]
+
+        def move(device):
+            moved[0] = not moved[0]  # stage_differences moves it to the device, then back
+            return to(device)
+
+        def rendered(*args, **kwargs):
+            out = render(*args, **kwargs)
+            return out._replace(rgb=out.rgb * 0.95, depth=out.depth * 1.1) if moved[0] else out
+
+        model.to, model.render = move, rendered
+        return model
+
+    monkeypatch.setattr(room, "room_grid", grid_that_renders_otherwise_once_moved)
+    figures = gpu.stage_differences(queries=4, device="cpu")
+    assert all(figures[k] == 0.0 for k in figures if "target_level" in k)
+    assert figures["bench/gpu/stages/reference_grey_max_diff"] > 0.005
+    assert figures["bench/gpu/stages/reference_depth_max_diff_m"] > 0.05
 
 
 def test_float32_arithmetic_turns_tf32_off_inside_and_restores_the_settings() -> None:

@@ -262,3 +262,31 @@ def test_a_schema_read_from_a_signature_has_its_defaults_and_leaves_out_what_run
     }
     assert "bounds" in VoxelGridSceneModel.from_run and "bounds" not in voxels
     assert "num_voxels" in voxels
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("teacher.scene_loss_weight=-1", "teacher.scene_loss_weight must be a number >= 0"),
+        ("student.input=noise", "unknown student.input 'noise'; choose one of ['gt', 'teacher']"),
+        ("decoder.max_epochs=-2", "decoder.max_epochs must be an integer >= 0, got -2"),
+        ("rpr.pair_k=0", "rpr.pair_k must be an integer >= 1, got 0"),
+        ("iapr.start.position_m=-1", "iapr.start.position_m must be a number >= 0, got -1"),
+        ("scene_model.image_size=2", "scene_model.image_size must be null or an integer >= 4"),
+        ("student.optimizer.weight_decay=-1", "student.optimizer.weight_decay must be a number"),
+        ("pae.hidden=[64,0]", "pae.hidden must be a list of layer widths >= 1, got [64, 0]"),
+    ],
+)
+def test_each_step_groups_record_names_a_bad_value_by_its_key(override: str, message: str) -> None:
+    """The steps' own settings are checked by their records (``pae.steps.settings``), one for
+    every group a step reads, each error naming the key."""
+    import re
+
+    from pae.config.validation import validate_train_config
+    from pae.core.errors import ConfigError
+    from pae.steps import GROUPS
+    from pae.steps.settings import STEP_SETTINGS
+
+    assert set(STEP_SETTINGS) == set(GROUPS)
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        validate_train_config(_compose("train.yaml", [override]))

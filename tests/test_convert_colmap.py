@@ -317,36 +317,48 @@ def test_converted_colmap_scene_trains_with_the_converted_data_config(
     tiny_root: Path, tmp_path: Path
 ) -> None:
     """pae-train data=converted with the overrides the conversion printed: a teacher trains
-    on the converted labels and tests on the benchmark's test images."""
+    on the converted labels and tests on the benchmark's test images, with the figures of
+    the same run on the benchmark's own labels of the scene (the conversion is exact)."""
     from hydra import compose, initialize_config_dir
     from omegaconf import open_dict
 
     from pae import CONFIG_DIR
+    from pae.data.labels import write_labels
     from pae.train import run
 
     split_list = benchmark_model(tiny_root, tmp_path / "sparse", "binary")
     out = tmp_path / "labels"
     argv = ["convert", "colmap", str(tmp_path / "sparse"), str(tiny_root), str(out)]
     assert main([*argv, "--split-list", str(split_list)]) == 0
-    overrides = [
-        "data=converted",
-        f"data.root={tiny_root}",
-        f"data.train_labels={out / 'all_train.csv'}",
-        f"data.test_labels={out / 'all_test.csv'}",
-        f"data.camera={{fx: {FOCAL}, fy: {FOCAL}, cx: 15.5, cy: 15.5, width: 32, height: 32}}",
-        "data.shorter_edge=32",
-        "data.crop=28",
-        "data.batch_size=8",
-        "data.num_workers=0",
-        "teacher.max_epochs=1",
-        "trainer.check_val_every_n_epoch=1",
-        "callbacks=minimal",
-        "logger=csv",
-        "+trainer.enable_progress_bar=false",
-    ]
-    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
-        cfg = compose("train", overrides=overrides, return_hydra_config=True)
-    with open_dict(cfg):
-        cfg.hydra.runtime.output_dir = str(tmp_path / "run")
-    metrics = run(cfg, tmp_path / "run")
-    assert np.isfinite(metrics["test/teacher/pos_median_m"])
+    original = tmp_path / "original"
+    original.mkdir()
+    for split, table in benchmark_scene(tiny_root).items():
+        write_labels(original / f"all_{split}.csv", table)
+
+    def teacher_run(labels: Path) -> dict:
+        overrides = [
+            "data=converted",
+            f"data.root={tiny_root}",
+            f"data.train_labels={labels / 'all_train.csv'}",
+            f"data.test_labels={labels / 'all_test.csv'}",
+            f"data.camera={{fx: {FOCAL}, fy: {FOCAL}, cx: 15.5, cy: 15.5, width: 32, height: 32}}",
+            "data.shorter_edge=32",
+            "data.crop=28",
+            "data.batch_size=8",
+            "data.num_workers=0",
+            "teacher.max_epochs=1",
+            "trainer.check_val_every_n_epoch=1",
+            "callbacks=minimal",
+            "logger=csv",
+            "+trainer.enable_progress_bar=false",
+        ]
+        with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+            cfg = compose("train", overrides=overrides, return_hydra_config=True)
+        run_dir = tmp_path / labels.name / "run"
+        with open_dict(cfg):
+            cfg.hydra.runtime.output_dir = str(run_dir)
+        return run(cfg, run_dir)
+
+    converted, reference = teacher_run(out), teacher_run(original)
+    for key in ("test/teacher/pos_median_m", "test/teacher/rot_median_deg"):
+        assert converted[key] == pytest.approx(reference[key], rel=1e-3, abs=1e-4), key

@@ -333,7 +333,7 @@ def test_check_warns_on_world_to_camera_orientations(
     assert "world-to-camera" not in capsys.readouterr().err
 
 
-@pytest.mark.skipif(not REFERENCE_LABELS.is_dir(), reason="no reference label files")
+@pytest.mark.reference_labels
 def test_check_flags_the_authors_cambridge_files_only(
     capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:

@@ -20,8 +20,7 @@ from pae.data.labels import (
     read_labels_lenient,
     write_labels,
 )
-
-REFERENCE_LABELS = Path(__file__).resolve().parents[2] / "shared" / "reference" / "labels"
+from tests.conftest import REFERENCE_LABELS
 
 REFERENCE_ROWS = {
     "7Scenes/chess_test.csv": 2000,
@@ -64,10 +63,8 @@ GOOD_ROW = "s1,train,seq1,s1/a.png,1.5,-2.0,0.25,1.0,0.0,0.0,0.0"
 
 
 def reference_file(name: str) -> Path:
-    path = REFERENCE_LABELS / name
-    if not path.is_file():
-        pytest.skip(f"reference label files not available ({REFERENCE_LABELS})")
-    return path
+    """A reference label file (its test is marked ``reference_labels``)."""
+    return REFERENCE_LABELS / name
 
 
 def write_text(path: Path, *lines: str) -> Path:
@@ -92,6 +89,7 @@ def small_table() -> LabelTable:
     )
 
 
+@pytest.mark.reference_labels
 @pytest.mark.parametrize("name", sorted(REFERENCE_ROWS))
 def test_reads_every_reference_file(name: str) -> None:
     path = reference_file(name)
@@ -120,6 +118,7 @@ def test_reads_every_reference_file(name: str) -> None:
         assert not label_warnings
 
 
+@pytest.mark.reference_labels
 def test_reference_known_values() -> None:
     chess = read_labels(reference_file("7Scenes/chess_test.csv"))
     assert (chess.scene[0], chess.split[0], chess.seq[0]) == ("chess", "test", "seq-03")
@@ -137,6 +136,7 @@ def test_reference_known_values() -> None:
     np.testing.assert_allclose(street.poses[row, 3:], -raw_q / np.linalg.norm(raw_q))
 
 
+@pytest.mark.reference_labels
 def test_round_trip_is_exact(tmp_path: Path) -> None:
     table = read_quietly(reference_file("CambridgeLandmarks/Street_test.csv"))
     out = tmp_path / "nested" / "dir" / "copy.csv"

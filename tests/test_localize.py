@@ -368,8 +368,11 @@ def test_pae_eval_refines_another_apr_s_starts_beside_the_teachers(
     assert evaluated["test/start_from_apr/pos_median_m"] == pytest.approx(
         evaluated["test/teacher/pos_median_m"], abs=2e-3
     )
-    for key in ("pos_median_m", "accepted_share", "worse_than_start_share"):
-        assert math.isfinite(evaluated[f"test/render_compare_from_apr/{key}"]), key
+    # the gate keeps a rejected query's start: only accepted queries can end worse than it
+    accepted = evaluated["test/render_compare_from_apr/accepted_share"] * 24
+    assert accepted == pytest.approx(round(accepted), abs=1e-4), "a share of the 24 queries"
+    worse = evaluated["test/render_compare_from_apr/worse_than_start_share"] * 24
+    assert worse <= accepted + 1e-4
     assert "val/render_compare_from_apr/accept_margin" in evaluated
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
         cfg = compose("eval", overrides=[*overrides[:-2], "render_compare.init=/no/such.txt"])

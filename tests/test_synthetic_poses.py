@@ -125,7 +125,7 @@ def test_bad_pose_row_is_one_line_naming_file_and_line(
     assert not (tmp_path / "out" / "labels").exists()
 
 
-@pytest.mark.skipif(not REFERENCE_LABELS.is_dir(), reason="reference labels not available")
+@pytest.mark.reference_labels
 def test_renders_real_7scenes_and_cambridge_geometry(tmp_path: Path) -> None:
     inputs = []
     for name in ("7Scenes/heads_test.csv", "CambridgeLandmarks/ShopFacade_test.csv"):

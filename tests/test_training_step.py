@@ -64,16 +64,27 @@ def test_training_figures_reach_the_loggers_as_if_logged_every_step(tmp_path: Pa
     logged = _logged_rows(tmp_path, every_step=False)
     assert logged == _logged_rows(tmp_path, every_step=True)
     assert [int(row["step"]) for row in logged] == list(range(9, 69, 10)), "69 steps, every 10th"
-    assert all(float(row["train/loss"]) >= 0 for row in logged)
+    weights = [float(row["train/weight"]) for row in logged]
+    losses = [float(row["train/loss"]) for row in logged]
+    assert abs(weights[-1] - 3) < abs(weights[0] - 3) and losses[-1] < losses[0], (
+        "it fits y = 3x + 1"
+    )
 
 
 def test_log_train_outside_a_trainer_logs_nothing() -> None:
-    """Lightning's own ``log_dict`` warns outside a Trainer; ``log_train`` does not call it."""
+    """Lightning's own ``log_dict`` warns outside a Trainer; ``log_train`` does not call it,
+    and the step still returns its loss: (2 * 1 + 0 - 1)^2 = 1 for the line y = 2x."""
     module = _Line(every_step=False)
+    with torch.no_grad():
+        module.line.weight.fill_(2.0)
+        module.line.bias.zero_()
+    logged: list[dict] = []
+    module.log_dict = lambda figures, **_: logged.append(figures)  # type: ignore[method-assign]
     batch = [torch.ones(2, 1), torch.ones(2, 1)]
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert module.training_step(batch, 0) >= 0
+        assert module.training_step(batch, 0).item() == 1.0
+        assert logged == []
         with pytest.raises(UserWarning, match="trainer"):
             _Line(every_step=True).training_step(batch, 0)
 

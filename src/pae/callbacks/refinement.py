@@ -61,7 +61,7 @@ class TestTimeRefinement(L.Callback):
         given = TestTimeRefinementSettings(**settings)
         method = {f.name: getattr(given, f.name) for f in dataclasses.fields(RefinementSettings)}
         self.protocols = RefinementProtocols(**method, alternatives=dict(alternatives or {}))
-        self.every_n_val_epochs = max(1, given.every_n_val_epochs)
+        self.every_n_val_epochs = given.every_n_val_epochs
         self.trajectory_plot = given.trajectory_plot
         self.trajectory_methods = tuple(given.trajectory_methods)
         self.index: PoseIndex | None = None

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from pae.core.ranges import check_integer
 from pae.refine.settings import RefinementSettings
 
 
@@ -21,3 +22,7 @@ class TestTimeRefinementSettings(RefinementSettings):
     ``trajectory_methods``."""
     trajectory_methods: list[str] = field(default_factory=lambda: ["refined"])
     """Methods drawn: refined, knn_mean or an alternative's name."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_integer("every_n_val_epochs", self.every_n_val_epochs, 1)

@@ -4,48 +4,19 @@ sizes, the validation hold-out and batch sizes, each failure a ConfigError namin
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig, ListConfig, open_dict
+from omegaconf import DictConfig, open_dict
 
-from pae.core.checks import (
-    boolean,
-    existing_file,
-    integer,
-    is_int,
-    number,
-    setting,
-)
+from pae.core.checks import check_record, existing_file, setting
 from pae.core.errors import ConfigError
+from pae.core.ranges import is_int
 from pae.data.holdout import CALIBRATION_ON_TEST, validation_is_test
 from pae.data.labels import read_labels
-
-SYNTHETIC_LAYOUT_BOUNDS = {
-    "test_offset_m": 1.0,
-    "train_lane_m": 1.0,
-    "stray_m": 1.0,
-    "yaw_stray_rad": math.pi / 2,
-}
-"""Upper bounds of the synthetic camera layout's settings (all >= 0), as rendering checks."""
-SYNTHETIC_NUISANCE_BOUNDS = {
-    "lighting_change": 1.0,
-    "occluder_fraction": 1.0,
-    "sensor_noise_std": 0.5,
-    "motion_blur_px": 64.0,
-}
-"""Upper bounds of the synthetic nuisances' settings (all >= 0, 0: off), as rendering checks
-(``pae.synthetic.NUISANCE_BOUNDS``)."""
-SYNTHETIC_SURFACE_BOUNDS = {
-    "plain_surface_share": 1.0,
-    "repeated_surface_share": 1.0,
-    "glossy_surface_share": 1.0,
-    "camera_pipeline": 1.0,
-}
-"""Upper bounds of the synthetic surface and camera pipeline settings (all >= 0, 0: off), as
-rendering checks (``pae.synthetic.SURFACE_BOUNDS``, ``CaptureOptions``)."""
+from pae.data.settings import PoseDataSettings
+from pae.synthetic.settings import NUISANCE_BOUNDS, SURFACE_BOUNDS, SyntheticSettings
 
 
 def _is_synthetic(cfg: DictConfig) -> bool:
@@ -135,39 +106,37 @@ def match_synthetic_settings(cfg: DictConfig) -> list[str]:
     return corrections
 
 
-def _check_val_walks(cfg: DictConfig) -> None:
-    """data.val_walks: a count of validation walks, held out on top of an integer
-    data.val_sequences, of the benchmark's own layout (not data.poses)."""
-    data = cfg.data
-    if not data.get("val_walks"):
-        return
-    integer(cfg, "data.val_walks", 0)
+def _synthetic_settings(cfg: DictConfig) -> SyntheticSettings:
+    """data.* of the synthetic benchmark as its record (its ranges; counts a given data.root
+    only describes may be null), then what ``data.poses`` and ``data.val_walks`` need: a
+    ConfigError naming the key."""
+    data, counts = cfg.data, ("scenes", "train_frames", "test_frames")
+    unset = [] if _renders(cfg) else [name for name in counts if data.get(name) is None]
+    described = {name: getattr(SyntheticSettings, name) for name in unset}
+    renamed = {"seed": "render_seed"}
+    settings = check_record(cfg, "data", SyntheticSettings, renamed, **described)
+    on = [f"data.{key}" for key in NUISANCE_BOUNDS if data.get(key)]
+    dressed = [*SURFACE_BOUNDS, "camera_pipeline", "jpeg_quality"]
+    dressed = [f"data.{key}" for key in dressed if data.get(key)]
+    dressed += ["data.render_scale"] * (settings.render_scale != 1)
+    lane = ["data.val_lane_m"] * (data.get("val_lane_m") is not None)
+    for wrong, how, value in (
+        (lane, "", "to null"),
+        (on, " without nuisances", "to 0"),
+        (dressed, " with the plain surfaces and capture", "off"),
+    ):
+        if data.get("poses") and wrong:
+            raise ConfigError(
+                f"data.poses renders the given rows{how}: set {', '.join(wrong)} {value}"
+            )
     held = data.get("val_sequences")
-    if not is_int(held) or data.get("val_labels") or data.get("poses"):
+    if settings.val_walks and (not is_int(held) or data.get("val_labels") or data.get("poses")):
         raise ConfigError(
-            f"data.val_walks={data.val_walks} holds its walks out on top of "
+            f"data.val_walks={settings.val_walks} holds its walks out on top of "
             f"data.val_sequences: set it to an integer (got {held!r}), data.val_labels and "
             f"data.poses to null"
         )
-
-
-def _check_capture(cfg: DictConfig) -> None:
-    """data.jpeg_quality: 0 or an integer in [1, 100]; data.render_scale: an integer in
-    [1, 8] (``pae.synthetic.CaptureOptions``)."""
-    data = cfg.data
-    if "jpeg_quality" in data:
-        integer(cfg, "data.jpeg_quality", 0)
-        if data.jpeg_quality > 100:
-            raise ConfigError(
-                f"data.jpeg_quality must be 0 (off) or an integer in [1, 100], "
-                f"got {data.jpeg_quality!r}"
-            )
-    if "render_scale" in data:
-        integer(cfg, "data.render_scale", 1)
-        if data.render_scale > 8:
-            raise ConfigError(
-                f"data.render_scale must be an integer in [1, 8], got {data.render_scale!r}"
-            )
+    return settings
 
 
 def _train_set_size(cfg: DictConfig) -> int:
@@ -175,66 +144,17 @@ def _train_set_size(cfg: DictConfig) -> int:
     use (it may not be rendered yet), otherwise from the train label file (its chosen
     scenes)."""
     data = cfg.data
-    if _is_synthetic(cfg):
-        bounds = {
-            **SYNTHETIC_LAYOUT_BOUNDS,
-            **SYNTHETIC_NUISANCE_BOUNDS,
-            **SYNTHETIC_SURFACE_BOUNDS,
-        }
-        for key, high in bounds.items():
-            if key in data:
-                number(cfg, f"data.{key}", 0, strict=False)
-                if data[key] > high:
-                    raise ConfigError(f"data.{key} must be <= {high:g}, got {data[key]!r}")
-        shares = [data.get(key, 0) for key in ("plain_surface_share", "repeated_surface_share")]
-        if sum(shares) > 1:
-            raise ConfigError(
-                "data.plain_surface_share + data.repeated_surface_share must be <= 1, got "
-                f"{shares[0]:g} + {shares[1]:g}"
-            )
-        _check_capture(cfg)
-        val_lane, lane = data.get("val_lane_m"), data.get("train_lane_m", 0.5)
-        if val_lane is not None and not (
-            (is_int(val_lane) or isinstance(val_lane, float)) and abs(val_lane) <= lane
-        ):
-            raise ConfigError(
-                f"data.val_lane_m must be null or a number no farther from 0 than "
-                f"data.train_lane_m={lane:g}, got {val_lane!r}"
-            )
-        if data.get("poses") and val_lane is not None:
-            raise ConfigError("data.poses renders the given rows: set data.val_lane_m to null")
-        _check_val_walks(cfg)
-        on = [f"data.{key}" for key in SYNTHETIC_NUISANCE_BOUNDS if data.get(key)]
-        if data.get("poses") and on:
-            raise ConfigError(
-                f"data.poses renders the given rows without nuisances: set {', '.join(on)} to 0"
-            )
-        dressed = [
-            f"data.{key}" for key in (*SYNTHETIC_SURFACE_BOUNDS, "jpeg_quality") if data.get(key)
-        ]
-        dressed += ["data.render_scale"] * (data.get("render_scale", 1) != 1)
-        if data.get("poses") and dressed:
-            raise ConfigError(
-                f"data.poses renders the given rows with the plain surfaces and capture: "
-                f"set {', '.join(dressed)} off"
-            )
     if _renders(cfg):
-        integer(cfg, "data.scenes", 1)
-        integer(cfg, "data.train_frames", 1)
-        integer(cfg, "data.test_frames", 1)
-        integer(cfg, "data.size", 8)
-        integer(cfg, "data.render_seed", 0)
-        return data.scenes * data.train_frames
+        settings = _synthetic_settings(cfg)
+        return settings.scenes * settings.train_frames
+    if _is_synthetic(cfg):
+        _synthetic_settings(cfg)
     _check_root(cfg)
     table = read_labels(_label_files(cfg)["train"])
     if _is_synthetic(cfg):
         match_synthetic_settings(cfg)
         return len(table)
     scenes = data.get("scenes")
-    if scenes is not None and not (
-        isinstance(scenes, ListConfig) and scenes and all(isinstance(s, str) for s in scenes)
-    ):
-        raise ConfigError(f"data.scenes must be null or a list of scene names, got {scenes!r}")
     if scenes is None:
         return len(table)
     missing = [scene for scene in scenes if scene not in table.scene_names]
@@ -246,46 +166,21 @@ def _train_set_size(cfg: DictConfig) -> int:
     return int(np.isin(np.asarray(table.scene), list(scenes)).sum())
 
 
-def _validate_holdout(cfg: DictConfig) -> None:
-    """data.val_sequences: null, an integer >= 1 or a list of sequence names;
-    data.val_fraction: null or a number in (0, 1)."""
-    sequences = setting(cfg, "data.val_sequences")
-    names = isinstance(sequences, ListConfig) and all(isinstance(s, str) for s in sequences)
-    names = names and len(sequences) > 0
-    if not (sequences is None or (is_int(sequences) and sequences >= 1) or names):
-        raise ConfigError(
-            "data.val_sequences must be null, an integer >= 1 (the last n train sequences of "
-            f"each scene) or a list of sequence names, got {sequences!r}"
-        )
-    fraction = setting(cfg, "data.val_fraction")
-    if fraction is not None and not (
-        isinstance(fraction, int | float) and not isinstance(fraction, bool) and 0 < fraction < 1
-    ):
-        raise ConfigError(f"data.val_fraction must be null or a number in (0, 1), got {fraction!r}")
-
-
 def validate_data(cfg: DictConfig, train: bool = True) -> None:
     """data.*: paths (a given data.root holds label files; synthetic data read from one
-    gets the settings of what it holds), sizes, batch sizes (train: at most the train set),
-    workers."""
+    gets the settings of what it holds), the loaders' record, the crop and batch sizes."""
     n_train = _train_set_size(cfg)
-    crop = integer(cfg, "data.crop", 1)
-    shorter_edge = integer(cfg, "data.shorter_edge", 1)
-    if crop > shorter_edge:
+    scenes = {"scenes": None} if _is_synthetic(cfg) else {}
+    loading = check_record(cfg, "data", PoseDataSettings, **scenes)
+    if loading.crop > loading.shorter_edge:
         raise ConfigError(
-            f"data.crop={crop} is larger than data.shorter_edge={shorter_edge} (the images' "
-            "shorter edge after resizing)"
+            f"data.crop={loading.crop} is larger than the images' shorter edge after resizing "
+            f"(data.shorter_edge={loading.shorter_edge})"
         )
-    integer(cfg, "data.eval_batch_size", 1)
-    integer(cfg, "data.num_workers", 0)
-    for key in ("augment", "cache_images", "balance_scenes", "crop_turns_camera"):
-        boolean(cfg, f"data.{key}")
-    _validate_holdout(cfg)
-    batch_size = integer(cfg, "data.batch_size", 1)
-    if train and batch_size > n_train:
+    if train and loading.batch_size > n_train:
         raise ConfigError(
-            f"data.batch_size={batch_size} is larger than the train set ({n_train} rows): "
-            "training would get no full batch"
+            f"data.batch_size={loading.batch_size} is larger than the train set ({n_train} "
+            "rows): training would get no full batch"
         )
 
 
@@ -295,8 +190,6 @@ def check_calibration_held_out(cfg: DictConfig) -> None:
     (CALIBRATION_ON_TEST) where the validation split is the test split."""
     if setting(cfg, "render_compare") is None:
         return
-    test = None if _renders(cfg) else _label_files(cfg)["test"]
-    if validation_is_test(
-        setting(cfg, "data.val_sequences"), setting(cfg, "data.val_labels"), test
-    ):
+    held = setting(cfg, "data.val_sequences"), setting(cfg, "data.val_labels")
+    if validation_is_test(*held, None if _renders(cfg) else _label_files(cfg)["test"]):
         raise ConfigError(CALIBRATION_ON_TEST)

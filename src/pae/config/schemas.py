@@ -1,7 +1,9 @@
 """The config groups' schemas, made from the settings records that hold their defaults, and
 registered with Hydra's ConfigStore in the groups ``schema/<group>``: a config file starts
 from its schema (``defaults: [/schema/data@_here_: pose_data, _self_]``) and sets only what
-differs. A key the schema lacks is refused by Hydra at compose time, and every key is typed.
+differs. Every key is typed, and a key the schema lacks is refused by Hydra at compose time;
+``~key`` and ``+key`` still work, so a group's ``_target_`` can be a user's own class
+(checked against its own constructor when the run starts).
 Imports neither numpy nor torch: a sweep's launching process composes configs without them."""
 
 from __future__ import annotations
@@ -10,7 +12,7 @@ import dataclasses
 import typing
 from typing import Any
 
-from omegaconf import MISSING, DictConfig
+from omegaconf import MISSING, DictConfig, OmegaConf
 
 from pae.callbacks.settings import TestTimeRefinementSettings
 from pae.config.signatures import source_fields
@@ -150,14 +152,26 @@ the steps fill in, is left out). ``data=synthetic`` shows the loaders'
 ``shorter_edge`` as the benchmark's ``size`` (SYNTHETIC_LOADING's None)."""
 
 
+def open_schema(schema_type: type) -> DictConfig:
+    """The config of ``schema_type`` with each value typed as the schema types it, but not
+    the node itself: Hydra deletes its keys (``~key``) and adds others (``+key``), as for a
+    user's own ``_target_`` class, while a misspelt key (without ``+``) and a value of
+    another type are still refused when composing."""
+    typed = OmegaConf.structured(schema_type)
+    node = OmegaConf.create({})
+    for key in typed:
+        node[key] = typed._get_node(key)
+    return node
+
+
 def register_schemas() -> None:
     """Store every schema of ``SCHEMAS`` in Hydra's ConfigStore (again: the same), each in
     the group ``schema/<its group>``, apart from the options users choose."""
     from hydra.core.config_store import ConfigStore
 
     store = ConfigStore.instance()
-    for (group, name), node in SCHEMAS.items():
-        store.store(group=f"schema/{group}", name=name, node=node)
+    for (group, name), schema_type in SCHEMAS.items():
+        store.store(group=f"schema/{group}", name=name, node=open_schema(schema_type))
 
 
 def compose_config(config_name: str, overrides: list[str] | None = None) -> DictConfig:

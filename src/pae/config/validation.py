@@ -15,12 +15,9 @@ from pae.core.checks import (
     boolean,
     check_constructor,
     check_missing,
-    choice,
+    check_record,
     existing_file,
     integer,
-    is_int,
-    number,
-    present,
     setting,
 )
 from pae.core.errors import ConfigError
@@ -54,45 +51,23 @@ def apply_renamed_keys(cfg: DictConfig, program: str | None = None) -> None:
 
 
 def validate_models(cfg: DictConfig) -> None:
-    """The ranges a constructor's signature cannot state (for the keys the config has), then
-    every model config a step builds (``pae.steps.MODELS``) against its class's constructor."""
-    for key, low in (("teacher.model.latent_dim", 1), ("pae.latent_dim", 1), ("pae.L", 0)):
-        if present(cfg, key):
-            integer(cfg, key, low)
-    if present(cfg, "pae.hidden"):
-        hidden = setting(cfg, "pae.hidden")
-        if not isinstance(hidden, ListConfig) or not all(is_int(h) and h >= 1 for h in hidden):
-            raise ConfigError(f"pae.hidden must be a list of layer widths >= 1, got {hidden!r}")
+    """Every model config a step builds (``pae.steps.MODELS``) against its own class."""
     for key, supplied in MODELS.items():
         check_constructor(cfg, key, supplied)
 
 
-def validate_refine(cfg: DictConfig) -> None:
-    """refine.*: ranges here (for the keys the configured refinement has); the choices
-    (weight model, orientation, distance) are checked by building its callback."""
-    refine = cfg.get("refine")
-    if not refine:
-        return
-    for key, low in (("k", 1), ("iterations", 0), ("every_n_val_epochs", 1)):
-        if key in refine:
-            integer(cfg, f"refine.{key}", low)
-    if "lr" in refine:
-        number(cfg, "refine.lr", 0, strict=True)
-    if "rot_weight" in refine:
-        number(cfg, "refine.rot_weight", 0, strict=False)
-    if "guess_sigma_m" in refine:
-        number(cfg, "refine.guess_sigma_m", 0, strict=False, optional=True)
-    from pae.runs.trainer import refinement_callbacks
-
-    refinement_callbacks(cfg)
-
-
 def _validate_common(cfg: DictConfig) -> None:
+    """Seed, flags, the validation period and ``refine.*`` (its record, then its callback)."""
     integer(cfg, "seed", 0)
     boolean(cfg, "allow_other_data")
     if "check_val_every_n_epoch" in cfg.trainer:
         integer(cfg, "trainer.check_val_every_n_epoch", 1)
-    validate_refine(cfg)
+    if cfg.get("refine"):
+        from pae.callbacks.settings import TestTimeRefinementSettings
+        from pae.runs.trainer import refinement_callbacks
+
+        check_record(cfg, "refine", TestTimeRefinementSettings)
+        refinement_callbacks(cfg)
 
 
 ADDED_KEY_GROUPS = GROUPS
@@ -170,7 +145,7 @@ def validate_train_config(cfg: DictConfig, overrides: list[str] | None = None) -
     line's) add; raises ConfigError naming the key."""
     from hydra.utils import get_object
 
-    from pae.core.losses import LATENT_LOSSES
+    from pae.steps.settings import STEP_SETTINGS, OptimizerSettings
 
     check_missing(cfg)
     check_added_keys(cfg, overrides or [])
@@ -183,29 +158,14 @@ def validate_train_config(cfg: DictConfig, overrides: list[str] | None = None) -
     validate_groups(cfg)
     _validate_common(cfg)
     boolean(cfg, "resume")
-    for group in GROUPS:
-        integer(cfg, f"{group}.max_epochs", 0)
-        number(cfg, f"{group}.optimizer.lr", 0, strict=True)
-        number(cfg, f"{group}.optimizer.weight_decay", 0, strict=False, optional=True)
-    number(cfg, "teacher.scene_loss_weight", 0, strict=False)
-    choice(cfg, "student.input", ("gt", "teacher"))
-    choice(cfg, "student.latent_loss", LATENT_LOSSES)
-    boolean(cfg, "student.cache_latents")
-    integer(cfg, "rpr.pair_k", 1)
-    integer(cfg, "iapr.iterations", 1)
-    number(cfg, "iapr.start.position_m", 0, strict=False)
-    number(cfg, "iapr.start.orientation_deg", 0, strict=False)
-    boolean(cfg, "iapr.refine_orientation")
-    choice(cfg, "iapr.init_backbone", ("teacher", None))
-    choice(cfg, "rpr.init_backbone", ("teacher", None))
-    if setting(cfg, "rpr.pair_offset") is not None:
-        number(cfg, "rpr.pair_offset.position_m", 0, strict=False)
-        number(cfg, "rpr.pair_offset.orientation_deg", 0, strict=False)
-    boolean(cfg, "backbone.pretrained")
-    existing_file(cfg, "backbone.weights_path")
-    for key in CHECKPOINTS:
+    for group, record_type in STEP_SETTINGS.items():
+        if setting(cfg, group) is not None:
+            check_record(cfg, group, record_type)
+        if setting(cfg, f"{group}.optimizer") is not None:
+            check_record(cfg, f"{group}.optimizer", OptimizerSettings)
+    for key in ("backbone.weights_path", *CHECKPOINTS):
         existing_file(cfg, key)
-    _validate_scene_model(cfg)
+    validate_render_compare(cfg)
     if "scene_model" in steps:
         check_calibration_held_out(cfg)
     needs = _model_needs(cfg, steps)
@@ -236,25 +196,6 @@ def _model_needs(cfg: DictConfig, steps: list[str]) -> dict[str, tuple[str, ...]
         )
         for step in steps_of(steps)
     }
-
-
-def _validate_scene_model(cfg: DictConfig) -> None:
-    """scene_model.* (the step's settings; its model's ranges are its class's
-    ``check_config``) and render_compare.*."""
-    if setting(cfg, "scene_model") is None:
-        return
-    for key in ("batches_per_epoch", "rays_per_batch", "quality_size", "quality_images"):
-        integer(cfg, f"scene_model.{key}", 1)
-    number(cfg, "scene_model.tv_weight", 0, strict=False)
-    choice(cfg, "scene_model.appearance", ("sequence", "image"))
-    number(cfg, "scene_model.appearance_lr", 0, strict=True, optional=True)
-    integer(cfg, "scene_model.fit_trim_from_epoch", 0)
-    fit_trim = setting(cfg, "scene_model.fit_trim")
-    if not (is_int(fit_trim) or isinstance(fit_trim, float)) or not 0 <= fit_trim < 1:
-        raise ConfigError(f"scene_model.fit_trim must be a number in [0, 1), got {fit_trim!r}")
-    if setting(cfg, "scene_model.image_size") is not None:
-        integer(cfg, "scene_model.image_size", 4)
-    validate_render_compare(cfg)
 
 
 def validate_eval_config(cfg: DictConfig) -> None:

@@ -7,13 +7,16 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import re
 import typing
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from pae.core.errors import ConfigError
+from pae.core.ranges import check_boolean, check_choice, check_integer, check_number, is_int
 
 
 def setting(cfg: DictConfig, key: str) -> Any:
@@ -28,38 +31,55 @@ def present(cfg: DictConfig, key: str) -> bool:
     return isinstance(node, DictConfig) and name in node
 
 
-def is_int(value: Any) -> bool:
-    """An int that is not a bool."""
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def integer(cfg: DictConfig, key: str, low: int) -> int:
+def _checked(check: Callable[..., None], cfg: DictConfig, key: str, *args: Any) -> Any:
+    """The value at ``key`` passed through ``check`` (:mod:`pae.core.ranges`): its
+    ValueError a ConfigError."""
     value = setting(cfg, key)
-    if not is_int(value) or value < low:
-        raise ConfigError(f"{key} must be an integer >= {low}, got {value!r}")
+    try:
+        check(key, value, *args)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
     return value
 
 
+def integer(cfg: DictConfig, key: str, low: int) -> int:
+    return _checked(check_integer, cfg, key, low)
+
+
 def number(cfg: DictConfig, key: str, low: float, strict: bool, optional: bool = False) -> None:
-    value = setting(cfg, key)
-    if value is None and optional:
-        return
-    numeric = is_int(value) or isinstance(value, float)
-    if not numeric or value != value or (value <= low if strict else value < low):
-        bound = f"> {low:g}" if strict else f">= {low:g}"
-        raise ConfigError(f"{key} must be a number {bound}, got {value!r}")
+    _checked(check_number, cfg, key, low, strict, optional)
 
 
 def boolean(cfg: DictConfig, key: str) -> None:
-    value = setting(cfg, key)
-    if not isinstance(value, bool):
-        raise ConfigError(f"{key} must be true or false, got {value!r}")
+    _checked(check_boolean, cfg, key)
 
 
 def choice(cfg: DictConfig, key: str, choices: tuple[str, ...]) -> None:
-    value = setting(cfg, key)
-    if value not in choices:
-        raise ConfigError(f"unknown {key} {value!r}; choose one of {list(choices)}")
+    _checked(check_choice, cfg, key, choices)
+
+
+def check_record(
+    cfg: DictConfig,
+    key: str,
+    record_type: type,
+    renamed: dict[str, str] | None = None,
+    **given: Any,
+) -> Any:
+    """The settings record ``record_type`` (a dataclass whose ``__post_init__`` checks its
+    ranges) built from the config at ``key``: the fields it has (a field's key there:
+    ``renamed`` or its name), interpolations resolved, and ``given``, the others their
+    defaults; its ValueError a ConfigError, each setting it names named with its key
+    (``crop`` -> ``data.crop``)."""
+    node = setting(cfg, key)
+    values = OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else {}
+    keys = {spec.name: spec.name for spec in dataclasses.fields(record_type)} | (renamed or {})
+    values = {name: values[k] for name, k in keys.items() if k in values} | given
+    try:
+        return record_type(**values)
+    except ValueError as err:
+        names = "|".join(sorted(keys, key=len, reverse=True))
+        named = re.sub(rf"(?<![\w.'])({names})(?![\w'])", lambda m: f"{key}.{keys[m[1]]}", str(err))
+        raise ConfigError(named) from None
 
 
 def existing_file(cfg: DictConfig, key: str) -> None:

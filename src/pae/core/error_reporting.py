@@ -14,8 +14,8 @@ from pathlib import Path
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import CompactHydraException, HydraException, InstantiationException
 from hydra.types import RunMode
-from omegaconf import OmegaConf
-from omegaconf.errors import OmegaConfBaseException
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
 from pae.core.atomic import disk_full, no_space_error, write_text_atomic
 from pae.core.errors import (
@@ -72,9 +72,22 @@ def config_error_line(err: HydraException | OmegaConfBaseException) -> str:
     has, a value of the wrong type): the key and what is wrong with it."""
     cause = err.__cause__ if isinstance(err.__cause__, OmegaConfBaseException) else err
     key = getattr(cause, "full_key", None)
+    if key and isinstance(cause, ConfigAttributeError | ConfigKeyError):
+        return _unknown_key_line(key, getattr(cause, "parent_node", None))
     if key and isinstance(cause, OmegaConfBaseException):
         return f"{key}: {str(cause).strip().splitlines()[0]}"
     return first_line(err).split(" Config search path:")[0]
+
+
+def _unknown_key_line(key: str, parent: object) -> str:
+    """A key its group does not have, with the group's nearest one (else how to add it)."""
+    import difflib
+
+    group, _, name = key.rpartition(".")
+    known = [str(k) for k in parent] if isinstance(parent, DictConfig) else []
+    near = difflib.get_close_matches(name, known, n=1)
+    hint = f"; did you mean {group}.{near[0]}?" if near else f" (+{key}=... adds it)"
+    return f"{key}: not a setting{f' of {group}' if group else ''}{hint}"
 
 
 def in_one_line(program: str, hydra_main: Callable[[], object]) -> Callable[[], None]:

@@ -5,8 +5,20 @@ them). Imports neither numpy nor torch, so that the config schema
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
+
+from pae.core.ranges import check_boolean, check_integer, is_int, is_number
+
+
+def _names(value: Any) -> bool:
+    """A list of strings (a config's list too)."""
+    return (
+        isinstance(value, Sequence)
+        and not isinstance(value, str)
+        and all(isinstance(name, str) for name in value)
+    )
 
 
 @dataclass
@@ -72,6 +84,25 @@ class PoseDataSettings:
     val_fraction: float | None = 0.1
     order_seed: int = 0
     """Each epoch's order is drawn from (``order_seed``, epoch) alone (the run's seed)."""
+
+    def __post_init__(self) -> None:
+        check_integer("shorter_edge", self.shorter_edge, 1, optional=True)
+        check_integer("crop", self.crop, 1)
+        for name, low in (("batch_size", 1), ("eval_batch_size", 1), ("num_workers", 0)):
+            check_integer(name, getattr(self, name), low)
+        for name in ("augment", "cache_images", "balance_scenes", "crop_turns_camera"):
+            check_boolean(name, getattr(self, name))
+        if self.scenes is not None and not (_names(self.scenes) and len(self.scenes) > 0):
+            raise ValueError(f"scenes must be null or a list of scene names, got {self.scenes!r}")
+        held = self.val_sequences
+        if not (held is None or (is_int(held) and held >= 1) or (_names(held) and len(held))):
+            raise ValueError(
+                "val_sequences must be null, an integer >= 1 (the last n train sequences of "
+                f"each scene) or a list of sequence names, got {held!r}"
+            )
+        fraction = self.val_fraction
+        if fraction is not None and not (is_number(fraction) and 0 < fraction < 1):
+            raise ValueError(f"val_fraction must be null or a number in (0, 1), got {fraction!r}")
 
     @classmethod
     def names(cls) -> tuple[str, ...]:

@@ -5,8 +5,10 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
+from omegaconf import DictConfig
 from torch import Tensor, nn
 
+from pae.core.checks import integer, present
 from pae.core.geometry import normalize_pose
 
 
@@ -41,6 +43,12 @@ class PoseRegressor(nn.Module):
     """An APR split into encoders (image -> latents) and heads (latents -> pose)."""
 
     latent_dim: int
+
+    @classmethod
+    def check_config(cls, cfg: DictConfig, key: str) -> None:
+        """The latent size its signature cannot bound: an integer >= 1."""
+        if present(cfg, f"{key}.latent_dim"):
+            integer(cfg, f"{key}.latent_dim", 1)
 
     def encode(self, images: Tensor, scene: Tensor | None = None) -> Latents:
         """images [B, 3, H, W] normalised -> Latents with x, q of [B, latent_dim]."""

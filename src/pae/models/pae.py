@@ -5,10 +5,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
+from omegaconf import DictConfig
 from torch import Tensor, nn
 
+from pae.core.checks import check_record
 from pae.models.base import Latents
-from pae.models.settings import PAE_DEFAULTS
+from pae.models.settings import PAE_DEFAULTS, PoseAutoEncoderSettings
 
 
 class FourierFeatures(nn.Module):
@@ -76,6 +78,12 @@ class PoseAutoEncoder(nn.Module):
         scene_dim = self.scene_fourier.out_dim(1) if n_scenes > 1 else 0
         self.branch_x = mlp(self.fourier.out_dim(3) + scene_dim, hidden, latent_dim)
         self.branch_q = mlp(self.fourier.out_dim(4) + scene_dim, hidden, latent_dim)
+
+    @classmethod
+    def check_config(cls, cfg: DictConfig, key: str) -> None:
+        """The ranges of its settings (:class:`PoseAutoEncoderSettings`) in the config at
+        ``key``, a ConfigError naming the key."""
+        check_record(cfg, key, PoseAutoEncoderSettings)
 
     def forward(self, poses: Tensor, scene: Tensor | None = None) -> Latents:
         """poses [B, 7] (m, unit quaternion), scene [B] long -> Latents(z_x, z_q) [B, d]."""

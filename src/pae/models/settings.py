@@ -4,7 +4,10 @@ overrides them). Imports neither numpy nor torch, so that the config schema
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+
+from pae.core.ranges import check_integer, is_int
 
 
 @dataclass
@@ -20,6 +23,15 @@ class PoseAutoEncoderSettings:
     """Fourier bands of the position and orientation (0: the raw pose)."""
     scene_L: int = 6  # noqa: N815 (the paper's L)
     """Fourier bands of the scene index (multi-scene PAEs)."""
+
+    def __post_init__(self) -> None:
+        check_integer("latent_dim", self.latent_dim, 1)
+        if not isinstance(self.hidden, Sequence) or not all(
+            is_int(width) and width >= 1 for width in self.hidden
+        ):
+            raise ValueError(f"hidden must be a list of layer widths >= 1, got {self.hidden!r}")
+        check_integer("L", self.L, 0)
+        check_integer("scene_L", self.scene_L, 0)
 
 
 PAE_DEFAULTS = PoseAutoEncoderSettings()

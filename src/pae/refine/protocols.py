@@ -50,6 +50,7 @@ class RefinementProtocols(RefinementSettings):
     alternatives: Mapping[str, RefinerFactory] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         for key, choices in (
             ("weight_model", WEIGHT_MODELS),
             ("activation", tuple(ACTIVATIONS)),

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from pae.core.ranges import check_integer, check_number
+
 
 @dataclass
 class RefinementSettings:
@@ -35,3 +37,10 @@ class RefinementSettings:
     audit: bool = True
     """Also retrieve among the evaluated split's own poses (``*_test_store``, as the authors'
     public scripts do: an audit that reads the test labels)."""
+
+    def __post_init__(self) -> None:
+        check_integer("k", self.k, 1)
+        check_integer("iterations", self.iterations, 0)
+        check_number("lr", self.lr, 0, strict=True)
+        check_number("rot_weight", self.rot_weight, 0)
+        check_number("guess_sigma_m", self.guess_sigma_m, 0, optional=True)

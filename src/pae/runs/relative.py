@@ -31,10 +31,12 @@ def init_backbone_from_teacher(model: torch.nn.Module, teacher: PoseRegressor, k
 
 def stored_model_config(model_config: DictConfig) -> dict[str, Any]:
     """A model config as stored in a checkpoint: the weights come from the state dict, so
-    no pretrained download and no weights file."""
+    no pretrained download and no weights file (for a backbone that takes them)."""
     config = OmegaConf.to_container(model_config, resolve=True)
-    config["backbone"]["pretrained"] = False
-    config["backbone"]["weights_path"] = None
+    backbone = config["backbone"]
+    for key, value in (("pretrained", False), ("weights_path", None)):
+        if key in backbone:
+            backbone[key] = value
     return config
 
 

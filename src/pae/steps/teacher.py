@@ -14,17 +14,14 @@ from pae.data.datamodule import PoseDataModule
 from pae.lit.teacher import TeacherModule
 from pae.runs import Metrics
 from pae.runs.inputs import build_data, novel_view_source
+from pae.runs.relative import stored_model_config
 from pae.runs.trainer import fit_and_test, optimisation
 from pae.scene_model.novel_views import NovelViewLoader
 
 
 def _teacher_config(cfg: DictConfig, n_scenes: int) -> dict[str, Any]:
     """The teacher's architecture as stored in its checkpoint (weights come from the state dict)."""
-    config = OmegaConf.to_container(cfg.teacher.model, resolve=True)
-    config["n_scenes"] = n_scenes
-    config["backbone"]["pretrained"] = False
-    config["backbone"]["weights_path"] = None
-    return config
+    return {**stored_model_config(cfg.teacher.model), "n_scenes": n_scenes}
 
 
 def novel_view_loader(

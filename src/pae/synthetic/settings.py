@@ -7,8 +7,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import numbers
 from dataclasses import dataclass
+
+from pae.core.ranges import check_integer, is_int
 
 NUISANCE_BOUNDS = {
     "lighting_change": 1.0,
@@ -105,14 +106,14 @@ class CaptureOptions:
         if not (number and math.isfinite(value) and 0 <= value <= 1):
             raise ValueError(f"camera_pipeline must be a number in [0, 1], got {value!r}")
         low, high = JPEG_QUALITY_RANGE
-        if not _is_int(self.jpeg_quality) or not (
+        if not is_int(self.jpeg_quality) or not (
             self.jpeg_quality == 0 or low <= self.jpeg_quality <= high
         ):
             raise ValueError(
                 f"jpeg_quality must be 0 (off) or an integer in [{low}, {high}], "
                 f"got {self.jpeg_quality!r}"
             )
-        if not _is_int(self.render_scale) or not 1 <= self.render_scale <= RENDER_SCALE_MAX:
+        if not is_int(self.render_scale) or not 1 <= self.render_scale <= RENDER_SCALE_MAX:
             raise ValueError(
                 f"render_scale must be an integer in [1, {RENDER_SCALE_MAX}], "
                 f"got {self.render_scale!r}"
@@ -141,10 +142,6 @@ def _check_bounds(record: object, bounds: dict[str, float]) -> None:
         number = isinstance(value, int | float) and not isinstance(value, bool)
         if not (number and math.isfinite(value) and 0 <= value <= high):
             raise ValueError(f"{name} must be a number in [0, {high:g}], got {value!r}")
-
-
-def _is_int(value: object) -> bool:
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True)
@@ -204,9 +201,7 @@ class SyntheticSettings:
             ("seed", 0),
             ("val_walks", 0),
         ):
-            value = getattr(self, name)
-            if int(value) != value or value < low:
-                raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+            check_integer(name, getattr(self, name), low)
         for name in ("test_offset_m", "train_lane_m", "stray_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and 0 <= value <= 1.0):
