@@ -204,20 +204,6 @@ def _train_set_size(cfg: DictConfig) -> int:
         if data.get("poses") and val_lane is not None:
             raise ConfigError("data.poses renders the given rows: set data.val_lane_m to null")
         _check_val_walks(cfg)
-        on = [f"data.{key}" for key in SYNTHETIC_NUISANCE_BOUNDS if data.get(key)]
-        if data.get("poses") and on:
-            raise ConfigError(
-                f"data.poses renders the given rows without nuisances: set {', '.join(on)} to 0"
-            )
-        dressed = [
-            f"data.{key}" for key in (*SYNTHETIC_SURFACE_BOUNDS, "jpeg_quality") if data.get(key)
-        ]
-        dressed += ["data.render_scale"] * (data.get("render_scale", 1) != 1)
-        if data.get("poses") and dressed:
-            raise ConfigError(
-                f"data.poses renders the given rows with the plain surfaces and capture: "
-                f"set {', '.join(dressed)} off"
-            )
     if _renders(cfg):
         integer(cfg, "data.scenes", 1)
         integer(cfg, "data.train_frames", 1)
