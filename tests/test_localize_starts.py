@@ -76,6 +76,7 @@ def test_a_run_without_a_teacher_refines_another_apr_s_starts(
     kept = json.loads((fitted_run / CALIBRATION_FILE).read_text())
     summary = json.loads((tmp_path / "s.json").read_text())
     assert summary["gate"] == "any" and summary["calibration"] == kept["calibration"]
+    assert summary["calibrate_s"] > 0 and summary["ms_per_query"] > 0
     assert 0.0 <= summary["accepted_share"] <= 1.0 and summary["images"] == len(read_labels(labels))
     assert main([*argv, "--out", str(second)]) == 0
     assert f"the calibration for any start from {fitted_run / CALIBRATION_FILE}" in (

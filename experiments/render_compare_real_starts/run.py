@@ -208,6 +208,7 @@ def refine_scene(
             "accepted_share": alone["accepted_share"],
             "psnr_db": metrics.get("test/scene_model/psnr_db"),
             "fit_s": metrics.get("bench/scene_fit/fit_s"),
+            "calibrate_s": alone["calibrate_s"],
             "ms_per_query": alone["ms_per_query"],
         }
         for mode, answer in found.items():

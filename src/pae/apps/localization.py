@@ -5,6 +5,7 @@ student's test-time refinements, read exactly as the run evaluated its test spli
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -391,12 +392,14 @@ def match_queries(
 
 class Refined(NamedTuple):
     """Render-and-compare's answer for the queries: poses [N, 7], scenes [N], whether the
-    gate accepted each refinement [N] (bool) and the calibration applied."""
+    gate accepted each refinement [N] (bool), the calibration applied and the seconds spent
+    choosing it (0 where it was the run's or read back)."""
 
     poses: Tensor
     scenes: Tensor
     accepted: Tensor
     calibration: Calibration
+    calibrate_s: float = 0.0
 
 
 def render_compare(
@@ -426,11 +429,13 @@ def render_compare(
         features = teacher_features(teacher, run.config.render_compare.feature_layers)
     model = loaded.model.to(device)
     scene_poses = scene_logits = None
+    calibrate_s = time.perf_counter()
     if gate == "any":
         calibration = any_start_calibration(run, model, settings, features, device)
     elif teacher is not None and found.scene_poses is not None and found.scene_logits is not None:
         scene_poses = scene_starts(run, teacher, found, device)
         scene_logits = found.scene_logits.to(device)
+    calibrate_s = time.perf_counter() - calibrate_s if gate == "any" else 0.0
     sequences = {}
     if recordings is not None:
         sequences = {"sequences": recordings[0].to(device), "sequence": recordings[1]}
@@ -449,7 +454,8 @@ def render_compare(
         matching=None if gate == "any" else matching,
         **sequences,
     )
-    return Refined(refined.poses.cpu(), refined.scenes.cpu(), refined.accepted.cpu(), calibration)
+    poses, scenes, accepted = refined.poses.cpu(), refined.scenes.cpu(), refined.accepted.cpu()
+    return Refined(poses, scenes, accepted, calibration, calibrate_s)
 
 
 def student_poses(run: Run, method: str, teacher: torch.nn.Module, found: Estimates) -> Tensor:
