@@ -338,3 +338,20 @@ def test_bench_real_starts_measures_the_experiment_s_scene_model_in_a_fresh_proc
     }
     assert all(value > 0 for value in figures.values())
     assert 200 < figures[f"{prefix}/peak_rss_mb"] < 4000
+
+
+def test_bench_export_times_both_engines_on_the_same_images() -> None:
+    """Both engines' figures at both batch sizes, finite and positive, and the ratio is the
+    quotient of the times it reports."""
+    pytest.importorskip("onnxruntime")
+    from pae.bench.export import bench_export
+
+    name = "posenet_small_cnn_56px"
+    figures = bench_export((name,), batch=3, repeats=1, seconds=0.01)
+    assert figures["bench/export/threads"] == torch.get_num_threads()
+    for size in (1, 3):
+        key = f"bench/export/{name}/batch_{size}"
+        times = [figures[f"{key}/{engine}_ms_per_image"] for engine in ("torch", "onnxruntime")]
+        assert all(math.isfinite(t) and t > 0 for t in times)
+        assert figures[f"{key}/torch_over_onnxruntime"] == pytest.approx(times[0] / times[1])
+    assert len(figures) == 1 + 2 * 3

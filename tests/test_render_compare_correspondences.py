@@ -10,7 +10,14 @@ import torch
 from pae.core.camera import project
 from pae.core.geometry import pose_errors, quaternion_to_matrix
 from pae.core.pose_sampling import perturb
-from pae.render_compare import Calibration, CalibrationOptions, calibrate, refine
+from pae.render_compare import (
+    Calibration,
+    CalibrationOptions,
+    Queries,
+    Validation,
+    calibrate,
+    refine,
+)
 from pae.render_compare.correspondences import (
     Keypoints,
     MatchQueries,
@@ -115,19 +122,15 @@ def test_train_views_nearest_in_appearance_become_starts_of_their_own() -> None:
     scenes = torch.zeros(1, dtype=torch.long)
     matching = MatchQueries(images[query], intrinsics[query], train)
     match = MatchSettings(width=48, render_width=0, start_views=2)
-    alone = refine(model, images[query], intrinsics[query], starts, scenes, SMALL_SEARCH)
-    found = refine(
-        model, images[query], intrinsics[query], starts, scenes, SMALL_SEARCH,
-        Calibration(match=match), matching=matching,
-    )  # fmt: skip
+    queries = Queries(images[query], intrinsics[query], scenes)
+    alone = refine(model, queries, starts, settings=SMALL_SEARCH)
+    with_matching = queries._replace(matching=matching)
+    found = refine(model, with_matching, starts, Calibration(match=match), settings=SMALL_SEARCH)
     assert float(pose_errors(alone.result.poses, truth[query])[0][0]) > 0.5
     assert float(pose_errors(found.result.poses, truth[query])[0][0]) < 0.1
     assert found.from_match.tolist() == [True] and found.matched.tolist() == [False]
     assert bool((found.result.score >= alone.result.score).all())
-    off = refine(
-        model, images[query], intrinsics[query], starts, scenes, SMALL_SEARCH,
-        matching=matching,
-    )  # fmt: skip
+    off = refine(model, with_matching, starts, settings=SMALL_SEARCH)
     torch.testing.assert_close(off.poses, alone.poses)
     assert off.matched is None
 
@@ -140,16 +143,13 @@ def test_calibrate_keeps_the_stage_val_prefers_and_refine_applies_it() -> None:
     starts = perturb(truth[rows], offset.expand(4, 6))
     scenes = torch.zeros(4, dtype=torch.long)
     matching = MatchQueries(images[rows], intrinsics[rows], train)
+    queries = Queries(images[rows], intrinsics[rows], scenes, matching=matching)
     stages = [{}, {"width": 48, "render_width": 0, "start_views": 2}]
-    calibration, refinement = calibrate(
-        model, images[rows], intrinsics[rows], starts, scenes, truth[rows], SMALL_SEARCH,
-        matching=matching, matches=stages,
-    )  # fmt: skip
+    options = CalibrationOptions(matches_from_val=stages)
+    val = Validation(queries, starts, truth[rows])
+    calibration, refinement = calibrate(model, val, options, settings=SMALL_SEARCH)
     assert calibration.match.start_views == 2
-    again = refine(
-        model, images[rows], intrinsics[rows], starts, scenes, SMALL_SEARCH, calibration,
-        matching=matching,
-    )  # fmt: skip
+    again = refine(model, queries, starts, calibration, settings=SMALL_SEARCH)
     torch.testing.assert_close(again.poses, refinement.poses)
 
 
@@ -176,10 +176,11 @@ def test_views_without_train_images_are_a_one_line_error() -> None:
     model, images, intrinsics, truth = _frames(48, slice(0, 2))
     match = MatchSettings(width=48, render_width=0, start_views=2)
     with pytest.raises(ValueError, match=r"near_start_views need MatchQueries\.train"):
-        refine(
-            model, images, intrinsics, truth, torch.zeros(2, dtype=torch.long), SMALL_SEARCH,
-            Calibration(match=match), matching=MatchQueries(images, intrinsics),
+        queries = Queries(
+            images, intrinsics, torch.zeros(2, dtype=torch.long),
+            matching=MatchQueries(images, intrinsics),
         )  # fmt: skip
+        refine(model, queries, truth, Calibration(match=match), settings=SMALL_SEARCH)
 
 
 def test_the_train_cameras_nearest_the_start_are_starts_too() -> None:
@@ -193,10 +194,9 @@ def test_the_train_cameras_nearest_the_start_are_starts_too() -> None:
     train = TrainImages(images[::2], intrinsics[::2], truth[::2], scenes[::2])
     start = perturb(truth[21:22], torch.tensor([[0.3, -0.3, 0.2, 0.1, 0.05, -0.05]]))
     match = MatchSettings(width=48, render_width=0, near_start_views=2)
-    found = refine(
-        model, images[21:22], intrinsics[21:22], start, scenes[:1], SMALL_SEARCH,
-        Calibration(match=match), matching=MatchQueries(images[21:22], intrinsics[21:22], train),
-    )  # fmt: skip
+    matching = MatchQueries(images[21:22], intrinsics[21:22], train)
+    queries = Queries(images[21:22], intrinsics[21:22], scenes[:1], matching=matching)
+    found = refine(model, queries, start, Calibration(match=match), settings=SMALL_SEARCH)
     assert float(pose_errors(found.result.poses, truth[21:22])[0][0]) < 0.1
 
 
@@ -210,10 +210,10 @@ def test_a_round_from_the_cameras_nearest_the_best_pose_never_lowers_a_score() -
 
     def refined(rounds: int) -> torch.Tensor:
         match = MatchSettings(width=48, render_width=0, near_start_views=1, near_best_rounds=rounds)
+        queries = Queries(images[rows], intrinsics[rows], scenes[:4], matching=matching)
         return refine(
-            model, images[rows], intrinsics[rows], starts, scenes[:4], SMALL_SEARCH,
-            Calibration(match=match), matching=matching,
-        ).result  # fmt: skip
+            model, queries, starts, Calibration(match=match), settings=SMALL_SEARCH
+        ).result
 
     once, twice = refined(0), refined(1)
     assert bool((twice.score >= once.score).all())

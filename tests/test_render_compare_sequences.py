@@ -4,6 +4,7 @@ refined poses from frame to frame, the median filter and the scene vote."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -11,10 +12,11 @@ import torch
 from pae.core.errors import ConfigError
 from pae.core.geometry import pose_errors
 from pae.core.pose_sampling import perturb
-from pae.render_compare import refine
+from pae.render_compare import Queries, refine
 from pae.render_compare.refiner import RenderCompareRefiner
 from pae.render_compare.sequences import (
     SequenceOptions,
+    Sequences,
     median_filter,
     neighbour_rows,
     propagate,
@@ -114,22 +116,16 @@ def test_refine_uses_the_sequences_only_when_asked() -> None:
     model, images, intrinsics, _, start = _oracle_queries(4)
     scenes = torch.zeros(4, dtype=torch.long)
     sequences = torch.zeros(4, dtype=torch.long)
-    plain = refine(model, images, intrinsics, start, scenes, SMALL_SEARCH)
-    same = refine(
-        model, images, intrinsics, start, scenes, SMALL_SEARCH, sequences=sequences,
-        sequence=SequenceOptions(),
-    )  # fmt: skip
+    queries = Queries(images, intrinsics, scenes)
+    plain = refine(model, queries, start, settings=SMALL_SEARCH)
+    same = refine(model, queries, start, None, Sequences(sequences), SMALL_SEARCH)
     torch.testing.assert_close(same.poses, plain.poses)
-    filtered = refine(
-        model, images, intrinsics, start, scenes, SMALL_SEARCH, sequences=sequences,
-        sequence=SequenceOptions(window=3),
-    )  # fmt: skip
+    windowed = Sequences(sequences, SequenceOptions(window=3))
+    filtered = refine(model, queries, start, None, windowed, SMALL_SEARCH)
     expected = median_filter(plain.poses, sequences, scenes, 3)
     torch.testing.assert_close(filtered.poses, expected)
-    with pytest.raises(ValueError, match=r"sequences must be \[4\], got \[3\]"):
-        refine(model, images, intrinsics, start, scenes, sequences=sequences[:3])
-    with pytest.raises(ValueError, match="no sequences were given"):
-        refine(model, images, intrinsics, start, scenes, sequence=SequenceOptions(window=3))
+    with pytest.raises(ValueError, match=r"sequences\.ids must be \[4\], got \[3\]"):
+        refine(model, queries, start, sequences=Sequences(sequences[:3]))
 
 
 def test_sequence_options_name_a_bad_value() -> None:
@@ -141,14 +137,14 @@ def test_sequence_options_name_a_bad_value() -> None:
 
 
 def test_the_callback_refuses_sequences_from_data_that_has_none() -> None:
-    from pae.lit.eval_outputs import sequence_arguments
+    from pae.lit.eval_outputs import query_sequences
 
     class Frames:
         pass
 
-    assert sequence_arguments(SequenceOptions(), Frames(), "test", torch.arange(3)) == {}
+    assert query_sequences(SequenceOptions(), Frames(), "test", torch.arange(3)) is None
     with pytest.raises(ConfigError, match="data module Frames does not say which sequence"):
-        sequence_arguments(SequenceOptions(passes=1), Frames(), "test", torch.arange(3))
+        query_sequences(SequenceOptions(passes=1), Frames(), "test", torch.arange(3))
 
 
 def test_the_gate_objective_is_a_calibration_option() -> None:
@@ -156,50 +152,73 @@ def test_the_gate_objective_is_a_calibration_option() -> None:
 
     with pytest.raises(ValueError, match="gate_objective: unknown 'median'"):
         CalibrationOptions(gate_objective="median")
-    chosen = CalibrationOptions(gate_objective="log_ratio").arguments()
-    assert chosen["gate_objective"] == "log_ratio"
+    assert CalibrationOptions(gate_objective="log_ratio").gate_objective == "log_ratio"
 
 
 def test_the_vote_refines_a_sequence_in_the_scene_most_of_its_starts_are_in() -> None:
     model, images, intrinsics, _, start = _oracle_queries(4)
     predicted = torch.tensor([0, 1, 0, 0])  # the oracle holds scene 0 only
+    sequences = Sequences(torch.zeros(4, dtype=torch.long), SequenceOptions(vote_scene=True))
     voted = refine(
-        model, images, intrinsics, start, predicted, SMALL_SEARCH,
-        sequences=torch.zeros(4, dtype=torch.long), sequence=SequenceOptions(vote_scene=True),
-    )  # fmt: skip
+        model, Queries(images, intrinsics, predicted), start, None, sequences, SMALL_SEARCH
+    )
     assert voted.scenes.tolist() == [0, 0, 0, 0]
 
 
-def test_the_callback_passes_each_querys_sequence_from_the_data(tmp_path: Path) -> None:
-    """The callback's test refinement under the sequence options is refine()'s with the
-    sequences the data module gives and the calibration chosen on val."""
+def test_the_callback_passes_each_querys_sequence_from_the_data(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The callback calibrates on val and refines at test with each query's sequence as the
+    data module gives it for that split, at the query's row (``index``), under the sequence
+    options, and refines at test under the calibration chosen on val; the sequences change
+    its test poses."""
+    import inspect
     from types import SimpleNamespace
 
+    from pae.callbacks import render_compare as adapter
     from pae.callbacks.render_compare import ORACLE, RenderCompareCallback
     from tests.test_render_compare import _fake_run
 
     model, images, intrinsics, truth = _consecutive_frames(6)
     start = perturb(truth, torch.tensor([0.1, 0.0, 0.05, 0.0, 0.03, 0.0]).expand(6, 6))
-    sequences = torch.tensor([0, 0, 0, 1, 1, 1])
+    # the split's recordings by label row; the queries are its rows 2-7
+    recordings = {
+        "val": torch.tensor([9, 9, 7, 7, 7, 8, 8, 8]),
+        "test": torch.tensor([9, 9, 0, 0, 0, 1, 1, 1]),
+    }
+    rows = torch.arange(2, 8)
+    calls: dict[str, dict] = {}
+
+    def spy(name: str, call: Any) -> Any:
+        def spied(*args: Any, **kwargs: Any) -> Any:
+            calls[name] = inspect.signature(call).bind(*args, **kwargs).arguments
+            calls[name]["returned"] = call(*args, **kwargs)
+            return calls[name]["returned"]
+
+        return spied
+
+    monkeypatch.setattr(adapter, "calibrate", spy("calibrate", adapter.calibrate))
+    monkeypatch.setattr(adapter, "refine", spy("refine", adapter.refine))
     callback = RenderCompareCallback(
         SMALL_SEARCH, oracle=False, sequence_passes=2, sequence_window=3,
         gate_objective="log_ratio",
     )  # fmt: skip
     for split in ("val", "test"):
         trainer, module = _fake_run(model, images, intrinsics, start, truth, str(tmp_path))
-        trainer.datamodule = SimpleNamespace(recording_ids=lambda split: sequences)
+        module.eval_outputs[0]["index"] = rows
+        trainer.datamodule = SimpleNamespace(recording_ids=recordings.__getitem__)
         callback.refine(trainer, module, split)
-    expected = refine(
-        model, images, intrinsics, start, torch.zeros(6, dtype=torch.long),
-        callback.settings, callback.calibration(ORACLE), sequences=sequences,
-        sequence=SequenceOptions(2, 3),
-    )  # fmt: skip
-    torch.testing.assert_close(callback.refined["test"][ORACLE], expected.poses)
-    plain = refine(
-        model, images, intrinsics, start, torch.zeros(6, dtype=torch.long), callback.settings,
-        callback.calibration(ORACLE),
-    )  # fmt: skip
-    assert not torch.equal(plain.poses, expected.poses)
+    options = SequenceOptions(passes=2, window=3)
+    for name, ids in (("calibrate", [7, 7, 7, 8, 8, 8]), ("refine", [0, 0, 0, 1, 1, 1])):
+        sequences = calls[name]["sequences"]
+        assert sequences is not None, f"{name} was given no sequences"
+        assert sequences.ids.tolist() == ids and sequences.options == options
+    assert calls["refine"]["calibration"] is calls["calibrate"]["returned"][0]
+    refined = callback.refined["test"][ORACLE]
+    assert refined is calls["refine"]["returned"].poses
+    queries = Queries(images, intrinsics, torch.zeros(6, dtype=torch.long))
+    plain = refine(model, queries, start, callback.calibration(ORACLE), None, callback.settings)
+    assert not torch.equal(plain.poses, refined)
 
 
 def test_recordings_come_from_where_each_frame_came_from_never_a_label() -> None:

@@ -14,7 +14,7 @@ from torch import Tensor
 
 from pae.core.geometry import matrix_to_quaternion, quaternion_to_matrix
 from pae.core.pose_sampling import perturb
-from pae.render_compare import calibrate, refine
+from pae.render_compare import CalibrationOptions, Queries, Validation, calibrate, refine
 from pae.render_compare.api import build_refiner
 from pae.render_compare.confusion import confusion_markdown, scene_confusion
 from pae.render_compare.gate import RenderCompareResult
@@ -245,18 +245,16 @@ def test_a_wrong_scene_on_a_three_scene_benchmark_is_moved_to_the_right_one() ->
     predicted = scenes.clone()
     predicted[[1, 5]] = (scenes[[1, 5]] + 1) % SCENES
     start = scene_poses[:, 0]
+    queries = Queries(images, intrinsics, predicted, scene_poses)
     calibration, val = calibrate(
-        model, images, intrinsics, start, predicted, truth, SMALL,
-        scene_poses=scene_poses, true_scenes=scenes,
-    )  # fmt: skip
+        model, Validation(queries, start, truth, scenes), CalibrationOptions(), settings=SMALL
+    )
     assert torch.equal(val.scenes, scenes)
     model, images, intrinsics, truth, scenes, scene_poses = _three_scenes(3, seed=2)
     predicted = scenes.clone()
     predicted[4] = 0
-    refined = refine(
-        model, images, intrinsics, scene_poses[:, 0], predicted, SMALL, calibration,
-        scene_poses=scene_poses,
-    )  # fmt: skip
+    queries = Queries(images, intrinsics, predicted, scene_poses)
+    refined = refine(model, queries, scene_poses[:, 0], calibration, settings=SMALL)
     assert int(refined.scenes[4]) == int(scenes[4]), "the wrong prediction is moved"
     right = predicted == scenes
     assert torch.equal(refined.scenes[right], scenes[right]), "no right prediction moved"

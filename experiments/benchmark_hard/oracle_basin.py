@@ -26,7 +26,7 @@ from pae.config.schemas import compose_config
 from pae.core.geometry import pose_errors
 from pae.core.metrics import WITHIN
 from pae.core.pose_sampling import perturb_poses
-from pae.render_compare import refine
+from pae.render_compare import Queries, refine
 from pae.scene_model.oracle import OracleSceneModel
 
 OPTIONS = {
@@ -135,7 +135,7 @@ def basin_row(
         for column, poses in enumerate(
             [starts]
             + [
-                refine(model, images, intrinsics, starts, scenes, chosen).poses
+                refine(model, Queries(images, intrinsics, scenes), starts, settings=chosen).poses
                 for chosen in filters.values()
             ]
         ):

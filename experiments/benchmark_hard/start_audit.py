@@ -50,7 +50,7 @@ from pae.core.checkpoints import load_scene_model, load_teacher
 from pae.core.geometry import pose_errors
 from pae.data.datamodule import PoseDataModule
 from pae.lit.eval_outputs import oracle_scenes
-from pae.render_compare import refine
+from pae.render_compare import Queries, refine
 from pae.render_compare.settings import refiner_defaults
 from pae.scene_model.oracle import OracleSceneModel
 
@@ -162,8 +162,8 @@ def main() -> None:
         cells = [
             cell(
                 refine(
-                    model, val["image"], val["intrinsics"], start, val["scene"],
-                    settings | variant,
+                    model, Queries(val["image"], val["intrinsics"], val["scene"]), start,
+                    settings=settings | variant,
                 ).result.poses,
                 val["pose"],
             )

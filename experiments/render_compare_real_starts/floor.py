@@ -41,7 +41,7 @@ from pae.core.checkpoints import load_scene_model
 from pae.core.geometry import pose_errors
 from pae.core.pose_sampling import perturb_poses
 from pae.lit.eval_outputs import oracle_scenes
-from pae.render_compare import ACCEPT_ALL, Calibration, refine
+from pae.render_compare import ACCEPT_ALL, Calibration, Queries, refine
 from pae.render_compare.calibration import LADDER, ladder_starts, scene_size
 from pae.render_compare.images import band_pass, gaussian_blur, grey, zncc
 from pae.render_compare.settings import RenderCompareSettings
@@ -244,8 +244,8 @@ def main(argv: list[str]) -> int:
         for name, starts in (("from_truth", truth), ("from_good", good)):
             begin = time.perf_counter()
             refined = refine(
-                model, val["image"], val["intrinsics"], starts, val["scene"],
-                base | variant, overridden(calibration, variant),
+                model, Queries(val["image"], val["intrinsics"], val["scene"]), starts,
+                overridden(calibration, variant), settings=base | variant,
             )  # fmt: skip
             row[name] = medians(refined.poses, truth)
             row[f"{name}_ms_per_query"] = 1000 * (time.perf_counter() - begin) / count
@@ -271,9 +271,8 @@ def main(argv: list[str]) -> int:
     if args.ladder:
         truth = every["pose"]
         starts = ladder_starts(truth, extent, torch.Generator().manual_seed(args.seed))
-        refined = refine(
-            model, every["image"], every["intrinsics"], starts, every["scene"], base, calibration
-        )
+        queries = Queries(every["image"], every["intrinsics"], every["scene"])
+        refined = refine(model, queries, starts, calibration, settings=base)
         results["ladder"] = ladder_rows(refined.poses, starts, truth)
         for rung in results["ladder"]:
             print(

@@ -27,7 +27,7 @@ from pae.callbacks.scene_quality import fitted_psnr_db
 from pae.core.atomic import atomic_write
 from pae.core.checkpoints import load_scene_model
 from pae.core.geometry import pose_errors
-from pae.render_compare import calibrate_any_start, refine
+from pae.render_compare import Queries, calibrate_any_start, refine
 from pae.render_compare.calibration import scene_size
 from pae.render_compare.settings import RenderCompareSettings
 
@@ -63,7 +63,7 @@ def signals(dataset: str, scene: str, args: argparse.Namespace) -> dict[str, obj
     test = split_queries(data, "test", size)
     positions, _ = data.train_poses()
     calibration, val_refined, _ = calibrate_any_start(
-        model, val["image"], val["intrinsics"], val["scene"], val["pose"],
+        model, Queries(val["image"], val["intrinsics"], val["scene"]), val["pose"],
         scene_size(positions[:, :3].double()), settings,
     )  # fmt: skip
     val_db = explained_db(model, val, val_refined.result.poses)
@@ -71,9 +71,8 @@ def signals(dataset: str, scene: str, args: argparse.Namespace) -> dict[str, obj
     paths = source_paths(data.tables["test"], files[1])
     for apr in APRS:
         starts = real_starts(args.estimates / apr / dataset, scene, paths, test["pose"])["start"]
-        refined = refine(
-            model, test["image"], test["intrinsics"], starts, test["scene"], settings, calibration
-        )
+        queries = Queries(test["image"], test["intrinsics"], test["scene"])
+        refined = refine(model, queries, starts, calibration, settings=settings)
         test_db = explained_db(model, test, refined.result.poses)
         start_m = pose_errors(starts, test["pose"])[0]
         refined_m = pose_errors(refined.poses, test["pose"])[0]

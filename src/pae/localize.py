@@ -13,6 +13,7 @@ EPILOG = """examples:
   pae-localize outputs/demo my_images/ --out poses.csv
   pae-localize outputs/demo DATA/labels/all_test.csv --root DATA --refine render_compare \\
       --out poses.csv
+  pae-localize outputs/demo my_images/ --onnx outputs/demo/onnx --out poses.csv
 INPUT: image files, folders of images (searched recursively) or label files (their img_path
 read under --root, by default the run's data root; their poses only give the printed errors).
 The teacher's estimates by default, or another APR's with --init FILE; --refine
@@ -56,6 +57,13 @@ def parser() -> argparse.ArgumentParser:
         "rounding the run's own figures carry)",
     )
     parse.add_argument("--device", default="cpu", help="torch device (default: cpu)")
+    parse.add_argument(
+        "--onnx",
+        type=Path,
+        metavar="EXPORT",
+        help="run the teacher exported by pae-export (its folder or teacher.onnx) with "
+        "onnxruntime on the CPU instead of its checkpoint (--refine teacher only)",
+    )
     parse.add_argument(
         "--init",
         type=Path,
@@ -177,8 +185,17 @@ def localize(args: argparse.Namespace) -> None:
         )
     if args.sequences and method != loc.RENDER_COMPARE:
         raise ConfigError("--sequences: only --refine render_compare uses recordings")
+    if args.onnx is not None and method != loc.TEACHER:
+        raise ConfigError(f"--onnx runs the teacher only, not --refine {method}")
     queries = gather_queries(args.inputs, args.root or run.data_root)
-    teacher = None if teacher_path is None else load_teacher(teacher_path)
+    if teacher_path is None:
+        teacher = None
+    elif args.onnx is not None:
+        from pae.apps.onnx_teacher import load_onnx_teacher
+
+        teacher = load_onnx_teacher(args.onnx, run, teacher_path)
+    else:
+        teacher = load_teacher(teacher_path)
     data = loc.data_module(run)
     if teacher is None:
         data.setup()

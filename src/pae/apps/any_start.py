@@ -15,7 +15,7 @@ import torch
 
 from pae.core.atomic import atomic_write
 from pae.core.geometry import pose_errors
-from pae.render_compare import Calibration, calibrate_any_start
+from pae.render_compare import Calibration, Queries, calibrate_any_start
 from pae.scene_model.base import SceneModel
 
 CALIBRATION_FILE = "render_compare_any_start.json"
@@ -94,8 +94,9 @@ def any_start_calibration(
         print(f"pae-localize: the calibration for any start from {path}", file=sys.stderr)
         return recorded
     truth = val["pose"]
+    queries = Queries(val["image"], val["intrinsics"], val["scene"])
     calibration, refined, starts = calibrate_any_start(
-        model, val["image"], val["intrinsics"], val["scene"], truth, size_m, settings, features
+        model, queries, truth, size_m, settings | {"features": features}
     )
     record = {
         "key": key,

@@ -30,7 +30,8 @@ from pae.lit.eval_outputs import EVAL, teacher_descriptor, train_images
 from pae.lit.scene_model import compare_queries
 from pae.models.base import Latents
 from pae.models.latents import compute_teacher_latents
-from pae.render_compare import Calibration, CalibrationOptions, refine
+from pae.render_compare import Calibration, CalibrationOptions, Sequences, refine
+from pae.render_compare import Queries as CompareQueries
 from pae.render_compare.calibration import scene_size, teacher_features
 from pae.render_compare.correspondences import MatchQueries
 from pae.render_compare.queries import recorded_match
@@ -436,23 +437,25 @@ def render_compare(
         scene_poses = scene_starts(run, teacher, found, device)
         scene_logits = found.scene_logits.to(device)
     calibrate_s = time.perf_counter() - calibrate_s if gate == "any" else 0.0
-    sequences = {}
+    sequences = None
     if recordings is not None:
-        sequences = {"sequences": recordings[0].to(device), "sequence": recordings[1]}
+        sequences = Sequences(recordings[0].to(device), recordings[1])
     assert found.images is not None and found.intrinsics is not None
-    refined = refine(
-        model,
+    queries = CompareQueries(
         found.images.to(device),
         found.intrinsics.to(device),
-        found.pose.to(device),
         found.scene.to(device),
-        settings,
-        calibration,
-        features,
         scene_poses=scene_poses,
         scene_logits=scene_logits,
         matching=None if gate == "any" else matching,
-        **sequences,
+    )
+    refined = refine(
+        model,
+        queries,
+        found.pose.to(device),
+        calibration,
+        sequences,
+        settings | {"features": features},
     )
     poses, scenes, accepted = refined.poses.cpu(), refined.scenes.cpu(), refined.accepted.cpu()
     return Refined(poses, scenes, accepted, calibration, calibrate_s)

@@ -16,7 +16,8 @@ only with --only; the --scale-* options shrink it), fingerprint (the train image
 fingerprint on the demo's train split and on 640x480 PNGs, per image times 7-Scenes' 43,000:
 every byte against the older 4 KiB sample per file), contention (a teacher epoch and a
 render-and-compare batch alone and beside one busy process, with pae's sleeping threads and
-with OpenMP's spinning ones; minutes, so only with --only).
+with OpenMP's spinning ones; minutes, so only with --only), export (a teacher exported by
+pae-export: onnxruntime's milliseconds per image beside PyTorch's).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from pae.bench.contention import bench_contention
+from pae.bench.export import bench_export
 from pae.bench.fingerprint import (
     bench_fingerprint,
     bench_fingerprint_seven_scenes_size,
@@ -248,6 +250,7 @@ BENCHMARKS = (
     "render_compare_scale",
     "fingerprint",
     "contention",
+    "export",
 )
 """The benchmarks pae-bench runs (``--only`` picks some)."""
 DEFAULT_BENCHMARKS = tuple(
@@ -342,6 +345,8 @@ def main(argv: list[str] | None = None) -> int:
         figures |= bench_real_starts()
     if "contention" in chosen:
         figures |= bench_contention()
+    if "export" in chosen:
+        figures |= bench_export()
     if "render_compare_scale" in chosen:
         figures |= bench_render_compare_scale(
             args.scale_train,

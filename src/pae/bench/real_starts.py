@@ -29,7 +29,7 @@ from pae import CONFIG_DIR
 from pae.bench.render_compare import bench_queries, room_grid
 from pae.bench.scale import run_measured
 from pae.core.threads import configure_threads
-from pae.render_compare import ACCEPT_ALL, Calibration, refine
+from pae.render_compare import ACCEPT_ALL, Calibration, Queries, refine
 from pae.render_compare.settings import RenderCompareSettings
 
 SIZE_PX = 128
@@ -61,11 +61,11 @@ def refine_queries(n: int) -> float:
     images, intrinsics, starts, scenes = bench_queries(n, 1, SIZE_PX, seed=0)
     settings = RenderCompareSettings(resolution=SIZE_PX, final_reference_size=SIZE_PX // 2)
     calibration = Calibration(ACCEPT_ALL, ACCEPT_ALL, CHOSEN)
-    few = slice(0, 4)
-    refine(model, images[few], intrinsics[few], starts[few], scenes[few], settings, calibration)
+    few = Queries(images[:4], intrinsics[:4], scenes[:4])
+    refine(model, few, starts[:4], calibration, settings=settings)
     begin = time.perf_counter()
     with torch.no_grad():
-        refine(model, images, intrinsics, starts, scenes, settings, calibration)
+        refine(model, Queries(images, intrinsics, scenes), starts, calibration, settings=settings)
     return time.perf_counter() - begin
 
 

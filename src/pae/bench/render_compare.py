@@ -212,7 +212,7 @@ def bench_other_starts(
     correspondences against a
     ``match_width``-px rendering too: ms per query (the train views' descriptors and
     keypoints made once before, as a run makes them once)."""
-    from pae.render_compare import Calibration, refine
+    from pae.render_compare import Calibration, Queries, refine
     from pae.render_compare.correspondences import MatchQueries, MatchSettings, TrainImages
 
     model = room_grid(2)
@@ -221,7 +221,9 @@ def bench_other_starts(
     large, large_k, _, _ = bench_queries(queries, 2, match_width, seed=0)
     views, views_k, view_poses, view_scenes = bench_queries(train_views, 2, match_width, seed=1)
     train = TrainImages((views * 255).to(torch.uint8), views_k, view_poses, view_scenes)
-    matching = MatchQueries(large, large_k, train)
+    every = Queries(images, intrinsics, scenes, matching=MatchQueries(large, large_k, train))
+    few_matching = MatchQueries(large[:2], large_k[:2], train)
+    few = Queries(images[:2], intrinsics[:2], scenes[:2], matching=few_matching)
     stages = {
         "alone": MatchSettings(),
         "other_starts": MatchSettings(
@@ -235,13 +237,8 @@ def bench_other_starts(
     figures = {}
     for name, match in stages.items():
         calibration = Calibration(match=match)
-        refine(model, images[:2], intrinsics[:2], start[:2], scenes[:2], settings, calibration,
-               matching=MatchQueries(large[:2], large_k[:2], train))  # fmt: skip
-        seconds = _seconds(
-            lambda c=calibration: refine(
-                model, images, intrinsics, start, scenes, settings, c, matching=matching
-            )
-        )
+        refine(model, few, start[:2], calibration, settings=settings)
+        seconds = _seconds(lambda c=calibration: refine(model, every, start, c, settings=settings))
         figures[f"bench/render_compare_per_image/{name}_ms_per_query"] = 1000 * seconds / queries
     alone = figures["bench/render_compare_per_image/alone_ms_per_query"]
     for name in ("other_starts", "keypoints"):

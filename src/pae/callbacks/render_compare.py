@@ -21,11 +21,11 @@ from pae.lit.eval_outputs import (
     SceneModelEvaluation,
     check_held_out,
     collect_outputs,
+    query_sequences,
     scene_models,
-    sequence_arguments,
 )
-from pae.render_compare import Calibration, CalibrationOptions, Refinement, calibrate, refine
-from pae.render_compare.calibration import teacher_features
+from pae.render_compare.api import Queries, Refinement, Validation, calibrate, refine
+from pae.render_compare.calibration import Calibration, CalibrationOptions, teacher_features
 from pae.render_compare.queries import refinement_figures, write_queries
 from pae.render_compare.refiner import ACCEPT_ALL, RenderCompareRefiner, refiner_defaults
 from pae.render_compare.sequences import SequenceOptions
@@ -112,26 +112,26 @@ class RenderCompareCallback(L.Callback):
         truth, estimate = outputs[EVAL.pose].float(), outputs[EVAL.estimate].float()
         scene, predicted = outputs[EVAL.scene], outputs[EVAL.scene_estimate]
         decided = predicted if EVAL.scene_poses in outputs or self.sequence.vote_scene else None
-        queries = (outputs[EVAL.image], outputs[EVAL.intrinsics], estimate)
-        common = {"settings": self.settings, "features": self.features(pl_module.teacher)}
-        common |= {key: outputs.get(key) for key in (EVAL.scene_poses, EVAL.scene_logits)}
-        common |= sequence_arguments(self.sequence, trainer.datamodule, split, outputs[EVAL.index])
-        common |= self.match_inputs.arguments(
-            trainer.datamodule, pl_module.teacher, split, outputs[EVAL.index]
-        )
+        rows, data = outputs[EVAL.index], trainer.datamodule
+        queries = Queries(
+            outputs[EVAL.image], outputs[EVAL.intrinsics], predicted,
+            outputs.get(EVAL.scene_poses), outputs.get(EVAL.scene_logits),
+            self.match_inputs.queries(data, pl_module.teacher, split, rows),
+        )  # fmt: skip
+        sequences = query_sequences(self.sequence, data, split, rows)
+        settings = self.settings | {"features": self.features(pl_module.teacher)}
         figures: dict[str, Tensor] = {}
         self.refined[split], self.refinements[split] = {"teacher": estimate}, {}
         for name, model in models.items():
             start = time.perf_counter()
             if split == "val":
+                val = Validation(queries, estimate, truth, scene)
                 self.calibrations[name], refinement = calibrate(
-                    model, *queries, predicted, truth, **common, true_scenes=scene,
-                    **self.options.arguments(),
-                )  # fmt: skip
+                    model, val, self.options, sequences, settings
+                )
             else:
-                refinement = refine(
-                    model, *queries, predicted, **common, calibration=self.calibration(name),
-                )  # fmt: skip
+                calibration = self.calibration(name)
+                refinement = refine(model, queries, estimate, calibration, sequences, settings)
             seconds = time.perf_counter() - start
             self.refined[split][name], self.refinements[split][name] = refinement.poses, refinement
             found, starts, refined = refinement_figures(

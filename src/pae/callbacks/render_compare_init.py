@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Any
 
 import lightning as L
 import torch
@@ -16,7 +17,7 @@ from pae.core.errors import ConfigError
 from pae.core.metrics import summarise_errors
 from pae.data.starts import AXES, FORMATS, Starts, placed_starts, read_starts
 from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
-from pae.render_compare import Calibration, calibrate_any_start, refine
+from pae.render_compare import Calibration, Queries, calibrate_any_start, refine
 from pae.render_compare.calibration import scene_size
 from pae.render_compare.queries import method_from, refinement_figures
 
@@ -52,6 +53,10 @@ class RenderCompareFromFile(L.Callback):
                 "render_compare.init_format={}",
             )
 
+    def settings(self, pl_module: SceneModelEvaluation) -> dict[str, Any]:
+        """The refiner's settings, with the teacher's features where it scores them."""
+        return self.refinement.settings | {"features": self.refinement.features(pl_module.teacher)}
+
     @property
     def method(self) -> str:
         return method_from(self.refinement.init or "")
@@ -61,11 +66,12 @@ class RenderCompareFromFile(L.Callback):
         if self.refinement.init is None or outputs is None:
             return
         positions, _ = trainer.datamodule.train_poses()
+        queries = Queries(
+            outputs[EVAL.image], outputs[EVAL.intrinsics], outputs[EVAL.scene_estimate]
+        )
         self.calibration, _, _ = calibrate_any_start(
-            pl_module.scene_model, outputs[EVAL.image], outputs[EVAL.intrinsics],
-            outputs[EVAL.scene_estimate], outputs[EVAL.pose].float(),
-            scene_size(positions[:, :3].double()), self.refinement.settings,
-            self.refinement.features(pl_module.teacher),
+            pl_module.scene_model, queries, outputs[EVAL.pose].float(),
+            scene_size(positions[:, :3].double()), self.settings(pl_module),
         )  # fmt: skip
         gate = (self.calibration.accept_margin, self.calibration.accept_score)
         figures = dict(zip(("accept_margin", "accept_score"), gate, strict=True))
@@ -82,11 +88,10 @@ class RenderCompareFromFile(L.Callback):
         scenes = outputs[EVAL.scene_estimate] if scenes is None else scenes
         calibration = self.calibration or self.refinement.calibration(HONEST)
         begin = time.perf_counter()
+        queries = Queries(outputs[EVAL.image], outputs[EVAL.intrinsics], scenes.to(starts.device))
         refinement = refine(
-            pl_module.scene_model, outputs[EVAL.image], outputs[EVAL.intrinsics], starts,
-            scenes.to(starts.device), self.refinement.settings, calibration,
-            self.refinement.features(pl_module.teacher),
-        )  # fmt: skip
+            pl_module.scene_model, queries, starts, calibration, settings=self.settings(pl_module)
+        )
         seconds = time.perf_counter() - begin
         truth, scene = outputs[EVAL.pose].float(), outputs[EVAL.scene]
         figures, start_errors, _ = refinement_figures(

@@ -13,6 +13,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
+from pae.config.optuna_study import keeps_a_study
 from pae.config.validation import apply_renamed_keys, validate_eval_config, validate_train_config
 from pae.core.atomic import check_writable_dir
 from pae.core.error_reporting import reporting_errors
@@ -129,7 +130,8 @@ class Preflight(Callback):
     def _check(self, config: DictConfig, folder: Path, key: str, sweep: bool) -> None:
         """The run (or sweep) directory `folder` can be written, is not in use by another run
         and holds no other run's checkpoints, or, with resume=true, an earlier run of these
-        settings (single runs); every setting; the latent cache folder. Then `folder` is
+        settings (single runs) or the trials of an earlier run of its Optuna study (sweeps
+        of ``hparams_search``); every setting; the latent cache folder. Then `folder` is
         locked for the run. A failing check ends the process: one line for a user error, the
         traceback for anything else (Hydra would only warn and run)."""
         try:
@@ -138,7 +140,7 @@ class Preflight(Callback):
                 check_writable_dir(folder, key)
                 lock = self.locks.setdefault(Path(os.path.abspath(folder)), RunDirLock(folder, key))
                 lock.acquire_if_used()
-                if not config.get("resume"):
+                if not config.get("resume") and not (sweep and keeps_a_study(config)):
                     check_fresh(folder, key, self.program)
                 if not sweep:  # sweep jobs check their own settings when they start
                     self._validate(config)  # first: it may correct data settings (validation)

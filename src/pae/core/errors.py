@@ -46,6 +46,10 @@ class BackboneError(RuntimeError):
     """A backbone that cannot be built as configured (unknown name, weights unavailable)."""
 
 
+class ExportError(RuntimeError):
+    """A model that cannot be written as ONNX; the message names the model and its layer."""
+
+
 class DivergenceError(RuntimeError):
     """A non-finite training loss, or non-finite figures: nothing of it is a result."""
 

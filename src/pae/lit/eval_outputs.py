@@ -20,7 +20,7 @@ from pae.core.metrics import first_occurrences
 from pae.data.holdout import CALIBRATION_ON_TEST
 from pae.data.transforms import ImageTransform
 from pae.render_compare.correspondences import Describer, MatchQueries, TrainImages
-from pae.render_compare.sequences import SequenceOptions
+from pae.render_compare.sequences import SequenceOptions, Sequences
 from pae.scene_model.base import SceneModel
 from pae.scene_model.oracle import OracleSceneModel
 
@@ -144,24 +144,23 @@ def oracle_scenes(data: Any) -> list[Any] | None:
     return scenes() if callable(scenes) else None
 
 
-def sequence_arguments(
+def query_sequences(
     options: SequenceOptions, data: Any, split: str, rows: Tensor
-) -> dict[str, Any]:
-    """What :func:`pae.render_compare.refine` and ``calibrate`` take of the queries' sequences
-    under ``options`` (none where inactive): the recording [B] of each of ``split``'s queries
-    at ``rows`` [B] of the data module's split (its label rows: each recording's frames in
+) -> Sequences | None:
+    """The queries' sequences for :func:`pae.render_compare.refine` and ``calibrate`` under
+    ``options`` (None where inactive): the recording [B] of each of ``split``'s queries at
+    ``rows`` [B] of the data module's split (its label rows: each recording's frames in
     order; the data module's ``recording_ids``, from where each frame came from, never a
     label) and the options."""
     if not options.active:
-        return {}
+        return None
     recordings = getattr(data, "recording_ids", None)
     if recordings is None:
         raise ConfigError(
             f"render_compare.sequence_*: the data module {type(data).__name__} does not say "
             "which sequence each query belongs to"
         )
-    ids = recordings(split).to(rows.device)[rows]
-    return {"sequences": ids, "sequence": options}
+    return Sequences(recordings(split).to(rows.device)[rows], options)
 
 
 DESCRIPTORS = ("teacher", "thumbnail")
@@ -217,12 +216,12 @@ class MatchInputs:
         self.train: TrainImages | None = None
         self.loaded: dict[str, tuple[Tensor, Tensor]] = {}  # split -> its images, intrinsics
 
-    def arguments(
+    def queries(
         self, data: Any, teacher: torch.nn.Module, split: str, rows: Tensor
-    ) -> dict[str, Any]:
-        """``matching=`` for ``split``'s queries at ``rows`` [B] (none without a stage)."""
+    ) -> MatchQueries | None:
+        """``split``'s queries at ``rows`` [B] at the match width (None without a stage)."""
         if not self.width:
-            return {}
+            return None
         if self.train is None:
             size = int(getattr(data, "shorter_edge", 64))
             describe = teacher_descriptor(teacher, size) if self.descriptor == "teacher" else None
@@ -231,8 +230,7 @@ class MatchInputs:
             self.loaded[split] = data.images_at(split, self.width)
         images, intrinsics = self.loaded[split]
         at = rows.cpu()
-        queries = MatchQueries(images[at].float() / 255, intrinsics[at], self.train)
-        return {"matching": queries}
+        return MatchQueries(images[at].float() / 255, intrinsics[at], self.train)
 
 
 HONEST = "render_compare"

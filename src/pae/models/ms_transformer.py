@@ -250,10 +250,12 @@ class MSTransformer(PoseRegressor):
 
     def encode(self, images: Tensor, scene: Tensor | None = None) -> Latents:
         dec_x, dec_q, logits = self.decode(images)
-        chosen = logits.argmax(-1) if scene is None else scene
-        rows = torch.arange(len(images), device=images.device)
+        chosen = (logits.argmax(-1) if scene is None else scene).view(-1, 1, 1)
+        index = chosen.expand(-1, 1, self.latent_dim)  # a gather keeps the batch symbolic
         scene_logits = logits if self.n_scenes > 1 else None
-        return Latents(dec_x[rows, chosen], dec_q[rows, chosen], scene_logits)
+        return Latents(
+            dec_x.gather(1, index).squeeze(1), dec_q.gather(1, index).squeeze(1), scene_logits
+        )
 
     def regress(self, latents: Latents) -> Tensor:
         return torch.cat([self.head_x(latents.x), self.head_q(latents.q)], dim=-1)

@@ -137,16 +137,17 @@ class CalibrationOptions:
       2: always.
     - ``filters_from_val``: image filters to try on val, each a mapping of ``FILTER_KEYS``
       (``{}``: the refiner's own; e.g. ``{"highpass_sigma_px": 4, "trim_sigma": 2.5}``);
-      the one with the lowest mean val position error after the gate is kept. None: the
+      the one whose gated refinement minimises the ``gate_objective`` is kept. None: the
       refiner's own only.
     - ``matches_from_val``: correspondence stages to try on val with the chosen filter, each
       a mapping of :class:`pae.render_compare.correspondences.MatchSettings` (``{}``: none);
       the one whose gated refinement minimises the ``gate_objective`` is kept (a single one:
       used without validation too). None: none.
-    - ``gate_objective``: what the automatic margin and floor minimise over the val queries
-      (:func:`choose_gate`): ``mean`` their mean position error, ``log_ratio`` the mean log
-      of each query's error over its start's (a few refinements that fly metres off then
-      weigh no more than a few that halve their start's error).
+    - ``gate_objective``: the calibration's one objective over the val queries, which the
+      filter, the correspondence stage and the automatic margin and floor
+      (:func:`choose_gate`) all minimise: ``mean`` their mean position error, ``log_ratio``
+      the mean log of each query's error over its start's (a few refinements that fly metres
+      off then weigh no more than a few that halve their start's error).
     """
 
     accept_margin: float | str = AUTO
@@ -194,18 +195,6 @@ class CalibrationOptions:
         """The option ``key`` as a number, None where it is ``auto``."""
         return _number_or_auto(key, getattr(self, key))
 
-    def arguments(self) -> dict[str, Any]:
-        """These options as :func:`pae.render_compare.calibrate`'s keyword arguments."""
-        return {
-            "step_fractions": self.step_from_val,
-            "accept_margin": self.fixed("accept_margin"),
-            "accept_score": self.fixed("accept_score"),
-            "scene_check_below": self.fixed("scene_check_below"),
-            "filters": self.filters_from_val,
-            "gate_objective": self.gate_objective,
-            "matches": self.matches_from_val,
-        }
-
     def uncalibrated(self) -> Calibration:
         """The calibration where no validation ran: the fixed options, else margin 0, no
         floor, the refiner's steps and no scene check (a fixed check floor: the refined
@@ -220,6 +209,20 @@ class CalibrationOptions:
             SceneRule(ACCEPT_ALL if below is None else below),
             MatchSettings(**matches[0]) if len(matches) == 1 else MatchSettings(),
         )
+
+
+@dataclasses.dataclass(frozen=True)
+class AnyStartOptions:
+    """What :func:`pae.render_compare.calibrate_any_start` tries on validation besides the
+    settings' own: the high-passes ``highpass_px`` (px at the compare resolution, at every
+    level and at the finest only), the local contrasts ``contrast_px`` (px, with each
+    high-pass, besides none) and the references' ``surface_shares``; ``seed``: the ladder
+    starts' draws (:func:`ladder_starts`)."""
+
+    highpass_px: Sequence[float] = (HIGHPASS_PX,)
+    contrast_px: Sequence[float] = CONTRAST_PX
+    surface_shares: Sequence[float] = SURFACE_SHARES
+    seed: int = 0
 
 
 def objective_value(poses: Tensor, starts: Tensor, truth: Tensor, objective: str) -> float:

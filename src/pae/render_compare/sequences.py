@@ -13,6 +13,7 @@ refiner without these options) use neither."""
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -46,6 +47,14 @@ class SequenceOptions:
     @property
     def active(self) -> bool:
         return bool(self.passes) or self.window > 1 or self.vote_scene
+
+
+class Sequences(NamedTuple):
+    """The queries' sequences: ``ids`` [B] (any integer per query, each sequence's frames in
+    row order) and how render-and-compare uses them (``options``)."""
+
+    ids: Tensor
+    options: SequenceOptions = SequenceOptions()
 
 
 def vote_scenes(scenes: Tensor, sequences: Tensor) -> Tensor:
