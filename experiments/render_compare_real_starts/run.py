@@ -21,20 +21,23 @@ what pae-localize wrote. Finished scenes (``OUT/<scene>/real_starts_<APR>.json``
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import subprocess
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from pae.apps.any_start import CALIBRATION_FILE
+from pae.apps.localization import data_module, read_run, scene_model_path, split_queries
 from pae.core.atomic import atomic_write
+from pae.core.checkpoints import load_scene_model
 from pae.core.geometry import pose_errors, transfer_error
 from pae.data.labels import LabelTable, read_labels, write_labels
 from pae.data.starts import match_starts, read_starts
+from pae.render_compare import ACCEPT_ALL, Calibration, Queries, refine
 from pae.render_compare.settings import RenderCompareSettings
 
 SCENES = {
@@ -153,15 +156,23 @@ def yaml_root(run: Path) -> str:
     return str(OmegaConf.load(run / ".hydra" / "data.yaml").root)
 
 
-def truth_audit(run_dir: Path, test_labels: Path, args: argparse.Namespace) -> None:
+def truth_audit(run_dir: Path) -> None:
     """The scene model's floor, an audit reading the test labels as starts: the test images
-    refined from their true poses by pae-localize with the calibration chosen on val ->
+    refined from their true poses with the first steps chosen on val, every refinement
+    accepted (through the library: no product path refines from the truth) ->
     ``OUT/<scene>/truth_audit.json`` (``from_truth_oracle``)."""
-    found = localize(run_dir, test_labels, test_labels, "truth_audit_poses", [])
-    truth = torch.as_tensor(read_labels(test_labels).poses)
-    poses = torch.as_tensor(found["poses"].poses)
+    run = read_run(run_dir)
+    size = int(run.config.data.size)
+    data = data_module(run, cache_images=False)
+    data.setup()
+    model = load_scene_model(scene_model_path(run), "scene_model_ckpt").model.eval()
+    test = split_queries(data, "test", size)
+    queries = Queries(test["image"], test["intrinsics"], test["scene"])
+    calibration = Calibration(ACCEPT_ALL, ACCEPT_ALL, chosen_steps(run_dir))
+    settings = dataclasses.asdict(refiner_settings(size))
+    refined = refine(model, queries, test["pose"], calibration, settings=settings)
     with atomic_write(run_dir / "truth_audit.json") as handle:
-        json.dump({"from_truth_oracle": figures(poses, truth)}, handle, indent=1)
+        json.dump({"from_truth_oracle": figures(refined.poses, test["pose"])}, handle, indent=1)
 
 
 def refine_scene(
@@ -178,7 +189,9 @@ def refine_scene(
     for apr in todo:
         starts = real_starts(args.estimates / apr / dataset, scene, img_paths, truth)
         start_file = run_dir / f"starts_{apr}.csv"
-        write_labels(start_file, replace(rendered, poses=starts["start"].double().numpy()))
+        write_labels(
+            start_file, dataclasses.replace(rendered, poses=starts["start"].double().numpy())
+        )
         modes = {"render_compare": []}
         if args.recordings:
             passes, window = args.recordings
@@ -229,7 +242,7 @@ def refine_scene(
             flush=True,
         )
     if not (run_dir / "truth_audit.json").is_file():
-        truth_audit(run_dir, test_labels, args)
+        truth_audit(run_dir)
 
 
 def rendered_size(run: Path) -> int:
