@@ -259,13 +259,3 @@ def test_bad_values_are_refused_in_one_line_naming_the_setting(
         cfg = compose("train", [f"data.{setting}={value}"])
     with pytest.raises(ConfigError, match=f"data.{setting} must be"):
         validate_data(cfg)
-
-
-def test_given_poses_render_without_nuisances(tmp_path: Path) -> None:
-    labels = str(tmp_path / "poses.csv")
-    with pytest.raises(ValueError, match=r"data\.poses renders the given rows without nuisances"):
-        SyntheticDataModule(poses=[labels], motion_blur_px=2)
-    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
-        cfg = compose("train", [f"data.poses=[{labels}]", "data.occluder_fraction=0.3"])
-    with pytest.raises(ConfigError, match=r"set data\.occluder_fraction to 0"):
-        validate_data(cfg)

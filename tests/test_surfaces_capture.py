@@ -289,14 +289,20 @@ def test_plain_and_repeated_shares_sum_to_at_most_one() -> None:
         validate_data(cfg)
 
 
-def test_given_poses_and_the_oracle(tmp_path: Path) -> None:
-    labels = str(tmp_path / "poses.csv")
-    with pytest.raises(ValueError, match=r"data\.poses renders the given rows with the plain"):
-        SyntheticDataModule(poses=[labels], render_scale=2)
+def test_given_poses_render_into_a_folder_named_by_their_options(tmp_path: Path) -> None:
+    labels = tmp_path / "poses.csv"
+    labels.write_text("scene,split,seq,img_path,t1,t2,t3,q1,q2,q3,q4\n")
+    plain = SyntheticDataModule(poses=[str(labels)])
+    hard = SyntheticDataModule(poses=[str(labels)], render_scale=2, jpeg_quality=75)
+    assert Path(plain.root).name.endswith("_px64_seed0")
+    assert Path(hard.root).name == Path(plain.root).name + "_jpeg75_x2"
+    assert hard.camera.width == 128
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
-        cfg = compose("train", [f"data.poses=[{labels}]", "data.jpeg_quality=75"])
-    with pytest.raises(ConfigError, match=r"set data\.jpeg_quality off"):
-        validate_data(cfg)
+        cfg = compose("train", ["experiment=real_starts_hard", f"data.poses=[{labels}]"])
+    assert all(cfg.data[key] != OFF[key] for key in ALL_ON)
+
+
+def test_the_oracle_sees_the_dressed_surfaces() -> None:
     module = SyntheticDataModule(glossy_surface_share=1.0, scenes=1)
     module.scene_names = ["scene00"]
     assert module.oracle_scenes()[0].face_tables.glossy, "the oracle sees the glossy surfaces"

@@ -149,3 +149,38 @@ def test_a_missing_split_is_reported_before_rendering(tmp_path: Path) -> None:
     with pytest.raises(LabelError, match=r"no rows of the split\(s\) \['test'\]"):
         write_dataset_at_poses(tmp_path / "out", [path], size=16, required_splits=("train", "test"))
     assert not (tmp_path / "out").exists()
+
+
+def test_given_poses_render_with_the_benchmark_s_options(tmp_path: Path) -> None:
+    """With demo_hard's options the given rows are rendered render_scale times larger, dressed
+    and captured, each recording with nuisances of its own (labels/nuisances.csv); options
+    off render exactly what no options render."""
+    from pae.synthetic import SyntheticSettings
+    from pae.synthetic.writer import NUISANCE_FILE
+
+    inputs = [_labels(tmp_path / "room.csv", "room", _walk(3.0, 12, 0))]
+    hard = SyntheticSettings(
+        glossy_surface_share=0.5,
+        plain_surface_share=0.3,
+        camera_pipeline=1.0,
+        jpeg_quality=75,
+        render_scale=2,
+        lighting_change=1.0,
+        occluder_fraction=0.3,
+    )
+    plain = write_dataset_at_poses(tmp_path / "plain", inputs, size=16)
+    same = write_dataset_at_poses(tmp_path / "off", inputs, size=16, options=SyntheticSettings())
+    dressed = write_dataset_at_poses(tmp_path / "hard", inputs, size=16, options=hard)
+    assert (plain.size, same.size, dressed.size) == (16, 16, 32)
+    names = read_labels(tmp_path / "plain" / "labels" / "all_test.csv").img_path
+    for name in names:
+        first = cv2.imread(str(tmp_path / "plain" / name))
+        np.testing.assert_array_equal(first, cv2.imread(str(tmp_path / "off" / name)))
+        image = cv2.imread(str(tmp_path / "hard" / name))
+        assert image.shape == (32, 32, 3)
+        small = cv2.resize(image, (16, 16), interpolation=cv2.INTER_AREA).astype(float)
+        assert np.abs(small - first).mean() > 2.0, name
+    table = (tmp_path / "hard" / "labels" / NUISANCE_FILE).read_text().splitlines()
+    assert len(table) == 1 + 12 and not (tmp_path / "plain" / "labels" / NUISANCE_FILE).exists()
+    gains = [float(line.split(",")[-1]) for line in table[1:]]
+    assert len(set(np.round(gains, 4))) > 2, "each frame's exposure drifts"

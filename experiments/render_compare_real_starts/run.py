@@ -1,14 +1,17 @@
-"""Render-and-compare from real APRs' estimates on every real camera geometry.
+"""Render-and-compare from real APRs' estimates on every real camera geometry, through the
+product's own commands.
 
 For each 7-Scenes scene and the four Cambridge Landmarks scenes of the estimate files:
-synthetic images at every pose of the real label files (no thinning), the scene model fitted
-to the train images (``pae-train experiment=real_starts``), then, through the library
-(``pae.render_compare.calibrate_any_start`` and ``refine``), the refinement of each APR's
-starts. A start carries its image's real error: the APR's estimate against the file's ground
-truth, taken in the camera frame (``dt = R_gt^T (t_apr - t_gt)``, ``dR = R_gt^T R_apr``) and
-applied to the label file's pose of the same image. The gate and first steps are chosen on
-the validation images (held-out train sequences) with starts at every error scale, never on
-test. Finished scenes (``OUT/<scene>/real_starts_<APR>.json``) are skipped.
+``pae-train experiment=real_starts`` (synthetic images at every pose of the real label files,
+no thinning, and the scene model fitted to the train images), then for each APR
+``pae-localize RUN TEST_LABELS --init STARTS --refine render_compare`` (the gate, first steps,
+filter and surface share chosen on the run's validation split for starts of any error scale,
+kept in the run), each image on its own and, with ``--recordings``, each test recording with
+its frames' order (``--sequences``). A start carries its image's real error: the APR's
+estimate against the file's ground truth, taken in the camera frame
+(``dt = R_gt^T (t_apr - t_gt)``, ``dR = R_gt^T R_apr``) and applied to the label file's pose of
+the same image; run.py writes those starts as a label file, runs the two commands and scores
+what pae-localize wrote. Finished scenes (``OUT/<scene>/real_starts_<APR>.json``) are skipped.
 
     python experiments/render_compare_real_starts/run.py --labels ../shared/reference/labels \\
         --estimates ../shared/reference/estimates --out outputs/render_compare_real_starts
@@ -18,30 +21,23 @@ test. Finished scenes (``OUT/<scene>/real_starts_<APR>.json``) are skipped.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from pae.apps.any_start import CALIBRATION_FILE
 from pae.apps.localization import data_module, read_run, scene_model_path, split_queries
 from pae.core.atomic import atomic_write
 from pae.core.checkpoints import load_scene_model
 from pae.core.geometry import pose_errors, transfer_error
-from pae.data.labels import LabelTable, read_labels
+from pae.data.labels import LabelTable, read_labels, write_labels
 from pae.data.starts import match_starts, read_starts
-from pae.render_compare import (
-    ACCEPT_ALL,
-    AnyStartOptions,
-    Calibration,
-    Queries,
-    calibrate_any_start,
-    refine,
-)
-from pae.render_compare.calibration import CONTRAST_PX, HIGHPASS_PX, SURFACE_SHARES, scene_size
+from pae.render_compare import ACCEPT_ALL, Calibration, Queries, refine
 from pae.render_compare.settings import RenderCompareSettings
 
 SCENES = {
@@ -74,12 +70,9 @@ def fit(scene: str, files: list[Path], args: argparse.Namespace, overrides: list
             sys.executable,
             "-m",
             "pae.train",
-            "experiment=real_starts",
+            f"experiment={args.experiment}",
             f"data.poses=[{files[0]},{files[1]}]",
             f"hydra.run.dir={run}",
-            f"data.size={args.size}",
-            f"data.crop={args.size}",
-            f"scene_model.image_size={args.size}",
             *overrides,
         ]
         print(" ".join(command[2:]), flush=True)
@@ -126,109 +119,120 @@ def source_paths(rendered: LabelTable, source: Path) -> list[str]:
 
 
 def refiner_settings(size: int) -> RenderCompareSettings:
-    """The refiner's settings at a ``size``-px comparison: the final reference at half of
-    it (the default 32 px at 64 px; at 128 px 64, chosen on chess's val with floor.py)."""
+    """The refiner's settings at a ``size``-px comparison, as ``experiment=real_starts``
+    configures them: the final reference at half of it (the default 32 px at 64 px; at 128 px
+    64, chosen on chess's val with floor.py)."""
     return RenderCompareSettings(resolution=size, final_reference_size=size // 2)
 
 
 def chosen_steps(run_dir: Path) -> dict[str, float]:
-    """The first steps, filter and surface share that ``calibrate_any_start`` chose on the
-    scene's val images, read from its ``real_starts_<APR>.json`` (a one-line error where
-    run.py has not calibrated the scene yet)."""
-    path = run_dir / f"real_starts_{APRS[0]}.json"
+    """The first steps, filter and surface share chosen on the scene's val images (the
+    calibration for any start that pae-localize kept in the run; a one-line error where it
+    has not chosen one yet)."""
+    path = run_dir / CALIBRATION_FILE
     if not path.is_file():
         raise SystemExit(f"{path} is missing: run run.py on this scene first (it calibrates)")
-    chosen = json.loads(path.read_text())["calibration"]
-    gate = ("accept_margin", "accept_score")
-    return {key: value for key, value in chosen.items() if key not in gate}
+    return dict(json.loads(path.read_text())["calibration"]["steps"])
 
 
-def truth_audit(
-    run_dir: Path, model: object, test: dict[str, torch.Tensor], settings: object
-) -> None:
+def localize(run: Path, test: Path, starts: Path, tag: str, sequences: list[str]) -> dict:
+    """``pae-localize`` of the run's test images from ``starts`` -> its poses (``RUN/<tag>.csv``)
+    and its summary (``RUN/<tag>.json``), both read back."""
+    root = yaml_root(run)
+    out, summary = run / f"{tag}.csv", run / f"{tag}.json"
+    command = [sys.executable, "-m", "pae.localize", str(run), str(test), "--root", root]
+    command += ["--init", str(starts), "--refine", "render_compare", "--out", str(out)]
+    command += ["--summary", str(summary), *sequences]
+    print(" ".join(command[2:]), flush=True)
+    with (run / f"{tag}.log").open("w") as log:
+        subprocess.run(command, stdout=log, stderr=subprocess.STDOUT, check=True)
+    return {"poses": read_labels(out), **json.loads(summary.read_text())}
+
+
+def yaml_root(run: Path) -> str:
+    """The dataset root the run recorded (``.hydra/data.yaml``)."""
+    from omegaconf import OmegaConf
+
+    return str(OmegaConf.load(run / ".hydra" / "data.yaml").root)
+
+
+def truth_audit(run_dir: Path) -> None:
     """The scene model's floor, an audit reading the test labels as starts: the test images
-    refined from their true poses with the first steps chosen on val (every refinement
-    accepted) -> ``OUT/<scene>/truth_audit.json`` (``from_truth_oracle``)."""
-    calibration = Calibration(ACCEPT_ALL, ACCEPT_ALL, chosen_steps(run_dir))
-    truth = test["pose"]
+    refined from their true poses with the first steps chosen on val, every refinement
+    accepted (through the library: no product path refines from the truth) ->
+    ``OUT/<scene>/truth_audit.json`` (``from_truth_oracle``)."""
+    run = read_run(run_dir)
+    size = int(run.config.data.size)
+    data = data_module(run, cache_images=False)
+    data.setup()
+    model = load_scene_model(scene_model_path(run), "scene_model_ckpt").model.eval()
+    test = split_queries(data, "test", size)
     queries = Queries(test["image"], test["intrinsics"], test["scene"])
-    refined = refine(model, queries, truth, calibration, settings=settings)
+    calibration = Calibration(ACCEPT_ALL, ACCEPT_ALL, chosen_steps(run_dir))
+    settings = dataclasses.asdict(refiner_settings(size))
+    refined = refine(model, queries, test["pose"], calibration, settings=settings)
     with atomic_write(run_dir / "truth_audit.json") as handle:
-        json.dump({"from_truth_oracle": figures(refined.poses, truth)}, handle, indent=1)
+        json.dump({"from_truth_oracle": figures(refined.poses, test["pose"])}, handle, indent=1)
 
 
 def refine_scene(
     dataset: str, scene: str, run_dir: Path, files: list[Path], args: argparse.Namespace
 ) -> None:
-    """Calibrate on val, refine each APR's test starts, write one JSON per APR; then the
-    truth audit (:func:`truth_audit`)."""
+    """Each APR's test starts refined by pae-localize per image (and per recording), one JSON
+    per APR; then the truth audit (:func:`truth_audit`)."""
     todo = [a for a in APRS if not (run_dir / f"real_starts_{a}.json").is_file()]
-    audit = not (run_dir / "truth_audit.json").is_file()
-    if not todo and not audit:
-        print(f"{scene}: done", flush=True)
-        return
-    run = read_run(run_dir)
-    size = int(run.config.data.size)
-    data = data_module(run, cache_images=False, crop=size)  # the whole image is compared
-    data.setup()
-    loaded = load_scene_model(scene_model_path(run), "scene_model_ckpt")
-    model = loaded.model.eval()
-    settings = refiner_settings(size)
-    val = split_queries(data, "val", settings.resolution)
-    test = split_queries(data, "test", settings.resolution)
-    if not todo:
-        truth_audit(run_dir, model, test, settings)
-        return
-    train_positions, _ = data.train_poses()
-    extent = scene_size(train_positions[:, :3].double())
-    start = time.perf_counter()
-    tried = AnyStartOptions(args.highpass_px, args.contrast_px, args.surface_shares)
-    calibration, val_refined, val_starts = calibrate_any_start(
-        model, Queries(val["image"], val["intrinsics"], val["scene"]), val["pose"], extent,
-        settings, tried,
-    )  # fmt: skip
-    calibrate_s = time.perf_counter() - start
+    test_labels = Path(yaml_root(run_dir)) / "labels" / "all_test.csv"
+    rendered = read_labels(test_labels)
+    truth = torch.as_tensor(rendered.poses, dtype=torch.float32)
+    img_paths = source_paths(rendered, files[1])
     metrics = json.loads((run_dir / "metrics.json").read_text())
-    img_paths = source_paths(data.tables["test"], files[1])
     for apr in todo:
-        starts = real_starts(args.estimates / apr / dataset, scene, img_paths, test["pose"])
-        start = time.perf_counter()
-        queries = Queries(test["image"], test["intrinsics"], test["scene"])
-        refined = refine(model, queries, starts["start"], calibration, settings=settings)
-        seconds = time.perf_counter() - start
-        ungated = refined.result.poses
+        starts = real_starts(args.estimates / apr / dataset, scene, img_paths, truth)
+        start_file = run_dir / f"starts_{apr}.csv"
+        write_labels(
+            start_file, dataclasses.replace(rendered, poses=starts["start"].double().numpy())
+        )
+        modes = {"render_compare": []}
+        if args.recordings:
+            passes, window = args.recordings
+            modes["per_recording"] = ["--sequences", "--sequence-passes", str(passes)]
+            modes["per_recording"] += ["--sequence-window", str(window)]
+        found = {
+            m: localize(run_dir, test_labels, start_file, f"{m}_{apr}", o) for m, o in modes.items()
+        }
+        kept = json.loads((run_dir / CALIBRATION_FILE).read_text())
+        alone = found["render_compare"]
         record = {
             "scene": scene,
             "dataset": dataset,
             "apr": apr,
-            "queries": len(test["pose"]),
-            "val_queries": len(val["pose"]),
-            "scene_size_m": extent,
-            "image_px": size,
-            "final_reference_px": settings.final_reference_size,
+            "queries": len(truth),
+            "val_queries": kept["val_queries"],
+            "scene_size_m": kept["scene_size_m"],
+            "image_px": int(rendered_size(run_dir)),
             "calibration": {
-                "accept_margin": calibration.accept_margin,
-                "accept_score": calibration.accept_score,
-                **dict(calibration.steps),
+                "accept_margin": alone["calibration"]["accept_margin"],
+                "accept_score": alone["calibration"]["accept_score"],
+                **alone["calibration"]["steps"],
             },
-            "val": {
-                "start": figures(val_starts, val["pose"]),
-                "render_compare": figures(val_refined.poses, val["pose"]),
-            },
-            "start": figures(starts["start"], test["pose"]),
-            "render_compare": figures(refined.poses, test["pose"]),
-            "render_compare_ungated": figures(ungated, test["pose"]),
-            "nefes50": figures(starts["nefes50"], test["pose"]),
-            "accepted_share": float(refined.accepted.float().mean()),
-            "worse_than_start_share": float(
-                (pose_errors(refined.poses, test["pose"])[0]
-                 > pose_errors(starts["start"], test["pose"])[0]).float().mean()
-            ),
+            "val": kept["val"],
+            "start": figures(starts["start"], truth),
+            "nefes50": figures(starts["nefes50"], truth),
+            "accepted_share": alone["accepted_share"],
             "psnr_db": metrics.get("test/scene_model/psnr_db"),
             "fit_s": metrics.get("bench/scene_fit/fit_s"),
-            "calibrate_s": calibrate_s,
-            "ms_per_query": 1000 * seconds / len(test["pose"]),
-        }  # fmt: skip
+            "calibrate_s": alone["calibrate_s"],
+            "ms_per_query": alone["ms_per_query"],
+        }
+        for mode, answer in found.items():
+            poses = torch.as_tensor(answer["poses"].poses, dtype=torch.float32)
+            record[mode] = figures(poses, truth)
+            worse = pose_errors(poses, truth)[0] > pose_errors(starts["start"], truth)[0]
+            record[f"{mode}_worse_than_start_share"] = float(worse.float().mean())
+        if "per_recording" in found:
+            record["recordings"] = found["per_recording"]["recordings"]
+            record["per_recording_ms_per_query"] = found["per_recording"]["ms_per_query"]
+            record["sequence_passes_window"] = list(args.recordings)
         with atomic_write(run_dir / f"real_starts_{apr}.json") as handle:
             json.dump(record, handle, indent=1)
         print(
@@ -237,7 +241,15 @@ def refine_scene(
             f"{record['nefes50']['pos_median_m']:.3f} m), accepted {record['accepted_share']:.2f}",
             flush=True,
         )
-    truth_audit(run_dir, model, test, settings)
+    if not (run_dir / "truth_audit.json").is_file():
+        truth_audit(run_dir)
+
+
+def rendered_size(run: Path) -> int:
+    """The px the run rendered and compared (its ``data.size``)."""
+    from omegaconf import OmegaConf
+
+    return int(OmegaConf.load(run / ".hydra" / "config.yaml").data.size)
 
 
 def main(argv: list[str]) -> int:
@@ -250,40 +262,20 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--out", type=Path, default=Path("outputs/render_compare_real_starts"))
     parser.add_argument("--scenes", nargs="+", help="in this order (default: all eleven)")
     parser.add_argument(
-        "--size",
+        "--experiment",
+        default="real_starts",
+        help="the pae-train experiment of each scene (default: real_starts, 64 px; "
+        "real_starts_px128: 128 px); further pae-train overrides after --",
+    )
+    parser.add_argument(
+        "--recordings",
         type=int,
-        default=64,
-        help="px of the rendered images, the scene model's "
-        "train images and the comparison (default: 64)",
-    )
-    parser.add_argument(
-        "--highpass-px",
-        type=float,
-        nargs="+",
-        default=[HIGHPASS_PX],
-        help=f"the high-passes (px) the calibration tries (default: {HIGHPASS_PX:g})",
-    )
-    parser.add_argument(
-        "--contrast-px",
-        type=float,
-        nargs="*",
-        default=list(CONTRAST_PX),
-        help="the local contrasts (px) the calibration tries with each high-pass besides none "
-        f"(default: {' '.join(f'{c:g}' for c in CONTRAST_PX)}; none given: none tried)",
-    )
-    parser.add_argument(
-        "--surface-shares",
-        type=float,
-        nargs="*",
-        default=list(SURFACE_SHARES),
-        help="the references' surface shares the calibration tries besides the light's mean "
-        f"depth (default: {' '.join(f'{c:g}' for c in SURFACE_SHARES)}; none given: none)",
+        nargs=2,
+        metavar=("PASSES", "WINDOW"),
+        help="also refine each test recording with its frames' order (pae-localize "
+        "--sequences) with these sequence passes and median window",
     )
     args = parser.parse_args(own)
-    if min(args.highpass_px + args.contrast_px, default=0.0) < 0:
-        parser.error("--highpass-px and --contrast-px take sigmas (px) >= 0")
-    if not all(0 < share < 1 for share in args.surface_shares):
-        parser.error("--surface-shares take shares of a ray's opacity in (0, 1)")
     dataset_of = {scene: dataset for dataset, names in SCENES.items() for scene in names}
     for scene in args.scenes or list(dataset_of):
         if scene not in dataset_of:

@@ -1,7 +1,7 @@
 """The tables of experiments/render_compare_real_starts: one per APR (DFNet, PoseNet), a row per
 scene and the mean over each dataset, from ``OUT/<scene>/real_starts_<APR>.json`` (and the
 truth audit, ``truth_audit.json``: refined from the true poses, a floor that reads the test
-labels).
+labels); a column per recording where run.py refined the recordings too (``--recordings``).
 
     python experiments/render_compare_real_starts/table.py outputs/render_compare_real_starts
 """
@@ -32,14 +32,16 @@ def cell(figures: dict[str, float]) -> str:
     return f"{100 * figures['pos_median_m']:.1f} / {figures['rot_median_deg']:.2f}"
 
 
-def row(record: dict) -> list[str]:
+def row(record: dict, recordings: bool) -> list[str]:
     start, pae, nefes = record["start"], record["render_compare"], record["nefes50"]
     ratio = pae["pos_median_m"] / start["pos_median_m"]
     nefes_ratio = nefes["pos_median_m"] / start["pos_median_m"]
+    walked = [cell(record["per_recording"]) if "per_recording" in record else ""] * recordings
     return [
         record["scene"],
         cell(start),
         cell(pae),
+        *walked,
         cell(nefes),
         f"{ratio:.2f}× / {nefes_ratio:.2f}×",
         cell(record["audit"]) if "audit" in record else "",
@@ -65,13 +67,15 @@ def chosen_filter(calibration: dict[str, float]) -> str:
     return f"{chosen}; s {share:g}" if share else chosen
 
 
-def mean_row(dataset: str, records: list[dict]) -> list[str]:
+def mean_row(dataset: str, records: list[dict], recordings: bool) -> list[str]:
     def mean(method: str, key: str) -> float:
         return sum(r[method][key] for r in records) / len(records)
 
+    methods = ["start", "render_compare", "nefes50"]
+    every = recordings and all("per_recording" in r for r in records)
     figures = {
         method: {k: mean(method, k) for k in ("pos_median_m", "rot_median_deg")}
-        for method in ("start", "render_compare", "nefes50")
+        for method in methods + ["per_recording"] * every
     }
     ratio = figures["render_compare"]["pos_median_m"] / figures["start"]["pos_median_m"]
     nefes = figures["nefes50"]["pos_median_m"] / figures["start"]["pos_median_m"]
@@ -79,6 +83,7 @@ def mean_row(dataset: str, records: list[dict]) -> list[str]:
         f"**{dataset} mean ({len(records)})**",
         cell(figures["start"]),
         cell(figures["render_compare"]),
+        *[cell(figures["per_recording"]) if every else ""] * recordings,
         cell(figures["nefes50"]),
         f"{ratio:.2f}× / {nefes:.2f}×",
         "",
@@ -104,14 +109,18 @@ def main(argv: list[str]) -> int:
         if not records:
             continue
         print(f"\n{apr} starts (median cm / deg over each scene's test images)\n")
-        print("| " + " | ".join(COLUMNS) + " |")
-        print("|" + "---|" * len(COLUMNS))
+        recordings = any("per_recording" in r for r in records)
+        columns = list(COLUMNS)
+        if recordings:
+            columns.insert(3, "per recording cm / deg")
+        print("| " + " | ".join(columns) + " |")
+        print("|" + "---|" * len(columns))
         for dataset in ("7Scenes", "Cambridge"):
             members = [r for r in records if r["dataset"] == dataset]
             for record in members:
-                print("| " + " | ".join(row(record)) + " |")
+                print("| " + " | ".join(row(record, recordings)) + " |")
             if members:
-                print("| " + " | ".join(mean_row(dataset, members)) + " |")
+                print("| " + " | ".join(mean_row(dataset, members, recordings)) + " |")
     return 0
 
 

@@ -4,7 +4,9 @@ checkpoints, in the label-file format (pae.apps.localization)."""
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+import time
 from pathlib import Path
 
 EPILOG = """examples:
@@ -93,6 +95,34 @@ def parser() -> argparse.ArgumentParser:
         "scale (another APR's: a start is refined only where that helps); auto: run where "
         "FILE holds the teacher's own estimates, else any",
     )
+    parse.add_argument(
+        "--sequences",
+        nargs="?",
+        const="folders",
+        choices=("folders", "column"),
+        help="render_compare: refine each recording with its frames' order (the sequence "
+        "passes and median window, --sequence-passes and --sequence-window); each frame's "
+        "recording from the folder it sits in (folders, the default) or the --init file's "
+        "seq column (column), its frames ordered by name",
+    )
+    parse.add_argument(
+        "--sequence-passes",
+        type=int,
+        help="with --sequences: propagation passes (default: the run's recorded or "
+        "configured render_compare.sequence_passes)",
+    )
+    parse.add_argument(
+        "--sequence-window",
+        type=int,
+        help="with --sequences: the median window over frames, odd (default: the run's)",
+    )
+    parse.add_argument(
+        "--summary",
+        type=Path,
+        metavar="FILE",
+        help="also write a JSON of the run: method, gate, the calibration applied, the "
+        "accepted share, the recordings and the seconds per query",
+    )
     return parse
 
 
@@ -116,8 +146,10 @@ def localize(args: argparse.Namespace) -> None:
     from omegaconf import OmegaConf
 
     from pae.apps import localization as loc
-    from pae.apps.queries import gather_queries
-    from pae.core.atomic import check_writable_dir, check_writable_file
+    from pae.apps.any_start import calibration_record
+    from pae.apps.queries import gather_queries, output_table, summary_line
+    from pae.apps.recordings import recordings_of, reordered, sequence_options
+    from pae.core.atomic import atomic_write, check_writable_dir, check_writable_file
     from pae.core.checkpoints import load_teacher
     from pae.core.console import Progress
     from pae.core.errors import ConfigError
@@ -128,6 +160,8 @@ def localize(args: argparse.Namespace) -> None:
         check_writable_dir(args.out, "--out")
     else:
         check_writable_file(args.out, "--out")
+    if args.summary is not None:
+        check_writable_file(args.summary, "--summary")
     run = loc.read_run(args.run_dir)
     methods = loc.methods_of(run)
     method = args.refine
@@ -139,23 +173,33 @@ def localize(args: argparse.Namespace) -> None:
         args.batch_size = int(OmegaConf.select(run.config, "data.eval_batch_size", default=64))
     if args.batch_size < 1:
         raise ConfigError(f"--batch-size must be >= 1, got {args.batch_size}")
-    step = {loc.RENDER_COMPARE: "scene_model", loc.TEACHER: None}.get(method, "student")
-    if step is not None:
-        teacher_path = run.checkpoint(step, method)
-    elif "teacher" in run.steps:
-        teacher_path = run.checkpoint("teacher", method)
-    else:  # a later step's checkpoint holds a copy of its teacher
-        teacher_path = run.checkpoint(run.steps[0], method)
+    if method == loc.RENDER_COMPARE:
+        loc.scene_model_path(run)  # before any work: the run has one
+    elif method != loc.TEACHER:
+        run.checkpoint("student", method)
+    teacher_path = loc.teacher_checkpoint(run, method)
+    if teacher_path is None and (method != loc.RENDER_COMPARE or args.init is None):
+        raise ConfigError(
+            f"{run.folder}: the run has no teacher (its steps are {run.steps}): only "
+            "--refine render_compare --init FILE, from another APR's poses"
+        )
+    if args.sequences and method != loc.RENDER_COMPARE:
+        raise ConfigError("--sequences: only --refine render_compare uses recordings")
     if args.onnx is not None and method != loc.TEACHER:
         raise ConfigError(f"--onnx runs the teacher only, not --refine {method}")
     queries = gather_queries(args.inputs, args.root or run.data_root)
-    if args.onnx is not None:
+    if teacher_path is None:
+        teacher = None
+    elif args.onnx is not None:
         from pae.apps.onnx_teacher import load_onnx_teacher
 
         teacher = load_onnx_teacher(args.onnx, run, teacher_path)
     else:
         teacher = load_teacher(teacher_path)
     data = loc.data_module(run)
+    if teacher is None:
+        data.setup()
+    scene_names = data.scene_names if teacher is None else teacher.scene_names
     intrinsics = None
     width = None
     if method == loc.RENDER_COMPARE:
@@ -169,17 +213,22 @@ def localize(args: argparse.Namespace) -> None:
         def uncropped(size: tuple[int, int], focal: object, shorter: int) -> torch.Tensor:
             return loc.query_intrinsics(data.camera, size, shorter, None, focal, args.focal)
 
-    starts = None
+    starts = starts_file = None
     if args.init is not None:  # read before any work: a bad row is one line, nothing run
-        from pae.data.starts import starts_for
+        from pae.data.starts import placed_starts, read_starts
 
-        starts = starts_for(
-            queries.shown, args.init, teacher.scene_names, args.init_axes, args.init_format
-        )
+        starts_file = read_starts(args.init, args.init_axes, args.init_format)
+        starts = placed_starts(queries.shown, starts_file, str(args.init), scene_names)
     device = torch.device(args.device)
     emit = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
+    recordings = options = None
+    if args.sequences:
+        recordings = recordings_of(queries.shown, args.sequences, starts_file, str(args.init or ""))
+        options = sequence_options(run, args.sequence_passes, args.sequence_window)
+    summary = {"method": method, "run": str(run.folder), "init": args.init and str(args.init)}
+    started = time.perf_counter()
     found = loc.estimate(
-        teacher.model,
+        None if teacher is None else teacher.model,
         queries,
         data,
         intrinsics,
@@ -191,30 +240,59 @@ def localize(args: argparse.Namespace) -> None:
     gate = "run"
     if starts is not None:
         pose, scene = starts
-        own = loc.are_estimates_of(pose, found.pose)
+        own = teacher is not None and loc.are_estimates_of(pose, found.pose)
         gate = args.init_gate if args.init_gate != "auto" else ("run" if own else "any")
         found = found._replace(pose=pose, scene=found.scene if scene is None else scene)
         emit(f"pae-localize: {len(pose)} starts from {args.init} (render_compare gate: {gate})")
     if method == loc.TEACHER:
         poses = found.pose
     elif method == loc.RENDER_COMPARE:
-        if f"test/{loc.RENDER_COMPARE}/accept_margin" not in run.metrics:
+        if f"test/{loc.RENDER_COMPARE}/accept_margin" not in run.metrics and gate == "run":
             emit(
                 f"pae-localize: warning: {run.folder / 'metrics.json'} records no "
                 "render_compare gate or steps: the configured ones are used"
             )
         emit(f"pae-localize: render_compare of {len(found.pose)} images")
-        matching = loc.match_queries(run, queries, data, teacher.model.eval(), uncropped)
-        poses, scenes = loc.render_compare(
-            run, teacher.model.to(device), found, device, gate, matching
-        )
+        model = None if teacher is None else teacher.model.eval()
+        matching = None
+        if gate != "any":
+            matching = loc.match_queries(run, queries, data, model, uncropped)
+        in_order = None
+        if recordings is not None and options is not None:
+            emit(f"pae-localize: {len(recordings.names)} recordings ({options})")
+            found = reordered(found, recordings.order)
+            in_order = (recordings.ids, options)
+        refined = loc.render_compare(
+            run, None if model is None else model.to(device), found, device, gate, matching,
+            in_order,
+        )  # fmt: skip
+        poses, scenes, accepted = refined.poses, refined.scenes, refined.accepted
+        if recordings is not None:
+            poses, scenes, accepted = map(recordings.restore, (poses, scenes, accepted))
+            found = reordered(found, torch.argsort(recordings.order))
         found = found._replace(scene=scenes)
+        summary |= {
+            "gate": gate,
+            "calibration": calibration_record(refined.calibration),
+            "accepted_share": float(accepted.float().mean()),
+            "calibrate_s": refined.calibrate_s,
+        }
     else:
         poses = loc.student_poses(run, method, teacher.model.cpu(), found)
-    table = loc.output_table(queries, poses, found.scene, teacher.scene_names)
+    seconds = time.perf_counter() - started
+    table = output_table(queries, poses, found.scene, scene_names)
     write_poses(args.out, table, args.format)
+    if args.summary is not None:
+        summary |= {
+            "images": len(table),
+            "recordings": None if recordings is None else len(recordings.names),
+            "seconds": seconds,
+            "ms_per_query": 1000 * (seconds - summary.get("calibrate_s", 0.0)) / len(table),
+        }
+        with atomic_write(args.summary) as handle:
+            json.dump(summary, handle, indent=1)
     if queries.labelled:
-        print(loc.summary_line(method, poses, queries, teacher.scene_names, found.scene))
+        print(summary_line(method, poses, queries, scene_names, found.scene))
     print(f"poses: {args.out} ({len(table)} images, {method}, {args.format})")
 
 

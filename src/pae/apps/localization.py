@@ -5,6 +5,7 @@ student's test-time refinements, read exactly as the run evaluated its test spli
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -15,22 +16,21 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
+from pae.apps.any_start import any_start_calibration as cached_calibration
 from pae.apps.queries import Queries
 from pae.core.camera import Intrinsics, resized_size
 from pae.core.checkpoints import load_pae, load_scene_model
 from pae.core.errors import CheckpointError, ConfigError, ImageError
-from pae.core.geometry import canonicalize_quaternion, normalize_pose, pose_errors
-from pae.core.metrics import summarise_errors
+from pae.core.geometry import pose_errors
 from pae.core.provenance import DATA_RECORD
 from pae.data.datamodule import PoseDataModule
 from pae.data.dataset import PoseDataset
-from pae.data.labels import LabelTable
 from pae.data.transforms import ImageTransform
 from pae.lit.eval_outputs import EVAL, teacher_descriptor, train_images
 from pae.lit.scene_model import compare_queries
 from pae.models.base import Latents
 from pae.models.latents import compute_teacher_latents
-from pae.render_compare import Calibration, CalibrationOptions, calibrate_any_start, refine
+from pae.render_compare import Calibration, CalibrationOptions, Sequences, refine
 from pae.render_compare import Queries as CompareQueries
 from pae.render_compare.calibration import scene_size, teacher_features
 from pae.render_compare.correspondences import MatchQueries
@@ -38,6 +38,7 @@ from pae.render_compare.queries import recorded_match
 from pae.render_compare.refiner import ACCEPT_ALL, BUILD_KEYS, refiner_defaults
 from pae.render_compare.scene_decision import SceneRule
 from pae.render_compare.scene_starts import latent_starts
+from pae.render_compare.sequences import SequenceOptions
 from pae.scene_model.base import SceneModel
 
 TEACHER = "teacher"
@@ -75,6 +76,20 @@ class Run(NamedTuple):
                 f"steps are {self.steps}"
             )
         return path
+
+
+def teacher_checkpoint(run: Run, method: str) -> Path | None:
+    """The checkpoint whose teacher gives ``method``'s estimates: the student's for its
+    methods, the scene model step's for render_compare (each keeps a copy of its teacher),
+    else the teacher step's, else the first later step's; None for a run without a teacher
+    (a scene_fit run: render_compare from another APR's starts only)."""
+    step = {RENDER_COMPARE: "scene_model", TEACHER: None}.get(method, "student")
+    if step is not None and step in run.steps:
+        return run.checkpoint(step, method)
+    carrying = [s for s in run.steps if s != "scene_fit"]
+    if "teacher" in carrying:
+        return run.checkpoint("teacher", method)
+    return run.checkpoint(carrying[0], method) if carrying else None
 
 
 def read_run(folder: str | Path) -> Run:
@@ -160,9 +175,18 @@ class Estimates(NamedTuple):
     scene_logits: Tensor | None = None
 
 
+def no_estimates(n: int) -> dict[str, Tensor]:
+    """The placeholders of ``n`` queries where no teacher estimates them (a run without one,
+    its starts from another APR): identity poses, scene 0, no latents."""
+    pose = torch.zeros(n, 7)
+    pose[:, 3] = 1.0
+    scene = torch.zeros(n, dtype=torch.long)
+    return {EVAL.estimate: pose, EVAL.scene_estimate: scene, "latents": torch.zeros(n, 0)}
+
+
 @torch.no_grad()
 def estimate(
-    teacher: torch.nn.Module,
+    teacher: torch.nn.Module | None,
     queries: Queries,
     data: PoseDataModule,
     intrinsics: Callable[[tuple[int, int], np.ndarray | None], Tensor] | None,
@@ -172,32 +196,35 @@ def estimate(
     progress: Callable[[int, int], None],
 ) -> Estimates:
     """The teacher's estimates of every query, a batch at a time, pre-processed as the run
-    evaluated its test split; ``intrinsics`` ((h, w) on disk, focal lengths of the rows or
-    None -> [B, 4]): keep the images for render-and-compare at ``compare_width`` px."""
+    evaluated its test split (placeholders without a ``teacher``); ``intrinsics`` ((h, w)
+    on disk, focal lengths of the rows or None -> [B, 4]): keep the images for
+    render-and-compare at ``compare_width`` px."""
     table = queries.table
     dataset = PoseDataset(table, queries.root, table.scene_names, data.shorter_edge)
     if dataset.image_size is None:
         raise ImageError("no images to localise")
-    teacher = teacher.to(device)
+    teacher = None if teacher is None else teacher.to(device)
     transform = ImageTransform(data.crop, train=False).to(device)
     parts: list[dict[str, Tensor]] = []
     total = len(dataset)
     for start in range(0, total, batch_size):
         rows = list(range(start, min(start + batch_size, total)))
         images = transform(dataset.__getitems__(rows)["image"].to(device))
-        answer = teacher.estimate(images, torch.zeros(len(rows), dtype=torch.long, device=device))
-        part = {
-            EVAL.estimate: answer.pose.cpu(),
-            EVAL.scene_estimate: answer.scene.cpu(),
-            "latents": answer.latents.joint().cpu(),
-        }
+        part = no_estimates(len(rows))
+        if teacher is not None:
+            answer = teacher.estimate(images, torch.zeros(len(rows), dtype=torch.long).to(device))
+            part = {
+                EVAL.estimate: answer.pose.cpu(),
+                EVAL.scene_estimate: answer.scene.cpu(),
+                "latents": answer.latents.joint().cpu(),
+            }
         if intrinsics is not None:
             focal = None if table.focal is None else table.focal[rows]
             rgb = ImageTransform.unnormalize_batch(images)
             vectors = intrinsics(dataset.image_size, focal).expand(len(rows), 4).to(device)
             small, vectors = compare_queries(rgb, vectors, compare_width)
             part |= {EVAL.image: small.cpu(), EVAL.intrinsics: vectors.cpu()}
-            scene_poses = teacher.scene_poses(images)
+            scene_poses = None if teacher is None else teacher.scene_poses(images)
             if scene_poses is not None:
                 part[EVAL.scene_poses] = scene_poses.cpu()
                 part["scene_latents"] = teacher.scene_latents(images).cpu()
@@ -293,8 +320,7 @@ def any_start_calibration(
     run: Run, model: SceneModel, settings: dict[str, Any], features: Any, device: torch.device
 ) -> Calibration:
     """The gate and first steps for starts from another APR, chosen on the run's validation
-    split (:func:`pae.render_compare.calibrate_any_start`: starts at every error scale of the
-    scene's size, from its train cameras)."""
+    split and kept in the run folder (:func:`pae.apps.any_start.any_start_calibration`)."""
     data = data_module(run, cache_images=False)
     data.setup()
     if data.val_is_test or not len(data.datasets["val"]):
@@ -306,13 +332,9 @@ def any_start_calibration(
     val = split_queries(data, "val", compare_width(settings))
     positions, _ = data.train_poses()
     size = scene_size(positions[:, :3].double())
-    queries = CompareQueries(
-        val["image"].to(device), val["intrinsics"].to(device), val["scene"].to(device)
-    )
-    calibration, _, _ = calibrate_any_start(
-        model, queries, val["pose"].to(device), size, settings | {"features": features}
-    )
-    return calibration
+    on_device = {key: value.to(device) for key, value in val.items()}
+    checkpoint = (model, scene_model_path(run))
+    return cached_calibration(run.folder, checkpoint, on_device, size, settings, features)
 
 
 def scene_starts(
@@ -369,34 +391,55 @@ def match_queries(
     )
 
 
+class Refined(NamedTuple):
+    """Render-and-compare's answer for the queries: poses [N, 7], scenes [N], whether the
+    gate accepted each refinement [N] (bool), the calibration applied and the seconds spent
+    choosing it (0 where it was the run's or read back)."""
+
+    poses: Tensor
+    scenes: Tensor
+    accepted: Tensor
+    calibration: Calibration
+    calibrate_s: float = 0.0
+
+
 def render_compare(
     run: Run,
-    teacher: torch.nn.Module,
+    teacher: torch.nn.Module | None,
     found: Estimates,
     device: torch.device,
     gate: str = "run",
     matching: MatchQueries | None = None,
-) -> tuple[Tensor, Tensor]:
-    """The render-and-compare poses [N, 7] of the queries against the run's scene model and
-    their scenes [N], from ``found.pose`` (the teacher's estimates, or another APR's),
+    recordings: tuple[Tensor, SequenceOptions] | None = None,
+) -> Refined:
+    """Render-and-compare of the queries against the run's scene model from ``found.pose``
+    (the teacher's estimates, or another APR's; without a ``teacher`` only the latter),
     through ``gate``: ``run`` the gate, steps and scene decision the run chose on val for its
     teacher and applied at test (a multi-scene teacher's queries decided between scenes as
     in the run), ``any`` those chosen on the run's validation split for starts of any error
     scale (:func:`any_start_calibration`; in the scene given); ``matching``
     (:func:`match_queries`): the correspondence stage the run chose on val runs too (not
-    with ``any``, whose calibration chooses none)."""
+    with ``any``, whose calibration chooses none); ``recordings``: each query's recording
+    [N] (its frames in row order) and how the refinement uses them."""
     loaded = load_scene_model(scene_model_path(run), "scene_model_ckpt")
     settings, calibration = render_compare_settings(run)
     features = None
     if settings.get("score") == "features":
+        if teacher is None:
+            raise ConfigError(f"{run.folder}: score=features needs the run's teacher; it has none")
         features = teacher_features(teacher, run.config.render_compare.feature_layers)
     model = loaded.model.to(device)
     scene_poses = scene_logits = None
+    calibrate_s = time.perf_counter()
     if gate == "any":
         calibration = any_start_calibration(run, model, settings, features, device)
-    elif found.scene_poses is not None and found.scene_logits is not None:
+    elif teacher is not None and found.scene_poses is not None and found.scene_logits is not None:
         scene_poses = scene_starts(run, teacher, found, device)
         scene_logits = found.scene_logits.to(device)
+    calibrate_s = time.perf_counter() - calibrate_s if gate == "any" else 0.0
+    sequences = None
+    if recordings is not None:
+        sequences = Sequences(recordings[0].to(device), recordings[1])
     assert found.images is not None and found.intrinsics is not None
     queries = CompareQueries(
         found.images.to(device),
@@ -411,9 +454,11 @@ def render_compare(
         queries,
         found.pose.to(device),
         calibration,
-        settings=settings | {"features": features},
+        sequences,
+        settings | {"features": features},
     )
-    return refined.poses.cpu(), refined.scenes.cpu()
+    poses, scenes, accepted = refined.poses.cpu(), refined.scenes.cpu(), refined.accepted.cpu()
+    return Refined(poses, scenes, accepted, calibration, calibrate_s)
 
 
 def student_poses(run: Run, method: str, teacher: torch.nn.Module, found: Estimates) -> Tensor:
@@ -446,55 +491,3 @@ def student_poses(run: Run, method: str, teacher: torch.nn.Module, found: Estima
     if method == "knn_mean":
         return refiner.neighbour_mean(result.neighbour_indices, found.pose)
     return result.poses
-
-
-def canonical(poses: Tensor) -> Tensor:
-    """Poses [N, 7] as label files store them: unit quaternion with ``qw >= 0``."""
-    poses = normalize_pose(poses.double())
-    return torch.cat([poses[:, :3], canonicalize_quaternion(poses[:, 3:])], -1)
-
-
-def summary_line(
-    method: str,
-    poses: Tensor,
-    queries: Queries,
-    scene_names: list[str],
-    assigned: Tensor | None = None,
-) -> str:
-    """The median errors of ``poses`` [N, 7] against the label file's poses (per scene,
-    averaged over scenes, as pae-eval's overall figures) and, for a multi-scene teacher
-    whose scenes the label file names, the share of the scenes ``assigned`` [N] (ids into
-    ``scene_names``) that are the label file's."""
-    table = queries.table
-    truth = torch.as_tensor(table.poses, dtype=torch.float32)
-    known = [s for s in table.scene_names if s in scene_names]
-    names = scene_names if known == table.scene_names else table.scene_names
-    scene = torch.as_tensor(table.scene_ids(names))
-    pos, rot = pose_errors(poses.float(), truth)
-    summary = summarise_errors(pos, rot, scene, names)
-    line = (
-        f"{method}: median {float(summary['pos_median_m']):.3f} m / "
-        f"{float(summary['rot_median_deg']):.2f}° against the label file's poses "
-        f"({len(table)} images; within 10 cm, 10°: "
-        f"{100 * float(summary['within_10cm_10deg']):.1f} %"
-    )
-    if assigned is not None and len(scene_names) > 1 and set(table.scene) <= set(scene_names):
-        true = torch.as_tensor([scene_names.index(s) for s in table.scene])
-        line += f"; scene accuracy {100 * float((assigned == true).float().mean()):.1f} %"
-    return line + ")"
-
-
-def output_table(queries: Queries, poses: Tensor, scene: Tensor, names: list[str]) -> LabelTable:
-    """Label-file rows of the queries with ``poses`` [N, 7]: a label file's own columns, or
-    for images the scene the teacher assigns (``scene`` [N], ids into ``names``) and the path
-    as given."""
-    table = queries.table
-    scenes = table.scene if queries.labelled else [names[i] for i in scene.tolist()]
-    return LabelTable(
-        scene=scenes,
-        split=table.split,
-        seq=table.seq,
-        img_path=queries.shown,
-        poses=canonical(poses).numpy(),
-        focal=table.focal,
-    )

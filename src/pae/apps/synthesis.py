@@ -40,6 +40,19 @@ SYNTH_OPTIONS = {
 """The benchmark's settings (:class:`pae.synthetic.settings.SyntheticSettings`) ->
 ``pae-data synth``'s options that set them (``--test-offset`` for ``test_offset``); one
 not given keeps its default."""
+DRESSING = (
+    "lighting_change",
+    "occluder_fraction",
+    "sensor_noise_std",
+    "motion_blur_px",
+    "plain_surface_share",
+    "repeated_surface_share",
+    "glossy_surface_share",
+    "camera_pipeline",
+    "jpeg_quality",
+    "render_scale",
+)
+"""The settings ``--poses`` takes too: the nuisances, surfaces and capture (not the layout's)."""
 
 
 def run_synth(args: argparse.Namespace) -> int:
@@ -52,9 +65,10 @@ def run_synth(args: argparse.Namespace) -> int:
         if getattr(args, option) is not None
     }
     if args.poses:
-        if given:
-            flags = ", ".join(f"--{SYNTH_OPTIONS[s].replace('_', '-')}" for s in given)
-            raise ValueError(f"--poses renders the given rows only: drop {flags}")
+        layout = [s for s in given if s not in DRESSING]
+        if layout:
+            flags = ", ".join(f"--{SYNTH_OPTIONS[s].replace('_', '-')}" for s in layout)
+            raise ValueError(f"--poses renders the given rows, in no layout of its own: drop {flags}")
         from pae.synthetic.poses import write_dataset_at_poses
 
         dataset = write_dataset_at_poses(
@@ -64,6 +78,7 @@ def run_synth(args: argparse.Namespace) -> int:
             seed=args.seed,
             overwrite=args.overwrite,
             progress=_render_progress(args.out),
+            options=synthetic.SyntheticSettings(**given),
         )
     else:
         if args.size is not None:
@@ -206,7 +221,8 @@ def add_synth_command(commands: Any) -> None:
         nargs="+",
         metavar="LABELS.csv",
         help="render one image per row of these label files, at exactly its pose, in a world "
-        "built around their camera positions (e.g. real Cambridge / 7-Scenes labels)",
+        "built around their camera positions (e.g. real Cambridge / 7-Scenes labels), with "
+        "the surface, nuisance and capture options given",
     )
     synth.add_argument("--size", type=int, metavar="PX", help="image side in pixels")
     synth.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")

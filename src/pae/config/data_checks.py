@@ -108,27 +108,15 @@ def match_synthetic_settings(cfg: DictConfig) -> list[str]:
 
 def _synthetic_settings(cfg: DictConfig) -> SyntheticSettings:
     """data.* of the synthetic benchmark as its record (its ranges; counts a given data.root
-    only describes may be null), then what ``data.poses`` and ``data.val_walks`` need: a
-    ConfigError naming the key."""
+    only describes may be null), then what ``data.poses`` (the given rows, no layout of its
+    own) and ``data.val_walks`` need: a ConfigError naming the key."""
     data, counts = cfg.data, ("scenes", "train_frames", "test_frames")
     unset = [] if _renders(cfg) else [name for name in counts if data.get(name) is None]
     described = {name: getattr(SyntheticSettings, name) for name in unset}
     renamed = {"seed": "render_seed"}
     settings = check_record(cfg, "data", SyntheticSettings, renamed, **described)
-    on = [f"data.{key}" for key in NUISANCE_BOUNDS if data.get(key)]
-    dressed = [*SURFACE_BOUNDS, "camera_pipeline", "jpeg_quality"]
-    dressed = [f"data.{key}" for key in dressed if data.get(key)]
-    dressed += ["data.render_scale"] * (settings.render_scale != 1)
-    lane = ["data.val_lane_m"] * (data.get("val_lane_m") is not None)
-    for wrong, how, value in (
-        (lane, "", "to null"),
-        (on, " without nuisances", "to 0"),
-        (dressed, " with the plain surfaces and capture", "off"),
-    ):
-        if data.get("poses") and wrong:
-            raise ConfigError(
-                f"data.poses renders the given rows{how}: set {', '.join(wrong)} {value}"
-            )
+    if data.get("poses") and data.get("val_lane_m") is not None:
+        raise ConfigError("data.poses renders the given rows: set data.val_lane_m to null")
     held = data.get("val_sequences")
     if settings.val_walks and (not is_int(held) or data.get("val_labels") or data.get("poses")):
         raise ConfigError(

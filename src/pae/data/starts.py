@@ -48,12 +48,14 @@ SHOWN = 5
 
 class Starts(NamedTuple):
     """Poses [N, 7] (camera-to-world, pae's axes) by image name, their scenes where the file
-    names them (else None) and the file's line of each."""
+    names them (else None), the file's line of each and the recording each frame came from
+    where the file has a column of them (a pae label file's ``seq``; else None)."""
 
     names: list[str]
     poses: np.ndarray
     scenes: list[str] | None
     lines: list[int]
+    recordings: list[str] | None = None
 
 
 def opengl_to_pae(quaternions: np.ndarray) -> np.ndarray:
@@ -180,8 +182,10 @@ def read_starts(
             table = read_labels(path)
         names, poses, scenes = list(table.img_path), table.poses.copy(), list(table.scene)
         lines = [table.file_line(row) for row in range(len(names))]
+        recordings = list(table.seq)
     else:
         (names, poses, lines), scenes = _lines(text, path, form, option), None
+        recordings = None
     first_line: dict[str, int] = {}
     for name, line in zip(names, lines, strict=True):
         if name in first_line:
@@ -189,7 +193,7 @@ def read_starts(
         first_line[name] = line
     if axes == "opengl":
         poses[:, 3:] = opengl_to_pae(poses[:, 3:])
-    return Starts(names, poses, scenes, lines)
+    return Starts(names, poses, scenes, lines, recordings)
 
 
 def _parts(name: str) -> tuple[str, ...]:

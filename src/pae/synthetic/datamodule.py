@@ -29,9 +29,12 @@ def default_root(settings: SyntheticSettings, poses: list[str] | None = None) ->
                 digest.update(Path(path).read_bytes())
             except OSError as err:
                 raise LabelError(path, None, f"data.poses: cannot read ({err.strerror})") from None
-        return (
-            f"{RENDER_FOLDER}/poses-{digest.hexdigest()[:12]}_px{settings.size}_seed{settings.seed}"
+        options = "".join(
+            part.folder_suffix()
+            for part in (settings.nuisances, settings.surfaces, settings.capture)
         )
+        name = f"poses-{digest.hexdigest()[:12]}_px{settings.size}_seed{settings.seed}{options}"
+        return f"{RENDER_FOLDER}/{name}"
     return f"{RENDER_FOLDER}/{settings.folder_name()}"
 
 
@@ -76,17 +79,6 @@ class SyntheticDataModule(PoseDataModule):
         counts = {"train_frames": train_frames, "test_frames": test_frames}
         rendering |= {name: count for name, count in counts.items() if count is not None}
         self.render_settings = SyntheticSettings(**rendering, seed=render_seed)
-        if poses and self.render_settings.nuisances.active:
-            raise ValueError(
-                "data.poses renders the given rows without nuisances: set lighting_change, "
-                "occluder_fraction, sensor_noise_std and motion_blur_px to 0"
-            )
-        if poses and (self.render_settings.surfaces.active or self.render_settings.capture.active):
-            raise ValueError(
-                "data.poses renders the given rows with the plain surfaces and capture: set "
-                "the *_surface_share settings, camera_pipeline and jpeg_quality to 0 and "
-                "render_scale to 1"
-            )
         val_walks = self.render_settings.val_walks
         if val_walks:
             held = settings.get("val_sequences", 1)
@@ -146,6 +138,7 @@ class SyntheticDataModule(PoseDataModule):
                     self.render_settings.seed,
                     required_splits=("train", "test"),
                     progress=progress,
+                    options=self.render_settings,
                 )
             else:
                 written = synthetic.write_synthetic_dataset(
@@ -172,7 +165,8 @@ class SyntheticDataModule(PoseDataModule):
             from pae.synthetic.poses import scenes_at_poses
 
             table = LabelTable.concat(read_labels(path) for path in self.poses)
-            worlds = dict(zip(table.scene_names, scenes_at_poses(table, seed), strict=True))
+            dressed = scenes_at_poses(table, seed, settings.surfaces)
+            worlds = dict(zip(table.scene_names, dressed, strict=True))
         else:
             worlds = {
                 synthetic.scene_name(i): synthetic.dress_surfaces(

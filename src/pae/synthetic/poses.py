@@ -10,11 +10,16 @@ about 35 times larger, textures and light fall-off included). Every camera lies 
 ray hits a textured face.
 
 The label files written keep each row's scene, split, seq and pose; ``img_path`` points at
-the rendered image ``<scene>/<split>-<seq>/frame-NNNNNN.png``.
+the rendered image ``<scene>/<split>-<seq>/frame-NNNNNN.png``. With the benchmark's surfaces,
+nuisances and capture (:class:`~pae.synthetic.settings.SyntheticSettings`), each world is
+dressed as the benchmark's rooms are and each recording (scene, split, seq: its frames in the
+file's order, the walk the nuisances drift along) gets its own light, exposure, white balance
+and occluders, as :func:`~pae.synthetic.write_synthetic_dataset` gives each sequence.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import time
 from collections.abc import Sequence
@@ -29,14 +34,23 @@ from pae.synthetic import (
     FaceTexture,
     PinholeCamera,
     RenderProgress,
+    SurfaceOptions,
     SyntheticScene,
+    SyntheticSettings,
     SyntheticSummary,
+    dress_surfaces,
     furnish,
     render_frames,
     room_textures,
+    scaled_blur,
+    sequence_conditions,
+    surface_seed,
     write_label_files,
+    write_nuisance_table,
     write_whole,
 )
+from pae.synthetic.trajectories import CameraSequence
+from pae.synthetic.writer import NUISANCE_FILE
 
 ROOM_EXTENT_M = 3.0
 """Largest side of the camera region in room metres; larger regions are scaled down to it."""
@@ -99,8 +113,11 @@ def write_dataset_at_poses(
     overwrite: bool = False,
     required_splits: Sequence[str] = (),
     progress: RenderProgress | None = None,
+    options: SyntheticSettings | None = None,
 ) -> SyntheticSummary:
-    """Render one image per row of ``label_paths`` at that row's pose into ``out``.
+    """Render one image per row of ``label_paths`` at that row's pose into ``out``, with the
+    surfaces, nuisances and capture of ``options`` (None: the plain benchmark's; its size
+    and seed are ``size`` and ``seed``'s).
 
     Writes ``out/labels/<scene>_<split>.csv`` and ``out/labels/all_<split>.csv`` (label
     files last) and the images, whole or not at all (``overwrite``: see
@@ -119,31 +136,45 @@ def write_dataset_at_poses(
     if missing:
         files = ", ".join(str(path) for path in label_paths)
         raise LabelError(files, None, f"no rows of the split(s) {missing}; rows of each are needed")
+    settings = SyntheticSettings(size=int(size), seed=seed)
+    if options is not None:
+        settings = dataclasses.replace(options, size=int(size), seed=seed)
     return write_whole(
-        out, overwrite, lambda folder: _render_rows(folder, table, size, seed, progress)
+        out, overwrite, lambda folder: _render_rows(folder, table, settings, progress)
     )
 
 
-def scenes_at_poses(table: LabelTable, seed: int = 0) -> list[SyntheticScene]:
+def scenes_at_poses(
+    table: LabelTable, seed: int = 0, surfaces: SurfaceOptions | None = None
+) -> list[SyntheticScene]:
     """The worlds :func:`write_dataset_at_poses` renders ``table``'s rows in, one per scene
-    (sorted names), each built around all of that scene's camera positions."""
+    (sorted names), each built around all of that scene's camera positions and dressed with
+    ``surfaces`` (None: the plain benchmark's)."""
     scene_column = np.asarray(table.scene)
+    surfaces = surfaces or SurfaceOptions()
     return [
-        make_scene_around(name, index, table.poses[scene_column == name, :3], seed)
+        dress_surfaces(
+            make_scene_around(name, index, table.poses[scene_column == name, :3], seed),
+            surfaces,
+            surface_seed(seed, index),
+        )
         for index, name in enumerate(table.scene_names)
     ]
 
 
 def _render_rows(
-    out: Path, table: LabelTable, size: int, seed: int, progress: RenderProgress | None = None
+    out: Path, table: LabelTable, settings: SyntheticSettings, progress: RenderProgress | None
 ) -> SyntheticSummary:
     """Render every row of ``table`` into ``out`` (see :func:`write_dataset_at_poses`)."""
     started = time.perf_counter()
-    camera = PinholeCamera(size)
+    seed, capture = settings.seed, settings.capture
+    camera = PinholeCamera(settings.size)
+    stored = PinholeCamera(settings.size * capture.render_scale)
     scene_column = np.asarray(table.scene)
     tables: dict[tuple[str, str], LabelTable] = {}
     img_path = list(table.img_path)
-    worlds = scenes_at_poses(table, seed)
+    worlds = scenes_at_poses(table, seed, settings.surfaces)
+    nuisance_rows: list[tuple[str, float, float, float]] = []
     done = 0
     for index, name in enumerate(table.scene_names):
         rows = np.flatnonzero(scene_column == name)
@@ -154,14 +185,40 @@ def _render_rows(
         for number, ((split, seq), members) in enumerate(sequences.items()):
             folder = f"{_folder_name(name)}/{_folder_name(split)}-{_folder_name(seq)}"
             paths = [f"{folder}/frame-{frame:06d}.png" for frame in range(len(members))]
-            appearance = Appearance.random(np.random.default_rng([seed, index, 7, number]))
-            noise = np.random.default_rng([seed, index, 8, number])
-            render_frames(out, paths, scene, table.poses[members], camera, appearance, noise)
+            recording = CameraSequence(
+                seq,
+                split,
+                table.poses[members],
+                Appearance.random(np.random.default_rng([seed, index, 7, number])),
+                (seed, index, 8, number),
+                (seed, index, 9, number),
+            )
+            appearance, conditions = sequence_conditions(
+                scene, recording, camera, settings.nuisances, capture
+            )
+            exposed = np.zeros(len(paths))
+            shares = render_frames(
+                out,
+                paths,
+                scene,
+                recording.poses,
+                stored,
+                appearance,
+                np.random.default_rng(list(recording.noise_seed)),
+                scaled_blur(conditions, capture.render_scale),
+                exposed,
+            )
+            if conditions is not None:
+                blur = conditions.blur_px.tolist()
+                rows_of = zip(paths, shares.tolist(), blur, exposed.tolist(), strict=True)
+                nuisance_rows += rows_of
             done += len(members)
             if progress is not None:
                 progress(done, len(table))
             for row, path in zip(members, paths, strict=True):
                 img_path[row] = path
+    if nuisance_rows:
+        write_nuisance_table(out / "labels" / NUISANCE_FILE, nuisance_rows)
     rendered = LabelTable(
         table.scene, table.split, table.seq, img_path, table.poses, source=str(out)
     )
@@ -178,7 +235,7 @@ def _render_rows(
         scenes=table.scene_names,
         train_frames=int(np.count_nonzero(split_column == "train")),
         test_frames=int(np.count_nonzero(split_column == "test")),
-        size=int(size),
+        size=settings.size * capture.render_scale,
         seconds=seconds,
         frames_per_second=len(table) / max(seconds, 1e-9),
     )
