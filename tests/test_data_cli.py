@@ -471,7 +471,7 @@ def test_synth_passes_arguments_and_prints_summary(
             ),
         ),
     ]
-    layout = "--poses renders the given rows, in no layout of its own: drop"
+    layout = "--poses takes no layout option: drop"
     assert main(["synth", str(tmp_path / "c"), "--poses", "x.csv", "--scenes", "2"]) == 1
     assert f"{layout} --scenes" in capsys.readouterr().err
     argv = ["synth", str(tmp_path / "c"), "--poses", "x.csv", "--stray", "0.1"]

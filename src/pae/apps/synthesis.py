@@ -68,7 +68,7 @@ def run_synth(args: argparse.Namespace) -> int:
         layout = [s for s in given if s not in DRESSING]
         if layout:
             flags = ", ".join(f"--{SYNTH_OPTIONS[s].replace('_', '-')}" for s in layout)
-            raise ValueError(f"--poses renders the given rows, in no layout of its own: drop {flags}")
+            raise ValueError(f"--poses takes no layout option: drop {flags}")
         from pae.synthetic.poses import write_dataset_at_poses
 
         dataset = write_dataset_at_poses(

@@ -16,7 +16,7 @@ from pae.core.ranges import is_int
 from pae.data.holdout import CALIBRATION_ON_TEST, validation_is_test
 from pae.data.labels import read_labels
 from pae.data.settings import PoseDataSettings
-from pae.synthetic.settings import NUISANCE_BOUNDS, SURFACE_BOUNDS, SyntheticSettings
+from pae.synthetic.settings import SyntheticSettings
 
 
 def _is_synthetic(cfg: DictConfig) -> bool:
