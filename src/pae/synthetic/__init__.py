@@ -100,6 +100,7 @@ _MODULES = {
     "RenderProgress": "pae.synthetic.writer",
     "SyntheticSummary": "pae.synthetic.writer",
     "render_frames": "pae.synthetic.writer",
+    "render_sequence": "pae.synthetic.writer",
     "scaled_blur": "pae.synthetic.writer",
     "sequence_conditions": "pae.synthetic.writer",
     "surface_seed": "pae.synthetic.writer",

@@ -40,10 +40,8 @@ from pae.synthetic import (
     SyntheticSummary,
     dress_surfaces,
     furnish,
-    render_frames,
+    render_sequence,
     room_textures,
-    scaled_blur,
-    sequence_conditions,
     surface_seed,
     write_label_files,
     write_nuisance_table,
@@ -167,9 +165,8 @@ def _render_rows(
 ) -> SyntheticSummary:
     """Render every row of ``table`` into ``out`` (see :func:`write_dataset_at_poses`)."""
     started = time.perf_counter()
-    seed, capture = settings.seed, settings.capture
+    seed = settings.seed
     camera = PinholeCamera(settings.size)
-    stored = PinholeCamera(settings.size * capture.render_scale)
     scene_column = np.asarray(table.scene)
     tables: dict[tuple[str, str], LabelTable] = {}
     img_path = list(table.img_path)
@@ -193,25 +190,7 @@ def _render_rows(
                 (seed, index, 8, number),
                 (seed, index, 9, number),
             )
-            appearance, conditions = sequence_conditions(
-                scene, recording, camera, settings.nuisances, capture
-            )
-            exposed = np.zeros(len(paths))
-            shares = render_frames(
-                out,
-                paths,
-                scene,
-                recording.poses,
-                stored,
-                appearance,
-                np.random.default_rng(list(recording.noise_seed)),
-                scaled_blur(conditions, capture.render_scale),
-                exposed,
-            )
-            if conditions is not None:
-                blur = conditions.blur_px.tolist()
-                rows_of = zip(paths, shares.tolist(), blur, exposed.tolist(), strict=True)
-                nuisance_rows += rows_of
+            nuisance_rows += render_sequence(out, paths, scene, recording, camera, settings)
             done += len(members)
             if progress is not None:
                 progress(done, len(table))
@@ -235,7 +214,7 @@ def _render_rows(
         scenes=table.scene_names,
         train_frames=int(np.count_nonzero(split_column == "train")),
         test_frames=int(np.count_nonzero(split_column == "test")),
-        size=settings.size * capture.render_scale,
+        size=settings.size * settings.capture.render_scale,
         seconds=seconds,
         frames_per_second=len(table) / max(seconds, 1e-9),
     )

@@ -253,6 +253,40 @@ def scaled_blur(conditions: FrameConditions | None, render_scale: int) -> FrameC
     return dataclasses.replace(conditions, blur_px=conditions.blur_px * render_scale)
 
 
+def render_sequence(
+    out: Path,
+    paths: list[str],
+    scene: SyntheticScene,
+    sequence: CameraSequence,
+    camera: PinholeCamera,
+    settings: SyntheticSettings,
+) -> list[tuple[str, float, float, float]]:
+    """Render ``sequence`` of ``scene`` (seen by ``camera`` at the nominal size, stored
+    ``render_scale`` times larger) with the nuisances and capture of ``settings`` as PNGs at
+    ``out / paths[i]`` -> its frames' rows of the nuisance table (none where no nuisance and
+    no camera pipeline is on)."""
+    capture = settings.capture
+    appearance, conditions = sequence_conditions(
+        scene, sequence, camera, settings.nuisances, capture
+    )
+    exposed = np.zeros(len(paths))
+    shares = render_frames(
+        out,
+        paths,
+        scene,
+        sequence.poses,
+        dataclasses.replace(camera, size=camera.size * capture.render_scale),
+        appearance,
+        np.random.default_rng(list(sequence.noise_seed)),
+        scaled_blur(conditions, capture.render_scale),
+        exposed,
+    )
+    if conditions is None:
+        return []
+    blur = conditions.blur_px.tolist()
+    return list(zip(paths, shares.tolist(), blur, exposed.tolist(), strict=True))
+
+
 def _render(out: Path, settings: SyntheticSettings, progress: RenderProgress | None) -> None:
     """Render every scene of ``settings`` into `out`: images first, label files last (with
     a nuisance or the camera pipeline on, ``labels/nuisances.csv`` too)."""
@@ -260,14 +294,12 @@ def _render(out: Path, settings: SyntheticSettings, progress: RenderProgress | N
     walks = settings.val_walks * walk_frames(settings.train_frames)
     frames = settings.train_frames + walks + settings.test_frames
     total, done = settings.scenes * frames, 0
-    nuisances, surfaces, capture = settings.nuisances, settings.surfaces, settings.capture
     camera = PinholeCamera(size)
-    stored = PinholeCamera(size * capture.render_scale)
     label_tables: dict[tuple[str, str], LabelTable] = {}
     nuisance_rows: list[tuple[str, float, float, float]] = []
     for index in range(settings.scenes):
         scene = make_scene(index, seed, settings.test_offset_m, settings.train_lane_m)
-        scene = dress_surfaces(scene, surfaces, surface_seed(seed, index))
+        scene = dress_surfaces(scene, settings.surfaces, surface_seed(seed, index))
         rows: dict[str, list[tuple[str, str, np.ndarray]]] = {"train": [], "test": []}
         sequences = make_sequences(index, scene, settings)
         for sequence in sequences:
@@ -275,30 +307,7 @@ def _render(out: Path, settings: SyntheticSettings, progress: RenderProgress | N
                 f"{scene.name}/{sequence.name}/frame-{frame:06d}.png"
                 for frame in range(len(sequence.poses))
             ]
-            noise = np.random.default_rng(list(sequence.noise_seed))
-            appearance, conditions = sequence_conditions(
-                scene, sequence, camera, nuisances, capture
-            )
-            exposed = np.zeros(len(paths))
-            shares = render_frames(
-                out,
-                paths,
-                scene,
-                sequence.poses,
-                stored,
-                appearance,
-                noise,
-                scaled_blur(conditions, capture.render_scale),
-                exposed,
-            )
-            if conditions is not None:
-                nuisance_rows += zip(
-                    paths,
-                    shares.tolist(),
-                    conditions.blur_px.tolist(),
-                    exposed.tolist(),
-                    strict=True,
-                )
+            nuisance_rows += render_sequence(out, paths, scene, sequence, camera, settings)
             done += len(paths)
             if progress is not None:
                 progress(done, total)
