@@ -478,6 +478,7 @@ def test_the_correspondence_stage_the_run_chose_is_read_back_and_fed_as_in_the_r
     queries are the files at the match width with the intrinsics the run's data gives them,
     and the run's train views; a run whose metrics record none runs none."""
     from pae.apps import localization as loc
+    from pae.apps.match_inputs import match_queries
     from pae.apps.queries import gather_queries
     from pae.render_compare.correspondences import MatchSettings
     from pae.render_compare.queries import match_figures
@@ -497,9 +498,10 @@ def test_the_correspondence_stage_the_run_chose_is_read_back_and_fed_as_in_the_r
     def uncropped(size: tuple[int, int], focal: object, shorter: int) -> torch.Tensor:
         return loc.query_intrinsics(data.camera, size, shorter, None, focal)
 
-    matching = loc.match_queries(run, queries, data, teacher, uncropped)
+    matching = match_queries(run, queries, data, teacher, uncropped, chosen)
     images, intrinsics = data.images_at("test", 32)
     torch.testing.assert_close(matching.images, images.float() / 255)
     torch.testing.assert_close(matching.intrinsics, intrinsics)
     assert len(matching.train.poses) == len(data.datasets["train"])
-    assert loc.match_queries(run._replace(metrics={}), queries, data, teacher, uncropped) is None
+    unrecorded = loc.render_compare_settings(run._replace(metrics={}))[1].match
+    assert match_queries(run, queries, data, teacher, uncropped, unrecorded) is None

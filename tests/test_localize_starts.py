@@ -166,3 +166,67 @@ def test_a_recording_column_naming_some_frames_only_is_one_line(
     lines.write_text("# format: lines\nx.png 0 0 0 1 0 0 0\n")
     with pytest.raises(ConfigError, match="has no recording column"):
         recordings_of(["x.png"], "column", read_starts(lines, form="lines"), str(lines))
+
+
+def test_the_calibration_for_any_start_chooses_among_the_run_s_stages_and_applies_it(
+    fitted_run: Path, tiny_root: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With ``render_compare.matches_from_val`` in the run's config, --init-gate any tries
+    those stages on val (retrieving train views by the thumbnail descriptor: the run has no
+    teacher); the stage chosen (here forced: the tiny scene decides nothing) is kept in the
+    run's record and read back, and the test queries reach refine() at its match width with
+    the train views read for val, not read twice."""
+    import shutil
+
+    from pae.apps import any_start, localization, match_inputs
+    from pae.render_compare import calibrate_any_start
+
+    run = tmp_path / "run"
+    shutil.copytree(fitted_run, run, ignore=shutil.ignore_patterns(CALIBRATION_FILE))
+    config = OmegaConf.load(run / ".hydra" / "config.yaml")
+    stage = {"width": 32, "render_width": 0, "near_start_views": 2}
+    config.render_compare.matches_from_val = [{}, stage]
+    config.render_compare.match_descriptor = "thumbnail"
+    OmegaConf.save(config, run / ".hydra" / "config.yaml")
+    tried = []
+
+    def forced(*args, **kwargs):
+        tried.extend(args[-1].stages())
+        chosen, refined, starts = calibrate_any_start(*args, **kwargs)
+        return chosen.__class__(**{**chosen.__dict__, "match": tried[-1]}), refined, starts
+
+    seen = []
+
+    def spy(model, queries, *rest, **kwargs):
+        seen.append(queries.matching)
+        return refine(model, queries, *rest, **kwargs)
+
+    reads = []
+
+    def train_images(*args, **kwargs):
+        reads.append(args[1])
+        return read_train(*args, **kwargs)
+
+    refine, read_train = localization.refine, match_inputs.train_images
+    monkeypatch.setattr(match_inputs, "train_images", train_images)
+    monkeypatch.setattr(any_start, "calibrate_any_start", forced)
+    monkeypatch.setattr(localization, "refine", spy)
+    labels = tiny_root / "labels" / "all_test.csv"
+    starts = _starts(labels, tmp_path / "starts.csv")
+    argv = [str(run), str(labels), "--refine", "render_compare", "--init", str(starts)]
+    assert main([*argv, "--out", str(tmp_path / "a.csv")]) == 0
+    assert tried[-1].width == 32 and tried[-1].near_start_views == 2
+    kept = json.loads((run / CALIBRATION_FILE).read_text())
+    assert kept["calibration"]["match"]["near_start_views"] == 2
+    matching = seen[-1]
+    assert matching is not None and matching.images.shape[-1] == 32
+    assert matching.train is not None and matching.train.describe is None
+    assert len(matching.train.poses) > 0 and len(matching.images) == len(read_labels(labels))
+    assert reads == [32]
+    tried.clear()
+    assert main([*argv, "--out", str(tmp_path / "b.csv")]) == 0
+    assert not tried  # read back from the run's record
+    assert seen[-1] is not None and seen[-1].images.shape[-1] == 32
+    np.testing.assert_allclose(
+        read_labels(tmp_path / "a.csv").poses, read_labels(tmp_path / "b.csv").poses, atol=1e-6
+    )

@@ -147,6 +147,7 @@ def localize(args: argparse.Namespace) -> None:
 
     from pae.apps import localization as loc
     from pae.apps.any_start import calibration_record
+    from pae.apps.match_inputs import match_queries
     from pae.apps.queries import gather_queries, output_table, summary_line
     from pae.apps.recordings import recordings_of, reordered, sequence_options
     from pae.core.atomic import atomic_write, check_writable_dir, check_writable_file
@@ -154,6 +155,7 @@ def localize(args: argparse.Namespace) -> None:
     from pae.core.console import Progress
     from pae.core.errors import ConfigError
     from pae.data.pose_files import write_poses
+    from pae.render_compare.correspondences import MatchQueries, MatchSettings, TrainImages
 
     # before any work: a finished run is never lost to its output
     if args.format == "ace":
@@ -254,9 +256,10 @@ def localize(args: argparse.Namespace) -> None:
             )
         emit(f"pae-localize: render_compare of {len(found.pose)} images")
         model = None if teacher is None else teacher.model.eval()
-        matching = None
-        if gate != "any":
-            matching = loc.match_queries(run, queries, data, model, uncropped)
+
+        def matching(match: MatchSettings, train: TrainImages | None) -> MatchQueries | None:
+            return match_queries(run, queries, data, model, uncropped, match, train)
+
         in_order = None
         if recordings is not None and options is not None:
             emit(f"pae-localize: {len(recordings.names)} recordings ({options})")

@@ -5,9 +5,11 @@ without choosing them again."""
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import sys
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -15,16 +17,23 @@ import torch
 
 from pae.core.atomic import atomic_write
 from pae.core.geometry import pose_errors
-from pae.render_compare import Calibration, Queries, calibrate_any_start
+from pae.render_compare import AnyStartOptions, Calibration, Queries, calibrate_any_start
+from pae.render_compare.correspondences import MatchQueries, MatchSettings
 from pae.scene_model.base import SceneModel
 
 CALIBRATION_FILE = "render_compare_any_start.json"
 """The run folder's record of the calibration for any start (:func:`any_start_calibration`)."""
 
 
-def calibration_key(settings: dict[str, Any], scene_model: Path, features: bool) -> str:
+def calibration_key(
+    settings: dict[str, Any],
+    scene_model: Path,
+    features: bool,
+    matches: Sequence[Mapping[str, Any]] = (),
+) -> str:
     """What the calibration depends on: the refiner's settings, the scene model's checkpoint
-    (its path, size and a SHA-256 of its first MiB) and whether features are compared."""
+    (its path, size and a SHA-256 of its first MiB), whether features are compared and the
+    correspondence stages tried (none tried: the key of a calibration that tried none)."""
     with scene_model.open("rb") as handle:
         head = hashlib.sha256(handle.read(1 << 20)).hexdigest()
     stated = {
@@ -32,16 +41,22 @@ def calibration_key(settings: dict[str, Any], scene_model: Path, features: bool)
         "scene_model": [str(scene_model.resolve()), scene_model.stat().st_size, head],
         "features": features,
     }
+    if matches:
+        stated["matches"] = [dict(m) for m in matches]
     return hashlib.sha256(json.dumps(stated, sort_keys=True).encode()).hexdigest()
 
 
 def calibration_record(calibration: Calibration) -> dict[str, Any]:
-    """The gate and steps of ``calibration`` as JSON values."""
-    return {
+    """The gate, steps and correspondence stage of ``calibration`` as JSON values (``match``
+    only where a stage runs)."""
+    record: dict[str, Any] = {
         "accept_margin": calibration.accept_margin,
         "accept_score": calibration.accept_score,
         "steps": dict(calibration.steps),
     }
+    if calibration.match.active:
+        record["match"] = dataclasses.asdict(calibration.match)
+    return record
 
 
 def read_calibration(path: Path, key: str) -> Calibration | None:
@@ -53,7 +68,10 @@ def read_calibration(path: Path, key: str) -> Calibration | None:
             return None
         chosen = record["calibration"]
         steps = {name: float(value) for name, value in chosen["steps"].items()}
-        return Calibration(float(chosen["accept_margin"]), float(chosen["accept_score"]), steps)
+        match = MatchSettings(**chosen.get("match", {}))
+        return Calibration(
+            float(chosen["accept_margin"]), float(chosen["accept_score"]), steps, match=match
+        )
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return None
 
@@ -77,27 +95,33 @@ def any_start_calibration(
     size_m: float,
     settings: dict[str, Any],
     features: Any,
+    stages: tuple[Sequence[Mapping[str, Any]], Callable[[], MatchQueries] | None] = ((), None),
 ) -> Calibration:
-    """The gate and first steps for starts from another APR, chosen on the validation queries
-    ``val`` (``image``, ``intrinsics``, ``scene``, true ``pose``, as
+    """The gate, first steps and correspondence stage for starts from another APR, chosen on
+    the validation queries ``val`` (``image``, ``intrinsics``, ``scene``, true ``pose``, as
     :func:`pae.apps.localization.split_queries` gives them, on the scene model's device) with
     :func:`pae.render_compare.calibrate_any_start` (starts at every error scale of the scene's
-    size ``size_m``, m), read from ``FOLDER/render_compare_any_start.json`` where an earlier
-    call chose them under the same settings and scene model (its checkpoint's path in
-    ``scene_model``), else chosen and written there with the val figures (a read-only folder
-    only warns)."""
+    size ``size_m``, m; ``stages``: the correspondence stages to try, mappings of
+    ``MatchSettings``, and what reads the val queries at their match width, called only
+    where the stages are tried; None: no stage tried), read
+    from ``FOLDER/render_compare_any_start.json`` where an earlier call chose them under the
+    same settings, stages and scene model (its checkpoint's path in ``scene_model``), else
+    chosen and written there with the val figures (a read-only folder only warns)."""
     model, checkpoint = scene_model
+    matches, read_matching = stages if stages[1] is not None else ((), None)
     path = folder / CALIBRATION_FILE
-    key = calibration_key(settings, checkpoint, features is not None)
+    key = calibration_key(settings, checkpoint, features is not None, matches)
     recorded = read_calibration(path, key)
     if recorded is not None:
         print(f"pae-localize: the calibration for any start from {path}", file=sys.stderr)
         return recorded
     truth = val["pose"]
-    queries = Queries(val["image"], val["intrinsics"], val["scene"])
+    matching = None if read_matching is None else read_matching()
+    queries = Queries(val["image"], val["intrinsics"], val["scene"], matching=matching)
     calibration, refined, starts = calibrate_any_start(
-        model, queries, truth, size_m, settings | {"features": features}
-    )
+        model, queries, truth, size_m, settings | {"features": features},
+        AnyStartOptions(matches=matches),
+    )  # fmt: skip
     record = {
         "key": key,
         "calibration": calibration_record(calibration),
@@ -108,6 +132,9 @@ def any_start_calibration(
             "render_compare": val_figures(refined.poses, truth),
         },
     }
+    if refined.matched is not None:
+        record["val"]["keypoints_found_share"] = float(refined.matched.float().mean())
+        record["val"]["other_start_kept_share"] = float(refined.from_match.float().mean())
     try:
         with atomic_write(path) as handle:
             json.dump(record, handle, indent=1)

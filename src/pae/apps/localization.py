@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
 from pae.apps.any_start import any_start_calibration as cached_calibration
+from pae.apps.match_inputs import MatchReader, configured_matches, run_train_images
 from pae.apps.queries import Queries
 from pae.core.camera import Intrinsics, resized_size
 from pae.core.checkpoints import load_pae, load_scene_model
@@ -26,14 +27,14 @@ from pae.core.provenance import DATA_RECORD
 from pae.data.datamodule import PoseDataModule
 from pae.data.dataset import PoseDataset
 from pae.data.transforms import ImageTransform
-from pae.lit.eval_outputs import EVAL, teacher_descriptor, train_images
+from pae.lit.eval_outputs import EVAL, match_width
 from pae.lit.scene_model import compare_queries
 from pae.models.base import Latents
 from pae.models.latents import compute_teacher_latents
 from pae.render_compare import Calibration, CalibrationOptions, Sequences, refine
 from pae.render_compare import Queries as CompareQueries
 from pae.render_compare.calibration import scene_size, teacher_features
-from pae.render_compare.correspondences import MatchQueries
+from pae.render_compare.correspondences import MatchQueries, TrainImages
 from pae.render_compare.queries import recorded_match
 from pae.render_compare.refiner import ACCEPT_ALL, BUILD_KEYS, refiner_defaults
 from pae.render_compare.scene_decision import SceneRule
@@ -277,8 +278,7 @@ def render_compare_settings(run: Run) -> tuple[dict[str, Any], Calibration]:
     gate = chosen("accept_margin", 0.0), chosen("accept_score", ACCEPT_ALL)
     match = recorded_match(run.metrics, f"test/{RENDER_COMPARE}")
     if match is None:  # unrecorded: the one configured stage, if any
-        stages = config.get("matches_from_val") or []
-        listed = OmegaConf.to_container(stages) if OmegaConf.is_config(stages) else stages
+        listed = configured_matches(run)
         match = CalibrationOptions(matches_from_val=listed).uncalibrated().match
     return settings, Calibration(*gate, scene=rule, match=match)
 
@@ -317,10 +317,18 @@ def split_queries(data: PoseDataModule, split: str, width: int | None) -> dict[s
 
 
 def any_start_calibration(
-    run: Run, model: SceneModel, settings: dict[str, Any], features: Any, device: torch.device
-) -> Calibration:
-    """The gate and first steps for starts from another APR, chosen on the run's validation
-    split and kept in the run folder (:func:`pae.apps.any_start.any_start_calibration`)."""
+    run: Run,
+    model: SceneModel,
+    settings: dict[str, Any],
+    features: Any,
+    device: torch.device,
+    teacher: torch.nn.Module | None,
+) -> tuple[Calibration, TrainImages | None]:
+    """The gate, first steps and correspondence stage (among the run's
+    ``render_compare.matches_from_val``) for starts from another APR, chosen on the run's
+    validation split and kept in the run folder
+    (:func:`pae.apps.any_start.any_start_calibration`), and the train views read for it
+    (None: none read)."""
     data = data_module(run, cache_images=False)
     data.setup()
     if data.val_is_test or not len(data.datasets["val"]):
@@ -334,7 +342,18 @@ def any_start_calibration(
     size = scene_size(positions[:, :3].double())
     on_device = {key: value.to(device) for key, value in val.items()}
     checkpoint = (model, scene_model_path(run))
-    return cached_calibration(run.folder, checkpoint, on_device, size, settings, features)
+    matches = configured_matches(run)
+    width = match_width(matches)
+    read: list[TrainImages] = []
+
+    def val_matching() -> MatchQueries:
+        read.append(run_train_images(run, data, width, teacher))
+        images, intrinsics = data.images_at("val", width)
+        return MatchQueries(images.float() / 255, intrinsics, read[0])
+
+    stages = (matches, val_matching if width else None)
+    chosen = cached_calibration(run.folder, checkpoint, on_device, size, settings, features, stages)
+    return chosen, (read[0] if read else None)
 
 
 def scene_starts(
@@ -361,36 +380,6 @@ def are_estimates_of(starts: Tensor, estimates: Tensor) -> bool:
     return bool((position <= SAME_START_M).all() and (orientation <= SAME_START_DEG).all())
 
 
-def match_queries(
-    run: Run,
-    queries: Queries,
-    data: PoseDataModule,
-    teacher: torch.nn.Module,
-    intrinsics: Callable[[tuple[int, int], np.ndarray | None, int], Tensor],
-) -> MatchQueries | None:
-    """What the correspondence stage the run chose on val (:func:`render_compare_settings`)
-    reads of the queries: their files at its match width, uncropped, with ``intrinsics``
-    ((h, w) on disk, the rows' focal lengths or None, the shorter edge in px -> [N, 4]), and
-    the run's train views at that width (its data, set up here); None where no stage runs."""
-    match = render_compare_settings(run)[1].match
-    if not match.active:
-        return None
-    table = queries.table
-    size = PoseDataset(table, queries.root, table.scene_names, 1).image_size
-    if size is None:
-        raise ImageError("no images to localise")
-    shorter = round(match.width * min(size) / size[1])
-    dataset = PoseDataset(table, queries.root, table.scene_names, shorter, cache=True)
-    assert dataset.images is not None
-    data.setup()
-    descriptor = run.config.render_compare.get("match_descriptor", "teacher")
-    describe = teacher_descriptor(teacher, data.shorter_edge) if descriptor == "teacher" else None
-    vectors = intrinsics(size, table.focal, shorter).expand(len(table), 4)
-    return MatchQueries(
-        dataset.images.float() / 255, vectors, train_images(data, match.width, describe)
-    )
-
-
 class Refined(NamedTuple):
     """Render-and-compare's answer for the queries: poses [N, 7], scenes [N], whether the
     gate accepted each refinement [N] (bool), the calibration applied and the seconds spent
@@ -409,7 +398,7 @@ def render_compare(
     found: Estimates,
     device: torch.device,
     gate: str = "run",
-    matching: MatchQueries | None = None,
+    matching: MatchReader | None = None,
     recordings: tuple[Tensor, SequenceOptions] | None = None,
 ) -> Refined:
     """Render-and-compare of the queries against the run's scene model from ``found.pose``
@@ -418,9 +407,9 @@ def render_compare(
     teacher and applied at test (a multi-scene teacher's queries decided between scenes as
     in the run), ``any`` those chosen on the run's validation split for starts of any error
     scale (:func:`any_start_calibration`; in the scene given); ``matching``
-    (:func:`match_queries`): the correspondence stage the run chose on val runs too (not
-    with ``any``, whose calibration chooses none); ``recordings``: each query's recording
-    [N] (its frames in row order) and how the refinement uses them."""
+    (:data:`MatchReader`): the correspondence stage the gate's calibration chose runs too;
+    ``recordings``: each query's recording [N] (its frames in row order) and how the
+    refinement uses them."""
     loaded = load_scene_model(scene_model_path(run), "scene_model_ckpt")
     settings, calibration = render_compare_settings(run)
     features = None
@@ -431,8 +420,9 @@ def render_compare(
     model = loaded.model.to(device)
     scene_poses = scene_logits = None
     calibrate_s = time.perf_counter()
+    train = None
     if gate == "any":
-        calibration = any_start_calibration(run, model, settings, features, device)
+        calibration, train = any_start_calibration(run, model, settings, features, device, teacher)
     elif teacher is not None and found.scene_poses is not None and found.scene_logits is not None:
         scene_poses = scene_starts(run, teacher, found, device)
         scene_logits = found.scene_logits.to(device)
@@ -447,7 +437,7 @@ def render_compare(
         found.scene.to(device),
         scene_poses=scene_poses,
         scene_logits=scene_logits,
-        matching=None if gate == "any" else matching,
+        matching=None if matching is None else matching(calibration.match, train),
     )
     refined = refine(
         model,

@@ -1,7 +1,9 @@
 """Render-and-compare from another APR's starts in a scene-model evaluation
 (``render_compare.init=FILE``): an adapter that calibrates on validation for starts of any
 error scale (:func:`pae.render_compare.calibrate_any_start`) and refines the file's starts of
-the test images (:func:`pae.render_compare.refine`), beside the teacher's own."""
+the test images (:func:`pae.render_compare.refine`), beside the teacher's own; the
+correspondence stages of ``render_compare.matches_from_val`` are tried in that calibration
+too."""
 
 from __future__ import annotations
 
@@ -17,8 +19,9 @@ from pae.core.errors import ConfigError
 from pae.core.metrics import summarise_errors
 from pae.data.starts import AXES, FORMATS, Starts, placed_starts, read_starts
 from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
-from pae.render_compare import Calibration, Queries, calibrate_any_start, refine
+from pae.render_compare import AnyStartOptions, Calibration, Queries, calibrate_any_start, refine
 from pae.render_compare.calibration import scene_size
+from pae.render_compare.correspondences import MatchQueries
 from pae.render_compare.queries import method_from, refinement_figures
 
 
@@ -57,6 +60,12 @@ class RenderCompareFromFile(L.Callback):
         """The refiner's settings, with the teacher's features where it scores them."""
         return self.refinement.settings | {"features": self.refinement.features(pl_module.teacher)}
 
+    def matching(
+        self, data: Any, pl_module: SceneModelEvaluation, split: str, rows: torch.Tensor
+    ) -> MatchQueries | None:
+        """``split``'s queries at ``rows`` at the stages' match width (None: no stage)."""
+        return self.refinement.match_inputs.queries(data, pl_module.teacher, split, rows)
+
     @property
     def method(self) -> str:
         return method_from(self.refinement.init or "")
@@ -65,13 +74,16 @@ class RenderCompareFromFile(L.Callback):
         outputs = collect_outputs(trainer, pl_module)
         if self.refinement.init is None or outputs is None:
             return
-        positions, _ = trainer.datamodule.train_poses()
+        data = trainer.datamodule
+        positions, _ = data.train_poses()
         queries = Queries(
-            outputs[EVAL.image], outputs[EVAL.intrinsics], outputs[EVAL.scene_estimate]
-        )
+            outputs[EVAL.image], outputs[EVAL.intrinsics], outputs[EVAL.scene_estimate],
+            matching=self.matching(data, pl_module, "val", outputs[EVAL.index]),
+        )  # fmt: skip
+        stages = AnyStartOptions(matches=self.refinement.options.matches_from_val or ())
         self.calibration, _, _ = calibrate_any_start(
             pl_module.scene_model, queries, outputs[EVAL.pose].float(),
-            scene_size(positions[:, :3].double()), self.settings(pl_module),
+            scene_size(positions[:, :3].double()), self.settings(pl_module), stages,
         )  # fmt: skip
         gate = (self.calibration.accept_margin, self.calibration.accept_score)
         figures = dict(zip(("accept_margin", "accept_score"), gate, strict=True))
@@ -88,7 +100,13 @@ class RenderCompareFromFile(L.Callback):
         scenes = outputs[EVAL.scene_estimate] if scenes is None else scenes
         calibration = self.calibration or self.refinement.calibration(HONEST)
         begin = time.perf_counter()
-        queries = Queries(outputs[EVAL.image], outputs[EVAL.intrinsics], scenes.to(starts.device))
+        matching = None
+        if calibration.match.active:
+            matching = self.matching(data, pl_module, "test", outputs[EVAL.index])
+        queries = Queries(
+            outputs[EVAL.image], outputs[EVAL.intrinsics], scenes.to(starts.device),
+            matching=matching,
+        )  # fmt: skip
         refinement = refine(
             pl_module.scene_model, queries, starts, calibration, settings=self.settings(pl_module)
         )

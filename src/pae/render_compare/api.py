@@ -20,7 +20,6 @@ from pae.core.shapes import check_shape
 from pae.render_compare.calibration import (
     LADDER,
     LADDER_DEG,
-    RATIO_EPS_M,
     STEP_SHARES,
     AnyStartOptions,
     Calibration,
@@ -372,12 +371,13 @@ def calibrate_any_start(
     the first steps among ``STEP_SHARES`` of the size, the filter among the settings' own and
     each of ``options.highpass_px`` (px) at every level or the finest only, with no local
     contrast or each of ``options.contrast_px`` (px, ``contrast_sigma_px``), then with those
-    the references' ``surface_share`` among the settings' own and ``options.surface_shares``
-    (:class:`AnyStartOptions`), and the gate that minimise the mean log of each query's error
-    over its start's (``choose_gate(objective="log_ratio")``), so that a good start is kept
-    rather than refined to the refiner's floor -> the calibration (its ``steps`` holding the
-    chosen steps, filter and surface share), the validation refinement under it and its
-    starts [N, 7]."""
+    the references' ``surface_share`` among the settings' own and ``options.surface_shares``,
+    then, where ``queries.matching`` is given, the correspondence stage among none and
+    ``options.matches`` (:class:`AnyStartOptions`), and the gate that minimise the mean log
+    of each query's error over its start's (``choose_gate(objective="log_ratio")``), so that
+    a good start is kept rather than refined to the refiner's floor -> the calibration (its
+    ``steps`` holding the chosen steps, filter and surface share, its ``match`` the stage),
+    the validation refinement under it and its starts [N, 7]."""
     options = options or AnyStartOptions()
     _check(queries, truth, None)
     starts = ladder_starts(truth, size_m, torch.Generator().manual_seed(options.seed))
@@ -393,22 +393,25 @@ def calibrate_any_start(
             for contrast in (0.0, *options.contrast_px)
         ]
     )
-    scenes = queries.scenes
 
-    def evaluate(steps: dict[str, float]) -> tuple[float, Calibration, Refinement]:
-        result = build_refiner(scene_model, settings, steps)(
-            queries.images, queries.intrinsics, starts, scenes
-        )
-        refined_pos, _ = pose_errors(result.poses.float(), truth.float())
-        gains = result.score - result.initial_score
-        margin, floor = choose_gate(
-            gains, result.score, refined_pos, start_pos, objective="log_ratio"
-        )
-        gated = gate(result, starts, margin, floor)
-        final = torch.where(gated.accepted, refined_pos, start_pos)
-        value = float(((final + RATIO_EPS_M) / (start_pos + RATIO_EPS_M)).log().mean())
-        refinement = Refinement(gated.poses, gated.accepted, result, scenes, gated.accepted & False)
-        return value, Calibration(margin, floor, steps), refinement
+    def evaluate(
+        steps: dict[str, float], match: MatchSettings | None = None
+    ) -> tuple[float, Calibration, Refinement]:
+        match = match or MatchSettings()
+        refiner = build_refiner(scene_model, settings, steps)
+        first = refiner(queries.images, queries.intrinsics, starts, queries.scenes)
+        decided = first, queries.scenes, torch.zeros_like(queries.scenes, dtype=torch.bool)
+
+        def chosen_gate(result: RenderCompareResult) -> tuple[float, float]:
+            refined_pos, _ = pose_errors(result.poses.float(), truth.float())
+            gains = result.score - result.initial_score
+            return choose_gate(gains, result.score, refined_pos, start_pos, objective="log_ratio")
+
+        gated, refinement = _finish(
+            refiner, queries, starts, None, decided, match, chosen_gate
+        )  # fmt: skip
+        value = objective_value(refinement.poses, starts, truth, "log_ratio")
+        return value, dataclasses.replace(gated, steps=steps, match=match), refinement
 
     best = min(
         (
@@ -429,5 +432,9 @@ def calibrate_any_start(
     for surface in dict.fromkeys(options.surface_shares):
         if surface != own.surface_share:
             tried = evaluate(chosen | {"surface_share": surface})
+            best = tried if tried[0] < best[0] else best
+    if queries.matching is not None:
+        for match in options.stages()[1:]:
+            tried = evaluate(dict(best[1].steps), match)
             best = tried if tried[0] < best[0] else best
     return best[1], best[2], starts

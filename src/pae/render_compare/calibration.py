@@ -117,6 +117,19 @@ FILTER_KEYS = (
 and scored, and where the references' surface points lie."""
 
 
+def _check_matches(key: str, matches: Sequence[Mapping[str, Any]]) -> None:
+    """Each of ``matches`` a valid :class:`MatchSettings` mapping; a ValueError naming the
+    first unknown setting under ``key``."""
+    known = {field.name for field in dataclasses.fields(MatchSettings)}
+    for chosen in matches:
+        unknown = sorted(set(chosen) - known)
+        if unknown:
+            raise ValueError(
+                f"{key}: {unknown[0]} is not a match setting; choose among {sorted(known)}"
+            )
+        MatchSettings(**chosen)
+
+
 @dataclasses.dataclass(frozen=True)
 class CalibrationOptions:
     """What :func:`pae.render_compare.calibrate` chooses on validation and what it keeps.
@@ -181,15 +194,7 @@ class CalibrationOptions:
                     f"render_compare.filters_from_val: {unknown[0]} is not a filter setting; "
                     f"choose among {list(FILTER_KEYS)}"
                 )
-        for chosen in self.matches_from_val or ():
-            known = {field.name for field in dataclasses.fields(MatchSettings)}
-            unknown = sorted(set(chosen) - known)
-            if unknown:
-                raise ValueError(
-                    f"render_compare.matches_from_val: {unknown[0]} is not a match setting; "
-                    f"choose among {sorted(known)}"
-                )
-            MatchSettings(**chosen)
+        _check_matches("render_compare.matches_from_val", self.matches_from_val or ())
 
     def fixed(self, key: str) -> float | None:
         """The option ``key`` as a number, None where it is ``auto``."""
@@ -216,13 +221,24 @@ class AnyStartOptions:
     """What :func:`pae.render_compare.calibrate_any_start` tries on validation besides the
     settings' own: the high-passes ``highpass_px`` (px at the compare resolution, at every
     level and at the finest only), the local contrasts ``contrast_px`` (px, with each
-    high-pass, besides none) and the references' ``surface_shares``; ``seed``: the ladder
-    starts' draws (:func:`ladder_starts`)."""
+    high-pass, besides none), the references' ``surface_shares`` and, where the queries
+    carry ``matching``, the correspondence stages ``matches`` (mappings of
+    :class:`pae.render_compare.correspondences.MatchSettings`; none is always tried too);
+    ``seed``: the ladder starts' draws (:func:`ladder_starts`)."""
 
     highpass_px: Sequence[float] = (HIGHPASS_PX,)
     contrast_px: Sequence[float] = CONTRAST_PX
     surface_shares: Sequence[float] = SURFACE_SHARES
     seed: int = 0
+    matches: Sequence[Mapping[str, Any]] = ()
+
+    def __post_init__(self) -> None:
+        _check_matches("render_compare.matches_from_val", self.matches)
+
+    def stages(self) -> list[MatchSettings]:
+        """The correspondence stages to try: none first, then each of ``matches`` once."""
+        stages = [MatchSettings(), *(MatchSettings(**chosen) for chosen in self.matches)]
+        return list(dict.fromkeys(stages))
 
 
 def objective_value(poses: Tensor, starts: Tensor, truth: Tensor, objective: str) -> float:
