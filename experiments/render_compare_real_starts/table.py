@@ -22,6 +22,7 @@ COLUMNS = (
     "within 5 cm, 5° start → pae",
     "accepted",
     "filter: high-pass px / levels / contrast px; surface share (val)",
+    "stage (val)",
     "PSNR dB",
     "fit s",
     "ms / query",
@@ -48,6 +49,7 @@ def row(record: dict, recordings: bool) -> list[str]:
         f"{100 * start['within_5cm_5deg']:.0f} % → {100 * pae['within_5cm_5deg']:.0f} %",
         f"{100 * record['accepted_share']:.0f} %",
         chosen_filter(record["calibration"]),
+        chosen_stage(record.get("stage")),
         f"{record['psnr_db']:.1f}" if record.get("psnr_db") is not None else "",
         f"{record['fit_s']:.0f}" if record.get("fit_s") is not None else "",
         f"{record['ms_per_query']:.1f}",
@@ -65,6 +67,17 @@ def chosen_filter(calibration: dict[str, float]) -> str:
     chosen = f"{sigma:g} / {levels or 'all'}" if sigma else "none"
     chosen = f"{chosen} / c {contrast:g}" if contrast else chosen
     return f"{chosen}; s {share:g}" if share else chosen
+
+
+def chosen_stage(match: dict | None) -> str:
+    """The correspondence stage chosen on val (``pae-localize --summary``'s
+    ``calibration.match``): the other starts refined, the rounds from the best pose, whether
+    keypoints solve a pose; none where none runs."""
+    if not match:
+        return "none"
+    chosen = f"{match['start_views'] + match['near_start_views']} other starts"
+    chosen += f" + {match['near_best_rounds']} round" if match["near_best_rounds"] else ""
+    return chosen + (" + keypoints" if match["render_width"] else "")
 
 
 def mean_row(dataset: str, records: list[dict], recordings: bool) -> list[str]:
@@ -86,13 +99,7 @@ def mean_row(dataset: str, records: list[dict], recordings: bool) -> list[str]:
         *[cell(figures["per_recording"]) if every else ""] * recordings,
         cell(figures["nefes50"]),
         f"{ratio:.2f}× / {nefes:.2f}×",
-        "",
-        "",
-        "",
-        "",
-        "",
-        "",
-        "",
+        *[""] * 8,
     ]
 
 
@@ -105,6 +112,9 @@ def main(argv: list[str]) -> int:
             audit = path.parent / "truth_audit.json"
             if audit.is_file():
                 record["audit"] = json.loads(audit.read_text())["from_truth_oracle"]
+            summary = path.parent / f"render_compare_{apr}.json"
+            if summary.is_file():
+                record["stage"] = json.loads(summary.read_text())["calibration"].get("match")
             records.append(record)
         if not records:
             continue
