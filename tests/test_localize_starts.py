@@ -214,7 +214,8 @@ def test_the_calibration_for_any_start_chooses_among_the_run_s_stages_and_applie
     labels = tiny_root / "labels" / "all_test.csv"
     starts = _starts(labels, tmp_path / "starts.csv")
     argv = [str(run), str(labels), "--refine", "render_compare", "--init", str(starts)]
-    assert main([*argv, "--out", str(tmp_path / "a.csv")]) == 0
+    written = ["--out", str(tmp_path / "a.csv"), "--summary", str(tmp_path / "a.json")]
+    assert main([*argv, *written]) == 0
     assert tried[-1].width == 32 and tried[-1].near_start_views == 2
     kept = json.loads((run / CALIBRATION_FILE).read_text())
     assert kept["calibration"]["match"]["near_start_views"] == 2
@@ -223,6 +224,10 @@ def test_the_calibration_for_any_start_chooses_among_the_run_s_stages_and_applie
     assert matching.train is not None and matching.train.describe is None
     assert len(matching.train.poses) > 0 and len(matching.images) == len(read_labels(labels))
     assert reads == [32]
+    summary = json.loads((tmp_path / "a.json").read_text())
+    assert summary["calibration"]["match"]["near_start_views"] == 2
+    assert 0.0 <= summary["other_start_kept_share"] <= 1.0
+    assert summary["keypoints_found_share"] == 0.0  # no keypoints in this stage
     tried.clear()
     assert main([*argv, "--out", str(tmp_path / "b.csv")]) == 0
     assert not tried  # read back from the run's record

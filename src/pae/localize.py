@@ -280,6 +280,9 @@ def localize(args: argparse.Namespace) -> None:
             "accepted_share": float(accepted.float().mean()),
             "calibrate_s": refined.calibrate_s,
         }
+        if refined.stage_shares is not None:  # the queries with no usable match, counted
+            found_share, kept_share = refined.stage_shares
+            summary |= {"keypoints_found_share": found_share, "other_start_kept_share": kept_share}
     else:
         poses = loc.student_poses(run, method, teacher.model.cpu(), found)
     seconds = time.perf_counter() - started

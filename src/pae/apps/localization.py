@@ -382,14 +382,17 @@ def are_estimates_of(starts: Tensor, estimates: Tensor) -> bool:
 
 class Refined(NamedTuple):
     """Render-and-compare's answer for the queries: poses [N, 7], scenes [N], whether the
-    gate accepted each refinement [N] (bool), the calibration applied and the seconds spent
-    choosing it (0 where it was the run's or read back)."""
+    gate accepted each refinement [N] (bool), the calibration applied, the seconds spent
+    choosing it (0 where it was the run's or read back) and, where a correspondence stage
+    ran, the shares of the queries whose keypoints gave a pose and whose kept refinement
+    came from another start (None: no stage)."""
 
     poses: Tensor
     scenes: Tensor
     accepted: Tensor
     calibration: Calibration
     calibrate_s: float = 0.0
+    stage_shares: tuple[float, float] | None = None
 
 
 def render_compare(
@@ -448,7 +451,10 @@ def render_compare(
         settings | {"features": features},
     )
     poses, scenes, accepted = refined.poses.cpu(), refined.scenes.cpu(), refined.accepted.cpu()
-    return Refined(poses, scenes, accepted, calibration, calibrate_s)
+    shares = None
+    if refined.matched is not None and refined.from_match is not None:
+        shares = float(refined.matched.float().mean()), float(refined.from_match.float().mean())
+    return Refined(poses, scenes, accepted, calibration, calibrate_s, shares)
 
 
 def student_poses(run: Run, method: str, teacher: torch.nn.Module, found: Estimates) -> Tensor:
