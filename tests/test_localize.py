@@ -3,6 +3,7 @@ run's own test label file give the run's test figures."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -374,6 +375,7 @@ def test_pae_eval_refines_another_apr_s_starts_beside_the_teachers(
     worse = evaluated["test/render_compare_from_apr/worse_than_start_share"] * 24
     assert worse <= accepted + 1e-4
     assert "val/render_compare_from_apr/accept_margin" in evaluated
+    assert evaluated["val/render_compare_from_apr/match_width"] == 0  # no stage configured
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
         cfg = compose("eval", overrides=[*overrides[:-2], "render_compare.init=/no/such.txt"])
     with pytest.raises(ConfigError, match=r"render_compare.init=/no/such.txt: no such starts"):
@@ -505,3 +507,52 @@ def test_the_correspondence_stage_the_run_chose_is_read_back_and_fed_as_in_the_r
     assert len(matching.train.poses) == len(data.datasets["train"])
     unrecorded = loc.render_compare_settings(run._replace(metrics={}))[1].match
     assert match_queries(run, queries, data, teacher, uncropped, unrecorded) is None
+
+
+def test_pae_eval_tries_the_configured_stages_for_another_apr_s_starts(
+    finished_run: Path, tiny_root: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """pae-eval render_compare.init=FILE with render_compare.matches_from_val: the calibration
+    for any start tries those stages on the val queries at their match width, and the stage
+    it keeps is recorded (val/<method>/match_*) and applied to the test queries."""
+    from pae.apps.checkpoint_evaluation import evaluate_checkpoints
+    from pae.callbacks import render_compare_init
+
+    starts = tmp_path / "apr.csv"
+    labels = tiny_root / "labels" / "all_test.csv"
+    assert main([str(finished_run), str(labels), "--out", str(starts)]) == 0
+    stage = {"width": 32, "render_width": 0, "near_start_views": 2}
+    tried, refined = [], []
+    calibrate, refine = render_compare_init.calibrate_any_start, render_compare_init.refine
+
+    def forced(model, queries, *args):
+        tried.append((queries.matching, args[-1].stages()))
+        chosen, refinement, ladder = calibrate(model, queries, *args)
+        return dataclasses.replace(chosen, match=args[-1].stages()[-1]), refinement, ladder
+
+    def spy(model, queries, *args, **kwargs):
+        refined.append(queries.matching)
+        return refine(model, queries, *args, **kwargs)
+
+    monkeypatch.setattr(render_compare_init, "calibrate_any_start", forced)
+    monkeypatch.setattr(render_compare_init, "refine", spy)
+    overrides = [
+        *tiny_data_overrides(tiny_root),
+        *RENDER_COMPARE,
+        f"student_ckpt={finished_run / 'student' / 'checkpoints' / 'last.ckpt'}",
+        f"scene_model_ckpt={finished_run / 'scene_model' / 'checkpoints' / 'last.ckpt'}",
+        f"render_compare.init={starts}",
+        f"render_compare.matches_from_val=[{{}},{stage}]".replace("'", "").replace(" ", ""),
+        "render_compare.oracle=false",
+        "logger={}",
+    ]
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("eval", overrides=overrides)
+    evaluated = evaluate_checkpoints(cfg, tmp_path / "eval")
+    matching, stages = tried[-1]
+    assert matching is not None and matching.images.shape[-1] == 32
+    assert [s.near_start_views for s in stages] == [0, 2]
+    assert evaluated["val/render_compare_from_apr/match_width"] == 32
+    assert evaluated["val/render_compare_from_apr/match_near_start_views"] == 2
+    assert refined[-1] is not None and refined[-1].images.shape[-1] == 32
+    assert "test/render_compare_from_apr/match_kept_share" in evaluated

@@ -22,7 +22,7 @@ from pae.lit.eval_outputs import EVAL, SceneModelEvaluation, collect_outputs
 from pae.render_compare import AnyStartOptions, Calibration, Queries, calibrate_any_start, refine
 from pae.render_compare.calibration import scene_size
 from pae.render_compare.correspondences import MatchQueries
-from pae.render_compare.queries import method_from, refinement_figures
+from pae.render_compare.queries import match_figures, method_from, refinement_figures
 
 
 class RenderCompareFromFile(L.Callback):
@@ -32,7 +32,8 @@ class RenderCompareFromFile(L.Callback):
     ``test/<method>/...`` for ``<method>`` = ``render_compare_from_<file stem>`` (the gate's
     figures and ``worse_than_start_share`` too) and the starts' own figures under
     ``test/start_from_<file stem>/...``, with the gate and first steps chosen on each
-    validation run for starts of any scale (``val/<method>/accept_margin`` ...); the scene
+    validation run for starts of any scale (``val/<method>/accept_margin`` ..., the stage as
+    ``val/<method>/match_*``); the scene
     model is the evaluated module's, the settings ``refinement``'s."""
 
     def __init__(self, refinement: RenderCompareCallback) -> None:
@@ -87,7 +88,7 @@ class RenderCompareFromFile(L.Callback):
         )  # fmt: skip
         gate = (self.calibration.accept_margin, self.calibration.accept_score)
         figures = dict(zip(("accept_margin", "accept_score"), gate, strict=True))
-        figures |= dict(self.calibration.steps)
+        figures |= dict(self.calibration.steps) | match_figures(self.calibration.match)
         pl_module.log_dict({f"val/{self.method}/{k}": torch.tensor(v) for k, v in figures.items()})
 
     def on_test_epoch_end(self, trainer: L.Trainer, pl_module: SceneModelEvaluation) -> None:
