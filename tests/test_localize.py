@@ -500,13 +500,14 @@ def test_the_correspondence_stage_the_run_chose_is_read_back_and_fed_as_in_the_r
     def uncropped(size: tuple[int, int], focal: object, shorter: int) -> torch.Tensor:
         return loc.query_intrinsics(data.camera, size, shorter, None, focal)
 
-    matching = match_queries(run, queries, data, teacher, uncropped, chosen)
+    stated = (run.folder, run.config)
+    matching = match_queries(stated, queries, data, teacher, uncropped, chosen)
     images, intrinsics = data.images_at("test", 32)
     torch.testing.assert_close(matching.images, images.float() / 255)
     torch.testing.assert_close(matching.intrinsics, intrinsics)
     assert len(matching.train.poses) == len(data.datasets["train"])
     unrecorded = loc.render_compare_settings(run._replace(metrics={}))[1].match
-    assert match_queries(run, queries, data, teacher, uncropped, unrecorded) is None
+    assert match_queries(stated, queries, data, teacher, uncropped, unrecorded) is None
 
 
 def test_pae_eval_tries_the_configured_stages_for_another_apr_s_starts(

@@ -258,7 +258,8 @@ def localize(args: argparse.Namespace) -> None:
         model = None if teacher is None else teacher.model.eval()
 
         def matching(match: MatchSettings, train: TrainImages | None) -> MatchQueries | None:
-            return match_queries(run, queries, data, model, uncropped, match, train)
+            stated = (run.folder, run.config)
+            return match_queries(stated, queries, data, model, uncropped, match, train)
 
         in_order = None
         if recordings is not None and options is not None:

@@ -278,7 +278,7 @@ def render_compare_settings(run: Run) -> tuple[dict[str, Any], Calibration]:
     gate = chosen("accept_margin", 0.0), chosen("accept_score", ACCEPT_ALL)
     match = recorded_match(run.metrics, f"test/{RENDER_COMPARE}")
     if match is None:  # unrecorded: the one configured stage, if any
-        listed = configured_matches(run)
+        listed = configured_matches(run.config)
         match = CalibrationOptions(matches_from_val=listed).uncalibrated().match
     return settings, Calibration(*gate, scene=rule, match=match)
 
@@ -342,12 +342,12 @@ def any_start_calibration(
     size = scene_size(positions[:, :3].double())
     on_device = {key: value.to(device) for key, value in val.items()}
     checkpoint = (model, scene_model_path(run))
-    matches = configured_matches(run)
+    matches = configured_matches(run.config)
     width = match_width(matches)
     read: list[TrainImages] = []
 
     def val_matching() -> MatchQueries:
-        read.append(run_train_images(run, data, width, teacher))
+        read.append(run_train_images((run.folder, run.config), data, width, teacher))
         images, intrinsics = data.images_at("val", width)
         return MatchQueries(images.float() / 255, intrinsics, read[0])
 

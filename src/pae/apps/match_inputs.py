@@ -5,11 +5,12 @@ files at that width."""
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
 from pae.apps.queries import Queries
@@ -19,35 +20,37 @@ from pae.data.dataset import PoseDataset
 from pae.lit.eval_outputs import teacher_descriptor, train_images
 from pae.render_compare.correspondences import MatchQueries, MatchSettings, TrainImages
 
-if TYPE_CHECKING:
-    from pae.apps.localization import Run
 
-
-def configured_matches(run: Run) -> list[dict[str, Any]]:
-    """The correspondence stages the run's config lists (``render_compare.matches_from_val``)."""
-    stages = run.config.render_compare.get("matches_from_val") or []
+def configured_matches(config: DictConfig) -> list[dict[str, Any]]:
+    """The correspondence stages a run's ``config`` lists (``render_compare.matches_from_val``)."""
+    stages = config.render_compare.get("matches_from_val") or []
     listed = OmegaConf.to_container(stages) if OmegaConf.is_config(stages) else list(stages)
     assert isinstance(listed, list)
     return listed
 
 
 def run_train_images(
-    run: Run, data: PoseDataModule, width: int, teacher: torch.nn.Module | None
+    run: tuple[Path, DictConfig],
+    data: PoseDataModule,
+    width: int,
+    teacher: torch.nn.Module | None,
 ) -> TrainImages:
-    """The run's train views at ``width`` px for a correspondence stage (``data`` set up),
-    retrieved by the descriptor its config names (``render_compare.match_descriptor``)."""
-    if run.config.render_compare.get("match_descriptor", "teacher") != "teacher":
+    """The train views at ``width`` px for a correspondence stage of the run (its folder and
+    config) whose data is ``data`` (set up), retrieved by the descriptor its config names
+    (``render_compare.match_descriptor``)."""
+    folder, config = run
+    if config.render_compare.get("match_descriptor", "teacher") != "teacher":
         return train_images(data, width, None)
     if teacher is None:
         raise ConfigError(
-            f"{run.folder}: render_compare.match_descriptor=teacher needs the run's teacher; "
+            f"{folder}: render_compare.match_descriptor=teacher needs the run's teacher; "
             "it has none (render_compare.match_descriptor=thumbnail)"
         )
     return train_images(data, width, teacher_descriptor(teacher, data.shorter_edge))
 
 
 def match_queries(
-    run: Run,
+    run: tuple[Path, DictConfig],
     queries: Queries,
     data: PoseDataModule,
     teacher: torch.nn.Module | None,
@@ -55,7 +58,8 @@ def match_queries(
     match: MatchSettings,
     train: TrainImages | None = None,
 ) -> MatchQueries | None:
-    """What the correspondence stage ``match`` reads of the queries: their files at its
+    """What the correspondence stage ``match`` of the run (its folder and config) reads of
+    the queries: their files at its
     match width, uncropped, with ``intrinsics`` ((h, w) on disk, the rows' focal lengths or
     None, the shorter edge in px -> [N, 4]), and the run's train views at that width
     (``train``, else read from its data, set up here); None where no stage runs."""
