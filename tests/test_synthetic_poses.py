@@ -184,3 +184,28 @@ def test_given_poses_render_with_the_benchmark_s_options(tmp_path: Path) -> None
     assert len(table) == 1 + 12 and not (tmp_path / "plain" / "labels" / NUISANCE_FILE).exists()
     gains = [float(line.split(",")[-1]) for line in table[1:]]
     assert len(set(np.round(gains, 4))) > 2, "each frame's exposure drifts"
+
+
+def test_a_street_s_occluders_keep_a_room_s_texels() -> None:
+    """In a world scaled up around a street's cameras (here 40 times), an occluder is 40
+    times a person's size but its textures hold as many texels as a person's in a room, each
+    40 times larger: rendering a street's recording with occluders stays within memory."""
+    from pae.synthetic import PinholeCamera
+    from pae.synthetic.nuisances import _occluders
+
+    def occluders(extent: float) -> list:
+        poses = _walk(extent, 40, 1)
+        scene = make_scene_around("s", 0, poses[:, :3])
+        rng = np.random.default_rng(3)
+        found = _occluders(rng, 0.5, scene, poses, PinholeCamera(64))
+        return [(box, scene.scale) for box in found if box is not None]
+
+    room, street = occluders(3.0), occluders(120.0)
+    assert room[0][1] == 1.0 and street[0][1] == pytest.approx(40.0, rel=0.05)
+    for found in (room, street):
+        for box, scale in found:
+            height = (box.hi - box.lo)[2]
+            assert 1.7 * 0.85 * scale <= height <= 1.7 * 1.15 * scale
+            for texture in box.textures:
+                assert texture.texel_size == pytest.approx(0.02 * scale)
+                assert texture.image.shape[0] * texture.image.shape[1] <= 100 * 60

@@ -121,7 +121,8 @@ def _occluders(
     get a person-sized box (:data:`OCCLUDER_SIZE_M`, facing the camera with its width)
     standing on the floor straight ahead of the camera, at a distance in
     :data:`OCCLUDER_DISTANCE_M` (less where the scene is nearer) and a lateral offset of up
-    to 60 % of the half view there (times the scene's scale)."""
+    to 60 % of the half view there (times the scene's scale; its textures those of a
+    person in room metres, their texels times the scale)."""
     occluders: list[Box | None] = [None] * len(poses)
     chosen = np.sort(rng.choice(len(poses), round(fraction * len(poses)), replace=False))
     if not len(chosen):
@@ -142,7 +143,12 @@ def _occluders(
         size = np.array(OCCLUDER_SIZE_M) * rng.uniform(0.85, 1.15, 3) * scale
         if abs(f[0]) > abs(f[1]):  # looking along x: the width along y
             size = size[[1, 0, 2]]
-        textures = person_textures(rng, size)
+        # textured in room metres, its texels scaled with the world's (a person 40 times
+        # larger in a street's world keeps the texels of one in a room, not 1,600 times more)
+        textures = tuple(
+            dataclasses.replace(texture, texel_size=texture.texel_size * scale)
+            for texture in person_textures(rng, size / scale)
+        )
         centre = position[:2] + distance * f + lateral * r
         lo = np.array([*(centre - size[:2] / 2), scene.room.lo[2]])
         occluders[frame] = Box(lo, lo + size, textures)
