@@ -209,3 +209,20 @@ def test_a_street_s_occluders_keep_a_room_s_texels() -> None:
             for texture in box.textures:
                 assert texture.texel_size == pytest.approx(0.02 * scale)
                 assert texture.image.shape[0] * texture.image.shape[1] <= 100 * 60
+
+
+def test_an_occluder_nearer_than_its_nearest_distance_stands_there_at_any_scale() -> None:
+    """Where what is ahead is nearer than the occluder's nearest distance, the occluder
+    stands at that distance: at a scale whose nearest distance a float32 rounds down, the
+    farthest distance computed in float32 fell below the nearest and the draw between them
+    failed (StMarysChurch's world, 25.6 times a room)."""
+    from pae.synthetic.nuisances import OCCLUDER_DISTANCE_M, occluder_distances
+
+    scales = np.linspace(20.0, 30.0, 1001)
+    rounded_down = np.float32(OCCLUDER_DISTANCE_M[0] * scales) < OCCLUDER_DISTANCE_M[0] * scales
+    scale = float(scales[rounded_down][0])
+    free = np.array([0.5, 1.0, 200.0], dtype=np.float32) * scale
+    near, far = occluder_distances(free, scale)
+    assert far.dtype == np.float64 and bool((far >= near).all())
+    assert far[0] == near and far[2] == OCCLUDER_DISTANCE_M[1] * scale
+    np.random.default_rng(0).uniform(near, far)

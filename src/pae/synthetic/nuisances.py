@@ -110,6 +110,15 @@ def person_textures(rng: np.random.Generator, size: np.ndarray) -> tuple[FaceTex
     return tuple(textures)
 
 
+def occluder_distances(free: np.ndarray, scale: float) -> tuple[float, np.ndarray]:
+    """The nearest distance (m) an occluder stands ahead of a camera and the farthest ``[n]``
+    for cameras with ``free`` ``[n]`` metres ahead (:data:`OCCLUDER_DISTANCE_M` times the
+    world's ``scale``, 0.3 × scale short of what is ahead, never nearer than the nearest), in
+    float64: a float32 distance at the nearest may round below it."""
+    near, far = (d * scale for d in OCCLUDER_DISTANCE_M)
+    return near, np.clip(np.asarray(free, dtype=np.float64) - 0.3 * scale, near, far)
+
+
 def _occluders(
     rng: np.random.Generator,
     fraction: float,
@@ -134,8 +143,7 @@ def _occluders(
     ahead = np.concatenate([forward, np.zeros((len(chosen), 1))], axis=1)
     _, free = shade_rays(scene, positions, ahead)
     scale = scene.scale
-    near, far = (d * scale for d in OCCLUDER_DISTANCE_M)
-    far = np.clip(free - 0.3 * scale, near, far)
+    near, far = occluder_distances(free, scale)
     half_view = math.tan(math.radians(camera.fov_deg) / 2)
     for frame, position, f, r, limit in zip(chosen, positions, forward, right, far, strict=True):
         distance = rng.uniform(near, limit)
