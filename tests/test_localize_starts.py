@@ -93,6 +93,7 @@ def test_a_run_without_a_teacher_refines_another_apr_s_starts(
     [
         ([], "has no teacher (its steps are ['scene_fit']): only --refine render_compare --init"),
         (["--sequences"], "--sequences: RUN uses no sequence passes or window: give"),
+        (["--sequence-passes", "3"], "--sequence-passes and --sequence-window apply with"),
     ],
 )
 def test_mistakes_on_a_run_without_a_teacher_are_one_line(

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pae.apps.any_start import CALIBRATION_FILE
+from pae.apps.any_start import CALIBRATION_FILE, val_figures
 from pae.apps.localization import data_module, read_run, scene_model_path, split_queries
 from pae.core.atomic import atomic_write
 from pae.core.checkpoints import load_scene_model
@@ -98,17 +98,6 @@ def real_starts(
     return poses
 
 
-def figures(poses: torch.Tensor, truth: torch.Tensor) -> dict[str, float]:
-    """Median position (m) and orientation (deg) errors and the share within 5 cm and 5 deg."""
-    pos, rot = pose_errors(poses.float(), truth.float())
-    within = ((pos < 0.05) & (rot < 5.0)).float().mean()
-    return {
-        "pos_median_m": float(pos.median()),
-        "rot_median_deg": float(rot.median()),
-        "within_5cm_5deg": float(within),
-    }
-
-
 def source_paths(rendered: LabelTable, source: Path) -> list[str]:
     """The source label file's image paths of the rendered test rows (the renderer names its
     own files; rows keep the file's order and poses, checked)."""
@@ -172,7 +161,7 @@ def truth_audit(run_dir: Path) -> None:
     settings = dataclasses.asdict(refiner_settings(size))
     refined = refine(model, queries, test["pose"], calibration, settings=settings)
     with atomic_write(run_dir / "truth_audit.json") as handle:
-        json.dump({"from_truth_oracle": figures(refined.poses, test["pose"])}, handle, indent=1)
+        json.dump({"from_truth_oracle": val_figures(refined.poses, test["pose"])}, handle, indent=1)
 
 
 def refine_scene(
@@ -216,8 +205,8 @@ def refine_scene(
                 **alone["calibration"]["steps"],
             },
             "val": kept["val"],
-            "start": figures(starts["start"], truth),
-            "nefes50": figures(starts["nefes50"], truth),
+            "start": val_figures(starts["start"], truth),
+            "nefes50": val_figures(starts["nefes50"], truth),
             "accepted_share": alone["accepted_share"],
             "psnr_db": metrics.get("test/scene_model/psnr_db"),
             "fit_s": metrics.get("bench/scene_fit/fit_s"),
@@ -226,7 +215,7 @@ def refine_scene(
         }
         for mode, answer in found.items():
             poses = torch.as_tensor(answer["poses"].poses, dtype=torch.float32)
-            record[mode] = figures(poses, truth)
+            record[mode] = val_figures(poses, truth)
             worse = pose_errors(poses, truth)[0] > pose_errors(starts["start"], truth)[0]
             record[f"{mode}_worse_than_start_share"] = float(worse.float().mean())
         if "per_recording" in found:

@@ -120,8 +120,9 @@ def parser() -> argparse.ArgumentParser:
         "--summary",
         type=Path,
         metavar="FILE",
-        help="also write a JSON of the run: method, gate, the calibration applied, the "
-        "accepted share, the recordings and the seconds per query",
+        help="also write a JSON of the run: method, gate, the calibration applied (its "
+        "correspondence stage too), the accepted share, the shares the stage solved and "
+        "moved, the recordings and the seconds per query",
     )
     return parse
 
@@ -187,6 +188,8 @@ def localize(args: argparse.Namespace) -> None:
         )
     if args.sequences and method != loc.RENDER_COMPARE:
         raise ConfigError("--sequences: only --refine render_compare uses recordings")
+    if not args.sequences and (args.sequence_passes, args.sequence_window) != (None, None):
+        raise ConfigError("--sequence-passes and --sequence-window apply with --sequences only")
     if args.onnx is not None and method != loc.TEACHER:
         raise ConfigError(f"--onnx runs the teacher only, not --refine {method}")
     queries = gather_queries(args.inputs, args.root or run.data_root)
@@ -198,7 +201,7 @@ def localize(args: argparse.Namespace) -> None:
         teacher = load_onnx_teacher(args.onnx, run, teacher_path)
     else:
         teacher = load_teacher(teacher_path)
-    data = loc.data_module(run)
+    data = loc.data_module(run, cache_images=False)  # its labels and camera: no image read
     if teacher is None:
         data.setup()
     scene_names = data.scene_names if teacher is None else teacher.scene_names

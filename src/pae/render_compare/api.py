@@ -395,11 +395,16 @@ def calibrate_any_start(
     )
 
     def evaluate(
-        steps: dict[str, float], match: MatchSettings | None = None
+        steps: dict[str, float],
+        match: MatchSettings | None = None,
+        first: RenderCompareResult | None = None,
     ) -> tuple[float, Calibration, Refinement]:
+        """The objective, calibration and val refinement under ``steps`` and ``match``;
+        ``first``: the refinement from the starts under those steps, where already made."""
         match = match or MatchSettings()
         refiner = build_refiner(scene_model, settings, steps)
-        first = refiner(queries.images, queries.intrinsics, starts, queries.scenes)
+        if first is None:
+            first = refiner(queries.images, queries.intrinsics, starts, queries.scenes)
         decided = first, queries.scenes, torch.zeros_like(queries.scenes, dtype=torch.bool)
 
         def chosen_gate(result: RenderCompareResult) -> tuple[float, float]:
@@ -434,7 +439,8 @@ def calibrate_any_start(
             tried = evaluate(chosen | {"surface_share": surface})
             best = tried if tried[0] < best[0] else best
     if queries.matching is not None:
+        chosen, plain = dict(best[1].steps), best[2].result  # no stage: the search made once
         for match in options.stages()[1:]:
-            tried = evaluate(dict(best[1].steps), match)
+            tried = evaluate(chosen, match, plain)
             best = tried if tried[0] < best[0] else best
     return best[1], best[2], starts
