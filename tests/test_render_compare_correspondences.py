@@ -27,6 +27,7 @@ from pae.render_compare.correspondences import (
     lift,
     mutual_matches,
 )
+from pae.render_compare.refiner import RenderCompareRefiner
 from pae.scene_model.oracle import OracleSceneModel
 from pae.synthetic import (
     Appearance,
@@ -264,3 +265,40 @@ def test_the_calibration_for_any_start_takes_a_stage_where_it_lowers_the_val_rat
     assert value < value_without - 0.05
     again = refine(model, queries, starts, chosen, settings=SMALL_SEARCH)
     torch.testing.assert_close(again.poses, poses)
+
+
+def test_screening_refines_only_the_best_other_starts_and_still_finds_the_pose(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """screen_keep=1 of 4 other starts: the full search runs on the APR's start and one
+    other start per query, the rest only the short search, and the query 1.5 m off is still
+    found from the train view's pose; screen_keep at least the starts' count changes
+    nothing."""
+    model, images, intrinsics, truth = _frames(48, slice(0, 40))
+    train = TrainImages(images[::2], intrinsics[::2], truth[::2], torch.zeros(20, dtype=torch.long))
+    query = slice(21, 22)
+    starts = perturb(truth[query], torch.tensor([[1.0, -0.9, 0.6, 0.3, 0.2, -0.2]]))
+    matching = MatchQueries(images[query], intrinsics[query], train)
+    scenes = torch.zeros(1, dtype=torch.long)
+    queries = Queries(images[query], intrinsics[query], scenes, matching=matching)
+    calls: list[tuple[int, int]] = []
+    original = RenderCompareRefiner.__call__
+
+    def counted(self: RenderCompareRefiner, images: torch.Tensor, *args, **kwargs):
+        calls.append((self.rounds, len(images)))
+        return original(self, images, *args, **kwargs)
+
+    monkeypatch.setattr(RenderCompareRefiner, "__call__", counted)
+
+    def refined(**screen: int) -> torch.Tensor:
+        calls.clear()
+        match = MatchSettings(width=48, render_width=0, start_views=2, near_start_views=2, **screen)
+        found = refine(model, queries, starts, Calibration(match=match), settings=SMALL_SEARCH)
+        return found.result.poses
+
+    every = refined()
+    assert calls == [(2, 1), (2, 4)]
+    screened = refined(screen_keep=1)
+    assert calls == [(2, 1), (1, 4), (2, 1)]
+    assert float(pose_errors(screened, truth[query])[0][0]) < 0.1
+    torch.testing.assert_close(refined(screen_keep=4), every)

@@ -54,6 +54,11 @@ class MatchSettings:
     """Then, this many times, the ``near_start_views`` train cameras nearest each query's
     best-scoring pose so far refined as starts too (a walk over the train cameras towards
     where the score points)."""
+    screen_keep: int = 0
+    """Refine only this many other starts per query in full, those a short search
+    (``screen_rounds`` rounds at the coarsest level, no polish) scores highest, each from
+    where that search ended (0: every other start in full)."""
+    screen_rounds: int = 1
     below_score: float = 2.0
     """Only queries whose refinement from the APR's start scores below this ZNCC get the
     other starts (2: every query): a query the scene model already explains keeps its own."""
@@ -81,12 +86,12 @@ class MatchSettings:
                 f"{self.render_width} and {self.depth_width}"
             )
         counts = (self.views, self.near_views, self.start_views, self.near_start_views)
-        counts += (self.iterations, self.near_best_rounds)
+        counts += (self.iterations, self.near_best_rounds, self.screen_keep, self.screen_rounds)
         if min(counts) < 0 or self.keypoints < 8:
             raise ValueError(
                 "render_compare.match needs views, near_views, start_views, near_start_views, "
-                f"iterations, near_best_rounds >= 0 and keypoints >= 8, not {counts}, "
-                f"{self.keypoints}"
+                "iterations, near_best_rounds, screen_keep, screen_rounds >= 0 and keypoints "
+                f">= 8, not {counts}, {self.keypoints}"
             )
         if not 0 < self.ratio <= 1 or self.reprojection_px <= 0 or self.min_inliers < 4:
             raise ValueError(

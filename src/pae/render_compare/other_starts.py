@@ -4,6 +4,7 @@ appearance, each refined, the best-scoring refinement kept."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from typing import NamedTuple
@@ -66,6 +67,31 @@ def _extra_starts(
     return torch.cat(extra, 1), torch.cat(usable, 1), found
 
 
+def _screened(
+    refiner: RenderCompareRefiner,
+    queries: tuple[Tensor, Tensor, Tensor],
+    rows: Tensor,
+    extra: Tensor,
+    usable: Tensor,
+    match: MatchSettings,
+) -> tuple[Tensor, Tensor]:
+    """The ``match.screen_keep`` other starts of each query (extra [n, H, 7] where ``usable``
+    [n, H]) that a short search (``match.screen_rounds`` rounds, no polish) scores highest,
+    each moved to where that search ended -> starts [n, keep, 7] and which are usable."""
+    images, intrinsics, scenes = queries
+    short = copy.copy(refiner)
+    short.rounds, short.polish_steps, short.final_reference_size = match.screen_rounds, 0, 0
+    query, which = usable.nonzero(as_tuple=True)
+    at = rows[query]
+    searched = short(images[at], intrinsics[at], extra[query, which], scenes[at])
+    scores = torch.full(usable.shape, -math.inf)
+    scores[query, which] = searched.score.float()
+    poses = extra.clone()
+    poses[query, which] = searched.poses.to(poses)
+    top, pick = scores.topk(match.screen_keep, dim=1)
+    return poses.gather(1, pick[..., None].expand(-1, -1, poses.shape[-1])), top.isfinite()
+
+
 def _keep_better(
     refiner: RenderCompareRefiner,
     queries: tuple[Tensor, Tensor, Tensor],
@@ -73,16 +99,20 @@ def _keep_better(
     extra: Tensor,
     usable: Tensor,
     best: RenderCompareResult,
+    match: MatchSettings,
 ) -> tuple[RenderCompareResult, Tensor]:
     """Refine the other starts extra [n, H, 7] of the queries at ``rows`` [n] (of images,
-    intrinsics and scenes ``queries``) where ``usable`` [n, H], and keep each query's
+    intrinsics and scenes ``queries``) where ``usable`` [n, H] (the ``match.screen_keep``
+    best after a short search, where set: :func:`_screened`), and keep each query's
     best-scoring refinement where it beats ``best``'s score -> the result and which of the
     ``rows`` it moved [n]."""
     images, intrinsics, scenes = queries
-    query, which = usable.nonzero(as_tuple=True)
     moved = torch.zeros(len(rows), dtype=torch.bool)
-    if not len(query):
+    if not usable.any():
         return best, moved
+    if 0 < match.screen_keep < usable.shape[1]:
+        extra, usable = _screened(refiner, queries, rows, extra, usable, match)
+    query, which = usable.nonzero(as_tuple=True)
     at = rows[query]
     refined = refiner(images[at], intrinsics[at], extra[query, which], scenes[at])
     scores = torch.full(usable.shape, -math.inf)
@@ -126,7 +156,7 @@ def with_other_starts(
         refiner.scene_model, starts[needy], scenes[needy], match, subset
     )
     queries = (images, intrinsics, decided)
-    result, moved = _keep_better(refiner, queries, needy, extra, usable, result)
+    result, moved = _keep_better(refiner, queries, needy, extra, usable, result, match)
     from_match[needy[moved]] = True
     train = matching.train
     for _ in range(match.near_best_rounds if train is not None else 0):
@@ -134,8 +164,7 @@ def with_other_starts(
             result.poses[needy], scenes[needy], train.poses, train.scenes, match.near_start_views
         )
         near = train.poses[rows].to(starts)
-        result, moved = _keep_better(
-            refiner, queries, needy, near, torch.ones(rows.shape, dtype=torch.bool), result
-        )
+        usable = torch.ones(rows.shape, dtype=torch.bool)
+        result, moved = _keep_better(refiner, queries, needy, near, usable, result, match)
         from_match[needy[moved]] = True
     return OtherStarts(result, found, from_match)

@@ -138,15 +138,17 @@ def match_figures(match: MatchSettings) -> dict[str, float]:
 
 
 def recorded_match(figures: Mapping[str, Any], prefix: str) -> MatchSettings | None:
-    """The stage :func:`match_figures` recorded under ``prefix`` in ``figures`` (None: none)."""
+    """The stage :func:`match_figures` recorded under ``prefix`` in ``figures`` (None: none;
+    a setting a record predates takes its default)."""
     values = {
         field.name: figures.get(f"{prefix}/match_{field.name}")
         for field in dataclasses.fields(MatchSettings)
     }
-    if any(value is None for value in values.values()):
+    if values["width"] is None:
         return None
-    values["detector"] = DETECTORS[int(values["detector"])]
     default = MatchSettings()
+    values = {k: getattr(default, k) if v is None else v for k, v in values.items()}
+    values["detector"] = DETECTORS[int(values["detector"])]
     return MatchSettings(
         **{k: v if k == "detector" else type(getattr(default, k))(v) for k, v in values.items()}
     )
