@@ -4,6 +4,8 @@ starts of their own; how refine() and calibrate() use both."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -302,3 +304,14 @@ def test_screening_refines_only_the_best_other_starts_and_still_finds_the_pose(
     assert calls == [(2, 1), (1, 4), (2, 1)]
     assert float(pose_errors(screened, truth[query])[0][0]) < 0.1
     torch.testing.assert_close(refined(screen_keep=4), every)
+
+
+def test_a_recorded_stage_reads_back_and_a_setting_it_predates_takes_its_default() -> None:
+    from pae.render_compare.queries import match_figures, recorded_match
+
+    stage = MatchSettings(width=64, start_views=4, detector="orb", screen_keep=2)
+    figures = {f"test/m/{key}": value for key, value in match_figures(stage).items()}
+    assert recorded_match(figures, "test/m") == stage
+    older = {k: v for k, v in figures.items() if "screen" not in k}
+    assert recorded_match(older, "test/m") == dataclasses.replace(stage, screen_keep=0)
+    assert recorded_match({}, "test/m") is None
