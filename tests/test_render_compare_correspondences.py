@@ -138,7 +138,9 @@ def test_train_views_nearest_in_appearance_become_starts_of_their_own() -> None:
     assert off.matched is None
 
 
-def test_calibrate_keeps_the_stage_val_prefers_and_refine_applies_it() -> None:
+def test_calibrate_keeps_the_stage_val_prefers_and_refine_applies_it(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     model, images, intrinsics, truth = _frames(48, slice(0, 40))
     train = TrainImages(images[::2], intrinsics[::2], truth[::2], torch.zeros(20, dtype=torch.long))
     rows = torch.tensor([5, 13, 21, 29])
@@ -150,8 +152,12 @@ def test_calibrate_keeps_the_stage_val_prefers_and_refine_applies_it() -> None:
     stages = [{}, {"width": 48, "render_width": 0, "start_views": 2}]
     options = CalibrationOptions(matches_from_val=stages)
     val = Validation(queries, starts, truth[rows])
-    calibration, refinement = calibrate(model, val, options, settings=SMALL_SEARCH)
+    with caplog.at_level("INFO", logger="pae.render_compare.api"):
+        calibration, refinement = calibrate(model, val, options, settings=SMALL_SEARCH)
     assert calibration.match.start_views == 2
+    said = [r.getMessage() for r in caplog.records if "calibrate on val" in r.getMessage()]
+    assert [line.split()[3] for line in said] == ["tried", "kept"]
+    assert "'start_views': 2" in said[1]
     again = refine(model, queries, starts, calibration, settings=SMALL_SEARCH)
     torch.testing.assert_close(again.poses, refinement.poses)
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import itertools
+import logging
 from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
 
@@ -45,6 +46,8 @@ from pae.render_compare.scene_decision import (
 from pae.render_compare.sequences import Sequences, median_filter, propagate, vote_scenes
 from pae.render_compare.settings import RenderCompareSettings
 from pae.scene_model.base import SceneModel
+
+log = logging.getLogger(__name__)
 
 Settings = RenderCompareSettings | Mapping[str, Any] | None
 """The refiner's settings replacing the defaults: a :class:`RenderCompareSettings`, or a
@@ -341,6 +344,12 @@ def calibrate(
             for _, r in tried
         ]
         chosen = min(range(len(tried)), key=values.__getitem__)
+        for trial, value in zip(trials, values, strict=True):
+            kept = "kept" if trial is trials[chosen] else "tried"
+            log.info(
+                "calibrate on val: %s %s objective %.4f, filter %s, stage %s",
+                kept, options.gate_objective, value, dict(trial.filter), dict(trial.match),
+            )  # fmt: skip
         return trials[chosen], tried[chosen]
 
     found = None  # the chosen trial's calibration, where it ran as it is to be kept
@@ -416,6 +425,10 @@ def calibrate_any_start(
             refiner, queries, starts, None, decided, match, chosen_gate
         )  # fmt: skip
         value = objective_value(refinement.poses, starts, truth, "log_ratio")
+        log.info(
+            "calibrate for any start on val: log_ratio objective %.4f, steps %s, stage %s",
+            value, steps, dataclasses.asdict(match) if match.active else {},
+        )  # fmt: skip
         return value, dataclasses.replace(gated, steps=steps, match=match), refinement
 
     best = min(
