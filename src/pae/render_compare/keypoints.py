@@ -59,6 +59,7 @@ class MatchSettings:
     (``screen_rounds`` rounds at the coarsest level, no polish) scores highest, each from
     where that search ended (0: every other start in full)."""
     screen_rounds: int = 1
+    """The short search's rounds (0: the other starts scored where they are)."""
     below_score: float = 2.0
     """Only queries whose refinement from the APR's start scores below this ZNCC get the
     other starts (2: every query): a query the scene model already explains keeps its own."""

@@ -147,10 +147,13 @@ def recorded_match(figures: Mapping[str, Any], prefix: str) -> MatchSettings | N
     if values["width"] is None:
         return None
     default = MatchSettings()
-    values = {k: getattr(default, k) if v is None else v for k, v in values.items()}
-    values["detector"] = DETECTORS[int(values["detector"])]
+    if values["detector"] is not None:
+        values["detector"] = DETECTORS[int(values["detector"])]
     return MatchSettings(
-        **{k: v if k == "detector" else type(getattr(default, k))(v) for k, v in values.items()}
+        **{
+            k: getattr(default, k) if v is None else type(getattr(default, k))(v)
+            for k, v in values.items()
+        }
     )
 
 
