@@ -321,3 +321,20 @@ def test_a_recorded_stage_reads_back_and_a_setting_it_predates_takes_its_default
     older = {k: v for k, v in figures.items() if "screen" not in k}
     assert recorded_match(older, "test/m") == dataclasses.replace(stage, screen_keep=0)
     assert recorded_match({}, "test/m") is None
+
+
+@pytest.mark.parametrize(
+    ("settings", "said"),
+    [
+        ({}, "none"),
+        ({"width": 64, "start_views": 4, "near_start_views": 4}, "8 other starts + keypoints"),
+        ({"width": 64, "render_width": 0, "start_views": 4}, "4 other starts"),
+        (
+            {"width": 64, "start_views": 4, "near_start_views": 4, "near_best_rounds": 1,
+             "screen_keep": 2},
+            "8 other starts + 1 round + keypoints, 2 in full",
+        ),
+    ],
+)  # fmt: skip
+def test_a_stage_is_described_in_a_table_s_words(settings: dict, said: str) -> None:
+    assert MatchSettings(**settings).described() == said

@@ -26,6 +26,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from pae.render_compare.queries import recorded_match
 from pae.synthetic.settings import CaptureOptions, Nuisances, SurfaceOptions
 
 OFF = {
@@ -72,7 +73,15 @@ def cells(metrics: dict[str, float]) -> list[str]:
     ratio = metrics["test/render_compare/pos_median_m"] / metrics["test/teacher/pos_median_m"]
     accepted = metrics["test/render_compare/accepted_share"]
     psnr = metrics.get("test/scene_model/psnr_db", float("nan"))
-    return [*out, f"{ratio:.3f}×", f"{100 * accepted:.0f} %", f"{psnr:.1f}", chosen_filter(metrics)]
+    stage = recorded_match(metrics, "test/render_compare")
+    return [
+        *out,
+        f"{ratio:.3f}×",
+        f"{100 * accepted:.0f} %",
+        f"{psnr:.1f}",
+        chosen_filter(metrics),
+        stage.described() if stage is not None else "none",
+    ]
 
 
 def chosen_filter(metrics: dict[str, float]) -> str:
@@ -97,8 +106,8 @@ def main() -> None:
     pae_train = str(Path(sys.executable).with_name("pae-train"))
     lines = [
         "| options on | teacher | render_compare | oracle † | ratio | accepted | PSNR (dB) "
-        "| filter chosen on val |",
-        "|---|---|---|---|---|---|---|---|",
+        "| filter chosen on val | stage chosen on val |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for row in args.rows:
         run_dir = Path(args.out) / f"{row}_seed{args.seed}"

@@ -12,6 +12,8 @@ import json
 import sys
 from pathlib import Path
 
+from pae.render_compare.correspondences import MatchSettings
+
 COLUMNS = (
     "scene",
     "start cm / deg",
@@ -71,13 +73,8 @@ def chosen_filter(calibration: dict[str, float]) -> str:
 
 def chosen_stage(match: dict | None) -> str:
     """The correspondence stage chosen on val (``pae-localize --summary``'s
-    ``calibration.match``): the other starts refined, the rounds from the best pose, whether
-    keypoints solve a pose; none where none runs."""
-    if not match:
-        return "none"
-    chosen = f"{match['start_views'] + match['near_start_views']} other starts"
-    chosen += f" + {match['near_best_rounds']} round" if match["near_best_rounds"] else ""
-    return chosen + (" + keypoints" if match["render_width"] else "")
+    ``calibration.match``; none where none runs)."""
+    return MatchSettings(**match).described() if match else "none"
 
 
 def mean_row(dataset: str, records: list[dict], recordings: bool) -> list[str]:

@@ -117,6 +117,17 @@ class MatchSettings:
     def uses_views(self) -> bool:
         return self.width > 0 and bool(self.views or self.near_views)
 
+    def described(self) -> str:
+        """The stage in a table's words: the other starts refined, the rounds from the best
+        pose, whether keypoints solve a pose and how many starts are refined in full after
+        the screen; ``none`` where no stage runs."""
+        if not self.active:
+            return "none"
+        said = f"{self.start_views + self.near_start_views} other starts"
+        said += f" + {self.near_best_rounds} round" if self.near_best_rounds else ""
+        said += " + keypoints" if self.solves else ""
+        return said + (f", {self.screen_keep} in full" if self.screen_keep else "")
+
 
 class Keypoints(NamedTuple):
     """Keypoints of ``B`` images, padded to ``K``: xy [B, K, 2] px, descriptors [B, K, D]
