@@ -67,6 +67,25 @@ def _extra_starts(
     return torch.cat(extra, 1), torch.cat(usable, 1), found
 
 
+def _refine_usable(
+    refiner: RenderCompareRefiner,
+    queries: tuple[Tensor, Tensor, Tensor],
+    rows: Tensor,
+    extra: Tensor,
+    usable: Tensor,
+) -> tuple[RenderCompareResult, Tensor]:
+    """Refine the other starts extra [n, H, 7] of the queries at ``rows`` [n] (of images,
+    intrinsics and scenes ``queries``) where ``usable`` [n, H], all in one call -> the
+    refinements (in ``usable``'s row-major order) and their scores [n, H] (-inf where not
+    usable)."""
+    images, intrinsics, scenes = queries
+    at = rows[usable.nonzero(as_tuple=True)[0]]
+    refined = refiner(images[at], intrinsics[at], extra[usable], scenes[at])
+    scores = torch.full(usable.shape, -math.inf)
+    scores[usable] = refined.score.float()
+    return refined, scores
+
+
 def _screened(
     refiner: RenderCompareRefiner,
     queries: tuple[Tensor, Tensor, Tensor],
@@ -78,16 +97,11 @@ def _screened(
     """The ``match.screen_keep`` other starts of each query (extra [n, H, 7] where ``usable``
     [n, H]) that a short search (``match.screen_rounds`` rounds, no polish) scores highest,
     each moved to where that search ended -> starts [n, keep, 7] and which are usable."""
-    images, intrinsics, scenes = queries
     short = copy.copy(refiner)
     short.rounds, short.polish_steps, short.final_reference_size = match.screen_rounds, 0, 0
-    query, which = usable.nonzero(as_tuple=True)
-    at = rows[query]
-    searched = short(images[at], intrinsics[at], extra[query, which], scenes[at])
-    scores = torch.full(usable.shape, -math.inf)
-    scores[query, which] = searched.score.float()
+    searched, scores = _refine_usable(short, queries, rows, extra, usable)
     poses = extra.clone()
-    poses[query, which] = searched.poses.to(poses)
+    poses[usable] = searched.poses.to(poses)
     top, pick = scores.topk(match.screen_keep, dim=1)
     return poses.gather(1, pick[..., None].expand(-1, -1, poses.shape[-1])), top.isfinite()
 
@@ -106,21 +120,16 @@ def _keep_better(
     best after a short search, where set: :func:`_screened`), and keep each query's
     best-scoring refinement where it beats ``best``'s score -> the result and which of the
     ``rows`` it moved [n]."""
-    images, intrinsics, scenes = queries
     moved = torch.zeros(len(rows), dtype=torch.bool)
     if not usable.any():
         return best, moved
     if 0 < match.screen_keep < usable.shape[1]:
         extra, usable = _screened(refiner, queries, rows, extra, usable, match)
-    query, which = usable.nonzero(as_tuple=True)
-    at = rows[query]
-    refined = refiner(images[at], intrinsics[at], extra[query, which], scenes[at])
-    scores = torch.full(usable.shape, -math.inf)
-    scores[query, which] = refined.score.float()
+    refined, scores = _refine_usable(refiner, queries, rows, extra, usable)
     top, pick = scores.max(1)
     moved = top > best.score[rows].float()
     index = torch.full(usable.shape, -1, dtype=torch.long)
-    index[query, which] = torch.arange(len(query))
+    index[usable] = torch.arange(int(usable.sum()))
     chosen = index[moved, pick[moved]]
     poses, score = best.poses.clone(), best.score.clone()
     poses[rows[moved]] = refined.poses[chosen].to(poses)
