@@ -12,6 +12,9 @@ estimate against the file's ground truth, taken in the camera frame
 (``dt = R_gt^T (t_apr - t_gt)``, ``dR = R_gt^T R_apr``) and applied to the label file's pose of
 the same image; run.py writes those starts as a label file, runs the two commands and scores
 what pae-localize wrote. Finished scenes (``OUT/<scene>/real_starts_<APR>.json``) are skipped.
+``--every K`` refines every K-th test image only (the rows of the label file in its order,
+the same images for the start, NeFeS50 and the audit; each recording keeps its order), for
+the scenes whose thousands of test images a table on two cores cannot afford otherwise.
 
     python experiments/render_compare_real_starts/run.py --labels ../shared/reference/labels \\
         --estimates ../shared/reference/estimates --out outputs/render_compare_real_starts
@@ -145,17 +148,17 @@ def yaml_root(run: Path) -> str:
     return str(OmegaConf.load(run / ".hydra" / "data.yaml").root)
 
 
-def truth_audit(run_dir: Path) -> None:
-    """The scene model's floor, an audit reading the test labels as starts: the test images
-    refined from their true poses with the first steps chosen on val, every refinement
-    accepted (through the library: no product path refines from the truth) ->
-    ``OUT/<scene>/truth_audit.json`` (``from_truth_oracle``)."""
+def truth_audit(run_dir: Path, every: int) -> None:
+    """The scene model's floor, an audit reading the test labels as starts: every
+    ``every``-th test image refined from its true pose with the first steps chosen on val,
+    every refinement accepted (through the library: no product path refines from the truth)
+    -> ``OUT/<scene>/truth_audit.json`` (``from_truth_oracle``)."""
     run = read_run(run_dir)
     size = int(run.config.data.size)
     data = data_module(run, cache_images=False)
     data.setup()
     model = load_scene_model(scene_model_path(run), "scene_model_ckpt").model.eval()
-    test = split_queries(data, "test", size)
+    test = {key: value[::every] for key, value in split_queries(data, "test", size).items()}
     queries = Queries(test["image"], test["intrinsics"], test["scene"])
     calibration = Calibration(ACCEPT_ALL, ACCEPT_ALL, chosen_steps(run_dir))
     settings = dataclasses.asdict(refiner_settings(size))
@@ -172,8 +175,12 @@ def refine_scene(
     todo = [a for a in APRS if not (run_dir / f"real_starts_{a}.json").is_file()]
     test_labels = Path(yaml_root(run_dir)) / "labels" / "all_test.csv"
     rendered = read_labels(test_labels)
+    img_paths = source_paths(rendered, files[1])[:: args.every]
+    if args.every > 1:
+        rendered = rendered.select(np.arange(0, len(rendered), args.every))
+        test_labels = run_dir / f"test_every{args.every}.csv"
+        write_labels(test_labels, rendered)
     truth = torch.as_tensor(rendered.poses, dtype=torch.float32)
-    img_paths = source_paths(rendered, files[1])
     metrics = json.loads((run_dir / "metrics.json").read_text())
     for apr in todo:
         starts = real_starts(args.estimates / apr / dataset, scene, img_paths, truth)
@@ -196,6 +203,7 @@ def refine_scene(
             "dataset": dataset,
             "apr": apr,
             "queries": len(truth),
+            "every": args.every,
             "val_queries": kept["val_queries"],
             "scene_size_m": kept["scene_size_m"],
             "image_px": int(rendered_size(run_dir)),
@@ -231,7 +239,7 @@ def refine_scene(
             flush=True,
         )
     if not (run_dir / "truth_audit.json").is_file():
-        truth_audit(run_dir)
+        truth_audit(run_dir, args.every)
 
 
 def rendered_size(run: Path) -> int:
@@ -264,7 +272,16 @@ def main(argv: list[str]) -> int:
         help="also refine each test recording with its frames' order (pae-localize "
         "--sequences) with these sequence passes and median window",
     )
+    parser.add_argument(
+        "--every",
+        type=int,
+        default=1,
+        metavar="K",
+        help="refine every K-th test image only (default 1: all)",
+    )
     args = parser.parse_args(own)
+    if args.every < 1:
+        parser.error(f"--every must be at least 1, got {args.every}")
     dataset_of = {scene: dataset for dataset, names in SCENES.items() for scene in names}
     for scene in args.scenes or list(dataset_of):
         if scene not in dataset_of:

@@ -40,8 +40,9 @@ def row(record: dict, recordings: bool) -> list[str]:
     ratio = pae["pos_median_m"] / start["pos_median_m"]
     nefes_ratio = nefes["pos_median_m"] / start["pos_median_m"]
     walked = [cell(record["per_recording"]) if "per_recording" in record else ""] * recordings
+    every = record.get("every", 1)
     return [
-        record["scene"],
+        record["scene"] + (f" (every {every}th test image)" if every > 1 else ""),
         cell(start),
         cell(pae),
         *walked,
