@@ -28,7 +28,7 @@ def test_every_below_one_is_a_one_line_error(capsys: pytest.CaptureFixture[str])
     assert "--every must be at least 1, got 0" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("every, named", [(1, "chess"), (4, "chess (every 4th test image)")])
+@pytest.mark.parametrize("every, named", [(1, "chess"), (4, "chess (one test image in 4)")])
 def test_the_table_names_a_scene_refined_on_every_kth_image(every: int, named: str) -> None:
     record = {
         "scene": "chess",
@@ -41,3 +41,63 @@ def test_the_table_names_a_scene_refined_on_every_kth_image(every: int, named: s
         "ms_per_query": 300.0,
     }
     assert _script("table").row(record, recordings=False)[0] == named
+
+
+def _scene_run(tmp_path: Path, every: int) -> tuple[Path, Path]:
+    """A scene's run folder as run.py leaves it after refining each image of 4 test rows
+    (every ``every``-th), without the recordings; and the source test label file."""
+    import json
+
+    import numpy as np
+
+    from pae.data.labels import LabelTable, write_labels
+
+    poses = np.tile([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0], (4, 1))
+    poses[:, 0] = np.arange(4)
+    table = LabelTable(
+        ["chess"] * 4, ["test"] * 4, ["seq-03"] * 4, [f"f{i}.png" for i in range(4)], poses
+    )
+    source = tmp_path / "chess_test.csv"
+    write_labels(source, table)
+    write_labels(tmp_path / "data" / "labels" / "all_test.csv", table)
+    run_dir = tmp_path / "chess"
+    (run_dir / ".hydra").mkdir(parents=True)
+    (run_dir / ".hydra" / "data.yaml").write_text(f"root: {tmp_path / 'data'}\n")
+    (run_dir / "metrics.json").write_text("{}")
+    (run_dir / "truth_audit.json").write_text("{}")
+    for apr in ("DFNet", "PoseNet"):
+        record = {"scene": "chess", "every": every, "accepted_share": 0.5}
+        record |= {"start": FIGURES, "render_compare": FIGURES, "nefes50": FIGURES}
+        (run_dir / f"real_starts_{apr}.json").write_text(json.dumps(record))
+    return run_dir, source
+
+
+def test_recordings_are_added_to_a_scene_refined_per_image_only(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import argparse
+    import json
+
+    from pae.data.labels import read_labels
+
+    run = _script("run")
+    run_dir, source = _scene_run(tmp_path, every=2)
+    called = []
+
+    def localize(run_dir: Path, test: Path, starts: Path, tag: str, options: list) -> dict:
+        called.append((tag, len(read_labels(test))))
+        return {"poses": read_labels(test), "recordings": 1, "ms_per_query": 5.0}
+
+    monkeypatch.setattr(run, "localize", localize)
+    monkeypatch.setattr(run, "real_starts", lambda *a: {"start": a[3] + 1.0, "nefes50": a[3]})
+    args = argparse.Namespace(estimates=tmp_path, every=2, recordings=(10, 5))
+    run.refine_scene("7Scenes", "chess", run_dir, [source, source], args)
+    assert called == [("per_recording_DFNet", 2), ("per_recording_PoseNet", 2)]
+    record = json.loads((run_dir / "real_starts_DFNet.json").read_text())
+    assert record["render_compare"] == FIGURES  # the per-image figures kept as they were
+    assert record["per_recording"]["pos_median_m"] == 0.0
+    assert record["per_recording_worse_than_start_share"] == 0.0
+    assert record["sequence_passes_window"] == [10, 5]
+    args.every = 1
+    with pytest.raises(SystemExit, match="one test image in 2, not one in 1: give --every 2"):
+        run.refine_scene("7Scenes", "chess", run_dir, [source, source], args)

@@ -11,7 +11,8 @@ its frames' order (``--sequences``). A start carries its image's real error: the
 estimate against the file's ground truth, taken in the camera frame
 (``dt = R_gt^T (t_apr - t_gt)``, ``dR = R_gt^T R_apr``) and applied to the label file's pose of
 the same image; run.py writes those starts as a label file, runs the two commands and scores
-what pae-localize wrote. Finished scenes (``OUT/<scene>/real_starts_<APR>.json``) are skipped.
+what pae-localize wrote. Finished scenes (``OUT/<scene>/real_starts_<APR>.json``) are skipped;
+``--recordings`` on a scene refined per image only adds its recordings' figures.
 ``--every K`` refines every K-th test image only (the rows of the label file in its order,
 the same images for the start, NeFeS50 and the audit; each recording keeps its order), for
 the scenes whose thousands of test images a table on two cores cannot afford otherwise.
@@ -171,8 +172,8 @@ def refine_scene(
     dataset: str, scene: str, run_dir: Path, files: list[Path], args: argparse.Namespace
 ) -> None:
     """Each APR's test starts refined by pae-localize per image (and per recording), one JSON
-    per APR; then the truth audit (:func:`truth_audit`)."""
-    todo = [a for a in APRS if not (run_dir / f"real_starts_{a}.json").is_file()]
+    per APR, what it lacks added to one already there; then the truth audit
+    (:func:`truth_audit`)."""
     test_labels = Path(yaml_root(run_dir)) / "labels" / "all_test.csv"
     rendered = read_labels(test_labels)
     img_paths = source_paths(rendered, files[1])[:: args.every]
@@ -182,45 +183,57 @@ def refine_scene(
         write_labels(test_labels, rendered)
     truth = torch.as_tensor(rendered.poses, dtype=torch.float32)
     metrics = json.loads((run_dir / "metrics.json").read_text())
-    for apr in todo:
+    wanted: dict[str, list[str]] = {"render_compare": []}
+    if args.recordings:
+        passes, window = args.recordings
+        wanted["per_recording"] = ["--sequences", "--sequence-passes", str(passes)]
+        wanted["per_recording"] += ["--sequence-window", str(window)]
+    for apr in APRS:
+        path = run_dir / f"real_starts_{apr}.json"
+        record = json.loads(path.read_text()) if path.is_file() else None
+        if record is not None and record.get("every", 1) != args.every:
+            kept = record.get("every", 1)
+            raise SystemExit(
+                f"{path}: refined on one test image in {kept}, not one in {args.every}: "
+                f"give --every {kept}"
+            )
+        modes = {m: o for m, o in wanted.items() if record is None or m not in record}
+        if not modes:
+            continue
         starts = real_starts(args.estimates / apr / dataset, scene, img_paths, truth)
         start_file = run_dir / f"starts_{apr}.csv"
         write_labels(
             start_file, dataclasses.replace(rendered, poses=starts["start"].double().numpy())
         )
-        modes = {"render_compare": []}
-        if args.recordings:
-            passes, window = args.recordings
-            modes["per_recording"] = ["--sequences", "--sequence-passes", str(passes)]
-            modes["per_recording"] += ["--sequence-window", str(window)]
         found = {
             m: localize(run_dir, test_labels, start_file, f"{m}_{apr}", o) for m, o in modes.items()
         }
-        kept = json.loads((run_dir / CALIBRATION_FILE).read_text())
-        alone = found["render_compare"]
-        record = {
-            "scene": scene,
-            "dataset": dataset,
-            "apr": apr,
-            "queries": len(truth),
-            "every": args.every,
-            "val_queries": kept["val_queries"],
-            "scene_size_m": kept["scene_size_m"],
-            "image_px": int(rendered_size(run_dir)),
-            "calibration": {
-                "accept_margin": alone["calibration"]["accept_margin"],
-                "accept_score": alone["calibration"]["accept_score"],
-                **alone["calibration"]["steps"],
-            },
-            "val": kept["val"],
-            "start": val_figures(starts["start"], truth),
-            "nefes50": val_figures(starts["nefes50"], truth),
-            "accepted_share": alone["accepted_share"],
-            "psnr_db": metrics.get("test/scene_model/psnr_db"),
-            "fit_s": metrics.get("bench/scene_fit/fit_s"),
-            "calibrate_s": alone["calibrate_s"],
-            "ms_per_query": alone["ms_per_query"],
-        }
+        if record is None:
+            kept = json.loads((run_dir / CALIBRATION_FILE).read_text())
+            alone = found["render_compare"]
+            record = {
+                "scene": scene,
+                "dataset": dataset,
+                "apr": apr,
+                "queries": len(truth),
+                "every": args.every,
+                "val_queries": kept["val_queries"],
+                "scene_size_m": kept["scene_size_m"],
+                "image_px": int(rendered_size(run_dir)),
+                "calibration": {
+                    "accept_margin": alone["calibration"]["accept_margin"],
+                    "accept_score": alone["calibration"]["accept_score"],
+                    **alone["calibration"]["steps"],
+                },
+                "val": kept["val"],
+                "start": val_figures(starts["start"], truth),
+                "nefes50": val_figures(starts["nefes50"], truth),
+                "accepted_share": alone["accepted_share"],
+                "psnr_db": metrics.get("test/scene_model/psnr_db"),
+                "fit_s": metrics.get("bench/scene_fit/fit_s"),
+                "calibrate_s": alone["calibrate_s"],
+                "ms_per_query": alone["ms_per_query"],
+            }
         for mode, answer in found.items():
             poses = torch.as_tensor(answer["poses"].poses, dtype=torch.float32)
             record[mode] = val_figures(poses, truth)
@@ -230,7 +243,7 @@ def refine_scene(
             record["recordings"] = found["per_recording"]["recordings"]
             record["per_recording_ms_per_query"] = found["per_recording"]["ms_per_query"]
             record["sequence_passes_window"] = list(args.recordings)
-        with atomic_write(run_dir / f"real_starts_{apr}.json") as handle:
+        with atomic_write(path) as handle:
             json.dump(record, handle, indent=1)
         print(
             f"{scene} {apr}: start {record['start']['pos_median_m']:.3f} m -> render_compare "

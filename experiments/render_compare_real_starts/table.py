@@ -42,7 +42,7 @@ def row(record: dict, recordings: bool) -> list[str]:
     walked = [cell(record["per_recording"]) if "per_recording" in record else ""] * recordings
     every = record.get("every", 1)
     return [
-        record["scene"] + (f" (every {every}th test image)" if every > 1 else ""),
+        record["scene"] + (f" (one test image in {every})" if every > 1 else ""),
         cell(start),
         cell(pae),
         *walked,
