@@ -455,6 +455,37 @@ def test_calibrating_for_any_start_improves_the_val_starts_on_average(
     torch.testing.assert_close(refinement.poses[kept], starts[kept].to(refinement.poses))
 
 
+def test_calibrating_for_any_start_tries_the_listed_filters_too(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """AnyStartOptions.filters (the run's filters_from_val): each tried with every first step
+    over the refiner's own filter, beside the built-in grid; an unknown key is a one-line
+    error naming it."""
+    from pae.render_compare import AnyStartOptions, Queries, api, calibrate_any_start
+    from pae.render_compare.calibration import STEP_SHARES
+
+    tried = []
+    build = api.build_refiner
+
+    def spy(scene_model: Any, settings: Any, steps: Any = None) -> Any:
+        if steps:
+            tried.append(dict(steps))
+        return build(scene_model, settings, steps)
+
+    monkeypatch.setattr(api, "build_refiner", spy)
+    model, images, intrinsics, truth, _ = _oracle_queries(4)
+    scenes = torch.zeros(len(truth), dtype=torch.long)
+    settings = {"rounds": 2, "candidates": 4, "resolution": 16, "reference_size": 12}
+    clip = {"highlight_quantile": 0.8}
+    options = AnyStartOptions(highpass_px=(), contrast_px=(), surface_shares=(), filters=[clip])
+    calibrate_any_start(model, Queries(images, intrinsics, scenes), truth, 2.0, settings, options)
+    clipped = [steps for steps in tried if steps.get("highlight_quantile") == 0.8]
+    assert len(clipped) == len(tried) // 2 == len(STEP_SHARES)
+    assert all(steps["highpass_sigma_px"] == 0.0 for steps in clipped)  # over the own filter
+    with pytest.raises(ValueError, match="filters_from_val: glare is not a filter setting"):
+        AnyStartOptions(filters=[{"glare": 1.0}])
+
+
 def test_the_search_draws_the_same_numbers_chunk_by_chunk() -> None:
     refiner = RenderCompareRefiner.configured(OracleSceneModel([]), rounds=3, candidates=5, seed=3)
     stream = refiner.draw_stream()

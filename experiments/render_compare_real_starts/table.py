@@ -61,14 +61,16 @@ def row(record: dict, recordings: bool) -> list[str]:
 
 def chosen_filter(calibration: dict[str, float]) -> str:
     """The filter chosen on val: the high-pass's sigma (px) and the finest levels it applies
-    at (all: every level), or none; then the local contrast's sigma (px) and the references'
-    surface share where one was chosen."""
+    at (all: every level), or none; then the local contrast's sigma (px), the highlight clip's
+    quantile, the trim's sigma and the references' surface share where chosen."""
     sigma = calibration.get("highpass_sigma_px", 0.0)
     contrast = calibration.get("contrast_sigma_px", 0.0)
     share = calibration.get("surface_share", 0.0)
     levels = int(calibration.get("highpass_levels", 0))
     chosen = f"{sigma:g} / {levels or 'all'}" if sigma else "none"
     chosen = f"{chosen} / c {contrast:g}" if contrast else chosen
+    for key, name in (("highlight_quantile", "clip"), ("trim_sigma", "trim")):
+        chosen = f"{chosen} / {name} {calibration[key]:g}" if calibration.get(key) else chosen
     return f"{chosen}; s {share:g}" if share else chosen
 
 

@@ -30,10 +30,12 @@ def calibration_key(
     scene_model: Path,
     features: bool,
     matches: Sequence[Mapping[str, Any]] = (),
+    filters: Sequence[Mapping[str, float]] = (),
 ) -> str:
     """What the calibration depends on: the refiner's settings, the scene model's checkpoint
-    (its path, size and a SHA-256 of its first MiB), whether features are compared and the
-    correspondence stages tried (none tried: the key of a calibration that tried none)."""
+    (its path, size and a SHA-256 of its first MiB), whether features are compared, the
+    correspondence stages and the further filters tried (none tried: the key of a
+    calibration that tried none)."""
     with scene_model.open("rb") as handle:
         head = hashlib.sha256(handle.read(1 << 20)).hexdigest()
     stated = {
@@ -43,6 +45,8 @@ def calibration_key(
     }
     if matches:
         stated["matches"] = [dict(m) for m in matches]
+    if filters:
+        stated["filters"] = [dict(f) for f in filters]
     return hashlib.sha256(json.dumps(stated, sort_keys=True).encode()).hexdigest()
 
 
@@ -96,6 +100,7 @@ def any_start_calibration(
     settings: dict[str, Any],
     features: Any,
     stages: tuple[Sequence[Mapping[str, Any]], Callable[[], MatchQueries] | None] = ((), None),
+    filters: Sequence[Mapping[str, float]] = (),
 ) -> Calibration:
     """The gate, first steps and correspondence stage for starts from another APR, chosen on
     the validation queries ``val`` (``image``, ``intrinsics``, ``scene``, true ``pose``, as
@@ -103,14 +108,15 @@ def any_start_calibration(
     :func:`pae.render_compare.calibrate_any_start` (starts at every error scale of the scene's
     size ``size_m``, m; ``stages``: the correspondence stages to try, mappings of
     ``MatchSettings``, and what reads the val queries at their match width, called only
-    where the stages are tried; None: no stage tried), read
+    where the stages are tried; None: no stage tried; ``filters``: filters to try besides
+    the built-in ones, the run's ``render_compare.filters_from_val``), read
     from ``FOLDER/render_compare_any_start.json`` where an earlier call chose them under the
     same settings, stages and scene model (its checkpoint's path in ``scene_model``), else
     chosen and written there with the val figures (a read-only folder only warns)."""
     model, checkpoint = scene_model
     matches, read_matching = stages if stages[1] is not None else ((), None)
     path = folder / CALIBRATION_FILE
-    key = calibration_key(settings, checkpoint, features is not None, matches)
+    key = calibration_key(settings, checkpoint, features is not None, matches, filters)
     recorded = read_calibration(path, key)
     if recorded is not None:
         print(f"pae-localize: the calibration for any start from {path}", file=sys.stderr)
@@ -120,7 +126,7 @@ def any_start_calibration(
     queries = Queries(val["image"], val["intrinsics"], val["scene"], matching=matching)
     calibration, refined, starts = calibrate_any_start(
         model, queries, truth, size_m, settings | {"features": features},
-        AnyStartOptions(matches=matches),
+        AnyStartOptions(matches=matches, filters=filters),
     )  # fmt: skip
     record = {
         "key": key,

@@ -17,7 +17,12 @@ from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
 from pae.apps.any_start import any_start_calibration as cached_calibration
-from pae.apps.match_inputs import MatchReader, configured_matches, run_train_images
+from pae.apps.match_inputs import (
+    MatchReader,
+    configured_list,
+    configured_matches,
+    run_train_images,
+)
 from pae.apps.queries import Queries
 from pae.core.camera import Intrinsics, resized_size
 from pae.core.checkpoints import load_pae, load_scene_model
@@ -352,7 +357,10 @@ def any_start_calibration(
         return MatchQueries(images.float() / 255, intrinsics, read[0])
 
     stages = (matches, val_matching if width else None)
-    chosen = cached_calibration(run.folder, checkpoint, on_device, size, settings, features, stages)
+    filters = configured_list(run.config, "filters_from_val")
+    chosen = cached_calibration(
+        run.folder, checkpoint, on_device, size, settings, features, stages, filters
+    )
     return chosen, (read[0] if read else None)
 
 

@@ -21,12 +21,17 @@ from pae.lit.eval_outputs import teacher_descriptor, train_images
 from pae.render_compare.correspondences import MatchQueries, MatchSettings, TrainImages
 
 
-def configured_matches(config: DictConfig) -> list[dict[str, Any]]:
-    """The correspondence stages a run's ``config`` lists (``render_compare.matches_from_val``)."""
-    stages = config.render_compare.get("matches_from_val") or []
+def configured_list(config: DictConfig, key: str) -> list[dict[str, Any]]:
+    """The mappings a run's ``config`` lists under ``render_compare.<key>`` (``[]``: none)."""
+    stages = config.render_compare.get(key) or []
     listed = OmegaConf.to_container(stages) if OmegaConf.is_config(stages) else list(stages)
     assert isinstance(listed, list)
     return listed
+
+
+def configured_matches(config: DictConfig) -> list[dict[str, Any]]:
+    """The correspondence stages a run's ``config`` lists (``render_compare.matches_from_val``)."""
+    return configured_list(config, "matches_from_val")
 
 
 def run_train_images(

@@ -81,7 +81,10 @@ class RenderCompareFromFile(L.Callback):
             outputs[EVAL.image], outputs[EVAL.intrinsics], outputs[EVAL.scene_estimate],
             matching=self.matching(data, pl_module, "val", outputs[EVAL.index]),
         )  # fmt: skip
-        stages = AnyStartOptions(matches=self.refinement.options.matches_from_val or ())
+        options = self.refinement.options
+        stages = AnyStartOptions(
+            matches=options.matches_from_val or (), filters=options.filters_from_val or ()
+        )
         self.calibration, _, _ = calibrate_any_start(
             pl_module.scene_model, queries, outputs[EVAL.pose].float(),
             scene_size(positions[:, :3].double()), self.settings(pl_module), stages,

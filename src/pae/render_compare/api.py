@@ -379,8 +379,9 @@ def calibrate_any_start(
     (:func:`pae.render_compare.calibration.ladder_starts`, ``size_m``: the scene's size, m),
     the first steps among ``STEP_SHARES`` of the size, the filter among the settings' own and
     each of ``options.highpass_px`` (px) at every level or the finest only, with no local
-    contrast or each of ``options.contrast_px`` (px, ``contrast_sigma_px``), then with those
-    the references' ``surface_share`` among the settings' own and ``options.surface_shares``,
+    contrast or each of ``options.contrast_px`` (px, ``contrast_sigma_px``) or each of
+    ``options.filters`` (over the settings' own), then with those the references'
+    ``surface_share`` among the settings' own and ``options.surface_shares``,
     then, where ``queries.matching`` is given, the correspondence stage among none and
     ``options.matches`` (:class:`AnyStartOptions`), and the gate that minimise the mean log
     of each query's error over its start's (``choose_gate(objective="log_ratio")``), so that
@@ -393,14 +394,18 @@ def calibrate_any_start(
     start_pos, _ = pose_errors(starts.float(), truth.float())
     deg_per_share = LADDER_DEG[0] / LADDER[0]
     own = build_refiner(scene_model, settings)
+    grid = [(own.highpass_sigma_px, own.highpass_levels, own.contrast_sigma_px)] + [
+        (sigma, levels, contrast)
+        for sigma in options.highpass_px
+        for levels in (0, 1)
+        for contrast in (0.0, *options.contrast_px)
+    ]
+    keys = ("highpass_sigma_px", "highpass_levels", "contrast_sigma_px")
     filters = dict.fromkeys(
-        [(own.highpass_sigma_px, own.highpass_levels, own.contrast_sigma_px)]
-        + [
-            (sigma, levels, contrast)
-            for sigma in options.highpass_px
-            for levels in (0, 1)
-            for contrast in (0.0, *options.contrast_px)
-        ]
+        tuple(dict(zip(keys, chosen, strict=True)).items()) for chosen in grid
+    ) | dict.fromkeys(
+        tuple((dict(zip(keys, grid[0], strict=True)) | dict(extra)).items())
+        for extra in options.filters
     )
 
     def evaluate(
@@ -437,12 +442,10 @@ def calibrate_any_start(
                 {
                     "position_sigma_m": share * size_m,
                     "orientation_sigma_deg": share * deg_per_share,
-                    "highpass_sigma_px": highpass,
-                    "highpass_levels": levels,
-                    "contrast_sigma_px": contrast,
+                    **dict(chosen),
                 }
             )
-            for (highpass, levels, contrast), share in itertools.product(filters, STEP_SHARES)
+            for chosen, share in itertools.product(filters, STEP_SHARES)
         ),
         key=lambda tried: tried[0],
     )

@@ -130,6 +130,17 @@ def _check_matches(key: str, matches: Sequence[Mapping[str, Any]]) -> None:
         MatchSettings(**chosen)
 
 
+def _check_filters(key: str, filters: Sequence[Mapping[str, float]]) -> None:
+    """Each of ``filters`` a mapping of ``FILTER_KEYS``; a ValueError naming the first
+    unknown setting under ``key``."""
+    for chosen in filters:
+        unknown = sorted(set(chosen) - set(FILTER_KEYS))
+        if unknown:
+            raise ValueError(
+                f"{key}: {unknown[0]} is not a filter setting; choose among {list(FILTER_KEYS)}"
+            )
+
+
 @dataclasses.dataclass(frozen=True)
 class CalibrationOptions:
     """What :func:`pae.render_compare.calibrate` chooses on validation and what it keeps.
@@ -187,13 +198,7 @@ class CalibrationOptions:
                 "render_compare.step_from_val needs position and orientation fractions > 0, "
                 f"got {dict(steps)!r}"
             )
-        for chosen in self.filters_from_val or ():
-            unknown = sorted(set(chosen) - set(FILTER_KEYS))
-            if unknown:
-                raise ValueError(
-                    f"render_compare.filters_from_val: {unknown[0]} is not a filter setting; "
-                    f"choose among {list(FILTER_KEYS)}"
-                )
+        _check_filters("render_compare.filters_from_val", self.filters_from_val or ())
         _check_matches("render_compare.matches_from_val", self.matches_from_val or ())
 
     def fixed(self, key: str) -> float | None:
@@ -221,8 +226,10 @@ class AnyStartOptions:
     """What :func:`pae.render_compare.calibrate_any_start` tries on validation besides the
     settings' own: the high-passes ``highpass_px`` (px at the compare resolution, at every
     level and at the finest only), the local contrasts ``contrast_px`` (px, with each
-    high-pass, besides none), the references' ``surface_shares`` and, where the queries
-    carry ``matching``, the correspondence stages ``matches`` (mappings of
+    high-pass, besides none), the further ``filters`` (mappings of ``FILTER_KEYS``, as
+    ``render_compare.filters_from_val`` lists them: a highlight clip, a trimmed score), the
+    references' ``surface_shares`` and, where the queries carry ``matching``, the
+    correspondence stages ``matches`` (mappings of
     :class:`pae.render_compare.correspondences.MatchSettings`; none is always tried too);
     ``seed``: the ladder starts' draws (:func:`ladder_starts`)."""
 
@@ -231,9 +238,11 @@ class AnyStartOptions:
     surface_shares: Sequence[float] = SURFACE_SHARES
     seed: int = 0
     matches: Sequence[Mapping[str, Any]] = ()
+    filters: Sequence[Mapping[str, float]] = ()
 
     def __post_init__(self) -> None:
         _check_matches("render_compare.matches_from_val", self.matches)
+        _check_filters("render_compare.filters_from_val", self.filters)
 
     def stages(self) -> list[MatchSettings]:
         """The correspondence stages to try: none first, then each of ``matches`` once."""
