@@ -64,7 +64,7 @@ def _scene_run(tmp_path: Path, every: int) -> tuple[Path, Path]:
     (run_dir / ".hydra").mkdir(parents=True)
     (run_dir / ".hydra" / "data.yaml").write_text(f"root: {tmp_path / 'data'}\n")
     (run_dir / "metrics.json").write_text("{}")
-    (run_dir / "truth_audit.json").write_text("{}")
+    (run_dir / "truth_audit.json").write_text(json.dumps({"every": every}))
     for apr in ("DFNet", "PoseNet"):
         record = {"scene": "chess", "every": every, "accepted_share": 0.5}
         record |= {"start": FIGURES, "render_compare": FIGURES, "nefes50": FIGURES}
@@ -89,6 +89,8 @@ def test_recordings_are_added_to_a_scene_refined_per_image_only(
         return {"poses": read_labels(test), "recordings": 1, "ms_per_query": 5.0}
 
     monkeypatch.setattr(run, "localize", localize)
+    audited = []
+    monkeypatch.setattr(run, "truth_audit", lambda run_dir, every: audited.append(every))
     monkeypatch.setattr(run, "real_starts", lambda *a: {"start": a[3] + 1.0, "nefes50": a[3]})
     args = argparse.Namespace(estimates=tmp_path, every=2, recordings=(10, 5))
     run.refine_scene("7Scenes", "chess", run_dir, [source, source], args)
@@ -98,6 +100,10 @@ def test_recordings_are_added_to_a_scene_refined_per_image_only(
     assert record["per_recording"]["pos_median_m"] == 0.0
     assert record["per_recording_worse_than_start_share"] == 0.0
     assert record["sequence_passes_window"] == [10, 5]
+    assert audited == []  # the audit on the same test images is kept
+    (run_dir / "truth_audit.json").write_text("{}")  # an audit of every test image
+    run.refine_scene("7Scenes", "chess", run_dir, [source, source], args)
+    assert audited == [2]
     args.every = 1
     with pytest.raises(SystemExit, match="one test image in 2, not one in 1: give --every 2"):
         run.refine_scene("7Scenes", "chess", run_dir, [source, source], args)

@@ -9,13 +9,21 @@ how far the scene model lets a true pose drift; no calibration reads it).
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
 from omegaconf import OmegaConf
 
 from pae.apps.any_start import val_figures
-from pae.apps.localization import data_module, read_run, scene_model_path, split_queries
+from pae.apps.localization import (
+    compare_width,
+    data_module,
+    read_run,
+    render_compare_settings,
+    scene_model_path,
+    split_queries,
+)
 from pae.core.checkpoints import load_scene_model
 from pae.render_compare import (
     ACCEPT_ALL,
@@ -31,16 +39,17 @@ DEMO_HARD = Path(__file__).resolve().parents[2] / "conf" / "experiment" / "demo_
 
 
 def main(argv: list[str]) -> int:
-    run = read_run(Path(argv[0]))
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run", type=Path, help="a scene's run folder (OUT/<scene>)")
+    run = read_run(parser.parse_args(argv).run)
     data = data_module(run, cache_images=False)
     data.setup()
     model = load_scene_model(scene_model_path(run), "scene_model_ckpt").model.eval()
-    size = int(run.config.data.size)
-    val = split_queries(data, "val", size)
+    settings, _ = render_compare_settings(run)  # as pae-localize refines with the run
+    val = split_queries(data, "val", compare_width(settings))
     queries = Queries(val["image"], val["intrinsics"], val["scene"])
     positions, _ = data.train_poses()
     size_m = scene_size(positions[:, :3].double())
-    settings = {"resolution": size, "final_reference_size": size // 2}
     listed = OmegaConf.to_container(OmegaConf.load(DEMO_HARD).render_compare.filters_from_val)
     assert isinstance(listed, list)
     for name, options in (

@@ -164,8 +164,9 @@ def truth_audit(run_dir: Path, every: int) -> None:
     calibration = Calibration(ACCEPT_ALL, ACCEPT_ALL, chosen_steps(run_dir))
     settings = dataclasses.asdict(refiner_settings(size))
     refined = refine(model, queries, test["pose"], calibration, settings=settings)
+    audit = {"every": every, "from_truth_oracle": val_figures(refined.poses, test["pose"])}
     with atomic_write(run_dir / "truth_audit.json") as handle:
-        json.dump({"from_truth_oracle": val_figures(refined.poses, test["pose"])}, handle, indent=1)
+        json.dump(audit, handle, indent=1)
 
 
 def refine_scene(
@@ -251,7 +252,8 @@ def refine_scene(
             f"{record['nefes50']['pos_median_m']:.3f} m), accepted {record['accepted_share']:.2f}",
             flush=True,
         )
-    if not (run_dir / "truth_audit.json").is_file():
+    audit = run_dir / "truth_audit.json"
+    if not audit.is_file() or json.loads(audit.read_text()).get("every", 1) != args.every:
         truth_audit(run_dir, args.every)
 
 
