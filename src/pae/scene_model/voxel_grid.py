@@ -5,7 +5,7 @@ Bounds come from the train cameras (their positions plus a margin, computed by t
 never from the scene's geometry. With ``contract`` the grid covers unbounded scenes: points
 outside the bounds are contracted as in mip-NeRF 360 (``x -> (2 - 1/‖x‖∞)·x/‖x‖∞`` in the
 coordinates where the bounds are ``[-1, 1]³``), and half of each ray's samples are spaced
-evenly in inverse depth out to ``far_factor`` times the bounds' size.
+evenly in inverse depth out to 100 times the bounds' diagonal beyond them (``far_m``).
 """
 
 from __future__ import annotations
