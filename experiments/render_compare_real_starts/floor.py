@@ -1,13 +1,14 @@
 """What limits render-and-compare's precision: the refiner's floor on the validation images.
 
 For a fitted real-starts run (``run.py``), the validation queries are refined with settings
-variants (``--variant key=value,key=value`` over run.py's settings; ``''``: those alone), the
-first steps, filter and surface share that ``calibrate_any_start`` chose
-(``real_starts_DFNet.json``) under every variant (a key the variant sets overrides the chosen
-value), every refinement accepted, from two kinds of starts: the true poses (the floor: where
-the scene model's best match lies) and starts of a good APR's error scale (1 % of the scene's
-size and 1 deg, drawn as :func:`pae.core.pose_sampling.perturb_poses` draws).
-``--ladder``: also, under run.py's settings, each rung of the any-start calibration's ladder
+variants (``--variant key=value,key=value`` over the run's refiner settings, those
+pae-localize refines with; ``''``: those alone), the first steps, filter and surface share
+that ``calibrate_any_start`` chose (``RUN/render_compare_any_start.json``) under every
+variant (a key the variant sets overrides the chosen value), every refinement accepted,
+from two kinds of starts: the true poses (the floor: where the scene model's best match
+lies) and starts of a good APR's error scale (1 % of the scene's size and 1 deg, drawn as
+:func:`pae.core.pose_sampling.perturb_poses` draws).
+``--ladder``: also, under those settings, each rung of the any-start calibration's ladder
 (:func:`pae.render_compare.calibration.ladder_starts`): the starts' and the refined poses'
 medians and the share the refinement made worse. ``--oracle [BLUR_PX]``: the same with the
 benchmark's own renderer instead of the fitted scene model, its renderings blurred by a
@@ -33,9 +34,15 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from run import chosen_steps, refiner_settings  # beside this script
+from run import chosen_steps  # beside this script
 
-from pae.apps.localization import data_module, read_run, scene_model_path, split_queries
+from pae.apps.localization import (
+    data_module,
+    read_run,
+    render_compare_settings,
+    scene_model_path,
+    split_queries,
+)
 from pae.core.atomic import atomic_write
 from pae.core.checkpoints import load_scene_model
 from pae.core.geometry import pose_errors
@@ -227,7 +234,7 @@ def main(argv: list[str]) -> int:
     train_positions, _ = data.train_poses()
     extent = scene_size(train_positions[:, :3].double())
     calibration = Calibration(ACCEPT_ALL, ACCEPT_ALL, chosen_steps(args.run))
-    base = dataclasses.asdict(refiner_settings(size))
+    base, _ = render_compare_settings(run)  # as pae-localize refines with the run
     good = perturb_poses(
         truth.double(),
         torch.full((count,), GOOD_START_SHARE * extent, dtype=torch.float64),

@@ -35,14 +35,19 @@ import numpy as np
 import torch
 
 from pae.apps.any_start import CALIBRATION_FILE, val_figures
-from pae.apps.localization import data_module, read_run, scene_model_path, split_queries
+from pae.apps.localization import (
+    data_module,
+    read_run,
+    render_compare_settings,
+    scene_model_path,
+    split_queries,
+)
 from pae.core.atomic import atomic_write
 from pae.core.checkpoints import load_scene_model
 from pae.core.geometry import pose_errors, transfer_error
 from pae.data.labels import LabelTable, read_labels, write_labels
 from pae.data.starts import match_starts, read_starts
 from pae.render_compare import ACCEPT_ALL, Calibration, Queries, refine
-from pae.render_compare.settings import RenderCompareSettings
 
 SCENES = {
     "7Scenes": ("chess", "fire", "heads", "office", "pumpkin", "redkitchen", "stairs"),
@@ -111,13 +116,6 @@ def source_paths(rendered: LabelTable, source: Path) -> list[str]:
     return list(table.img_path)
 
 
-def refiner_settings(size: int) -> RenderCompareSettings:
-    """The refiner's settings at a ``size``-px comparison, as ``experiment=real_starts``
-    configures them: the final reference at half of it (the default 32 px at 64 px; at 128 px
-    64, chosen on chess's val with floor.py)."""
-    return RenderCompareSettings(resolution=size, final_reference_size=size // 2)
-
-
 def chosen_steps(run_dir: Path) -> dict[str, float]:
     """The first steps, filter and surface share chosen on the scene's val images (the
     calibration for any start that pae-localize kept in the run; a one-line error where it
@@ -162,7 +160,7 @@ def truth_audit(run_dir: Path, every: int) -> None:
     test = {key: value[::every] for key, value in split_queries(data, "test", size).items()}
     queries = Queries(test["image"], test["intrinsics"], test["scene"])
     calibration = Calibration(ACCEPT_ALL, ACCEPT_ALL, chosen_steps(run_dir))
-    settings = dataclasses.asdict(refiner_settings(size))
+    settings, _ = render_compare_settings(run)  # as pae-localize refines with the run
     refined = refine(model, queries, test["pose"], calibration, settings=settings)
     audit = {"every": every, "from_truth_oracle": val_figures(refined.poses, test["pose"])}
     with atomic_write(run_dir / "truth_audit.json") as handle:
