@@ -78,6 +78,8 @@ def test_recordings_are_added_to_a_scene_refined_per_image_only(
     import argparse
     import json
 
+    import torch
+
     from pae.data.labels import read_labels
 
     run = _script("run")
@@ -91,10 +93,19 @@ def test_recordings_are_added_to_a_scene_refined_per_image_only(
     monkeypatch.setattr(run, "localize", localize)
     audited = []
     monkeypatch.setattr(run, "truth_audit", lambda run_dir, every: audited.append(every))
-    monkeypatch.setattr(run, "real_starts", lambda *a: {"start": a[3] + 1.0, "nefes50": a[3]})
+    matched = []
+
+    def real_starts(folder: Path, scene: str, img_paths: list, truth: torch.Tensor) -> dict:
+        matched.append(len(img_paths))
+        return {"start": truth + 1.0, "nefes50": truth}
+
+    monkeypatch.setattr(run, "real_starts", real_starts)
     args = argparse.Namespace(estimates=tmp_path, every=2, recordings=(10, 5))
     run.refine_scene("7Scenes", "chess", run_dir, [source, source], args)
     assert called == [("per_recording_DFNet", 2), ("per_recording_PoseNet", 2)]
+    assert matched == [4, 4]  # the estimate files hold every test image: all matched, then thinned
+    starts = read_labels(run_dir / "starts_DFNet.csv")
+    assert starts.poses[:, 0].tolist() == [1.0, 3.0]  # images 0 and 2, each its own start
     record = json.loads((run_dir / "real_starts_DFNet.json").read_text())
     assert record["render_compare"] == FIGURES  # the per-image figures kept as they were
     assert record["per_recording"]["pos_median_m"] == 0.0

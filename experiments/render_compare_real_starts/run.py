@@ -174,13 +174,15 @@ def refine_scene(
     per APR, what it lacks added to one already there; then the truth audit
     (:func:`truth_audit`)."""
     test_labels = Path(yaml_root(run_dir)) / "labels" / "all_test.csv"
-    rendered = read_labels(test_labels)
-    img_paths = source_paths(rendered, files[1])[:: args.every]
+    every_test = read_labels(test_labels)
+    img_paths = source_paths(every_test, files[1])
+    all_truth = torch.as_tensor(every_test.poses, dtype=torch.float32)
+    kept = np.arange(0, len(every_test), args.every)
+    rendered = every_test.select(kept)
     if args.every > 1:
-        rendered = rendered.select(np.arange(0, len(rendered), args.every))
         test_labels = run_dir / f"test_every{args.every}.csv"
         write_labels(test_labels, rendered)
-    truth = torch.as_tensor(rendered.poses, dtype=torch.float32)
+    truth = all_truth[kept]
     metrics = json.loads((run_dir / "metrics.json").read_text())
     wanted: dict[str, list[str]] = {"render_compare": []}
     if args.recordings:
@@ -199,7 +201,9 @@ def refine_scene(
         modes = {m: o for m, o in wanted.items() if record is None or m not in record}
         if not modes:
             continue
-        starts = real_starts(args.estimates / apr / dataset, scene, img_paths, truth)
+        # the estimate files hold every test image: matched to all of them, then thinned
+        found_starts = real_starts(args.estimates / apr / dataset, scene, img_paths, all_truth)
+        starts = {name: poses[kept] for name, poses in found_starts.items()}
         start_file = run_dir / f"starts_{apr}.csv"
         write_labels(
             start_file, dataclasses.replace(rendered, poses=starts["start"].double().numpy())
