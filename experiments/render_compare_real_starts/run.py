@@ -174,11 +174,11 @@ def refine_scene(
     per APR, what it lacks added to one already there; then the truth audit
     (:func:`truth_audit`)."""
     test_labels = Path(yaml_root(run_dir)) / "labels" / "all_test.csv"
-    every_test = read_labels(test_labels)
-    img_paths = source_paths(every_test, files[1])
-    all_truth = torch.as_tensor(every_test.poses, dtype=torch.float32)
-    kept = np.arange(0, len(every_test), args.every)
-    rendered = every_test.select(kept)
+    all_test = read_labels(test_labels)
+    img_paths = source_paths(all_test, files[1])
+    all_truth = torch.as_tensor(all_test.poses, dtype=torch.float32)
+    kept = np.arange(0, len(all_test), args.every)
+    rendered = all_test.select(kept)
     if args.every > 1:
         test_labels = run_dir / f"test_every{args.every}.csv"
         write_labels(test_labels, rendered)
