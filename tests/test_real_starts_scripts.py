@@ -97,7 +97,9 @@ def test_recordings_are_added_to_a_scene_refined_per_image_only(
 
     def real_starts(folder: Path, scene: str, img_paths: list, truth: torch.Tensor) -> dict:
         matched.append(len(img_paths))
-        return {"start": truth + 1.0, "nefes50": truth}
+        start = truth.clone()
+        start[:, 0] += 1.0  # 1 m along x, the orientation kept
+        return {"start": start, "nefes50": truth}
 
     monkeypatch.setattr(run, "real_starts", real_starts)
     args = argparse.Namespace(estimates=tmp_path, every=2, recordings=(10, 5))
