@@ -174,6 +174,15 @@ def validate_train_config(cfg: DictConfig, overrides: list[str] | None = None) -
     target = setting(cfg, "scene_model.model._target_")
     if "scene_fit" in steps and not getattr(get_object(target), "trains", False):
         raise ConfigError(f"scene_fit: scene_model.model._target_={target} does not train")
+    fitting = {"scene_fit", "scene_model"} & set(steps)
+    if (
+        fitting
+        and setting(cfg, "scene_model.depth_rays")
+        and not getattr(get_object(target), "fits_depth", False)
+    ):
+        raise ConfigError(
+            f"scene_model.depth_rays: scene_model.model._target_={target} fits no depth"
+        )
     given = {key: setting(cfg, key) for key in CHECKPOINTS}
     missing = missing_checkpoints(steps, given, needs)
     if missing:

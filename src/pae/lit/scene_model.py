@@ -42,7 +42,9 @@ class SceneModelModule(PaeModule):
     of its renderings, as each ray's train image's appearance saw them, plus ``tv_weight``
     times its total variation. ``fit_trim``: from epoch ``fit_trim_from_epoch`` (0-based) on,
     the share of each batch's rays with the largest errors left out of the mean (what the
-    grid cannot explain: occluders, glare); ``appearance_lr``: the appearance codes' learning
+    grid cannot explain: occluders, glare); ``depth_weight``: times the mean depth error
+    (``SceneModel.depth_error``) of the batch's rays through triangulated keypoints, where it
+    has them (``scene_model.depth_rays``); ``appearance_lr``: the appearance codes' learning
     rate (None: the optimiser's). Evaluates with the frozen ``teacher``: logs ``teacher`` and
     ``mean_pose`` and keeps every query for the refinement callback (``eval_outputs``, keyed by
     ``pae.lit.eval_outputs.EVAL``: its
@@ -63,6 +65,7 @@ class SceneModelModule(PaeModule):
         tv_weight: float = 1e-3,
         fit_trim: float = 0.0,
         fit_trim_from_epoch: int = 1,
+        depth_weight: float = 0.0,
         appearance_lr: float | None = None,
         query_width: int | None = None,
     ) -> None:
@@ -74,6 +77,7 @@ class SceneModelModule(PaeModule):
         self.tv_weight = tv_weight
         self.fit_trim = fit_trim
         self.fit_trim_from_epoch = fit_trim_from_epoch
+        self.depth_weight = depth_weight
         self.appearance_lr = appearance_lr
         self.query_width = query_width
         methods = SCENE_MODEL_METHODS if teacher is not None else ["mean_pose"]
@@ -109,6 +113,11 @@ class SceneModelModule(PaeModule):
             rgb, _, _ = self.scene_model.render_rays(
                 batch["origins"], batch["directions"], batch["scene"], jitter=True
             )
+            depth = batch.get("depth")
+            if depth is not None:
+                depth_error = self.scene_model.depth_error(
+                    depth["origins"], depth["directions"], depth["scene"], depth["target"]
+                ).mean()
         rgb = self.scene_model.with_appearance(rgb, batch["appearance"], batch.get("pixels"))
         errors = (rgb - batch["rgb"]).square().mean(1)  # [R]
         mse = errors.mean()
@@ -117,10 +126,11 @@ class SceneModelModule(PaeModule):
             keep = len(errors) - int(self.fit_trim * len(errors))
             loss = errors.topk(keep, largest=False, sorted=False).values.mean()
         tv = self.scene_model.total_variation()
-        self.log_train(
-            {"train/mse": mse, "train/psnr_db": -10 * torch.log10(mse), "train/tv": tv},
-            prog_bar=True,
-        )
+        logged = {"train/mse": mse, "train/psnr_db": -10 * torch.log10(mse), "train/tv": tv}
+        if depth is not None:
+            logged["train/depth_error"] = depth_error
+            loss = loss + self.depth_weight * depth_error
+        self.log_train(logged, prog_bar=True)
         return loss + self.tv_weight * tv
 
     def scene_starts(self, images: Tensor, scene_poses: Tensor) -> Tensor:

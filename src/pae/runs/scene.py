@@ -89,6 +89,7 @@ def fitting_module(
         settings.image_size,
         settings.appearance,
         cfg.seed,
+        settings.depth_rays,
     )
     return SceneModelModule(
         scene_model,
@@ -99,6 +100,7 @@ def fitting_module(
         tv_weight=settings.tv_weight,
         fit_trim=settings.fit_trim,
         fit_trim_from_epoch=settings.fit_trim_from_epoch,
+        depth_weight=settings.depth_weight,
         appearance_lr=settings.appearance_lr,
         query_width=query_width,
     )

@@ -54,6 +54,8 @@ class SceneModel(nn.Module):
       built and evaluated as it is;
     - ``needs``: the checkpoint keys its ``build`` loads (given on the command line or made by
       an earlier step; checked before anything trains);
+    - ``fits_depth``: whether the fit can ask its rays' light to end at a depth
+      (``depth_error``: ``scene_model.depth_rays``);
     - ``from_run`` and ``build_keys``: the constructor arguments ``build`` fills in and the
       config keys it reads itself; ``check_config``: the ranges its signature cannot state
       (``pae.core.checks.check_constructor`` reads all three before any work).
@@ -61,6 +63,7 @@ class SceneModel(nn.Module):
 
     has_depth: ClassVar[bool] = True
     trains: ClassVar[bool] = False
+    fits_depth: ClassVar[bool] = False
     needs: ClassVar[tuple[str, ...]] = ()
     from_run: ClassVar[tuple[str, ...]] = ()
     build_keys: ClassVar[tuple[str, ...]] = ()
@@ -107,6 +110,13 @@ class SceneModel(nn.Module):
         ``pixels`` [R, 2]: where each ray meets its image, (column, row) scaled to [0, 1]
         (None: unknown)."""
         return rgb
+
+    def depth_error(
+        self, origins: Tensor, directions: Tensor, scenes: Tensor, target: Tensor
+    ) -> Tensor:
+        """Models that fit depth: how far from ``target`` [R] (depth along the directions)
+        the light of rays [R, 3] of scenes [R] ends [R], differentiable."""
+        raise NotImplementedError
 
     def total_variation(self) -> Tensor:
         """The smoothness penalty the step adds to the fit (``scene_model.tv_weight``)."""

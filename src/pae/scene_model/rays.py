@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -16,6 +17,9 @@ from pae.core.camera import directions_through, scale_intrinsics
 from pae.core.geometry import quaternion_to_matrix
 from pae.data.datamodule import PoseDataModule
 from pae.data.order import trainer_epoch
+from pae.scene_model.sparse_depth import SparseDepths, sparse_depths
+
+LOG = logging.getLogger(__name__)
 
 READ_ROWS = 256
 """Train images read (and resized) at a time when the ray store is filled."""
@@ -56,10 +60,14 @@ class RayBatches(Dataset):
     [R, 3], "directions": [R, 3] (camera z = 1), "rgb": [R, 3] in [0, 1], "pixels": [R, 2]
     (the pixel's column and row scaled to [0, 1]), "scene": [R], "appearance": [R], "seed":
     int}``, ``seed`` the one for the draws rendering the batch
-    makes (its samples' jitter).
+    makes (its samples' jitter). With ``depths`` and ``depth_rays`` > 0, each batch also
+    holds ``"depth": {"origins", "directions", "scene", "target"}``: ``depth_rays`` rays
+    through the triangulated keypoints, drawn after the pixels, and their depths [R] (m along
+    the optical axis, the directions' units).
 
     images: uint8 [N, 3, H, W] as the dataset holds them; poses [N, 7]; intrinsics [N, 4] of
-    those images; scenes, appearance: ids [N]; ``batches``: per epoch.
+    those images; scenes, appearance: ids [N]; ``batches``: per epoch; depths: keypoints
+    in px of ``images`` (:func:`pae.scene_model.sparse_depth.sparse_depths`).
     """
 
     def __init__(
@@ -73,6 +81,8 @@ class RayBatches(Dataset):
         batches: int,
         seed: int = 0,
         epoch: Callable[[], int] = lambda: 0,
+        depths: SparseDepths | None = None,
+        depth_rays: int = 0,
     ) -> None:
         super().__init__()
         self.images = images
@@ -85,6 +95,8 @@ class RayBatches(Dataset):
         self.batches = batches
         self.seed = seed
         self.epoch = epoch
+        self.depths = depths
+        self.depth_rays = depth_rays if depths is not None and len(depths.row) else 0
 
     def release(self) -> None:
         """Drop the images once the fit has ended (a later batch is an IndexError): the
@@ -102,15 +114,27 @@ class RayBatches(Dataset):
         draws = streams.generator(self.seed, "rays", number)
         row = torch.randint(n, (r,), generator=draws)
         v, u = torch.randint(h, (r,), generator=draws), torch.randint(w, (r,), generator=draws)
+        batch = {
+            **self._rays(row, u, v),
+            "rgb": self.images[row, :, v, u].float() / 255.0,
+            "pixels": torch.stack([u / max(w - 1, 1), v / max(h - 1, 1)], -1).float(),
+            "appearance": self.appearance[row],
+            "seed": streams.derived_seed(self.seed, "render", number),
+        }
+        if self.depth_rays:
+            depths = self.depths
+            pick = torch.randint(len(depths.row), (self.depth_rays,), generator=draws)
+            rays = self._rays(depths.row[pick], depths.u[pick], depths.v[pick])
+            batch["depth"] = {**rays, "target": depths.depth[pick]}
+        return batch
+
+    def _rays(self, row: Tensor, u: Tensor, v: Tensor) -> dict[str, Tensor]:
+        """World rays through pixels u, v [R] (px) of images ``row`` [R], and their scenes."""
         local = directions_through(u, v, self.intrinsics[row])
         return {
             "origins": self.positions[row],
             "directions": torch.einsum("rij,rj->ri", self.rotations[row], local),
-            "rgb": self.images[row, :, v, u].float() / 255.0,
-            "pixels": torch.stack([u / max(w - 1, 1), v / max(h - 1, 1)], -1).float(),
             "scene": self.scenes[row],
-            "appearance": self.appearance[row],
-            "seed": streams.derived_seed(self.seed, "render", number),
         }
 
 
@@ -121,13 +145,16 @@ class RayLoader:
     the data module's trainer's epoch under way, so a resumed run draws what an uninterrupted
     one would) of the train images at ``image_size`` px shorter edge (:func:`fit_images`;
     None: as the data holds them), each ray keyed on its image's appearance ``appearance``
-    (``sequence`` or ``image``, :meth:`PoseDataModule.appearance_ids`)."""
+    (``sequence`` or ``image``, :meth:`PoseDataModule.appearance_ids`); ``depth_rays`` > 0:
+    that many more rays per batch through the keypoints triangulated between the train
+    views (:func:`pae.scene_model.sparse_depth.sparse_depths`, on the fit's images)."""
 
     rays_per_batch: int
     batches: int
     image_size: int | None = None
     appearance: str = "sequence"
     seed: int = 0
+    depth_rays: int = 0
 
     def __call__(self, data: PoseDataModule) -> DataLoader:
         """The loader of ray batches from ``data``'s train split."""
@@ -135,6 +162,13 @@ class RayLoader:
         appearance, _ = data.appearance_ids("train", self.appearance)
         intrinsics = data.intrinsics("train", crop=False)
         images, intrinsics = fit_images(dataset, intrinsics, self.image_size)
+        depths = None
+        if self.depth_rays:
+            depths = sparse_depths(images, dataset.poses, intrinsics, dataset.scenes)
+            LOG.info("depth: %d keypoints triangulated in %d train images", len(depths.row),
+                     len(depths.row.unique()))  # fmt: skip
+            if not len(depths.row):
+                LOG.warning("scene_model.depth_rays: no keypoint triangulated; fit without depth")
         rays = RayBatches(
             images,
             dataset.poses,
@@ -145,5 +179,7 @@ class RayLoader:
             self.batches,
             self.seed,
             lambda: trainer_epoch(data),
+            depths,
+            self.depth_rays,
         )
         return DataLoader(rays, batch_size=None)

@@ -205,15 +205,7 @@ class VoxelGrid(nn.Module):
                 self.density_shift,
                 surface_share,
             )
-        depth, length = self.sample_depths(rays, offsets)
-        points = origins[:, None] + depth[..., None] * directions[:, None]
-        coords = self.normalised(points).view(1, -1, 1, 1, 3)
-        raw = F.grid_sample(self.grid, coords, align_corners=True, padding_mode="border")
-        raw = raw.view(4, *depth.shape)
-        sigma = F.softplus(raw[0] + self.density_shift)  # per voxel length
-        alpha = 1 - torch.exp(-sigma * length / self.voxel_m)
-        transmit = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha], 1), 1)
-        weights = alpha * transmit[:, :-1]
+        weights, depth, raw = self._weights(rays, offsets)
         opacity = weights.sum(1)
         colour = torch.sigmoid(raw[1:]).permute(1, 2, 0)  # [R, S, 3]
         rgb = (weights[..., None] * colour).sum(1) + (1 - opacity)[:, None] * background
@@ -224,6 +216,36 @@ class VoxelGrid(nn.Module):
         else:
             surface = (weights * depth).sum(1) / opacity.clamp_min(1e-6)
         return rgb, surface, opacity
+
+    def _weights(self, rays: RaySegments, offsets: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``grid_sample`` over every sample of ``rays`` at ``offsets`` [R, S] -> each sample's
+        share of its ray's light [R, S], its depth [R, S] and the grid's raw values there
+        [4, R, S] (differentiable w.r.t. the grid)."""
+        depth, length = self.sample_depths(rays, offsets)
+        points = rays.origins[:, None] + depth[..., None] * rays.directions[:, None]
+        coords = self.normalised(points).view(1, -1, 1, 1, 3)
+        raw = F.grid_sample(self.grid, coords, align_corners=True, padding_mode="border")
+        raw = raw.view(4, *depth.shape)
+        sigma = F.softplus(raw[0] + self.density_shift)  # per voxel length
+        alpha = 1 - torch.exp(-sigma * length / self.voxel_m)
+        transmit = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha], 1), 1)
+        return alpha * transmit[:, :-1], depth, raw
+
+    def depth_error(
+        self, origins: Tensor, directions: Tensor, target: Tensor, samples: int, near_m: float
+    ) -> Tensor:
+        """How far from ``target`` [R] (depth along the directions, in their units) the light
+        of rays [R, 3] ends: the light-weighted mean of ``|log(depth / target)|`` over the
+        ray's samples (stratified, jittered), the light that passes every sample counted at
+        the ray's farthest depth -> [R]. Differentiable w.r.t. the grid (``grid_sample``)."""
+        rays = self.ray_bounds(origins, directions, near_m)
+        offsets = torch.rand((len(origins), samples), device=origins.device)
+        weights, depth, _ = self._weights(rays, offsets)
+        log_target = target.clamp_min(_EPS).log()[:, None]
+        error = (depth.clamp_min(_EPS).log() - log_target).abs()
+        passed = 1 - weights.sum(1)
+        beyond = (rays.far.clamp_min(_EPS).log() - log_target[:, 0]).abs()
+        return (weights * error).sum(1) + passed * beyond
 
     def kernel_cells(self) -> np.ndarray:
         """The grid in the compiled kernels' layout [nz, ny, nx, 4]: copied once per change
@@ -274,6 +296,7 @@ class VoxelGridSceneModel(SceneModel):
 
     has_depth = True
     trains = True
+    fits_depth = True
     from_run = ("bounds", "n_appearances")
     build_keys = ("margin_m", "auto_scale", "contract")
 
@@ -371,6 +394,22 @@ class VoxelGridSceneModel(SceneModel):
             depth = depth.index_put((rows,), torch.cat([p[1] for p in parts]))
             opacity = opacity.index_put((rows,), torch.cat([p[2] for p in parts]))
         return rgb, depth, opacity
+
+    def depth_error(
+        self, origins: Tensor, directions: Tensor, scenes: Tensor, target: Tensor
+    ) -> Tensor:
+        """Rays [R, 3] of scenes [R] -> how far from ``target`` [R] (depth along the
+        directions) their light ends [R] (:meth:`VoxelGrid.depth_error`)."""
+        error = origins.new_zeros(len(origins))
+        for scene in range(len(self.grids)):
+            rows = (scenes == scene).nonzero().squeeze(1)
+            if len(rows):
+                grid = self.grids[scene]
+                part = grid.depth_error(
+                    origins[rows], directions[rows], target[rows], self.samples_per_ray, self.near_m
+                )
+                error = error.index_put((rows,), part)
+        return error
 
     def with_appearance(
         self, rgb: Tensor, appearance: Tensor, pixels: Tensor | None = None

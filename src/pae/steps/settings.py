@@ -118,6 +118,8 @@ class SceneModelStepSettings(StepSettings):
     appearance_lr: float | None = None
     fit_trim: float = 0.0
     fit_trim_from_epoch: int = 1
+    depth_rays: int = 0
+    depth_weight: float = 0.05
     quality_size: int = 24
     quality_images: int = 128
 
@@ -132,6 +134,8 @@ class SceneModelStepSettings(StepSettings):
         if not (is_number(self.fit_trim) and 0 <= self.fit_trim < 1):
             raise ValueError(f"fit_trim must be a number in [0, 1), got {self.fit_trim!r}")
         check_integer("fit_trim_from_epoch", self.fit_trim_from_epoch, 0)
+        check_integer("depth_rays", self.depth_rays, 0)
+        check_number("depth_weight", self.depth_weight, 0)
 
 
 STEP_SETTINGS: dict[str, type] = {
