@@ -4,6 +4,7 @@ blurred, and how well a scene model explains queries at their true poses."""
 from __future__ import annotations
 
 import importlib.util
+import math
 from pathlib import Path
 from types import ModuleType
 
@@ -49,6 +50,7 @@ def test_explained_ranks_a_blurred_renderer_below_the_sharp_one(
     assert same["zncc_model"] == pytest.approx(same["zncc_oracle"])
     assert same["depth_minus_oracle_median_m"] == 0.0
     assert same["opacity_model"] == 1.0
+    assert same["surface_log_ratio_median"] == 0.0 and same["surface_within_10pc"] == 1.0
     blurred = floor.BlurredOracle([make_scene(0)], 2.0 / 48)
     worse = floor.explained(blurred, scene, queries, SETTINGS)
     assert worse["zncc_model"] < same["zncc_model"] - 0.05
@@ -83,5 +85,8 @@ def test_oracle_depth_keeps_the_model_s_colours_on_the_benchmark_s_geometry(
     assert not torch.allclose(hybrid.rgb, truth.rgb)
     torch.testing.assert_close(hybrid.depth, truth.depth)
     torch.testing.assert_close(hybrid.opacity, truth.opacity)
+    explained = floor.explained(foggy, sharp, queries, SETTINGS)
+    assert explained["surface_log_ratio_median"] == pytest.approx(math.log(2), abs=1e-4)
+    assert explained["surface_within_10pc"] == 0.0
     with pytest.raises(SystemExit):
         floor.main(["unused", "--oracle", "--oracle-depth"])

@@ -15,7 +15,8 @@ benchmark's own renderer instead of the fitted scene model, its renderings blurr
 Gaussian of that sigma (a bound: how sharp a scene model must be for a given floor).
 ``--oracle-depth``: the fitted model's colours on the benchmark renderer's depth and opacity
 (what the model's geometry costs). ``--explain N``: how well the model explains N val
-queries at their true poses, beside the benchmark's own renderer (:func:`explained`). Only
+queries at their true poses, beside the benchmark's own renderer (:func:`explained`;
+``--explain-only``: that alone). Only
 validation labels are read. One row per variant, printed and written to
 ``RUN/floor_val.json`` (with ``--oracle``: ``RUN/floor_val_oracle.json``).
 
@@ -28,6 +29,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -109,11 +111,15 @@ def explained(
     ZNCC of the grey images band-passed as ``settings`` compare at the finest level (blur,
     high-pass, local contrast) between each query and each rendering, the model's mean opacity
     and the median of its depth minus the oracle's (m; negative: the model's surfaces lie
-    nearer the camera)."""
+    nearer the camera); and at the surface share the refiner projects (``surface_share`` of
+    ``settings``), the median |log| of the model's depth over the oracle's and the share of
+    pixels within 10 % of it."""
     height, width = queries["image"].shape[-2:]
     args = (queries["pose"], queries["scene"], queries["intrinsics"], width, height)
     with torch.no_grad():
         ours, truth = model.render(*args), oracle.render(*args)
+        surface = model.render(*args, surface_share=settings.get("surface_share", 0.0)).depth
+    ratio = (surface.clamp_min(1e-6) / truth.depth.clamp_min(1e-6)).log().abs()
 
     def filtered(rgb: torch.Tensor) -> torch.Tensor:
         return band_pass(
@@ -128,6 +134,8 @@ def explained(
         "zncc_oracle": float(zncc(query, filtered(truth.rgb), ones).mean()),
         "opacity_model": float(ours.opacity.mean()),
         "depth_minus_oracle_median_m": float((ours.depth - truth.depth).median()),
+        "surface_log_ratio_median": float(ratio.median()),
+        "surface_within_10pc": float((ratio < math.log(1.1)).float().mean()),
     }
 
 
@@ -208,7 +216,14 @@ def main(argv: list[str]) -> int:
         help="the fitted model's colours on the benchmark renderer's depth and opacity (what "
         "the model's geometry costs); rows keyed 'oracle depth: ...'",
     )
+    parser.add_argument(
+        "--explain-only",
+        action="store_true",
+        help="with --explain: only how well the model explains the val queries, no refinement",
+    )
     args = parser.parse_args(argv)
+    if args.explain_only and not args.explain:
+        parser.error("--explain-only needs --explain N")
     if args.oracle is not None and args.oracle_depth:
         parser.error("--oracle already renders the benchmark's depth; drop --oracle-depth")
     if args.oracle is not None and args.oracle < 0:
@@ -246,7 +261,8 @@ def main(argv: list[str]) -> int:
     results = json.loads(out_path.read_text()) if out_path.is_file() else {}
     print(f"{args.run.name}: {count} val queries, scene {extent:.2f} m, {calibration.steps}")
     print(f"start (1 % / 1 deg): {medians(good, truth)}")
-    for text, variant in zip(args.variant or [""], variants, strict=True):
+    measured = list(zip(args.variant or [""], variants, strict=True))
+    for text, variant in [] if args.explain_only else measured:
         row: dict[str, Any] = {}
         for name, starts in (("from_truth", truth), ("from_good", good)):
             begin = time.perf_counter()
