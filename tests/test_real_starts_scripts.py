@@ -120,3 +120,51 @@ def test_recordings_are_added_to_a_scene_refined_per_image_only(
     args.every = 1
     with pytest.raises(SystemExit, match="one test image in 2, not one in 1: give --every 2"):
         run.refine_scene("7Scenes", "chess", run_dir, [source, source], args)
+
+
+def test_both_aprs_are_refined_per_image_on_every_kth_image(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A scene with nothing refined yet: each APR's starts matched to all test images, thinned
+    to every 2nd, refined and recorded with the calibration's figures (the second APR once
+    failed on a name the first had rebound)."""
+    import argparse
+    import json
+
+    import torch
+
+    from pae.data.labels import read_labels
+
+    run = _script("run")
+    run_dir, source = _scene_run(tmp_path, every=2)
+    for apr in ("DFNet", "PoseNet"):
+        (run_dir / f"real_starts_{apr}.json").unlink()
+    (run_dir / ".hydra" / "config.yaml").write_text("data:\n  size: 128\n")
+    chosen = {"val_queries": 7, "scene_size_m": 3.0, "val": {"start": FIGURES}}
+    (run_dir / run.CALIBRATION_FILE).write_text(json.dumps(chosen))
+
+    def localize(run_dir: Path, test: Path, starts: Path, tag: str, options: list) -> dict:
+        calibration = {"accept_margin": 0.0, "accept_score": 0.0, "steps": {"position": 0.1}}
+        return {
+            "poses": read_labels(test), "calibration": calibration, "accepted_share": 1.0,
+            "calibrate_s": 2.0, "ms_per_query": 5.0,
+        }  # fmt: skip
+
+    monkeypatch.setattr(run, "localize", localize)
+    monkeypatch.setattr(run, "truth_audit", lambda run_dir, every: None)
+
+    def real_starts(folder: Path, scene: str, img_paths: list, truth: torch.Tensor) -> dict:
+        start = truth.clone()
+        start[:, 0] += 2.0 if "PoseNet" in str(folder) else 1.0
+        return {"start": start, "nefes50": truth}
+
+    monkeypatch.setattr(run, "real_starts", real_starts)
+    args = argparse.Namespace(estimates=tmp_path, every=2, recordings=None)
+    run.refine_scene("7Scenes", "chess", run_dir, [source, source], args)
+    for apr, shift in (("DFNet", 1.0), ("PoseNet", 2.0)):
+        starts = read_labels(run_dir / f"starts_{apr}.csv")
+        assert starts.poses[:, 0].tolist() == [shift, 2.0 + shift]  # images 0 and 2
+        record = json.loads((run_dir / f"real_starts_{apr}.json").read_text())
+        assert record["queries"] == 2 and record["every"] == 2 and record["val_queries"] == 7
+        assert record["start"]["pos_median_m"] == pytest.approx(shift)
+        assert record["render_compare"]["pos_median_m"] == 0.0

@@ -193,10 +193,10 @@ def refine_scene(
         path = run_dir / f"real_starts_{apr}.json"
         record = json.loads(path.read_text()) if path.is_file() else None
         if record is not None and record.get("every", 1) != args.every:
-            kept = record.get("every", 1)
+            every = record.get("every", 1)
             raise SystemExit(
-                f"{path}: refined on one test image in {kept}, not one in {args.every}: "
-                f"give --every {kept}"
+                f"{path}: refined on one test image in {every}, not one in {args.every}: "
+                f"give --every {every}"
             )
         modes = {m: o for m, o in wanted.items() if record is None or m not in record}
         if not modes:
@@ -212,7 +212,7 @@ def refine_scene(
             m: localize(run_dir, test_labels, start_file, f"{m}_{apr}", o) for m, o in modes.items()
         }
         if record is None:
-            kept = json.loads((run_dir / CALIBRATION_FILE).read_text())
+            chosen = json.loads((run_dir / CALIBRATION_FILE).read_text())
             alone = found["render_compare"]
             record = {
                 "scene": scene,
@@ -220,15 +220,15 @@ def refine_scene(
                 "apr": apr,
                 "queries": len(truth),
                 "every": args.every,
-                "val_queries": kept["val_queries"],
-                "scene_size_m": kept["scene_size_m"],
+                "val_queries": chosen["val_queries"],
+                "scene_size_m": chosen["scene_size_m"],
                 "image_px": int(rendered_size(run_dir)),
                 "calibration": {
                     "accept_margin": alone["calibration"]["accept_margin"],
                     "accept_score": alone["calibration"]["accept_score"],
                     **alone["calibration"]["steps"],
                 },
-                "val": kept["val"],
+                "val": chosen["val"],
                 "start": val_figures(starts["start"], truth),
                 "nefes50": val_figures(starts["nefes50"], truth),
                 "accepted_share": alone["accepted_share"],
