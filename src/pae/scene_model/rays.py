@@ -165,8 +165,8 @@ class RayLoader:
         depths = None
         if self.depth_rays:
             depths = sparse_depths(images, dataset.poses, intrinsics, dataset.scenes)
-            LOG.info("depth: %d keypoints triangulated in %d train images", len(depths.row),
-                     len(depths.row.unique()))  # fmt: skip
+            images_with = len(depths.row.unique())
+            LOG.info("depth: %d keypoints in %d train images", len(depths.row), images_with)
             if not len(depths.row):
                 LOG.warning("scene_model.depth_rays: no keypoint triangulated; fit without depth")
         rays = RayBatches(

@@ -114,8 +114,9 @@ def triangulate(
     return t_a.float(), holds
 
 
-def _pair_depths(keypoints: Keypoints, rows: Tensor, partners: Tensor, poses: Tensor,
-                 intrinsics: Tensor) -> tuple[Tensor, Tensor]:  # fmt: skip
+def _pair_depths(
+    keypoints: Keypoints, rows: Tensor, partners: Tensor, poses: Tensor, intrinsics: Tensor
+) -> tuple[Tensor, Tensor]:
     """Depth [B, K] of the keypoints of images ``rows`` [B] triangulated with their
     ``partners`` [B] (>= 0), and where it holds [B, K]."""
     query = Keypoints(*(part[rows] for part in keypoints))
