@@ -327,12 +327,16 @@ def test_a_recorded_stage_reads_back_and_a_setting_it_predates_takes_its_default
     ("settings", "said"),
     [
         ({}, "none"),
-        ({"width": 64, "start_views": 4, "near_start_views": 4}, "8 other starts + keypoints"),
+        (
+            {"width": 64, "start_views": 4, "near_start_views": 4},
+            "8 other starts + keypoints (128 px)",
+        ),
         ({"width": 64, "render_width": 0, "start_views": 4}, "4 other starts"),
+        ({"width": 64, "render_width": 0, "views": 4}, "keypoints (train views)"),
         (
             {"width": 64, "start_views": 4, "near_start_views": 4, "near_best_rounds": 1,
              "screen_keep": 2},
-            "8 other starts + 1 round + keypoints, 2 in full",
+            "8 other starts + 1 round + keypoints (128 px), 2 in full",
         ),
     ],
 )  # fmt: skip

@@ -119,14 +119,20 @@ class MatchSettings:
 
     def described(self) -> str:
         """The stage in a table's words: the other starts refined, the rounds from the best
-        pose, whether keypoints solve a pose and how many starts are refined in full after
-        the screen; ``none`` where no stage runs."""
+        pose, whether keypoints solve a pose (against a rendering how many px wide, or the
+        train views alone) and how many starts are refined in full after the screen;
+        ``none`` where no stage runs."""
         if not self.active:
             return "none"
-        said = f"{self.start_views + self.near_start_views} other starts"
-        said += f" + {self.near_best_rounds} round" if self.near_best_rounds else ""
-        said += " + keypoints" if self.solves else ""
-        return said + (f", {self.screen_keep} in full" if self.screen_keep else "")
+        parts = []
+        if self.start_views + self.near_start_views:
+            parts.append(f"{self.start_views + self.near_start_views} other starts")
+        if self.near_best_rounds:
+            parts.append(f"{self.near_best_rounds} round")
+        if self.solves:
+            against = f"{self.render_width} px" if self.render_width else "train views"
+            parts.append(f"keypoints ({against})")
+        return " + ".join(parts) + (f", {self.screen_keep} in full" if self.screen_keep else "")
 
 
 class Keypoints(NamedTuple):
