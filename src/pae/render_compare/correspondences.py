@@ -28,17 +28,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from pae.core.features import DETECTORS, Keypoints, mutual_matches, worker_threads
 from pae.core.geometry import matrix_to_quaternion, normalize_quaternion
-from pae.render_compare.keypoints import (
-    DETECTORS,
-    MIN_DEPTH_M,
-    Keypoints,
-    MatchSettings,
-    detect,
-    lift,
-    mutual_matches,
-    worker_threads,
-)
+from pae.render_compare.keypoints import MIN_DEPTH_M, MatchSettings, detect, lift
 from pae.render_compare.train_views import (
     Describer,
     MatchQueries,

@@ -12,8 +12,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from pae.core.features import Keypoints
 from pae.core.geometry import quaternion_to_matrix
-from pae.render_compare.keypoints import Keypoints, MatchSettings, detect, lift
+from pae.render_compare.keypoints import MatchSettings, detect, lift
 from pae.scene_model.base import SceneModel
 
 DESCRIPTOR_SIDE = 16

@@ -16,12 +16,14 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from pae.core.camera import directions_through
+from pae.core.features import Keypoints, detect, mutual_matches
 from pae.core.geometry import quaternion_to_matrix
-from pae.render_compare.keypoints import Keypoints, MatchSettings, detect, mutual_matches
 from pae.scene_model.voxel_grid import camera_extent_m
 
-KEYPOINTS = MatchSettings(keypoints=500, ratio=0.8)
-"""SIFT at most 500 keypoints per train image (contrast 0.01), ratio test 0.8."""
+KEYPOINTS = 500
+"""SIFT keypoints per train image at most (contrast 0.01)."""
+RATIO = 0.8
+"""Lowe's ratio test."""
 MIN_BASELINE = 0.15
 """A partner view's camera lies at least this share of the scene's camera extent away."""
 MAX_AXIS_DEG = 30.0
@@ -121,7 +123,7 @@ def _pair_depths(
     ``partners`` [B] (>= 0), and where it holds [B, K]."""
     query = Keypoints(*(part[rows] for part in keypoints))
     reference = Keypoints(*(part[partners] for part in keypoints))
-    nearest, matched = mutual_matches(query, reference, KEYPOINTS.ratio, binary=False)
+    nearest, matched = mutual_matches(query, reference, RATIO, binary=False)
     other = reference.xy.gather(1, nearest[..., None].expand(-1, -1, 2))
     depth, holds = triangulate(
         query.xy, other, poses[rows], poses[partners], intrinsics[rows], intrinsics[partners]
@@ -132,7 +134,7 @@ def _pair_depths(
 def _keypoints(images: Tensor) -> Keypoints:
     """SIFT keypoints of uint8 images [N, 3, H, W], detected ``DETECT_ROWS`` at a time."""
     found = [
-        detect(images[start : start + DETECT_ROWS].float() / 255, KEYPOINTS)
+        detect(images[start : start + DETECT_ROWS].float() / 255, "sift", KEYPOINTS)
         for start in range(0, len(images), DETECT_ROWS)
     ]
     size = max(part.xy.shape[1] for part in found)
