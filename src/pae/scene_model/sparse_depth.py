@@ -50,9 +50,11 @@ class SparseDepths(NamedTuple):
     depth: Tensor
 
 
-def partner_views(poses: Tensor, scenes: Tensor, count: int = 2) -> Tensor:
+def partner_views(
+    poses: Tensor, scenes: Tensor, count: int = 2, min_baseline: float = MIN_BASELINE
+) -> Tensor:
     """Rows [N, count] of each train camera's partners among poses [N, 7] of scenes [N]: the
-    nearest cameras of its scene at least ``MIN_BASELINE`` × the scene's camera extent away
+    nearest cameras of its scene at least ``min_baseline`` × the scene's camera extent away
     whose optical axes lie within ``MAX_AXIS_DEG``; -1 where fewer exist."""
     positions = poses[:, :3].double()
     axes = quaternion_to_matrix(poses[:, 3:].double())[:, :, 2]
@@ -63,7 +65,7 @@ def partner_views(poses: Tensor, scenes: Tensor, count: int = 2) -> Tensor:
     distance = torch.cdist(positions, positions)
     allowed = (
         (scenes[:, None] == scenes[None])
-        & (distance >= (MIN_BASELINE * extent)[:, None].clamp_min(1e-6))
+        & (distance >= (min_baseline * extent)[:, None].clamp_min(1e-6))
         & (axes @ axes.T >= math.cos(math.radians(MAX_AXIS_DEG)))
     )
     cost = distance.masked_fill(~allowed, math.inf)
@@ -76,13 +78,19 @@ def partner_views(poses: Tensor, scenes: Tensor, count: int = 2) -> Tensor:
 
 
 def triangulate(
-    xy_a: Tensor, xy_b: Tensor, poses_a: Tensor, poses_b: Tensor, intr_a: Tensor, intr_b: Tensor
+    xy_a: Tensor,
+    xy_b: Tensor,
+    poses_a: Tensor,
+    poses_b: Tensor,
+    intr_a: Tensor,
+    intr_b: Tensor,
+    min_parallax_deg: float = MIN_PARALLAX_DEG,
 ) -> tuple[Tensor, Tensor]:
     """Matched pixels xy [B, K, 2] of cameras a and b (poses [B, 7] camera-to-world,
     intrinsics [B, 4]) -> the depth [B, K] (m along a's optical axis) of the midpoint of
     their rays' closest approach, and whether it holds [B, K]: in front of both cameras,
     reprojecting within ``MAX_REPROJECTION_PX`` in both, rays meeting at
-    ``MIN_PARALLAX_DEG`` or more."""
+    ``min_parallax_deg`` or more."""
     rot_a = quaternion_to_matrix(poses_a[:, 3:].double())
     rot_b = quaternion_to_matrix(poses_b[:, 3:].double())
     local_a = directions_through(xy_a[..., 0], xy_a[..., 1], intr_a[:, None].double())
@@ -111,13 +119,18 @@ def triangulate(
         & (t_b > 0)
         & (reprojection(poses_a, rot_a, intr_a, xy_a) < MAX_REPROJECTION_PX)
         & (reprojection(poses_b, rot_b, intr_b, xy_b) < MAX_REPROJECTION_PX)
-        & (cosine <= math.cos(math.radians(MIN_PARALLAX_DEG)))
+        & (cosine <= math.cos(math.radians(min_parallax_deg)))
     )
     return t_a.float(), holds
 
 
 def _pair_depths(
-    keypoints: Keypoints, rows: Tensor, partners: Tensor, poses: Tensor, intrinsics: Tensor
+    keypoints: Keypoints,
+    rows: Tensor,
+    partners: Tensor,
+    poses: Tensor,
+    intrinsics: Tensor,
+    min_parallax_deg: float,
 ) -> tuple[Tensor, Tensor]:
     """Depth [B, K] of the keypoints of images ``rows`` [B] triangulated with their
     ``partners`` [B] (>= 0), and where it holds [B, K]."""
@@ -126,8 +139,9 @@ def _pair_depths(
     nearest, matched = mutual_matches(query, reference, RATIO, binary=False)
     other = reference.xy.gather(1, nearest[..., None].expand(-1, -1, 2))
     depth, holds = triangulate(
-        query.xy, other, poses[rows], poses[partners], intrinsics[rows], intrinsics[partners]
-    )
+        query.xy, other, poses[rows], poses[partners], intrinsics[rows], intrinsics[partners],
+        min_parallax_deg,
+    )  # fmt: skip
     return depth, holds & matched
 
 
@@ -150,19 +164,28 @@ def _keypoints(images: Tensor) -> Keypoints:
 
 
 def sparse_depths(
-    images: Tensor, poses: Tensor, intrinsics: Tensor, scenes: Tensor
+    images: Tensor,
+    poses: Tensor,
+    intrinsics: Tensor,
+    scenes: Tensor,
+    min_baseline: float = MIN_BASELINE,
+    min_parallax_deg: float = MIN_PARALLAX_DEG,
 ) -> SparseDepths:
     """Triangulated keypoints of train images uint8 [N, 3, H, W] (poses [N, 7], intrinsics
     [N, 4] of those images, scenes [N]): each image's keypoints matched to its two
-    :func:`partner_views`, kept where both triangulations hold and their depths agree within
-    ``AGREE_LOG``, at the two depths' geometric mean."""
+    :func:`partner_views` (``min_baseline``), kept where both triangulations hold
+    (``min_parallax_deg``: :func:`triangulate`) and their depths agree within ``AGREE_LOG``,
+    at the two depths' geometric mean."""
     keypoints = _keypoints(images)
-    partners = partner_views(poses, scenes)
+    partners = partner_views(poses, scenes, min_baseline=min_baseline)
     usable = (partners >= 0).all(1).nonzero().squeeze(1)
     parts: list[SparseDepths] = []
     for chunk in usable.split(PAIRS_PER_CHUNK):
-        first, holds_first = _pair_depths(keypoints, chunk, partners[chunk, 0], poses, intrinsics)
-        second, holds_second = _pair_depths(keypoints, chunk, partners[chunk, 1], poses, intrinsics)
+        both = partners[chunk].T.flatten()  # each image's first partners, then its second
+        depth, holds = _pair_depths(
+            keypoints, chunk.repeat(2), both, poses, intrinsics, min_parallax_deg
+        )
+        (first, second), (holds_first, holds_second) = depth.chunk(2), holds.chunk(2)
         gap = (first.clamp_min(1e-9).log() - second.clamp_min(1e-9).log()).abs()
         keep = holds_first & holds_second & (gap < AGREE_LOG)
         image, slot = keep.nonzero(as_tuple=True)
