@@ -176,7 +176,9 @@ def test_the_calibration_for_any_start_chooses_among_the_run_s_stages_and_applie
     those stages on val (retrieving train views by the thumbnail descriptor: the run has no
     teacher); the stage chosen (here forced: the tiny scene decides nothing) is kept in the
     run's record and read back, and the test queries reach refine() at its match width with
-    the train views read for val, not read twice."""
+    the train views read for val, not read twice; the shares of the queries the stage may
+    go to (``match_shares_from_val``) reach the calibration and are part of its record's
+    key."""
     import shutil
 
     from pae.apps import any_start, localization, match_inputs
@@ -188,11 +190,13 @@ def test_the_calibration_for_any_start_chooses_among_the_run_s_stages_and_applie
     stage = {"width": 32, "render_width": 0, "near_start_views": 2}
     config.render_compare.matches_from_val = [{}, stage]
     config.render_compare.match_descriptor = "thumbnail"
+    config.render_compare.match_shares_from_val = [0.5]
     OmegaConf.save(config, run / ".hydra" / "config.yaml")
-    tried = []
+    tried, shares = [], []
 
     def forced(*args, **kwargs):
         tried.extend(args[-1].stages())
+        shares.append(list(args[-1].stage_shares))
         chosen, refined, starts = calibrate_any_start(*args, **kwargs)
         return chosen.__class__(**{**chosen.__dict__, "match": tried[-1]}), refined, starts
 
@@ -236,3 +240,8 @@ def test_the_calibration_for_any_start_chooses_among_the_run_s_stages_and_applie
     np.testing.assert_allclose(
         read_labels(tmp_path / "a.csv").poses, read_labels(tmp_path / "b.csv").poses, atol=1e-6
     )
+    assert shares == [[0.5]]
+    config.render_compare.match_shares_from_val = [0.25]  # another calibration's key
+    OmegaConf.save(config, run / ".hydra" / "config.yaml")
+    assert main([*argv, "--out", str(tmp_path / "c.csv")]) == 0
+    assert tried and shares[-1] == [0.25]

@@ -275,6 +275,57 @@ def test_the_calibration_for_any_start_takes_a_stage_where_it_lowers_the_val_rat
     torch.testing.assert_close(again.poses, poses)
 
 
+@pytest.mark.parametrize(("tolerance", "share"), [(10.0, 0.25), (-10.0, None)])
+def test_the_stage_goes_to_the_fewest_queries_val_allows(
+    monkeypatch: pytest.MonkeyPatch, tolerance: float, share: float | None
+) -> None:
+    """AnyStartOptions.stage_shares: with a tolerance nothing exceeds, the smallest share is
+    kept (its threshold the quarter quantile of the val queries' scores from their starts)
+    and refine() under it gives the other starts to exactly the queries scoring below it;
+    with one nothing meets, the stage keeps its own threshold."""
+    from pae.render_compare import AnyStartOptions, api, calibrate_any_start
+
+    monkeypatch.setattr(api, "STAGE_SHARE_TOLERANCE", tolerance)
+    model, images, intrinsics, truth = _frames(48, slice(0, 48))
+    scenes = torch.zeros(48, dtype=torch.long)
+    train = TrainImages(images[::2], intrinsics[::2], truth[::2], scenes[::2])
+    rows = torch.arange(1, 48, 3)
+    matching = MatchQueries(images[rows], intrinsics[rows], train)
+    queries = Queries(images[rows], intrinsics[rows], scenes[rows], matching=matching)
+    plain = {"highpass_px": (), "contrast_px": (), "surface_shares": ()}
+    stage = {"width": 48, "render_width": 0, "near_start_views": 2, "below_score": 0.8}
+    _, alone, _ = calibrate_any_start(
+        model, queries, truth[rows], 4.0, SMALL_SEARCH, AnyStartOptions(**plain)
+    )
+    options = AnyStartOptions(**plain, matches=[stage], stage_shares=(0.75, 0.25, 0.5))
+    chosen, _, starts = calibrate_any_start(model, queries, truth[rows], 4.0, SMALL_SEARCH, options)
+    scores = alone.result.score.float()
+    if share is None:
+        assert chosen.match == MatchSettings(**stage)
+        return
+    below = float(torch.quantile(scores, share))
+    assert chosen.match == MatchSettings(**stage | {"below_score": below})
+    calls: list[int] = []
+    original = RenderCompareRefiner.__call__
+
+    def counted(self: RenderCompareRefiner, images: torch.Tensor, *args, **kwargs):
+        calls.append(len(images))
+        return original(self, images, *args, **kwargs)
+
+    monkeypatch.setattr(RenderCompareRefiner, "__call__", counted)
+    refine(model, queries, starts, chosen, settings=SMALL_SEARCH)
+    needy = int((scores < below).sum())
+    assert 0 < needy < len(rows)
+    assert calls == [len(rows), 2 * needy]
+
+
+def test_a_share_outside_zero_and_one_is_named() -> None:
+    from pae.callbacks.render_compare import RenderCompareCallback
+
+    with pytest.raises(ValueError, match=r"match_shares_from_val: 1.5 is not a share in \(0, 1\)"):
+        RenderCompareCallback(match_shares_from_val=[0.5, 1.5])
+
+
 def test_screening_refines_only_the_best_other_starts_and_still_finds_the_pose(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -337,6 +388,10 @@ def test_a_recorded_stage_reads_back_and_a_setting_it_predates_takes_its_default
             {"width": 64, "start_views": 4, "near_start_views": 4, "near_best_rounds": 1,
              "screen_keep": 2},
             "8 other starts + 1 round + keypoints (128 px), 2 in full",
+        ),
+        (
+            {"width": 64, "start_views": 4, "below_score": 0.613},
+            "4 other starts + keypoints (128 px), below ZNCC 0.61",
         ),
     ],
 )  # fmt: skip

@@ -31,11 +31,12 @@ def calibration_key(
     features: bool,
     matches: Sequence[Mapping[str, Any]] = (),
     filters: Sequence[Mapping[str, float]] = (),
+    shares: Sequence[float] = (),
 ) -> str:
     """What the calibration depends on: the refiner's settings, the scene model's checkpoint
     (its path, size and a SHA-256 of its first MiB), whether features are compared, the
-    correspondence stages and the further filters tried (none tried: the key of a
-    calibration that tried none)."""
+    correspondence stages, the further filters and the stage's shares of the queries tried
+    (none tried: the key of a calibration that tried none)."""
     with scene_model.open("rb") as handle:
         head = hashlib.sha256(handle.read(1 << 20)).hexdigest()
     stated = {
@@ -47,6 +48,8 @@ def calibration_key(
         stated["matches"] = [dict(m) for m in matches]
     if filters:
         stated["filters"] = [dict(f) for f in filters]
+    if matches and shares:
+        stated["stage_shares"] = [float(share) for share in shares]
     return hashlib.sha256(json.dumps(stated, sort_keys=True).encode()).hexdigest()
 
 
@@ -101,6 +104,7 @@ def any_start_calibration(
     features: Any,
     stages: tuple[Sequence[Mapping[str, Any]], Callable[[], MatchQueries] | None] = ((), None),
     filters: Sequence[Mapping[str, float]] = (),
+    shares: Sequence[float] = (),
 ) -> Calibration:
     """The gate, first steps and correspondence stage for starts from another APR, chosen on
     the validation queries ``val`` (``image``, ``intrinsics``, ``scene``, true ``pose``, as
@@ -109,14 +113,15 @@ def any_start_calibration(
     size ``size_m``, m; ``stages``: the correspondence stages to try, mappings of
     ``MatchSettings``, and what reads the val queries at their match width, called only
     where the stages are tried; None: no stage tried; ``filters``: filters to try besides
-    the built-in ones, the run's ``render_compare.filters_from_val``), read
+    the built-in ones, the run's ``render_compare.filters_from_val``; ``shares``: the shares
+    of the val queries the kept stage may go to, ``render_compare.match_shares_from_val``), read
     from ``FOLDER/render_compare_any_start.json`` where an earlier call chose them under the
     same settings, stages and scene model (its checkpoint's path in ``scene_model``), else
     chosen and written there with the val figures (a read-only folder only warns)."""
     model, checkpoint = scene_model
     matches, read_matching = stages if stages[1] is not None else ((), None)
     path = folder / CALIBRATION_FILE
-    key = calibration_key(settings, checkpoint, features is not None, matches, filters)
+    key = calibration_key(settings, checkpoint, features is not None, matches, filters, shares)
     recorded = read_calibration(path, key)
     if recorded is not None:
         print(f"pae-localize: the calibration for any start from {path}", file=sys.stderr)
@@ -126,7 +131,7 @@ def any_start_calibration(
     queries = Queries(val["image"], val["intrinsics"], val["scene"], matching=matching)
     calibration, refined, starts = calibrate_any_start(
         model, queries, truth, size_m, settings | {"features": features},
-        AnyStartOptions(matches=matches, filters=filters),
+        AnyStartOptions(matches=matches, filters=filters, stage_shares=shares),
     )  # fmt: skip
     record = {
         "key": key,

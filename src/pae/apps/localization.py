@@ -358,8 +358,9 @@ def any_start_calibration(
 
     stages = (matches, val_matching if width else None)
     filters = configured_list(run.config, "filters_from_val")
+    shares = configured_list(run.config, "match_shares_from_val")
     chosen = cached_calibration(
-        run.folder, checkpoint, on_device, size, settings, features, stages, filters
+        run.folder, checkpoint, on_device, size, settings, features, stages, filters, shares
     )
     return chosen, (read[0] if read else None)
 

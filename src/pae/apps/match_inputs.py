@@ -21,8 +21,8 @@ from pae.lit.eval_outputs import teacher_descriptor, train_images
 from pae.render_compare.correspondences import MatchQueries, MatchSettings, TrainImages
 
 
-def configured_list(config: DictConfig, key: str) -> list[dict[str, Any]]:
-    """The mappings a run's ``config`` lists under ``render_compare.<key>`` (``[]``: none)."""
+def configured_list(config: DictConfig, key: str) -> list[Any]:
+    """What a run's ``config`` lists under ``render_compare.<key>`` (``[]``: none)."""
     stages = config.render_compare.get(key) or []
     listed = OmegaConf.to_container(stages) if OmegaConf.is_config(stages) else list(stages)
     assert isinstance(listed, list)

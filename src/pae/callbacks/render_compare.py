@@ -25,7 +25,12 @@ from pae.lit.eval_outputs import (
     scene_models,
 )
 from pae.render_compare.api import Queries, Refinement, Validation, calibrate, refine
-from pae.render_compare.calibration import Calibration, CalibrationOptions, teacher_features
+from pae.render_compare.calibration import (
+    AnyStartOptions,
+    Calibration,
+    CalibrationOptions,
+    teacher_features,
+)
 from pae.render_compare.queries import refinement_figures, write_queries
 from pae.render_compare.refiner import ACCEPT_ALL, RenderCompareRefiner, refiner_defaults
 from pae.render_compare.sequences import SequenceOptions
@@ -43,7 +48,10 @@ class RenderCompareCallback(L.Callback):
     ``feature_layers``: the teacher backbone's modules behind ``refiner.score=features``;
     ``init``, ``init_axes``, ``init_format``: another APR's starts file, its axes and format
     (``RenderCompareFromFile``); ``sequence_*``: :class:`SequenceOptions`;
-    ``matches_from_val``, ``match_descriptor``: :class:`pae.lit.eval_outputs.MatchInputs`."""
+    ``matches_from_val``, ``match_descriptor``: :class:`pae.lit.eval_outputs.MatchInputs`;
+    ``match_shares_from_val``: for another APR's starts (``init``), the shares of the val
+    queries the stage kept may go to instead of every query
+    (:class:`pae.render_compare.AnyStartOptions`' ``stage_shares``)."""
 
     def __init__(
         self,
@@ -65,6 +73,7 @@ class RenderCompareCallback(L.Callback):
         gate_objective: str = "mean",
         matches_from_val: list[dict[str, Any]] | None = None,
         match_descriptor: str = "teacher",
+        match_shares_from_val: list[float] | None = None,
     ) -> None:
         super().__init__()
         settings = refiner.keywords if isinstance(refiner, functools.partial) else refiner
@@ -75,6 +84,7 @@ class RenderCompareCallback(L.Callback):
         on_val = (accept_margin, accept_score, step_from_val, scene_check_below, filters_from_val)
         self.options = CalibrationOptions(*on_val, gate_objective, matches_from_val)
         self.match_inputs = MatchInputs(matches_from_val, match_descriptor)
+        self.match_shares = AnyStartOptions(stage_shares=match_shares_from_val or ()).stage_shares
         self.sequence = SequenceOptions(sequence_passes, sequence_window, sequence_scene_vote)
         self.calibrations: dict[str, Calibration] = {}  # method -> the last chosen on val
         self.refined: dict[str, dict[str, Tensor]] = {}  # split -> method -> poses kept

@@ -83,7 +83,9 @@ class RenderCompareFromFile(L.Callback):
         )  # fmt: skip
         options = self.refinement.options
         stages = AnyStartOptions(
-            matches=options.matches_from_val or (), filters=options.filters_from_val or ()
+            matches=options.matches_from_val or (),
+            filters=options.filters_from_val or (),
+            stage_shares=self.refinement.match_shares,
         )
         self.calibration, _, _ = calibrate_any_start(
             pl_module.scene_model, queries, outputs[EVAL.pose].float(),

@@ -10,7 +10,7 @@ import dataclasses
 import functools
 import itertools
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NamedTuple
 
 import torch
@@ -21,6 +21,7 @@ from pae.core.shapes import check_shape
 from pae.render_compare.calibration import (
     LADDER,
     LADDER_DEG,
+    STAGE_SHARE_TOLERANCE,
     STEP_SHARES,
     AnyStartOptions,
     Calibration,
@@ -383,7 +384,8 @@ def calibrate_any_start(
     ``options.filters`` (over the settings' own), then with those the references'
     ``surface_share`` among the settings' own and ``options.surface_shares``,
     then, where ``queries.matching`` is given, the correspondence stage among none and
-    ``options.matches`` (:class:`AnyStartOptions`), and the gate that minimise the mean log
+    ``options.matches`` (:class:`AnyStartOptions`; where one is kept, the fewest queries it
+    goes to among ``options.stage_shares``), and the gate that minimise the mean log
     of each query's error over its start's (``choose_gate(objective="log_ratio")``), so that
     a good start is kept rather than refined to the refiner's floor -> the calibration (its
     ``steps`` holding the chosen steps, filter and surface share, its ``match`` the stage),
@@ -459,4 +461,32 @@ def calibrate_any_start(
         for match in options.stages()[1:]:
             tried = evaluate(chosen, match, plain)
             best = tried if tried[0] < best[0] else best
+        if best[1].match.active:
+            fewer = functools.partial(evaluate, chosen, first=plain)
+            best = _fewest_staged(best, options.stage_shares, plain.score, fewer)
     return best[1], best[2], starts
+
+
+def _fewest_staged(
+    best: tuple[float, Calibration, Refinement],
+    shares: Sequence[float],
+    scores: Tensor,
+    evaluate: Callable[[MatchSettings], tuple[float, Calibration, Refinement]],
+) -> tuple[float, Calibration, Refinement]:
+    """``best`` (its objective, calibration and val refinement, its stage as listed) or,
+    trying ``shares`` from the smallest, the first whose stage goes only to the queries
+    scoring below that quantile of ``scores`` [N] (the refinements from their starts) and
+    whose objective stays within ``STAGE_SHARE_TOLERANCE`` of ``best``'s."""
+    match = best[1].match
+    for share in sorted(shares):
+        below = float(torch.quantile(scores.float(), share))
+        tried = evaluate(dataclasses.replace(match, below_score=below))
+        kept = tried[0] <= best[0] + STAGE_SHARE_TOLERANCE
+        log.info(
+            "calibrate for any start on val: the stage for the %.0f %% scoring below %.3f: "
+            "objective %.4f against %.4f as listed, %s",
+            100 * share, below, tried[0], best[0], "kept" if kept else "not kept",
+        )  # fmt: skip
+        if kept:
+            return tried
+    return best

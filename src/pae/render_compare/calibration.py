@@ -55,6 +55,10 @@ LADDER_DEG = (0.125, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
 STEP_SHARES = (0.01, 0.02, 0.05, 0.1, 0.2)
 """Candidate first position steps of :func:`pae.render_compare.calibrate_any_start`, as
 shares of the scene's size (orientation steps in proportion: LADDER_DEG / LADDER)."""
+STAGE_SHARE_TOLERANCE = 0.02
+"""How much :func:`pae.render_compare.calibrate_any_start` lets the val objective (the mean
+log error ratio) rise when it gives the correspondence stage to fewer queries: 0.02, about
+2 % on the geometric mean of the errors over their starts'."""
 SURFACE_SHARES = (0.5, 0.6, 0.7, 0.8)
 """The references' surface shares (``surface_share``) that
 :func:`pae.render_compare.calibrate_any_start` tries besides the settings' own: a fitted
@@ -230,8 +234,13 @@ class AnyStartOptions:
     ``render_compare.filters_from_val`` lists them: a highlight clip, a trimmed score), the
     references' ``surface_shares`` and, where the queries carry ``matching``, the
     correspondence stages ``matches`` (mappings of
-    :class:`pae.render_compare.correspondences.MatchSettings`; none is always tried too);
-    ``seed``: the ladder starts' draws (:func:`ladder_starts`)."""
+    :class:`pae.render_compare.correspondences.MatchSettings`; none is always tried too)
+    and, where one is kept, the ``stage_shares`` of the val queries, the lowest-scoring
+    first, to give it to instead of those its own ``below_score`` picks (every query by
+    default; each share in (0, 1): the smallest whose objective stays within
+    ``STAGE_SHARE_TOLERANCE`` of the stage's own is kept, its score threshold as the
+    stage's ``below_score``); ``seed``: the ladder starts' draws
+    (:func:`ladder_starts`)."""
 
     highpass_px: Sequence[float] = (HIGHPASS_PX,)
     contrast_px: Sequence[float] = CONTRAST_PX
@@ -239,10 +248,16 @@ class AnyStartOptions:
     seed: int = 0
     matches: Sequence[Mapping[str, Any]] = ()
     filters: Sequence[Mapping[str, float]] = ()
+    stage_shares: Sequence[float] = ()
 
     def __post_init__(self) -> None:
         _check_matches("render_compare.matches_from_val", self.matches)
         _check_filters("render_compare.filters_from_val", self.filters)
+        outside = [share for share in self.stage_shares if not 0 < share < 1]
+        if outside:
+            raise ValueError(
+                f"render_compare.match_shares_from_val: {outside[0]} is not a share in (0, 1)"
+            )
 
     def stages(self) -> list[MatchSettings]:
         """The correspondence stages to try: none first, then each of ``matches`` once."""

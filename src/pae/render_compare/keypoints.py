@@ -115,8 +115,9 @@ class MatchSettings:
     def described(self) -> str:
         """The stage in a table's words: the other starts refined, the rounds from the best
         pose, whether keypoints solve a pose (against a rendering how many px wide, or the
-        train views alone) and how many starts are refined in full after the screen;
-        ``none`` where no stage runs."""
+        train views alone), how many starts are refined in full after the screen and, where
+        it is not every query's, the score below which a query gets the stage; ``none``
+        where no stage runs."""
         if not self.active:
             return "none"
         parts = []
@@ -127,7 +128,12 @@ class MatchSettings:
         if self.solves:
             against = f"{self.render_width} px" if self.render_width else "train views"
             parts.append(f"keypoints ({against})")
-        return " + ".join(parts) + (f", {self.screen_keep} in full" if self.screen_keep else "")
+        described = " + ".join(parts)
+        if self.screen_keep:
+            described += f", {self.screen_keep} in full"
+        if self.below_score < 1:
+            described += f", below ZNCC {self.below_score:.2f}"
+        return described
 
 
 def detect(images: Tensor, settings: MatchSettings, masks: Tensor | None = None) -> Keypoints:
