@@ -1,5 +1,5 @@
 """experiments/render_compare_real_starts' run.py and table.py: every K-th test image only,
-said in the table."""
+said in the table; seeds.py's spread."""
 
 from __future__ import annotations
 
@@ -168,3 +168,31 @@ def test_both_aprs_are_refined_per_image_on_every_kth_image(
         assert record["queries"] == 2 and record["every"] == 2 and record["val_queries"] == 7
         assert record["start"]["pos_median_m"] == pytest.approx(shift)
         assert record["render_compare"]["pos_median_m"] == 0.0
+
+
+def test_seeds_says_a_difference_beyond_the_larger_spread(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import json
+
+    def folders(name: str, metres: list[float]) -> list[str]:
+        made = []
+        for seed, median in enumerate(metres):
+            scene = tmp_path / f"{name}_{seed}" / "ShopFacade"
+            scene.mkdir(parents=True)
+            for apr, shift in (("DFNet", 0.0), ("PoseNet", 0.03)):
+                record = {"render_compare": {"pos_median_m": median + shift}}
+                (scene / f"real_starts_{apr}.json").write_text(json.dumps(record))
+            made.append(str(scene.parent))
+        return made
+
+    without, with_ = folders("without", [0.06, 0.07, 0.08]), folders("with", [0.10, 0.11])
+    _script("seeds").main(["ShopFacade", "--without", *without, "--with", *with_])
+    rows = capsys.readouterr().out.splitlines()[2:]
+    assert rows[0] == (
+        "| DFNet | 6.0, 7.0, 8.0 | 10.0, 11.0 | 7.00 ± 1.00 | 10.50 ± 0.71 | +3.50 | yes |"
+    )
+    assert rows[1].startswith("| PoseNet | 9.0, 10.0, 11.0 | 13.0, 14.0 |")
+    near = folders("near", [0.07, 0.075])
+    _script("seeds").main(["ShopFacade", "--without", *without, "--with", *near])
+    assert capsys.readouterr().out.splitlines()[2].endswith("| +0.25 | no |")

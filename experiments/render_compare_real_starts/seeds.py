@@ -34,12 +34,12 @@ def spread(values: list[float]) -> tuple[float, float]:
     return statistics.mean(values), statistics.stdev(values) if len(values) > 1 else 0.0
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("scene")
     parser.add_argument("--without", nargs="+", type=Path, required=True)
     parser.add_argument("--with", dest="with_", nargs="+", type=Path, required=True)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     header = ["starts", "without, each seed", "with, each seed", "without", "with"]
     header += ["with − without", "beyond the larger sd"]
     print("| " + " | ".join(header) + " |")
