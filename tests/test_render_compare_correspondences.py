@@ -241,6 +241,24 @@ def test_the_callback_names_a_second_width_and_an_unknown_descriptor() -> None:
     assert not callback.options.uncalibrated().match.active  # two stages: val chooses
 
 
+ANY_START_PLAIN = {"highpass_px": (), "contrast_px": (), "surface_shares": ()}
+"""calibrate_any_start's own filter and surface share only: the tests' calibration short."""
+NEAR_STAGE = {"width": 48, "render_width": 0, "near_start_views": 2, "below_score": 0.8}
+"""A stage without keypoints: the 2 train cameras nearest each start below ZNCC 0.8."""
+
+
+def _any_start_queries() -> tuple[OracleSceneModel, Queries, torch.Tensor]:
+    """16 val queries of benchmark scene 0 (every third frame of 48 at 48 px), the train
+    views the others in two, and their true poses [16, 7]."""
+    model, images, intrinsics, truth = _frames(48, slice(0, 48))
+    scenes = torch.zeros(48, dtype=torch.long)
+    train = TrainImages(images[::2], intrinsics[::2], truth[::2], scenes[::2])
+    rows = torch.arange(1, 48, 3)
+    matching = MatchQueries(images[rows], intrinsics[rows], train)
+    queries = Queries(images[rows], intrinsics[rows], scenes[rows], matching=matching)
+    return model, queries, truth[rows]
+
+
 def test_the_calibration_for_any_start_takes_a_stage_where_it_lowers_the_val_ratio() -> None:
     """calibrate_any_start with ``AnyStartOptions.matches``: the ladder's far starts (up to
     a third of the scene's size) lie beyond the search's basin, and the queries that score
@@ -250,20 +268,14 @@ def test_the_calibration_for_any_start_takes_a_stage_where_it_lowers_the_val_rat
     from pae.render_compare import AnyStartOptions, calibrate_any_start
     from pae.render_compare.calibration import objective_value
 
-    model, images, intrinsics, truth = _frames(48, slice(0, 48))
-    scenes = torch.zeros(48, dtype=torch.long)
-    train = TrainImages(images[::2], intrinsics[::2], truth[::2], scenes[::2])
-    rows = torch.arange(1, 48, 3)
-    matching = MatchQueries(images[rows], intrinsics[rows], train)
-    queries = Queries(images[rows], intrinsics[rows], scenes[rows], matching=matching)
-    plain = {"highpass_px": (), "contrast_px": (), "surface_shares": ()}
-    stage = {"width": 48, "render_width": 0, "near_start_views": 2, "below_score": 0.8}
+    model, queries, truth = _any_start_queries()
+    plain, stage = ANY_START_PLAIN, NEAR_STAGE
 
     def calibrated(**options: object) -> tuple[Calibration, float, torch.Tensor, torch.Tensor]:
         chosen, refinement, starts = calibrate_any_start(
-            model, queries, truth[rows], 4.0, SMALL_SEARCH, AnyStartOptions(**plain, **options)
+            model, queries, truth, 4.0, SMALL_SEARCH, AnyStartOptions(**plain, **options)
         )
-        value = objective_value(refinement.poses, starts, truth[rows], "log_ratio")
+        value = objective_value(refinement.poses, starts, truth, "log_ratio")
         return chosen, value, refinement.poses, starts
 
     without, value_without, _, _ = calibrated()
@@ -286,19 +298,13 @@ def test_the_stage_goes_to_the_fewest_queries_val_allows(
     from pae.render_compare import AnyStartOptions, api, calibrate_any_start
 
     monkeypatch.setattr(api, "STAGE_SHARE_TOLERANCE", tolerance)
-    model, images, intrinsics, truth = _frames(48, slice(0, 48))
-    scenes = torch.zeros(48, dtype=torch.long)
-    train = TrainImages(images[::2], intrinsics[::2], truth[::2], scenes[::2])
-    rows = torch.arange(1, 48, 3)
-    matching = MatchQueries(images[rows], intrinsics[rows], train)
-    queries = Queries(images[rows], intrinsics[rows], scenes[rows], matching=matching)
-    plain = {"highpass_px": (), "contrast_px": (), "surface_shares": ()}
-    stage = {"width": 48, "render_width": 0, "near_start_views": 2, "below_score": 0.8}
+    model, queries, truth = _any_start_queries()
+    plain, stage = ANY_START_PLAIN, NEAR_STAGE
     _, alone, _ = calibrate_any_start(
-        model, queries, truth[rows], 4.0, SMALL_SEARCH, AnyStartOptions(**plain)
+        model, queries, truth, 4.0, SMALL_SEARCH, AnyStartOptions(**plain)
     )
     options = AnyStartOptions(**plain, matches=[stage], stage_shares=(0.75, 0.25, 0.5))
-    chosen, _, starts = calibrate_any_start(model, queries, truth[rows], 4.0, SMALL_SEARCH, options)
+    chosen, _, starts = calibrate_any_start(model, queries, truth, 4.0, SMALL_SEARCH, options)
     scores = alone.result.score.float()
     if share is None:
         assert chosen.match == MatchSettings(**stage)
@@ -315,8 +321,8 @@ def test_the_stage_goes_to_the_fewest_queries_val_allows(
     monkeypatch.setattr(RenderCompareRefiner, "__call__", counted)
     refine(model, queries, starts, chosen, settings=SMALL_SEARCH)
     needy = int((scores < below).sum())
-    assert 0 < needy < len(rows)
-    assert calls == [len(rows), 2 * needy]
+    assert 0 < needy < len(truth)
+    assert calls == [len(truth), 2 * needy]
 
 
 def test_a_share_outside_zero_and_one_is_named() -> None:
