@@ -514,8 +514,9 @@ def test_pae_eval_tries_the_configured_stages_for_another_apr_s_starts(
     finished_run: Path, tiny_root: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """pae-eval render_compare.init=FILE with render_compare.matches_from_val: the calibration
-    for any start tries those stages on the val queries at their match width, and the stage
-    it keeps is recorded (val/<method>/match_*) and applied to the test queries."""
+    for any start tries those stages on the val queries at their match width (and the
+    shares of the queries of render_compare.match_shares_from_val), and the stage it keeps
+    is recorded (val/<method>/match_*) and applied to the test queries."""
     from pae.apps.checkpoint_evaluation import evaluate_checkpoints
     from pae.callbacks import render_compare_init
 
@@ -527,7 +528,7 @@ def test_pae_eval_tries_the_configured_stages_for_another_apr_s_starts(
     calibrate, refine = render_compare_init.calibrate_any_start, render_compare_init.refine
 
     def forced(model, queries, *args):
-        tried.append((queries.matching, args[-1].stages()))
+        tried.append((queries.matching, args[-1].stages(), list(args[-1].stage_shares)))
         chosen, refinement, ladder = calibrate(model, queries, *args)
         return dataclasses.replace(chosen, match=args[-1].stages()[-1]), refinement, ladder
 
@@ -544,15 +545,16 @@ def test_pae_eval_tries_the_configured_stages_for_another_apr_s_starts(
         f"scene_model_ckpt={finished_run / 'scene_model' / 'checkpoints' / 'last.ckpt'}",
         f"render_compare.init={starts}",
         f"render_compare.matches_from_val=[{{}},{stage}]".replace("'", "").replace(" ", ""),
+        "render_compare.match_shares_from_val=[0.5]",
         "render_compare.oracle=false",
         "logger={}",
     ]
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
         cfg = compose("eval", overrides=overrides)
     evaluated = evaluate_checkpoints(cfg, tmp_path / "eval")
-    matching, stages = tried[-1]
+    matching, stages, shares = tried[-1]
     assert matching is not None and matching.images.shape[-1] == 32
-    assert [s.near_start_views for s in stages] == [0, 2]
+    assert [s.near_start_views for s in stages] == [0, 2] and shares == [0.5]
     assert evaluated["val/render_compare_from_apr/match_width"] == 32
     assert evaluated["val/render_compare_from_apr/match_near_start_views"] == 2
     assert refined[-1] is not None and refined[-1].images.shape[-1] == 32

@@ -25,12 +25,7 @@ from pae.lit.eval_outputs import (
     scene_models,
 )
 from pae.render_compare.api import Queries, Refinement, Validation, calibrate, refine
-from pae.render_compare.calibration import (
-    AnyStartOptions,
-    Calibration,
-    CalibrationOptions,
-    teacher_features,
-)
+from pae.render_compare.calibration import Calibration, CalibrationOptions, teacher_features
 from pae.render_compare.queries import refinement_figures, write_queries
 from pae.render_compare.refiner import ACCEPT_ALL, RenderCompareRefiner, refiner_defaults
 from pae.render_compare.sequences import SequenceOptions
@@ -38,20 +33,15 @@ from pae.scene_model.base import SceneModel
 
 
 class RenderCompareCallback(L.Callback):
-    """Refines every evaluated query of a module with a scene model (``SceneModelEvaluation``)
-    from the teacher's estimate after every ``every_n_val_epochs``-th validation (``calibrate``,
-    :class:`CalibrationOptions`) and every test (``refine`` under the last calibration); logs
-    ``{split}/{method}/...`` (:func:`scene_models`; :func:`refinement_figures`, the
-    refinements kept in ``refinements``), ``bench/<method>/ms_per_query`` at test and
-    ``queries_{split}_{method}.csv``. ``refiner``: the partial Hydra makes of
-    ``render_compare.refiner`` or a mapping of settings replacing the defaults;
-    ``feature_layers``: the teacher backbone's modules behind ``refiner.score=features``;
-    ``init``, ``init_axes``, ``init_format``: another APR's starts file, its axes and format
-    (``RenderCompareFromFile``); ``sequence_*``: :class:`SequenceOptions`;
-    ``matches_from_val``, ``match_descriptor``: :class:`pae.lit.eval_outputs.MatchInputs`;
-    ``match_shares_from_val``: for another APR's starts (``init``), the shares of the val
-    queries the stage kept may go to instead of every query
-    (:class:`pae.render_compare.AnyStartOptions`' ``stage_shares``)."""
+    """Refines every query a ``SceneModelEvaluation`` evaluates from the teacher's estimate
+    after every ``every_n_val_epochs``-th validation (``calibrate`` under
+    :class:`CalibrationOptions`: the ``*_from_val``, ``accept_*``, ``gate_objective``,
+    ``scene_check_below`` keys) and every test (``refine``); logs ``{split}/{method}/...``
+    (:func:`refinement_figures`), ``bench/<method>/ms_per_query`` and the queries' CSVs.
+    ``refiner``: the partial Hydra makes of ``render_compare.refiner`` or a mapping replacing
+    the defaults; ``feature_layers``: the backbone's modules behind ``refiner.score=features``;
+    ``init*``: another APR's starts (``RenderCompareFromFile``); ``sequence_*``:
+    :class:`SequenceOptions`; ``match_*``: :class:`pae.lit.eval_outputs.MatchInputs`."""
 
     def __init__(
         self,
@@ -82,9 +72,9 @@ class RenderCompareCallback(L.Callback):
         self.feature_layers, self.init = feature_layers, init
         self.init_axes, self.init_format = init_axes, init_format
         on_val = (accept_margin, accept_score, step_from_val, scene_check_below, filters_from_val)
-        self.options = CalibrationOptions(*on_val, gate_objective, matches_from_val)
+        matches = (matches_from_val, match_shares_from_val)
+        self.options = CalibrationOptions(*on_val, gate_objective, *matches)
         self.match_inputs = MatchInputs(matches_from_val, match_descriptor)
-        self.match_shares = AnyStartOptions(stage_shares=match_shares_from_val or ()).stage_shares
         self.sequence = SequenceOptions(sequence_passes, sequence_window, sequence_scene_vote)
         self.calibrations: dict[str, Calibration] = {}  # method -> the last chosen on val
         self.refined: dict[str, dict[str, Tensor]] = {}  # split -> method -> poses kept

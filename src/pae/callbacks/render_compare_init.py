@@ -85,7 +85,7 @@ class RenderCompareFromFile(L.Callback):
         stages = AnyStartOptions(
             matches=options.matches_from_val or (),
             filters=options.filters_from_val or (),
-            stage_shares=self.refinement.match_shares,
+            stage_shares=options.match_shares_from_val or (),
         )
         self.calibration, _, _ = calibrate_any_start(
             pl_module.scene_model, queries, outputs[EVAL.pose].float(),

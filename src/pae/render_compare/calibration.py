@@ -134,6 +134,15 @@ def _check_matches(key: str, matches: Sequence[Mapping[str, Any]]) -> None:
         MatchSettings(**chosen)
 
 
+def _check_shares(shares: Sequence[float]) -> None:
+    """Each of ``shares`` in (0, 1); a ValueError naming the first outside."""
+    outside = [share for share in shares if not 0 < share < 1]
+    if outside:
+        raise ValueError(
+            f"render_compare.match_shares_from_val: {outside[0]} is not a share in (0, 1)"
+        )
+
+
 def _check_filters(key: str, filters: Sequence[Mapping[str, float]]) -> None:
     """Each of ``filters`` a mapping of ``FILTER_KEYS``; a ValueError naming the first
     unknown setting under ``key``."""
@@ -171,6 +180,9 @@ class CalibrationOptions:
       a mapping of :class:`pae.render_compare.correspondences.MatchSettings` (``{}``: none);
       the one whose gated refinement minimises the ``gate_objective`` is kept (a single one:
       used without validation too). None: none.
+    - ``match_shares_from_val``: for another APR's starts only
+      (:class:`AnyStartOptions`' ``stage_shares``): the shares of the val queries the
+      stage kept may go to. None: as listed.
     - ``gate_objective``: the calibration's one objective over the val queries, which the
       filter, the correspondence stage and the automatic margin and floor
       (:func:`choose_gate`) all minimise: ``mean`` their mean position error, ``log_ratio``
@@ -185,6 +197,7 @@ class CalibrationOptions:
     filters_from_val: Sequence[Mapping[str, float]] | None = None
     gate_objective: str = "mean"
     matches_from_val: Sequence[Mapping[str, Any]] | None = None
+    match_shares_from_val: Sequence[float] | None = None
 
     def __post_init__(self) -> None:
         if self.gate_objective not in OBJECTIVES:
@@ -204,6 +217,7 @@ class CalibrationOptions:
             )
         _check_filters("render_compare.filters_from_val", self.filters_from_val or ())
         _check_matches("render_compare.matches_from_val", self.matches_from_val or ())
+        _check_shares(self.match_shares_from_val or ())
 
     def fixed(self, key: str) -> float | None:
         """The option ``key`` as a number, None where it is ``auto``."""
@@ -253,11 +267,7 @@ class AnyStartOptions:
     def __post_init__(self) -> None:
         _check_matches("render_compare.matches_from_val", self.matches)
         _check_filters("render_compare.filters_from_val", self.filters)
-        outside = [share for share in self.stage_shares if not 0 < share < 1]
-        if outside:
-            raise ValueError(
-                f"render_compare.match_shares_from_val: {outside[0]} is not a share in (0, 1)"
-            )
+        _check_shares(self.stage_shares)
 
     def stages(self) -> list[MatchSettings]:
         """The correspondence stages to try: none first, then each of ``matches`` once."""
