@@ -118,6 +118,28 @@ def test_compiled_volume_rendering_equals_the_grid_sample_path(contract: bool) -
     torch.testing.assert_close(*surfaces, atol=1e-4, rtol=1e-5)
 
 
+def test_a_scenes_rays_render_alike_in_one_run_and_interleaved_with_anothers() -> None:
+    """A scene's rays on their own (in chunks smaller than the batch) render bit for bit as
+    the same rays interleaved with another scene's; an unknown scene id is an error."""
+    from pae.bench.render_compare import room_grid
+
+    model = room_grid(2, num_voxels=4000)
+    model.chunk_rays = 7
+    torch.manual_seed(0)
+    origins = torch.randn(40, 3) * 0.5 + torch.tensor([0.0, 0.0, 1.4])
+    directions = torch.randn(40, 3)
+    alone = model.render_rays(origins, directions, torch.zeros(40, dtype=torch.long))
+    interleaved = torch.arange(80) % 2
+    both = model.render_rays(
+        origins.repeat_interleave(2, 0), directions.repeat_interleave(2, 0), interleaved
+    )
+    for one, mixed in zip(alone, both, strict=True):
+        assert torch.equal(one, mixed[interleaved == 0])
+    assert not torch.equal(alone[0], both[0][interleaved == 1])
+    with pytest.raises(ValueError, match="scene id 2 of 2 scenes"):
+        model.render_rays(origins, directions, torch.full((40,), 2))
+
+
 @pytest.mark.parametrize("engine", ["numba", "torch"])
 def test_the_surface_share_puts_the_depth_on_a_wall_behind_faint_fog(engine: str) -> None:
     """A wall at x = 1.5 m behind faint fog: the light's mean depth is pulled 15 cm or more

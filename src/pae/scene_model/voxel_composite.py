@@ -28,7 +28,7 @@ def channels_last(grid: Tensor) -> np.ndarray:
 class CompiledComposite(torch.autograd.Function):
     """(grid [1, 4, nz, ny, nx], the same grid in the kernels' layout (``channels_last``,
     made once per change of the grid by the caller), background [3] after its sigmoid, rays
-    (``RaySegments`` of tensors), offsets [R, S], geometry (``GridGeometry``), density_shift)
+    (``RaySegments`` of tensors), offsets [R, S] or [1, S], geometry (``GridGeometry``), density_shift)
     -> rgb [R, 3], surface [R], opacity [R]; differentiable in rgb w.r.t. the grid and the
     background."""
 
@@ -48,7 +48,7 @@ class CompiledComposite(torch.autograd.Function):
         ray_array = RaySegments(*(part.detach().double().contiguous().numpy() for part in rays))
         offset_array = offsets.detach().float().contiguous().numpy()
         march = March(cells, ray_array, offset_array, geometry, density_shift, bg, surface_share)
-        r = offset_array.shape[0]
+        r = len(ray_array.near)
         rgb = np.empty((r, 3), np.float32)
         surface, opacity = np.empty(r, np.float32), np.empty(r, np.float32)
         used = np.empty(r, np.int64)

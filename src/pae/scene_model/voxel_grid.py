@@ -139,7 +139,7 @@ class VoxelGrid(nn.Module):
 
     def sample_depths(self, rays: RaySegments, offsets: Tensor) -> tuple[Tensor, Tensor]:
         """Depths [R, S] of the samples along ``rays`` (see ``ray_bounds``) at ``offsets``
-        [R, S] in [0, 1) within their strata, and their lengths [R, S] (m); rays that miss
+        [R, S] (or [1, S] for every ray) in [0, 1) within their strata, and their lengths [R, S] (m); rays that miss
         the bounds get zero-length samples."""
         near, leave, far = rays.near, rays.leave, rays.far
         samples = offsets.shape[1]
@@ -181,11 +181,10 @@ class VoxelGrid(nn.Module):
         tensors), which stops each ray once its light is spent; ``torch`` ``grid_sample`` over
         every sample (any device); ``auto`` the first where it can run."""
         rays = self.ray_bounds(origins, directions, near_m)
-        shape = (len(origins), samples)
         if jitter:
-            offsets = torch.rand(shape, device=origins.device)
+            offsets = torch.rand((len(origins), samples), device=origins.device)
         else:
-            offsets = origins.new_full(shape, 0.5)
+            offsets = origins.new_full((1, samples), 0.5)  # every ray's midpoints
         background = torch.sigmoid(self.background)
         if self.compiled(engine):
             geometry = GridGeometry(
@@ -369,31 +368,37 @@ class VoxelGridSceneModel(SceneModel):
         surface_share: float = 0.0,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Rays [R, 3] of scenes [R] -> rgb [R, 3], depth [R] (``surface_share``:
-        :meth:`VoxelGrid.composite`), opacity [R]; one grid call per scene present (per chunk
-        of ``chunk_rays``)."""
-        rgb = origins.new_zeros(len(origins), 3)
-        depth = origins.new_zeros(len(origins))
-        opacity = origins.new_zeros(len(origins))
-        for scene in range(len(self.grids)):
-            rows = (scenes == scene).nonzero().squeeze(1)
-            if not len(rows):
-                continue
-            grid = self.grids[scene]
-            parts = [
-                grid.composite(
-                    origins[chunk],
-                    directions[chunk],
-                    self.samples_per_ray,
-                    self.near_m,
-                    jitter,
-                    surface_share=surface_share,
+        :meth:`VoxelGrid.composite`), opacity [R]; one grid call per chunk of ``chunk_rays``
+        of a scene's rays (rays not ordered by scene are ordered once, and back after)."""
+        order = None
+        if bool((scenes[1:] < scenes[:-1]).any()):
+            order = torch.argsort(scenes, stable=True)
+            origins, directions, scenes = origins[order], directions[order], scenes[order]
+        counts = torch.bincount(scenes, minlength=len(self.grids)).tolist()
+        if len(counts) > len(self.grids):
+            raise ValueError(f"scene id {len(counts) - 1} of {len(self.grids)} scenes")
+        parts = [(origins.new_zeros(0, 3), origins.new_zeros(0), origins.new_zeros(0))]
+        first = 0
+        for grid, count in zip(self.grids, counts, strict=True):
+            for start in range(first, first + count, self.chunk_rays):
+                stop = min(start + self.chunk_rays, first + count)
+                parts.append(
+                    grid.composite(
+                        origins[start:stop],
+                        directions[start:stop],
+                        self.samples_per_ray,
+                        self.near_m,
+                        jitter,
+                        surface_share=surface_share,
+                    )
                 )
-                for chunk in rows.split(self.chunk_rays)
-            ]
-            rgb = rgb.index_put((rows,), torch.cat([p[0] for p in parts]))
-            depth = depth.index_put((rows,), torch.cat([p[1] for p in parts]))
-            opacity = opacity.index_put((rows,), torch.cat([p[2] for p in parts]))
-        return rgb, depth, opacity
+            first += count
+        rgb, depth, opacity = (torch.cat([part[i] for part in parts]) for i in range(3))
+        if order is None:
+            return rgb, depth, opacity
+        back = torch.empty_like(order)
+        back[order] = torch.arange(len(order))
+        return rgb[back], depth[back], opacity[back]
 
     def depth_error(
         self, origins: Tensor, directions: Tensor, scenes: Tensor, target: Tensor

@@ -53,7 +53,7 @@ class GridGeometry(NamedTuple):
 class March(NamedTuple):
     """What the forward and backward kernels march: the grid [nz, ny, nx, 4] in their layout
     (``channels_last``), the rays (``RaySegments`` of float64 arrays), their sample offsets
-    [R, S], the grid's ``GridGeometry``, the shift added to the raw density, the
+    [R, S] (or [1, S], the same for every ray), the grid's ``GridGeometry``, the shift added to the raw density, the
     background colour [3] (after its sigmoid) and the forward pass's ``surface_share``
     (:func:`render_forward`)."""
 
@@ -119,20 +119,27 @@ def _depth(u: float, near: float, leave: float, far: float, contract: bool) -> f
     return 1.0 / ((1.0 - s) / leave + s / far)
 
 
+@jit(nogil=True, inline="always")
+def _offset_row(offsets: np.ndarray, r: int) -> int:
+    """The row of ``offsets`` ([R, S], or [1, S] shared by every ray) that ray ``r`` reads."""
+    return min(r, offsets.shape[0] - 1)
+
+
 @jit(nogil=True, inline="always", fastmath=True)
 def _point(rays: tuple, r: int, s: int, n: int, offsets: np.ndarray, geometry: tuple) -> tuple:
     """Grid coordinates, length (voxels) and depth of sample ``s`` of ray ``r`` (offsets
-    [R, S] in [0, 1) within the samples' strata); ``rays`` and ``geometry``: the fields of
-    ``RaySegments`` and ``GridGeometry``, unpacked once by the kernel."""
+    [R, S] or [1, S] in [0, 1) within the samples' strata); ``rays`` and ``geometry``: the
+    fields of ``RaySegments`` and ``GridGeometry``, unpacked once by the kernel."""
     origins, directions, nears, leaves, fars = rays
     lo, hi, cells, inverse_voxel_m, contract = geometry
     near, leave, far = nears[r], leaves[r], fars[r]
-    t = _depth((s + offsets[r, s]) / n, near, leave, far, contract)
+    row = _offset_row(offsets, r)
+    t = _depth((s + offsets[row, s]) / n, near, leave, far, contract)
     norm = math.sqrt(directions[r, 0] ** 2 + directions[r, 1] ** 2 + directions[r, 2] ** 2)
     if contract:
-        before = near if s == 0 else _depth((s - 1 + offsets[r, s - 1]) / n, near, leave, far, True)
+        before = near if s == 0 else _depth((s - 1 + offsets[row, s - 1]) / n, near, leave, far, True)
         after = (
-            far if s == n - 1 else _depth((s + 1 + offsets[r, s + 1]) / n, near, leave, far, True)
+            far if s == n - 1 else _depth((s + 1 + offsets[row, s + 1]) / n, near, leave, far, True)
         )
         low = near if s == 0 else (before + t) / 2
         high = far if s == n - 1 else (t + after) / 2
@@ -287,7 +294,7 @@ def render_forward(
     offsets, background, share = march.offsets, march.background, march.surface_share
     cells, (sx, sy, sz), segments, where, top, shift = _marching(march)
     nears, leaves, contract = segments[2], segments[3], where[4]
-    n_rays, n = offsets.shape
+    n_rays, n = march.rays.near.shape[0], offsets.shape[1]
     for block in numba.prange(-(-n_rays // BLOCK_RAYS)):
         rows = np.minimum(np.arange(BLOCK_RAYS) + block * BLOCK_RAYS, n_rays - 1)
         start = np.empty((3, BLOCK_RAYS), np.float32)
@@ -324,7 +331,7 @@ def render_forward(
                     length[j], depth[j] = sample_length, t
             else:
                 for j in range(BLOCK_RAYS):
-                    u = np.float32(s) + offsets[rows[j], s]
+                    u = np.float32(s) + offsets[_offset_row(offsets, rows[j]), s]
                     for axis in range(3):
                         point[axis, j] = start[axis, j] + u * step[axis, j]
                     depth[j] = depth0[j] + u * depth_step[j]
@@ -379,7 +386,7 @@ def render_backward(
     cells, (sx, sy, sz), segments, where, top, shift = _marching(march)
     contract = where[4]
     chunks = grad_grid.shape[0]
-    n_rays, n = offsets.shape
+    n_rays, n = march.rays.near.shape[0], offsets.shape[1]
     for t in numba.prange(chunks):
         grad = grad_grid[t].reshape(-1)
         first, last = t * n_rays // chunks, (t + 1) * n_rays // chunks
@@ -422,7 +429,7 @@ def render_backward(
                         length[j] = sample_length
                 else:
                     for j in range(BLOCK_RAYS):
-                        u = np.float32(s) + offsets[rows[j], s]
+                        u = np.float32(s) + offsets[_offset_row(offsets, rows[j]), s]
                         for axis in range(3):
                             point[axis, j] = start[axis, j] + u * step[axis, j]
                 _read_block(cells, samples, top, sx, sy, sz, shift)
