@@ -28,9 +28,9 @@ def channels_last(grid: Tensor) -> np.ndarray:
 class CompiledComposite(torch.autograd.Function):
     """(grid [1, 4, nz, ny, nx], the same grid in the kernels' layout (``channels_last``,
     made once per change of the grid by the caller), background [3] after its sigmoid, rays
-    (``RaySegments`` of tensors), offsets [R, S] or [1, S], geometry (``GridGeometry``), density_shift)
-    -> rgb [R, 3], surface [R], opacity [R]; differentiable in rgb w.r.t. the grid and the
-    background."""
+    (``RaySegments`` of tensors), offsets [R, S] (or [1, S] for every ray), geometry
+    (``GridGeometry``), density_shift) -> rgb [R, 3], surface [R], opacity [R];
+    differentiable in rgb w.r.t. the grid and the background."""
 
     @staticmethod
     def forward(  # type: ignore[override]

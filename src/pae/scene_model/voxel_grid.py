@@ -139,8 +139,8 @@ class VoxelGrid(nn.Module):
 
     def sample_depths(self, rays: RaySegments, offsets: Tensor) -> tuple[Tensor, Tensor]:
         """Depths [R, S] of the samples along ``rays`` (see ``ray_bounds``) at ``offsets``
-        [R, S] (or [1, S] for every ray) in [0, 1) within their strata, and their lengths [R, S] (m); rays that miss
-        the bounds get zero-length samples."""
+        [R, S] (or [1, S] for every ray) in [0, 1) within their strata, and their lengths
+        [R, S] (m); rays that miss the bounds get zero-length samples."""
         near, leave, far = rays.near, rays.leave, rays.far
         samples = offsets.shape[1]
         norm = rays.directions.norm(dim=-1)

@@ -53,9 +53,9 @@ class GridGeometry(NamedTuple):
 class March(NamedTuple):
     """What the forward and backward kernels march: the grid [nz, ny, nx, 4] in their layout
     (``channels_last``), the rays (``RaySegments`` of float64 arrays), their sample offsets
-    [R, S] (or [1, S], the same for every ray), the grid's ``GridGeometry``, the shift added to the raw density, the
-    background colour [3] (after its sigmoid) and the forward pass's ``surface_share``
-    (:func:`render_forward`)."""
+    [R, S] (or [1, S], the same for every ray), the grid's ``GridGeometry``, the shift added
+    to the raw density, the background colour [3] (after its sigmoid) and the forward pass's
+    ``surface_share`` (:func:`render_forward`)."""
 
     grid: np.ndarray
     rays: RaySegments
@@ -137,7 +137,9 @@ def _point(rays: tuple, r: int, s: int, n: int, offsets: np.ndarray, geometry: t
     t = _depth((s + offsets[row, s]) / n, near, leave, far, contract)
     norm = math.sqrt(directions[r, 0] ** 2 + directions[r, 1] ** 2 + directions[r, 2] ** 2)
     if contract:
-        before = near if s == 0 else _depth((s - 1 + offsets[row, s - 1]) / n, near, leave, far, True)
+        before = (
+            near if s == 0 else _depth((s - 1 + offsets[row, s - 1]) / n, near, leave, far, True)
+        )
         after = (
             far if s == n - 1 else _depth((s + 1 + offsets[row, s + 1]) / n, near, leave, far, True)
         )
