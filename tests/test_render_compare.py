@@ -119,9 +119,10 @@ def test_compiled_volume_rendering_equals_the_grid_sample_path(contract: bool) -
 
 
 def test_a_scenes_rays_render_alike_in_one_run_and_interleaved_with_anothers() -> None:
-    """A scene's rays on their own (in chunks smaller than the batch) render bit for bit as
-    the same rays interleaved with another scene's; an unknown scene id is an error."""
-    from pae.bench.render_compare import room_grid
+    """A scene's rays (and cameras) on their own, in chunks smaller than the batch, render
+    bit for bit as the same rays (cameras) interleaved with another scene's; an unknown
+    scene id is an error."""
+    from pae.bench.render_compare import bench_queries, room_grid
 
     model = room_grid(2, num_voxels=4000)
     model.chunk_rays = 7
@@ -138,6 +139,14 @@ def test_a_scenes_rays_render_alike_in_one_run_and_interleaved_with_anothers() -
     assert not torch.equal(alone[0], both[0][interleaved == 1])
     with pytest.raises(ValueError, match="scene id 2 of 2 scenes"):
         model.render_rays(origins, directions, torch.full((40,), 2))
+    _, intrinsics, poses, _ = bench_queries(6, 2, 8, seed=0)
+    cameras = torch.tensor([1, 0, 1, 1, 0, 0])
+    mixed = model.render(poses, cameras, intrinsics, 8, 8)
+    for scene in (0, 1):
+        own = cameras == scene
+        alone = model.render(poses[own], cameras[own], intrinsics[own], 8, 8)
+        for part, mixed_part in zip(alone, mixed, strict=True):
+            assert torch.equal(part, mixed_part[own])
 
 
 @pytest.mark.parametrize("engine", ["numba", "torch"])

@@ -450,6 +450,16 @@ class VoxelGridSceneModel(SceneModel):
         height: int,
         surface_share: float = 0.0,
     ) -> SceneRendering:
+        """Images of poses [B, 7] in scenes [B] (see :meth:`SceneModel.render`); cameras not
+        ordered by scene are rendered in scene order, so that each scene's rays are one run."""
+        if bool((scenes[1:] < scenes[:-1]).any()):
+            order = torch.argsort(scenes, stable=True)
+            ordered = self.render(
+                poses[order], scenes[order], intrinsics[order], width, height, surface_share
+            )
+            back = torch.empty_like(order)
+            back[order] = torch.arange(len(order))
+            return SceneRendering(*(part[back] for part in ordered))
         origins, directions = camera_rays(poses, intrinsics, width, height)
         pixels = origins.shape[1]
         rgb, depth, opacity = self.render_rays(
