@@ -181,6 +181,18 @@ class VoxelGrid(nn.Module):
         tensors), which stops each ray once its light is spent; ``torch`` ``grid_sample`` over
         every sample (any device); ``auto`` the first where it can run."""
         rays = self.ray_bounds(origins, directions, near_m)
+        return self.composite_segments(rays, samples, jitter, engine, surface_share)
+
+    def composite_segments(
+        self,
+        rays: RaySegments,
+        samples: int,
+        jitter: bool,
+        engine: Engine = "auto",
+        surface_share: float = 0.0,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """:meth:`composite` of rays whose segments (:meth:`ray_bounds`) are known."""
+        origins = rays.origins
         if jitter:
             offsets = torch.rand((len(origins), samples), device=origins.device)
         else:
@@ -380,16 +392,13 @@ class VoxelGridSceneModel(SceneModel):
         parts = [(origins.new_zeros(0, 3), origins.new_zeros(0), origins.new_zeros(0))]
         first = 0
         for grid, count in zip(self.grids, counts, strict=True):
-            for start in range(first, first + count, self.chunk_rays):
-                stop = min(start + self.chunk_rays, first + count)
+            run = slice(first, first + count)
+            segments = grid.ray_bounds(origins[run], directions[run], self.near_m)
+            for start in range(0, count, self.chunk_rays):
+                chunk = RaySegments(*(part[start : start + self.chunk_rays] for part in segments))
                 parts.append(
-                    grid.composite(
-                        origins[start:stop],
-                        directions[start:stop],
-                        self.samples_per_ray,
-                        self.near_m,
-                        jitter,
-                        surface_share=surface_share,
+                    grid.composite_segments(
+                        chunk, self.samples_per_ray, jitter, surface_share=surface_share
                     )
                 )
             first += count
