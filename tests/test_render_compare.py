@@ -144,8 +144,8 @@ def test_a_scenes_rays_render_alike_in_one_run_and_interleaved_with_anothers() -
     mixed = model.render(poses, cameras, intrinsics, 8, 8)
     for scene in (0, 1):
         own = cameras == scene
-        alone = model.render(poses[own], cameras[own], intrinsics[own], 8, 8)
-        for part, mixed_part in zip(alone, mixed, strict=True):
+        rendered = model.render(poses[own], cameras[own], intrinsics[own], 8, 8)
+        for part, mixed_part in zip(rendered, mixed, strict=True):
             assert torch.equal(part, mixed_part[own])
 
 
