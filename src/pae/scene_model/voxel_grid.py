@@ -290,6 +290,28 @@ class VoxelGrid(nn.Module):
         )
 
 
+def _scene_order(scenes: Tensor, n_scenes: int) -> tuple[Tensor | None, list[int]]:
+    """How the rays of scenes [R] are put in scene order: the stable sorting order (None
+    where they are in order already) and each scene's count of rays [n_scenes]."""
+    order = None
+    if bool((scenes[1:] < scenes[:-1]).any()):
+        order = torch.argsort(scenes, stable=True)
+        scenes = scenes[order]
+    counts = torch.bincount(scenes, minlength=n_scenes).tolist()
+    if len(counts) > n_scenes:
+        raise ValueError(f"scene id {len(counts) - 1} of {n_scenes} scenes")
+    return order, counts
+
+
+def _in_order_of(order: Tensor | None, values: Tensor) -> Tensor:
+    """``values`` [R, ...] in scene order (:func:`_scene_order`) back in the rays' order."""
+    if order is None:
+        return values
+    back = torch.empty_like(order)
+    back[order] = torch.arange(len(order))
+    return values[back]
+
+
 class VoxelGridSceneModel(SceneModel):
     """One :class:`VoxelGrid` per scene plus a per-image-sequence appearance: per-channel
     gain (``exp``) and bias and, with ``appearance_field`` = G >= 2, a gain that varies
@@ -382,13 +404,9 @@ class VoxelGridSceneModel(SceneModel):
         """Rays [R, 3] of scenes [R] -> rgb [R, 3], depth [R] (``surface_share``:
         :meth:`VoxelGrid.composite`), opacity [R]; one grid call per chunk of ``chunk_rays``
         of a scene's rays (rays not ordered by scene are ordered once, and back after)."""
-        order = None
-        if bool((scenes[1:] < scenes[:-1]).any()):
-            order = torch.argsort(scenes, stable=True)
-            origins, directions, scenes = origins[order], directions[order], scenes[order]
-        counts = torch.bincount(scenes, minlength=len(self.grids)).tolist()
-        if len(counts) > len(self.grids):
-            raise ValueError(f"scene id {len(counts) - 1} of {len(self.grids)} scenes")
+        order, counts = _scene_order(scenes, len(self.grids))
+        if order is not None:
+            origins, directions = origins[order], directions[order]
         parts = [(origins.new_zeros(0, 3), origins.new_zeros(0), origins.new_zeros(0))]
         first = 0
         for grid, count in zip(self.grids, counts, strict=True):
@@ -403,27 +421,26 @@ class VoxelGridSceneModel(SceneModel):
                 )
             first += count
         rgb, depth, opacity = (torch.cat([part[i] for part in parts]) for i in range(3))
-        if order is None:
-            return rgb, depth, opacity
-        back = torch.empty_like(order)
-        back[order] = torch.arange(len(order))
-        return rgb[back], depth[back], opacity[back]
+        return _in_order_of(order, rgb), _in_order_of(order, depth), _in_order_of(order, opacity)
 
     def depth_error(
         self, origins: Tensor, directions: Tensor, scenes: Tensor, target: Tensor
     ) -> Tensor:
         """Rays [R, 3] of scenes [R] -> how far from ``target`` [R] (depth along the
         directions) their light ends [R] (:meth:`VoxelGrid.depth_error`)."""
-        error = origins.new_zeros(len(origins))
-        for scene in range(len(self.grids)):
-            rows = (scenes == scene).nonzero().squeeze(1)
-            if len(rows):
-                grid = self.grids[scene]
-                part = grid.depth_error(
-                    origins[rows], directions[rows], target[rows], self.samples_per_ray, self.near_m
+        order, counts = _scene_order(scenes, len(self.grids))
+        if order is not None:
+            origins, directions, target = origins[order], directions[order], target[order]
+        parts, first, samples = [origins.new_zeros(0)], 0, self.samples_per_ray
+        for grid, count in zip(self.grids, counts, strict=True):
+            run = slice(first, first + count)
+            if count:
+                error = grid.depth_error(
+                    origins[run], directions[run], target[run], samples, self.near_m
                 )
-                error = error.index_put((rows,), part)
-        return error
+                parts.append(error)
+            first += count
+        return _in_order_of(order, torch.cat(parts))
 
     def with_appearance(
         self, rgb: Tensor, appearance: Tensor, pixels: Tensor | None = None
@@ -466,9 +483,7 @@ class VoxelGridSceneModel(SceneModel):
             ordered = self.render(
                 poses[order], scenes[order], intrinsics[order], width, height, surface_share
             )
-            back = torch.empty_like(order)
-            back[order] = torch.arange(len(order))
-            return SceneRendering(*(part[back] for part in ordered))
+            return SceneRendering(*(_in_order_of(order, part) for part in ordered))
         origins, directions = camera_rays(poses, intrinsics, width, height)
         pixels = origins.shape[1]
         rgb, depth, opacity = self.render_rays(
