@@ -120,8 +120,8 @@ def test_compiled_volume_rendering_equals_the_grid_sample_path(contract: bool) -
 
 def test_a_scenes_rays_render_alike_in_one_run_and_interleaved_with_anothers() -> None:
     """A scene's rays (and cameras) on their own, in chunks smaller than the batch, render
-    bit for bit as the same rays (cameras) interleaved with another scene's; an unknown
-    scene id is an error."""
+    bit for bit as the same rays (cameras) interleaved with another scene's, and their depth
+    errors match under the same draws; an unknown scene id is an error."""
     from pae.bench.render_compare import bench_queries, room_grid
 
     model = room_grid(2, num_voxels=4000)
@@ -131,9 +131,8 @@ def test_a_scenes_rays_render_alike_in_one_run_and_interleaved_with_anothers() -
     directions = torch.randn(40, 3)
     alone = model.render_rays(origins, directions, torch.zeros(40, dtype=torch.long))
     interleaved = torch.arange(80) % 2
-    both = model.render_rays(
-        origins.repeat_interleave(2, 0), directions.repeat_interleave(2, 0), interleaved
-    )
+    rays = origins.repeat_interleave(2, 0), directions.repeat_interleave(2, 0)
+    both = model.render_rays(*rays, interleaved)
     for one, mixed in zip(alone, both, strict=True):
         assert torch.equal(one, mixed[interleaved == 0])
     assert not torch.equal(alone[0], both[0][interleaved == 1])
@@ -147,6 +146,16 @@ def test_a_scenes_rays_render_alike_in_one_run_and_interleaved_with_anothers() -
         rendered = model.render(poses[own], cameras[own], intrinsics[own], 8, 8)
         for part, mixed_part in zip(rendered, mixed, strict=True):
             assert torch.equal(part, mixed_part[own])
+    target = torch.rand(80) + 1.0
+    torch.manual_seed(1)  # the jittered draws: scene 0's rays first, then scene 1's
+    mixed_error = model.depth_error(*rays, interleaved, target)
+    torch.manual_seed(1)
+    for scene, grid in enumerate(model.grids):
+        own = interleaved == scene
+        error = grid.depth_error(
+            rays[0][own], rays[1][own], target[own], model.samples_per_ray, model.near_m
+        )
+        assert torch.equal(error, mixed_error[own])
 
 
 @pytest.mark.parametrize("engine", ["numba", "torch"])
