@@ -308,7 +308,7 @@ def _in_order_of(order: Tensor | None, values: Tensor) -> Tensor:
     if order is None:
         return values
     back = torch.empty_like(order)
-    back[order] = torch.arange(len(order))
+    back[order] = torch.arange(len(order), device=order.device)
     return values[back]
 
 
