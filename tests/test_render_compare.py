@@ -138,6 +138,8 @@ def test_a_scenes_rays_render_alike_in_one_run_and_interleaved_with_anothers() -
     assert not torch.equal(alone[0], both[0][interleaved == 1])
     with pytest.raises(ValueError, match="scene id 2 of 2 scenes"):
         model.render_rays(origins, directions, torch.full((40,), 2))
+    with pytest.raises(ValueError, match="scene id -1 of 2 scenes"):
+        model.render_rays(origins, directions, torch.arange(40) % 2 - 1)
     _, intrinsics, poses, _ = bench_queries(6, 2, 8, seed=0)
     cameras = torch.tensor([1, 0, 1, 1, 0, 0])
     mixed = model.render(poses, cameras, intrinsics, 8, 8)

@@ -291,25 +291,22 @@ class VoxelGrid(nn.Module):
 
 
 def _scene_order(scenes: Tensor, n_scenes: int) -> tuple[Tensor | None, list[int]]:
-    """How the rays of scenes [R] are put in scene order: the stable sorting order (None
-    where they are in order already) and each scene's count of rays [n_scenes]."""
+    """How the rays (or cameras) of scenes [R] are put in scene order: the stable sorting
+    order (None where they are in order already) and each scene's count [n_scenes]; a scene
+    id outside [0, n_scenes) is a ValueError naming it."""
     order = None
     if bool((scenes[1:] < scenes[:-1]).any()):
         order = torch.argsort(scenes, stable=True)
         scenes = scenes[order]
-    counts = torch.bincount(scenes, minlength=n_scenes).tolist()
-    if len(counts) > n_scenes:
-        raise ValueError(f"scene id {len(counts) - 1} of {n_scenes} scenes")
-    return order, counts
+    if len(scenes) and (int(scenes[0]) < 0 or int(scenes[-1]) >= n_scenes):
+        wrong = int(scenes[0]) if int(scenes[0]) < 0 else int(scenes[-1])
+        raise ValueError(f"scene id {wrong} of {n_scenes} scenes")
+    return order, torch.bincount(scenes, minlength=n_scenes).tolist()
 
 
 def _in_order_of(order: Tensor | None, values: Tensor) -> Tensor:
     """``values`` [R, ...] in scene order (:func:`_scene_order`) back in the rays' order."""
-    if order is None:
-        return values
-    back = torch.empty_like(order)
-    back[order] = torch.arange(len(order), device=order.device)
-    return values[back]
+    return values if order is None else torch.empty_like(values).index_copy(0, order, values)
 
 
 class VoxelGridSceneModel(SceneModel):
@@ -478,8 +475,8 @@ class VoxelGridSceneModel(SceneModel):
     ) -> SceneRendering:
         """Images of poses [B, 7] in scenes [B] (see :meth:`SceneModel.render`); cameras not
         ordered by scene are rendered in scene order, so that each scene's rays are one run."""
-        if bool((scenes[1:] < scenes[:-1]).any()):
-            order = torch.argsort(scenes, stable=True)
+        order, _ = _scene_order(scenes, len(self.grids))
+        if order is not None:
             ordered = self.render(
                 poses[order], scenes[order], intrinsics[order], width, height, surface_share
             )
