@@ -19,7 +19,8 @@ from pae.apps.recordings import recordings_of
 from pae.core.errors import ConfigError, LabelError
 from pae.data.labels import read_labels
 from pae.data.starts import read_starts
-from pae.localize import main
+from pae.localize import main, parser
+from pae.render_compare.sequences import WINDOW_FITS, hampel_filter
 from tests.conftest import TINY_SCENE_MODEL, tiny_overrides
 
 
@@ -93,7 +94,8 @@ def test_a_run_without_a_teacher_refines_another_apr_s_starts(
     [
         ([], "has no teacher (its steps are ['scene_fit']): only --refine render_compare --init"),
         (["--sequences"], "--sequences: RUN uses no sequence passes or window: give"),
-        (["--sequence-passes", "3"], "--sequence-passes and --sequence-window apply with"),
+        (["--sequence-passes", "3"], "--sequence-passes, --sequence-window and --sequence-fit"),
+        (["--sequence-fit", "hampel"], "--sequence-fit apply with --sequences only"),
     ],
 )
 def test_mistakes_on_a_run_without_a_teacher_are_one_line(
@@ -117,7 +119,8 @@ def test_sequences_refine_each_recording_in_frame_order(
     fitted_run: Path, tiny_root: Path, tmp_path: Path, capsys
 ) -> None:
     """--sequences with a median window over 3 frames: each output row is the median of its
-    recording's neighbours in frame order, written back in the queries' own order."""
+    recording's neighbours in frame order, written back in the queries' own order; with
+    --sequence-fit hampel, the Hampel filter of the same poses in that order."""
     labels = tiny_root / "labels" / "all_test.csv"
     starts = _starts(labels, tmp_path / "starts.csv")
     argv = [str(fitted_run), str(labels), "--refine", "render_compare", "--init", str(starts)]
@@ -140,6 +143,14 @@ def test_sequences_refine_each_recording_in_frame_order(
         row = ordered[k]
         expected = per_image[[ordered[k - 1], row, ordered[k + 1]], :3].median(0).values
         torch.testing.assert_close(smoothed[row, :3], expected, atol=1e-5, rtol=0)
+    kept = tmp_path / "kept.csv"
+    assert main([*argv, "--out", str(kept), *window[:3], "--sequence-fit", "hampel"]) == 0
+    in_order = per_image[recordings.order].float()
+    scenes = torch.zeros(len(ordered), dtype=torch.long)
+    expected = hampel_filter(in_order, recordings.ids, scenes, 3)[torch.argsort(recordings.order)]
+    found = torch.as_tensor(read_labels(kept).poses).float()
+    torch.testing.assert_close(found[:, :3], expected[:, :3], atol=1e-5, rtol=0)
+    assert parser()._option_string_actions["--sequence-fit"].choices == WINDOW_FITS
 
 
 def test_recordings_put_each_recording_s_frames_together_by_name() -> None:

@@ -17,6 +17,7 @@ from pae.render_compare.refiner import RenderCompareRefiner
 from pae.render_compare.sequences import (
     SequenceOptions,
     Sequences,
+    hampel_filter,
     median_filter,
     neighbour_rows,
     propagate,
@@ -76,6 +77,38 @@ def test_the_median_filter_puts_a_lone_outlier_back_on_the_walk() -> None:
     assert median_filter(poses, sequences, scenes, 1) is poses
 
 
+def test_the_hampel_filter_moves_only_the_frame_off_its_window() -> None:
+    """A hand-held walk: the camera pans back and forth (2 degrees, not monotone), which the
+    median filter flattens; the Hampel filter keeps every sharp frame and puts the lone
+    outlier where the median puts it."""
+    walk = _walk(11)
+    angle = torch.deg2rad(2.0 * torch.tensor([0.0, 1, -1, 1, -1, 1, -1, 1, -1, 1, 0]))
+    walk[:, 3], walk[:, 6] = torch.cos(angle / 2), torch.sin(angle / 2)
+    poses = walk.clone()
+    poses[5, :3] += torch.tensor([1.5, -2.0, 0.7])
+    sequences = torch.zeros(11, dtype=torch.long)
+    scenes = torch.zeros(11, dtype=torch.long)
+    kept = hampel_filter(poses, sequences, scenes, 5)
+    median = median_filter(poses, sequences, scenes, 5)
+    others = torch.arange(11) != 5
+    torch.testing.assert_close(kept[others], walk[others])
+    assert float(pose_errors(median[others], walk[others])[1].max()) > 1.9  # pans flattened
+    torch.testing.assert_close(kept[5], median[5])
+    assert float(pose_errors(kept[5:6], walk[5:6])[0][0]) < 0.11
+    turned = poses.clone()
+    turned[5, 3:] = torch.tensor([0.8, 0.6, 0.0, 0.0])  # 74 degrees off, in place
+    turned[5, :3] = walk[5, :3]
+    torch.testing.assert_close(
+        hampel_filter(turned, sequences, scenes, 5)[5],
+        median_filter(turned, sequences, scenes, 5)[5],
+    )
+    apart = hampel_filter(poses, torch.arange(11), scenes, 5)
+    torch.testing.assert_close(apart, poses)  # no neighbours: nothing moves
+    stacked = hampel_filter(torch.stack([poses, walk]), sequences, scenes, 5)
+    torch.testing.assert_close(stacked[0], kept)  # leading dimensions filter alike
+    assert hampel_filter(poses, sequences, scenes, 1) is poses
+
+
 def _consecutive_frames(n: int) -> tuple[OracleSceneModel, torch.Tensor, ...]:
     """n consecutive frames of benchmark scene 0's last walk (48 px, about 0.09 m and 5.5
     degrees apart), their intrinsics and true poses."""
@@ -124,6 +157,9 @@ def test_refine_uses_the_sequences_only_when_asked() -> None:
     filtered = refine(model, queries, start, None, windowed, SMALL_SEARCH)
     expected = median_filter(plain.poses, sequences, scenes, 3)
     torch.testing.assert_close(filtered.poses, expected)
+    hampel = Sequences(sequences, SequenceOptions(window=3, fit="hampel"))
+    kept = refine(model, queries, start, None, hampel, SMALL_SEARCH)
+    torch.testing.assert_close(kept.poses, hampel_filter(plain.poses, sequences, scenes, 3))
     with pytest.raises(ValueError, match=r"sequences\.ids must be \[4\], got \[3\]"):
         refine(model, queries, start, sequences=Sequences(sequences[:3]))
 
@@ -133,6 +169,8 @@ def test_sequence_options_name_a_bad_value() -> None:
         SequenceOptions(window=4)
     with pytest.raises(ValueError, match="sequence_passes must be >= 0, not -1"):
         SequenceOptions(passes=-1)
+    with pytest.raises(ValueError, match="sequence_fit must be one of median, hampel, not 'mean'"):
+        SequenceOptions(window=3, fit="mean")
     assert not SequenceOptions(window=1).active and SequenceOptions(vote_scene=True).active
 
 

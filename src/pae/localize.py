@@ -117,6 +117,12 @@ def parser() -> argparse.ArgumentParser:
         help="with --sequences: the median window over frames, odd (default: the run's)",
     )
     parse.add_argument(
+        "--sequence-fit",
+        choices=("median", "hampel"),  # pae.render_compare.sequences.WINDOW_FITS
+        help="with --sequences: what the window does, median (each pose its window's "
+        "median) or hampel (only a pose off its window's median); default: the run's",
+    )
+    parse.add_argument(
         "--summary",
         type=Path,
         metavar="FILE",
@@ -188,8 +194,11 @@ def localize(args: argparse.Namespace) -> None:
         )
     if args.sequences and method != loc.RENDER_COMPARE:
         raise ConfigError("--sequences: only --refine render_compare uses recordings")
-    if not args.sequences and (args.sequence_passes, args.sequence_window) != (None, None):
-        raise ConfigError("--sequence-passes and --sequence-window apply with --sequences only")
+    sequence_flags = (args.sequence_passes, args.sequence_window, args.sequence_fit)
+    if not args.sequences and sequence_flags != (None, None, None):
+        raise ConfigError(
+            "--sequence-passes, --sequence-window and --sequence-fit apply with --sequences only"
+        )
     if args.onnx is not None and method != loc.TEACHER:
         raise ConfigError(f"--onnx runs the teacher only, not --refine {method}")
     queries = gather_queries(args.inputs, args.root or run.data_root)
@@ -229,7 +238,7 @@ def localize(args: argparse.Namespace) -> None:
     recordings = options = None
     if args.sequences:
         recordings = recordings_of(queries.shown, args.sequences, starts_file, str(args.init or ""))
-        options = sequence_options(run, args.sequence_passes, args.sequence_window)
+        options = sequence_options(run, *sequence_flags)
     summary = {"method": method, "run": str(run.folder), "init": args.init and str(args.init)}
     started = time.perf_counter()
     found = loc.estimate(

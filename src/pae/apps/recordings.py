@@ -95,10 +95,13 @@ def reordered(values: T, order: Tensor) -> T:
     return type(values)(*(None if v is None else v[order.to(v.device)] for v in values))
 
 
-def sequence_options(run: Any, passes: int | None, window: int | None) -> SequenceOptions:
-    """How ``--sequences`` refines each recording: ``passes`` and ``window`` where given, else
-    the run's (as it recorded them at test, else as configured), and the run's scene vote;
-    a ConfigError where neither uses the frames' order."""
+def sequence_options(
+    run: Any, passes: int | None, window: int | None, fit: str | None = None
+) -> SequenceOptions:
+    """How ``--sequences`` refines each recording: ``passes``, ``window`` and ``fit`` where
+    given, else the run's (passes and window as it recorded them at test, else as
+    configured), and the run's scene vote; a ConfigError where neither uses the frames'
+    order."""
     config = run.config.get("render_compare") or {}
 
     def chosen(name: str, given: int | None) -> int:
@@ -112,6 +115,7 @@ def sequence_options(run: Any, passes: int | None, window: int | None) -> Sequen
             chosen("sequence_passes", passes),
             chosen("sequence_window", window),
             bool(config.get("sequence_scene_vote", False)),
+            fit or str(config.get("sequence_fit", "median")),
         )
     except ValueError as err:
         raise ConfigError(str(err).replace("render_compare.sequence_", "--sequence-")) from None

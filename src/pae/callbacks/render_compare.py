@@ -35,12 +35,10 @@ from pae.scene_model.base import SceneModel
 class RenderCompareCallback(L.Callback):
     """Refines every query a ``SceneModelEvaluation`` evaluates from the teacher's estimate
     after every ``every_n_val_epochs``-th validation (``calibrate`` under
-    :class:`CalibrationOptions`: the ``*_from_val``, ``accept_*``, ``gate_objective``,
-    ``scene_check_below`` keys) and every test (``refine``); logs ``{split}/{method}/...``
-    (:func:`refinement_figures`), ``bench/<method>/ms_per_query`` and the queries' CSVs.
-    ``refiner``: the partial Hydra makes of ``render_compare.refiner`` or a mapping replacing
-    the defaults; ``feature_layers``: the backbone's modules behind ``refiner.score=features``;
-    ``init*``: another APR's starts (``RenderCompareFromFile``); ``sequence_*``:
+    :class:`CalibrationOptions`) and every test (``refine``); logs (:func:`refinement_figures`,
+    ``bench/<method>/ms_per_query``) and writes the queries' CSVs. ``refiner``: the partial
+    of ``render_compare.refiner`` or a mapping; ``feature_layers``: the backbone's modules
+    behind ``refiner.score=features``; ``init*``: another APR's starts; ``sequence_*``:
     :class:`SequenceOptions`; ``match_*``: :class:`pae.lit.eval_outputs.MatchInputs`."""
 
     def __init__(
@@ -60,6 +58,7 @@ class RenderCompareCallback(L.Callback):
         sequence_passes: int = 0,
         sequence_window: int = 0,
         sequence_scene_vote: bool = False,
+        sequence_fit: str = "median",
         gate_objective: str = "mean",
         matches_from_val: list[dict[str, Any]] | None = None,
         match_descriptor: str = "teacher",
@@ -75,7 +74,8 @@ class RenderCompareCallback(L.Callback):
         matches = (matches_from_val, match_shares_from_val)
         self.options = CalibrationOptions(*on_val, gate_objective, *matches)
         self.match_inputs = MatchInputs(matches_from_val, match_descriptor)
-        self.sequence = SequenceOptions(sequence_passes, sequence_window, sequence_scene_vote)
+        sequence = (sequence_passes, sequence_window, sequence_scene_vote, sequence_fit)
+        self.sequence = SequenceOptions(*sequence)
         self.calibrations: dict[str, Calibration] = {}  # method -> the last chosen on val
         self.refined: dict[str, dict[str, Tensor]] = {}  # split -> method -> poses kept
         self.refinements: dict[str, dict[str, Refinement]] = {}  # split -> method -> the last

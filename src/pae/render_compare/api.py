@@ -44,7 +44,7 @@ from pae.render_compare.scene_decision import (
     sharpness,
     try_scenes,
 )
-from pae.render_compare.sequences import Sequences, median_filter, propagate, vote_scenes
+from pae.render_compare.sequences import Sequences, propagate, vote_scenes, window_filter
 from pae.render_compare.settings import RenderCompareSettings
 from pae.scene_model.base import SceneModel
 
@@ -169,7 +169,7 @@ def _propagated(
 def _filtered(poses: Tensor, scenes: Tensor, sequences: Sequences | None) -> Tensor:
     if sequences is None:
         return poses
-    return median_filter(poses, sequences.ids, scenes, sequences.options.window)
+    return window_filter(poses, sequences.ids, scenes, sequences.options)
 
 
 def _refine_in_scenes(

@@ -2,8 +2,8 @@
 tenth of a metre apart on the synthetic benchmark, about a centimetre in 7-Scenes' test label
 files, 0.4-0.8 m on Cambridge's streets): a frame that its APR's start left outside the
 search's reach can be found from its neighbours' refined poses (:func:`propagate`), a frame
-that alone lands off the walk stands out from those around it (:func:`median_filter`), and a
-recording never leaves its scene (:func:`vote_scenes`).
+that alone lands off the walk stands out from those around it (:func:`median_filter`,
+:func:`hampel_filter`), and a recording never leaves its scene (:func:`vote_scenes`).
 
 None reads a pose: only which sequence each query belongs to (``sequences`` [B], any integer
 ids) and, within a sequence, the order of its frames, which is their row order (label and
@@ -13,6 +13,7 @@ refiner without these options) use neither."""
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import NamedTuple
 
 import torch
@@ -21,6 +22,12 @@ from torch import Tensor
 from pae.core.geometry import normalize_quaternion
 from pae.render_compare.gate import RenderCompareResult
 from pae.render_compare.refiner import RenderCompareRefiner
+
+WINDOW_FITS = ("median", "hampel")
+HAMPEL_SPREADS = 3.0
+"""A frame lies off its window (:func:`hampel_filter`) beyond this many robust spreads."""
+MAD_TO_SD = 1.4826
+"""The median absolute deviation of a normal sample times this: its standard deviation."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,8 +44,17 @@ class SequenceOptions:
     vote_scene: bool = False
     """Each query refined in the scene most of its sequence's starts are in
     (:func:`vote_scenes`): a recording never leaves its scene."""
+    fit: str = "median"
+    """What the window does: ``median`` puts the per-component median of its frames in each
+    pose's place (:func:`median_filter`), ``hampel`` only in the place of a pose that lies
+    off it (:func:`hampel_filter`: a sharp frame keeps its own pose)."""
 
     def __post_init__(self) -> None:
+        if self.fit not in WINDOW_FITS:
+            raise ValueError(
+                f"render_compare.sequence_fit must be one of {', '.join(WINDOW_FITS)}, "
+                f"not {self.fit!r}"
+            )
         if self.passes < 0:
             raise ValueError(f"render_compare.sequence_passes must be >= 0, not {self.passes}")
         if self.window < 0 or (self.window > 1 and self.window % 2 == 0):
@@ -135,15 +151,59 @@ def median_filter(poses: Tensor, sequences: Tensor, scenes: Tensor, window: int)
     renormalised): a frame that alone lands off the walk takes its neighbours' path."""
     if window <= 1:
         return poses
-    half = window // 2
     own = torch.arange(poses.shape[-2], device=poses.device)
-    rows = torch.stack(
+    rows = _window_rows(sequences, scenes, window)
+    rows = torch.where(rows >= 0, rows, own[:, None])
+    around = _aligned(poses, rows)  # [..., B, window, 7]
+    position = around[..., :3].median(-2).values
+    return torch.cat([position, normalize_quaternion(around[..., 3:].median(-2).values)], -1)
+
+
+def _window_rows(sequences: Tensor, scenes: Tensor, window: int) -> Tensor:
+    """Rows [B, window] of the frames centred on each query along its sequence (-1: beyond
+    its ends or in another scene)."""
+    half = window // 2
+    return torch.stack(
         [neighbour_rows(sequences, scenes, offset) for offset in range(-half, half + 1)], 1
     )
-    rows = torch.where(rows >= 0, rows, own[:, None])
-    around = poses[..., rows, :]  # [..., B, window, 7]
-    position = around[..., :3].median(-2).values
+
+
+def _aligned(poses: Tensor, rows: Tensor) -> Tensor:
+    """Poses [..., B, 7] gathered at rows [B, W] (>= 0) -> [..., B, W, 7], each quaternion's
+    sign that of the one nearest its row's own."""
+    around = poses[..., rows, :]
     quaternions = around[..., 3:]
     aligned = (quaternions * poses[..., None, 3:]).sum(-1, keepdim=True) >= 0
-    quaternions = torch.where(aligned, quaternions, -quaternions)
-    return torch.cat([position, normalize_quaternion(quaternions.median(-2).values)], -1)
+    return torch.cat([around[..., :3], torch.where(aligned, quaternions, -quaternions)], -1)
+
+
+def hampel_filter(poses: Tensor, sequences: Tensor, scenes: Tensor, window: int) -> Tensor:
+    """Poses [..., B, 7] -> the :func:`median_filter`'s pose only where a frame's own lies off
+    it (a Hampel filter): where its position's distance from the window's median position is
+    more than ``HAMPEL_SPREADS`` × 1.4826 × the median of the window frames' distances from
+    it, or its orientation's angle the same way; elsewhere its own pose. A walk whose frames
+    are sharp keeps them (a hand-held camera's turns included), and a frame that alone lands
+    off the walk takes its neighbours' path."""
+    median = median_filter(poses, sequences, scenes, window)
+    if window <= 1:
+        return poses
+    rows = _window_rows(sequences, scenes, window)
+    present = rows >= 0
+    around = _aligned(poses, rows.clamp_min(0))  # [..., B, W, 7]
+    apart = (around[..., :3] - median[..., None, :3]).norm(dim=-1)
+    turned = (around[..., 3:] * median[..., None, 3:]).sum(-1).abs().clamp(max=1.0).acos()
+    off = torch.zeros(poses.shape[:-1], dtype=torch.bool, device=poses.device)
+    for distance in (apart, turned):
+        spread = distance.masked_fill(~present, math.nan).nanmedian(-1).values
+        own = distance[..., window // 2]
+        off |= own > HAMPEL_SPREADS * MAD_TO_SD * spread
+    return torch.where(off[..., None], median, poses)
+
+
+def window_filter(
+    poses: Tensor, sequences: Tensor, scenes: Tensor, options: SequenceOptions
+) -> Tensor:
+    """Poses [..., B, 7] through the window ``options`` name (:func:`median_filter` or
+    :func:`hampel_filter`)."""
+    fit = hampel_filter if options.fit == "hampel" else median_filter
+    return fit(poses, sequences, scenes, options.window)
