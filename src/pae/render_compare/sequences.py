@@ -184,9 +184,9 @@ def hampel_filter(poses: Tensor, sequences: Tensor, scenes: Tensor, window: int)
     it, or its orientation's angle the same way; elsewhere its own pose. A walk whose frames
     are sharp keeps them (a hand-held camera's turns included), and a frame that alone lands
     off the walk takes its neighbours' path."""
-    median = median_filter(poses, sequences, scenes, window)
     if window <= 1:
         return poses
+    median = median_filter(poses, sequences, scenes, window)
     rows = _window_rows(sequences, scenes, window)
     present = rows >= 0
     around = _aligned(poses, rows.clamp_min(0))  # [..., B, W, 7]
