@@ -90,3 +90,28 @@ def test_oracle_depth_keeps_the_model_s_colours_on_the_benchmark_s_geometry(
     assert explained["surface_within_10pc"] == 0.0
     with pytest.raises(SystemExit):
         floor.main(["unused", "--oracle", "--oracle-depth"])
+
+
+def test_windowed_scores_each_fit_on_each_scene_s_walk_alone(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A val walk that zigzags sharply (every third frame back, 0.1 m): the median window moves
+    most of its frames, the Hampel window none. Two walks 100 m apart with their rows
+    interleaved: each window reads its own walk only."""
+    floor = _floor(monkeypatch)
+    walk = torch.zeros(9, 7)
+    walk[:, 0] = 0.1 * torch.arange(9)
+    walk[:, 1] = 0.1 * torch.sin(2 * math.pi * torch.arange(9) / 3)
+    walk[:, 3] = 1.0
+    rows = floor.windowed(walk, walk, torch.zeros(9, dtype=torch.long), 5)
+    assert set(rows) == {"median", "hampel"}
+    assert rows["median"]["pos_median_m"] == pytest.approx(0.0866, abs=1e-3)
+    assert rows["hampel"]["pos_median_m"] == pytest.approx(0.0, abs=1e-6)
+    straight = walk.clone()
+    straight[:, 1] = 0.0
+    far = straight.clone()
+    far[:, 0] += 100.0
+    both = torch.stack([straight, far], 1).flatten(0, 1)  # rows interleaved
+    scenes = torch.tensor([0, 1] * 9)
+    for figures in floor.windowed(both, both, scenes, 5).values():
+        assert figures["pos_median_m"] == pytest.approx(0.0, abs=1e-4)

@@ -14,9 +14,11 @@ medians and the share the refinement made worse. ``--oracle [BLUR_PX]``: the sam
 benchmark's own renderer instead of the fitted scene model, its renderings blurred by a
 Gaussian of that sigma (a bound: how sharp a scene model must be for a given floor).
 ``--oracle-depth``: the fitted model's colours on the benchmark renderer's depth and opacity
-(what the model's geometry costs). ``--explain N``: how well the model explains N val
-queries at their true poses, beside the benchmark's own renderer (:func:`explained`;
-``--explain-only``: that alone). Only
+(what the model's geometry costs). ``--window W``: also the refinements from the good starts
+through each window fit of ``render_compare.sequence_fit`` over W frames along the val walk
+(:func:`windowed`: the val split is one held-out recording per scene, in frame order).
+``--explain N``: how well the model explains N val queries at their true poses, beside the
+benchmark's own renderer (:func:`explained`; ``--explain-only``: that alone). Only
 validation labels are read. One row per variant, printed and written to
 ``RUN/floor_val.json`` (with ``--oracle``: ``RUN/floor_val_oracle.json``).
 
@@ -53,6 +55,7 @@ from pae.lit.eval_outputs import oracle_scenes
 from pae.render_compare import ACCEPT_ALL, Calibration, Queries, refine
 from pae.render_compare.calibration import LADDER, ladder_starts, scene_size
 from pae.render_compare.images import band_pass, gaussian_blur, grey, zncc
+from pae.render_compare.sequences import WINDOW_FITS, SequenceOptions, window_filter
 from pae.render_compare.settings import RenderCompareSettings
 from pae.scene_model.base import SceneRendering
 from pae.scene_model.oracle import OracleSceneModel
@@ -168,6 +171,16 @@ def medians(poses: torch.Tensor, truth: torch.Tensor) -> dict[str, float]:
     return {"pos_median_m": float(pos.median()), "rot_median_deg": float(rot.median())}
 
 
+def windowed(
+    poses: torch.Tensor, truth: torch.Tensor, scenes: torch.Tensor, window: int
+) -> dict[str, dict[str, float]]:
+    """Medians of refined poses [N, 7] of val walks (one per scene, scenes [N], frames in row
+    order) through each window fit over ``window`` frames (:data:`WINDOW_FITS`), against
+    the true poses [N, 7]."""
+    options = [SequenceOptions(window=window, fit=fit) for fit in WINDOW_FITS]
+    return {o.fit: medians(window_filter(poses, scenes, scenes, o), truth) for o in options}
+
+
 def ladder_rows(refined: torch.Tensor, starts: torch.Tensor, truth: torch.Tensor) -> list[dict]:
     """Per rung of the ladder (query i on rung i mod K): its share of the scene's size, the
     starts' and the refined poses' median position errors (m), the share made worse."""
@@ -192,6 +205,14 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--queries", type=int, default=400, help="val queries (evenly spaced)")
     parser.add_argument("--ladder", action="store_true", help="every val query, ladder starts")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--window",
+        type=int,
+        default=0,
+        metavar="W",
+        help="also the refinements from the good starts through each window fit over W "
+        "frames along the val walk (odd)",
+    )
     parser.add_argument(
         "--explain",
         type=int,
@@ -222,6 +243,8 @@ def main(argv: list[str]) -> int:
         help="with --explain: only how well the model explains the val queries, no refinement",
     )
     args = parser.parse_args(argv)
+    if args.window < 0 or (args.window > 1 and args.window % 2 == 0):
+        parser.error(f"--window must be odd, got {args.window}")
     if args.explain_only and not args.explain:
         parser.error("--explain-only needs --explain N")
     if args.oracle is not None and args.oracle_depth:
@@ -272,6 +295,9 @@ def main(argv: list[str]) -> int:
             )  # fmt: skip
             row[name] = medians(refined.poses, truth)
             row[f"{name}_ms_per_query"] = 1000 * (time.perf_counter() - begin) / count
+        if args.window > 1:
+            row["from_good_windows"] = windowed(refined.poses, truth, val["scene"], args.window)
+            print(f"  window {args.window}: {row['from_good_windows']}")
         key = text or "(run.py's)"
         key = f"oracle depth: {key}" if args.oracle_depth else key
         results[f"blur {args.oracle:g} px: {key}" if oracle else key] = row
