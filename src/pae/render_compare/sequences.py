@@ -151,30 +151,32 @@ def median_filter(poses: Tensor, sequences: Tensor, scenes: Tensor, window: int)
     renormalised): a frame that alone lands off the walk takes its neighbours' path."""
     if window <= 1:
         return poses
-    own = torch.arange(poses.shape[-2], device=poses.device)
-    rows = _window_rows(sequences, scenes, window)
-    rows = torch.where(rows >= 0, rows, own[:, None])
-    around = _aligned(poses, rows)  # [..., B, window, 7]
-    position = around[..., :3].median(-2).values
-    return torch.cat([position, normalize_quaternion(around[..., 3:].median(-2).values)], -1)
+    around, _ = _window(poses, sequences, scenes, window)
+    return _median(around)
 
 
-def _window_rows(sequences: Tensor, scenes: Tensor, window: int) -> Tensor:
-    """Rows [B, window] of the frames centred on each query along its sequence (-1: beyond
-    its ends or in another scene)."""
+def _window(poses: Tensor, sequences: Tensor, scenes: Tensor, window: int) -> tuple[Tensor, Tensor]:
+    """The poses [..., B, window, 7] of the ``window`` frames centred on each query along its
+    sequence (one beyond its ends or in another scene: its own pose), each quaternion's sign
+    that of the one nearest its own, and which of them are its neighbours' [B, window]."""
     half = window // 2
-    return torch.stack(
+    rows = torch.stack(
         [neighbour_rows(sequences, scenes, offset) for offset in range(-half, half + 1)], 1
     )
-
-
-def _aligned(poses: Tensor, rows: Tensor) -> Tensor:
-    """Poses [..., B, 7] gathered at rows [B, W] (>= 0) -> [..., B, W, 7], each quaternion's
-    sign that of the one nearest its row's own."""
-    around = poses[..., rows, :]
+    present = rows >= 0
+    own = torch.arange(poses.shape[-2], device=poses.device)
+    around = poses[..., torch.where(present, rows, own[:, None]), :]
     quaternions = around[..., 3:]
     aligned = (quaternions * poses[..., None, 3:]).sum(-1, keepdim=True) >= 0
-    return torch.cat([around[..., :3], torch.where(aligned, quaternions, -quaternions)], -1)
+    quaternions = torch.where(aligned, quaternions, -quaternions)
+    return torch.cat([around[..., :3], quaternions], -1), present
+
+
+def _median(around: Tensor) -> Tensor:
+    """Poses [..., B, W, 7] (quaternions sign-aligned) -> their per-component median [..., B,
+    7], the quaternion renormalised."""
+    position = around[..., :3].median(-2).values
+    return torch.cat([position, normalize_quaternion(around[..., 3:].median(-2).values)], -1)
 
 
 def hampel_filter(poses: Tensor, sequences: Tensor, scenes: Tensor, window: int) -> Tensor:
@@ -186,10 +188,8 @@ def hampel_filter(poses: Tensor, sequences: Tensor, scenes: Tensor, window: int)
     off the walk takes its neighbours' path."""
     if window <= 1:
         return poses
-    median = median_filter(poses, sequences, scenes, window)
-    rows = _window_rows(sequences, scenes, window)
-    present = rows >= 0
-    around = _aligned(poses, rows.clamp_min(0))  # [..., B, W, 7]
+    around, present = _window(poses, sequences, scenes, window)
+    median = _median(around)
     apart = (around[..., :3] - median[..., None, :3]).norm(dim=-1)
     turned = (around[..., 3:] * median[..., None, 3:]).sum(-1).abs().clamp(max=1.0).acos()
     off = torch.zeros(poses.shape[:-1], dtype=torch.bool, device=poses.device)
