@@ -57,6 +57,27 @@ def test_explained_ranks_a_blurred_renderer_below_the_sharp_one(
     assert worse["depth_minus_oracle_median_m"] == 0.0
 
 
+def test_picture_puts_query_renderer_and_model_side_by_side(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    cv2 = pytest.importorskip("cv2")
+    floor = _floor(monkeypatch)
+    queries = _queries(floor)
+    sharp = floor.BlurredOracle([make_scene(0)], 0.0)
+    blurred = floor.BlurredOracle([make_scene(0)], 2.0 / 48)
+    path = tmp_path / "picture.png"
+    floor.picture(blurred, sharp, queries, SETTINGS, path)
+    pixels = cv2.imread(str(path)).astype(float)
+    rows = len(queries["pose"])
+    assert pixels.shape == (48 * rows, 48 * 6, 3)
+    tiles = pixels.reshape(rows, 48, 6, 48, 3)
+    # the queries are the renderer's own images: columns 0 and 1 (and 3 and 4) agree
+    assert abs(tiles[:, :, 0] - tiles[:, :, 1]).max() <= 1
+    assert abs(tiles[:, :, 3] - tiles[:, :, 4]).max() <= 1
+    assert abs(tiles[:, :, 1] - tiles[:, :, 2]).mean() > 2  # the blurred model differs
+    assert abs(tiles[:, :, 4] - tiles[:, :, 5]).mean() > 10
+
+
 def test_blurred_oracle_needs_the_true_scenes(monkeypatch: pytest.MonkeyPatch) -> None:
     floor = _floor(monkeypatch)
     with pytest.raises(SystemExit, match="true scenes"):

@@ -18,7 +18,8 @@ Gaussian of that sigma (a bound: how sharp a scene model must be for a given flo
 through each window fit of ``render_compare.sequence_fit`` over W frames along the val walk
 (:func:`windowed`: the val split is one held-out recording per scene, in frame order).
 ``--explain N``: how well the model explains N val queries at their true poses, beside the
-benchmark's own renderer (:func:`explained`; ``--explain-only``: that alone). Only
+benchmark's own renderer (:func:`explained`; ``--explain-only``: that alone; ``--picture
+PNG``: those queries, the renderer's and the model's images side by side, :func:`picture`). Only
 validation labels are read. One row per variant, printed and written to
 ``RUN/floor_val.json`` (with ``--oracle``: ``RUN/floor_val_oracle.json``).
 
@@ -37,6 +38,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import cv2
+import numpy as np
 import torch
 from run import chosen_steps  # beside this script
 
@@ -142,6 +145,33 @@ def explained(
     }
 
 
+def picture(
+    model: Any, oracle: OracleSceneModel, queries: dict[str, torch.Tensor], settings: dict,
+    path: Path,
+) -> None:
+    """A PNG at ``path``: one row per query of ``queries`` at its true pose, the query, the
+    benchmark's own renderer and the scene model, then the three grey images band-passed as
+    ``settings`` compare at the finest level (each scaled to ±3 standard deviations)."""
+    height, width = queries["image"].shape[-2:]
+    args = (queries["pose"], queries["scene"], queries["intrinsics"], width, height)
+    with torch.no_grad():
+        images = (queries["image"], oracle.render(*args).rgb, model.render(*args).rgb)
+
+    def filtered(rgb: torch.Tensor) -> torch.Tensor:
+        g = band_pass(
+            grey(rgb), settings["blur_sigma_px"], settings["highpass_sigma_px"],
+            settings.get("contrast_sigma_px", 0.0),
+        ).reshape(len(rgb), 1, height, width)  # fmt: skip
+        g = (g - g.mean((2, 3), keepdim=True)) / g.std((2, 3), keepdim=True).clamp_min(1e-6)
+        return ((g.clamp(-3, 3) + 3) / 6).expand(-1, 3, -1, -1)
+
+    tiles = [rgb.clamp(0, 1) for rgb in images] + [filtered(rgb) for rgb in images]
+    grid = torch.cat([torch.cat(list(row), 2) for row in zip(*tiles, strict=True)], 1)
+    pixels = (grid.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+    if not cv2.imwrite(str(path), cv2.cvtColor(pixels, cv2.COLOR_RGB2BGR)):
+        raise OSError(f"could not write {path}")
+
+
 def overridden(calibration: Calibration, variant: dict[str, Any]) -> Calibration:
     """The calibration without the chosen steps that ``variant`` sets: its values stand."""
     steps = {key: value for key, value in calibration.steps.items() if key not in variant}
@@ -238,6 +268,13 @@ def main(argv: list[str]) -> int:
         "the model's geometry costs); rows keyed 'oracle depth: ...'",
     )
     parser.add_argument(
+        "--picture",
+        type=Path,
+        metavar="PNG",
+        help="with --explain N: the N val queries at their true poses beside the benchmark's "
+        "renderer and the scene model, raw and filtered (picture())",
+    )
+    parser.add_argument(
         "--explain-only",
         action="store_true",
         help="with --explain: only how well the model explains the val queries, no refinement",
@@ -245,8 +282,8 @@ def main(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     if args.window < 0 or (args.window > 1 and args.window % 2 == 0):
         parser.error(f"--window must be odd, got {args.window}")
-    if args.explain_only and not args.explain:
-        parser.error("--explain-only needs --explain N")
+    if (args.explain_only or args.picture) and not args.explain:
+        parser.error("--explain-only and --picture need --explain N")
     if args.oracle is not None and args.oracle_depth:
         parser.error("--oracle already renders the benchmark's depth; drop --oracle-depth")
     if args.oracle is not None and args.oracle < 0:
@@ -312,11 +349,13 @@ def main(argv: list[str]) -> int:
     if args.explain:
         picks = torch.linspace(0, count - 1, min(args.explain, count)).long()
         chosen = base | calibration.steps
-        results["explain"] = explained(
-            model, BlurredOracle(oracle_scenes(data), 0.0),
-            {key: value[picks] for key, value in val.items()}, chosen,
-        )  # fmt: skip
+        picked = {key: value[picks] for key, value in val.items()}
+        renderer = BlurredOracle(oracle_scenes(data), 0.0)
+        results["explain"] = explained(model, renderer, picked, chosen)
         print("explained at the true val poses:", results["explain"])
+        if args.picture:
+            picture(model, renderer, picked, chosen, args.picture)
+            print(f"picture: {args.picture}")
     if args.ladder:
         truth = every["pose"]
         starts = ladder_starts(truth, extent, torch.Generator().manual_seed(args.seed))
