@@ -146,7 +146,10 @@ def explained(
 
 
 def picture(
-    model: Any, oracle: OracleSceneModel, queries: dict[str, torch.Tensor], settings: dict,
+    model: Any,
+    oracle: OracleSceneModel,
+    queries: dict[str, torch.Tensor],
+    settings: dict,
     path: Path,
 ) -> None:
     """A PNG at ``path``: one row per query of ``queries`` at its true pose, the query, the
