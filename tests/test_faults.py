@@ -239,13 +239,24 @@ def test_resume_falls_back_and_continues_a_longer_schedule(
     assert "teacher.max_epochs=3" in (run_dir / ".hydra" / "overrides.yaml").read_text()
 
 
+@pytest.mark.parametrize(
+    "growth",
+    [(), ("scene_model.model.grow_from=0.125", "scene_model.model.grow_at_epoch=1")],
+    ids=["one_size", "grown"],
+)
 def test_a_resumed_scene_model_run_gives_the_figures_of_an_uninterrupted_one(
-    teacher_run: Path, compose_train, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    teacher_run: Path,
+    compose_train,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    growth: tuple[str, ...],
 ) -> None:
     """Every random draw of the scene-model step (ray batches, the samples' jitter) comes
     from (seed, epoch, batch): a run stopped after its first epoch and resumed reports every
-    figure of a run that was never stopped (timings aside)."""
+    figure of a run that was never stopped (timings aside); ``grown``: the checkpoint holds
+    the coarse grid the fit grows from at the second epoch."""
     scene_model = (
+        *growth,
         "stage=render_compare",
         f"teacher_ckpt={teacher_run / 'checkpoints' / 'last.ckpt'}",
         "scene_model.max_epochs=2",
@@ -263,7 +274,15 @@ def test_a_resumed_scene_model_run_gives_the_figures_of_an_uninterrupted_one(
         interrupted_at(patch, 1)
         with pytest.raises(RuntimeError, match="interrupted"):
             run(compose_train(*scene_model), tmp_path / "resumed")
+    last = tmp_path / "resumed" / "checkpoints" / "last.ckpt"
+
+    def voxels() -> int:
+        grids = read_checkpoint(last)["state_dict"]
+        return sum(v[0, 0].numel() for k, v in grids.items() if k.endswith(".grid"))
+
+    saved = voxels()
     resumed = run(compose_train(*scene_model, "resume=true"), tmp_path / "resumed")
+    assert (saved < voxels() / 6) if growth else (saved == voxels())
 
     def figures(metrics: dict[str, float | int | str]) -> dict[str, float | int | str]:
         return {key: value for key, value in metrics.items() if not key.startswith("bench/")}

@@ -20,7 +20,8 @@ from pae.core.pose_sampling import perturb
 from pae.render_compare.images import band_pass, clip_bright, trimmed_zncc, zncc
 from pae.render_compare.refiner import RenderCompareRefiner, RenderCompareResult, gate
 from pae.scene_model.oracle import OracleSceneModel
-from pae.scene_model.voxel_grid import VoxelGrid, VoxelGridSceneModel, camera_bounds
+from pae.scene_model.voxel_grid import VoxelGrid, VoxelGridSceneModel
+from pae.scene_model.voxel_layout import camera_bounds
 from pae.synthetic import (
     Appearance,
     PinholeCamera,
@@ -569,7 +570,7 @@ def test_bounds_come_from_the_train_cameras_only(poisoned_root: Path) -> None:
     label file here; a validation or test row read would move them by POISON_M."""
     from pae.data.labels import read_labels
     from pae.scene_model.base import SceneModelInputs
-    from pae.scene_model.voxel_grid import camera_extent_m
+    from pae.scene_model.voxel_layout import camera_extent_m
 
     data = _poisoned_data(poisoned_root)
     table = read_labels(poisoned_root / "labels" / "all_train.csv")
@@ -606,7 +607,7 @@ def test_bounds_come_from_the_train_cameras_only(poisoned_root: Path) -> None:
 
 
 def test_camera_extent_ignores_a_few_stray_frames() -> None:
-    from pae.scene_model.voxel_grid import camera_extent_m
+    from pae.scene_model.voxel_layout import camera_extent_m
 
     positions = torch.zeros(200, 3)
     positions[:, 0] = torch.linspace(0, 4, 200)

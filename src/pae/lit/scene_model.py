@@ -93,6 +93,12 @@ class SceneModelModule(PaeModule):
             self.teacher.eval()
         return self
 
+    def on_train_epoch_start(self) -> None:
+        """The model's stage of the fit (:meth:`SceneModel.fit_stage`: the voxel grid grows);
+        the optimiser built again where its parameters changed."""
+        if self.scene_model.fit_stage(self.current_epoch, fresh=self.global_step == 0):
+            self.trainer.strategy.setup_optimizers(self.trainer)
+
     def on_train_end(self) -> None:
         """Release the ray store's images (:meth:`RayBatches.release`): the evaluation after
         the fit does not read them (333 MB at 7-Scenes size)."""

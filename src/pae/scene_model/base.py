@@ -122,6 +122,12 @@ class SceneModel(nn.Module):
         """The smoothness penalty the step adds to the fit (``scene_model.tv_weight``)."""
         return torch.zeros(())
 
+    def fit_stage(self, epoch: int, fresh: bool) -> bool:
+        """Models that train, at the start of fit epoch ``epoch`` (``fresh``: no step taken
+        yet): change what the fit optimises (the voxel grid grows); whether its parameters
+        changed, so that the optimiser is built again."""
+        return False
+
 
 class PaeDecoderSceneModel(SceneModel):
     """The paper's image decoder over PAE encodings as a scene model: a 2-D model that

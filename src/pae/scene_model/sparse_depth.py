@@ -18,7 +18,7 @@ from torch import Tensor
 from pae.core.camera import directions_through
 from pae.core.features import Keypoints, detect, mutual_matches
 from pae.core.geometry import quaternion_to_matrix
-from pae.scene_model.voxel_grid import camera_extent_m
+from pae.scene_model.voxel_layout import camera_extent_m
 
 KEYPOINTS = 500
 """SIFT keypoints per train image at most (contrast 0.01)."""

@@ -26,60 +26,17 @@ from pae.core.compiled import ENGINES, Engine
 from pae.core.errors import ConfigError
 from pae.scene_model.base import SceneModel, SceneModelInputs, SceneRendering
 from pae.scene_model.voxel_composite import CompiledComposite, channels_last
+from pae.scene_model.voxel_layout import (
+    grid_shape,
+    in_order_of,
+    scene_order,
+    train_scale,
+    voxel_length_m,
+)
 from pae.scene_model.voxel_render import GridGeometry, RaySegments
 from pae.scene_model.voxel_variation import CompiledTotalVariation
 
 _EPS = 1e-9
-
-
-def grid_shape(extent: Sequence[float], num_voxels: int) -> tuple[int, int, int]:
-    """(nx, ny, nz) of cubic voxels filling ``extent`` [3] (m) with about ``num_voxels``."""
-    volume = math.prod(extent)
-    voxel = (volume / num_voxels) ** (1 / 3)
-    return tuple(max(2, round(e / voxel)) for e in extent)  # type: ignore[return-value]
-
-
-def camera_bounds(positions: Tensor, margin_m: float | Sequence[float]) -> Tensor:
-    """Axis-aligned bounds [2, 3] (lo, hi) of camera positions [N, 3] plus a margin (m),
-    one value or one per axis."""
-    margin = torch.as_tensor(margin_m, dtype=torch.float64).expand(3)
-    positions = positions.double()
-    return torch.stack([positions.min(0).values - margin, positions.max(0).values + margin])
-
-
-def camera_extent_m(positions: Tensor) -> float:
-    """The largest side (m) of the box holding the middle 96 % of camera positions [N, 3]
-    along each axis: the camera region's size, robust to a few stray frames."""
-    if len(positions) < 2:
-        return 0.0
-    q = torch.tensor([0.02, 0.98], dtype=torch.float64)
-    spread = positions.double().quantile(q, dim=0)
-    return float((spread[1] - spread[0]).max())
-
-
-def train_scale(
-    poses: Tensor, scenes: Tensor, n_scenes: int, config: Mapping[str, Any]
-) -> dict[str, Any]:
-    """The grid's bounds and contraction from the train cameras alone (poses [N, 7] of scene
-    ids [N]; never the scene's geometry): per scene the camera positions' bounds plus
-    ``margin_m``, and ``contract``. ``margin_m: auto`` is ``max(auto_scale.margin_floor_m,
-    auto_scale.margin_fraction × extent)`` per scene (extent: :func:`camera_extent_m`);
-    ``contract: auto`` contracts space when some scene's extent exceeds
-    ``auto_scale.contract_above_m`` (a street, not a room). Returns ``config`` with ``bounds``
-    and ``contract`` set, and ``margin_m`` and ``auto_scale`` gone."""
-    positions = [poses[scenes == s, :3] for s in range(n_scenes)]
-    extents = [camera_extent_m(p) for p in positions]
-    config = dict(config)
-    margin, auto = config.pop("margin_m"), config.pop("auto_scale")
-    if margin == "auto":
-        margins = [max(auto["margin_floor_m"], auto["margin_fraction"] * e) for e in extents]
-    else:
-        margins = [margin] * len(positions)
-    if config.get("contract") == "auto":
-        config["contract"] = max(extents, default=0.0) > auto["contract_above_m"]
-    pairs = zip(positions, margins, strict=True)
-    config["bounds"] = [camera_bounds(p, m).tolist() for p, m in pairs]
-    return config
 
 
 class VoxelGrid(nn.Module):
@@ -100,19 +57,53 @@ class VoxelGrid(nn.Module):
         self.register_buffer("lo", bounds_t[0].clone())
         self.register_buffer("hi", bounds_t[1].clone())
         self.contract = contract
-        extent = (bounds_t[1] - bounds_t[0]).tolist()
-        shape = grid_shape([2 * e for e in extent] if contract else extent, num_voxels)
-        self.shape = shape
-        self.voxel_m = float(min(e / (n - 1) for e, n in zip(extent, shape, strict=True)))
-        if contract:
-            self.voxel_m *= 2
-        # stored channels last: the compiled kernels read and write it without a copy
-        cells = torch.zeros(1, 4, shape[2], shape[1], shape[0])
-        self.grid = nn.Parameter(cells.to(memory_format=torch.channels_last_3d))
+        self.extent = (bounds_t[1] - bounds_t[0]).tolist()
+        self.num_voxels = num_voxels
         # softplus(shift) · (one voxel) = -log(1 - init_alpha): a faint initial fog
         self.density_shift = math.log(math.expm1(-math.log1p(-init_alpha)))
         self.background = nn.Parameter(torch.zeros(3))
+        self._reshape(self._shape_for(num_voxels), keep=False)
+        self.configured_voxel_m = self.voxel_m
+
+    def resize(self, num_voxels: int, keep: bool = True) -> bool:
+        """A grid of about ``num_voxels`` over the same bounds: ``keep``, the field as it is
+        (raw values trilinear at the new nodes, the density rescaled so that each metre of a
+        ray gathers the same light), else the initial fog. Whether the shape changed."""
+        shape = self._shape_for(num_voxels)
+        if shape == self.shape:
+            return False
+        self._reshape(shape, keep)
+        return True
+
+    def _shape_for(self, num_voxels: int) -> tuple[int, int, int]:
+        """(nx, ny, nz) of about ``num_voxels`` over the bounds (or their contraction)."""
+        extent = [2 * e for e in self.extent] if self.contract else self.extent
+        return grid_shape(extent, num_voxels)
+
+    def _reshape(self, shape: tuple[int, int, int], keep: bool) -> None:
+        """:meth:`resize` to ``shape`` (nx, ny, nz)."""
+        voxel_m = voxel_length_m(self.extent, shape, self.contract)
+        cells = torch.zeros(1, 4, shape[2], shape[1], shape[0])
+        if keep:
+            with torch.no_grad():
+                size = cells.shape[2:]
+                raw = F.interpolate(self.grid, size, mode="trilinear", align_corners=True)
+                light = F.softplus(raw[:, :1] + self.density_shift) * voxel_m / self.voxel_m
+                light = light.clamp_min(1e-12)  # softplus's inverse below stays finite
+                density = light + torch.log(-torch.expm1(-light)) - self.density_shift
+                cells = torch.cat([density, raw[:, 1:]], 1)
+        self.shape, self.voxel_m = shape, voxel_m
+        # stored channels last: the compiled kernels read and write it without a copy
+        self.grid = nn.Parameter(cells.to(memory_format=torch.channels_last_3d))
         self._kernel_cells: tuple[tuple[int, int], np.ndarray] | None = None
+
+    def _load_from_state_dict(self, state: Mapping[str, Any], prefix: str, *args: Any) -> None:
+        """A stored grid of another shape (a fit saved before it grew) is loaded as it is."""
+        stored = state.get(prefix + "grid")
+        if stored is not None and stored.shape[:2] == (1, 4) and stored.shape != self.grid.shape:
+            nz, ny, nx = stored.shape[2:]
+            self._reshape((nx, ny, nz), keep=False)
+        super()._load_from_state_dict(state, prefix, *args)
 
     def normalised(self, points: Tensor) -> Tensor:
         """World points [..., 3] -> grid coordinates in [-1, 1] (contracted when set)."""
@@ -290,25 +281,6 @@ class VoxelGrid(nn.Module):
         )
 
 
-def _scene_order(scenes: Tensor, n_scenes: int) -> tuple[Tensor | None, list[int]]:
-    """How the rays (or cameras) of scenes [R] are put in scene order: the stable sorting
-    order (None where they are in order already) and each scene's count [n_scenes]; a scene
-    id outside [0, n_scenes) is a ValueError naming it."""
-    order = None
-    if bool((scenes[1:] < scenes[:-1]).any()):
-        order = torch.argsort(scenes, stable=True)
-        scenes = scenes[order]
-    if len(scenes) and (int(scenes[0]) < 0 or int(scenes[-1]) >= n_scenes):
-        wrong = int(scenes[0]) if int(scenes[0]) < 0 else int(scenes[-1])
-        raise ValueError(f"scene id {wrong} of {n_scenes} scenes")
-    return order, torch.bincount(scenes, minlength=n_scenes).tolist()
-
-
-def _in_order_of(order: Tensor | None, values: Tensor) -> Tensor:
-    """``values`` [R, ...] in scene order (:func:`_scene_order`) back in the rays' order."""
-    return values if order is None else torch.empty_like(values).index_copy(0, order, values)
-
-
 class VoxelGridSceneModel(SceneModel):
     """One :class:`VoxelGrid` per scene plus a per-image-sequence appearance: per-channel
     gain (``exp``) and bias and, with ``appearance_field`` = G >= 2, a gain that varies
@@ -340,11 +312,16 @@ class VoxelGridSceneModel(SceneModel):
         near_m: float,
         appearance_field: int = 0,
         chunk_rays: int = 8192,
+        grow_from: float = 1.0,
+        grow_at_epoch: int = 0,
     ) -> None:
         super().__init__()
         if appearance_field == 1 or appearance_field < 0:
             raise ValueError(f"appearance_field must be 0 or >= 2, not {appearance_field}")
         self.grids = nn.ModuleList(VoxelGrid(b, num_voxels, contract) for b in bounds)
+        self.num_voxels = num_voxels
+        self.grow_from = grow_from
+        self.grow_at_epoch = grow_at_epoch
         self.appearance_field = appearance_field
         # per code: log-gain [3], bias [3], then the field's G x G log-gains, row by row
         self.appearance = nn.Embedding(max(1, n_appearances), 6 + appearance_field**2)
@@ -355,10 +332,20 @@ class VoxelGridSceneModel(SceneModel):
 
     @classmethod
     def check_config(cls, cfg: DictConfig, key: str) -> None:
-        """num_voxels >= 8, samples_per_ray >= 1, appearance_field 0 or >= 2, contract true,
+        """num_voxels >= 8, samples_per_ray >= 1, grow_from in (0, 1] and grow_at_epoch below
+        the fit's epochs, appearance_field 0 or >= 2, contract true,
         false or auto, margin_m auto, one number >= 0 or three, auto_scale's numbers >= 0."""
         integer(cfg, f"{key}.num_voxels", 8)
         integer(cfg, f"{key}.samples_per_ray", 1)
+        grow_from = setting(cfg, f"{key}.grow_from")
+        if present(cfg, f"{key}.grow_from") and not (
+            isinstance(grow_from, float | int) and 0 < grow_from <= 1
+        ):
+            raise ConfigError(f"{key}.grow_from must be a share in (0, 1], got {grow_from!r}")
+        at = integer(cfg, f"{key}.grow_at_epoch", 0) if present(cfg, f"{key}.grow_at_epoch") else 0
+        epochs = setting(cfg, "scene_model.max_epochs")
+        if grow_from is not None and grow_from < 1 and is_int(epochs) and at >= epochs:
+            raise ConfigError(f"{key}.grow_at_epoch={at} must be below {epochs} epochs")
         if (
             present(cfg, f"{key}.appearance_field")
             and integer(cfg, f"{key}.appearance_field", 0) == 1
@@ -401,7 +388,7 @@ class VoxelGridSceneModel(SceneModel):
         """Rays [R, 3] of scenes [R] -> rgb [R, 3], depth [R] (``surface_share``:
         :meth:`VoxelGrid.composite`), opacity [R]; one grid call per chunk of ``chunk_rays``
         of a scene's rays (rays not ordered by scene are ordered once, and back after)."""
-        order, counts = _scene_order(scenes, len(self.grids))
+        order, counts = scene_order(scenes, len(self.grids))
         if order is not None:
             origins, directions = origins[order], directions[order]
         parts = [(origins.new_zeros(0, 3), origins.new_zeros(0), origins.new_zeros(0))]
@@ -418,14 +405,14 @@ class VoxelGridSceneModel(SceneModel):
                 )
             first += count
         rgb, depth, opacity = (torch.cat([part[i] for part in parts]) for i in range(3))
-        return _in_order_of(order, rgb), _in_order_of(order, depth), _in_order_of(order, opacity)
+        return in_order_of(order, rgb), in_order_of(order, depth), in_order_of(order, opacity)
 
     def depth_error(
         self, origins: Tensor, directions: Tensor, scenes: Tensor, target: Tensor
     ) -> Tensor:
         """Rays [R, 3] of scenes [R] -> how far from ``target`` [R] (depth along the
         directions) their light ends [R] (:meth:`VoxelGrid.depth_error`)."""
-        order, counts = _scene_order(scenes, len(self.grids))
+        order, counts = scene_order(scenes, len(self.grids))
         if order is not None:
             origins, directions, target = origins[order], directions[order], target[order]
         parts, first, samples = [origins.new_zeros(0)], 0, self.samples_per_ray
@@ -437,7 +424,7 @@ class VoxelGridSceneModel(SceneModel):
                 )
                 parts.append(error)
             first += count
-        return _in_order_of(order, torch.cat(parts))
+        return in_order_of(order, torch.cat(parts))
 
     def with_appearance(
         self, rgb: Tensor, appearance: Tensor, pixels: Tensor | None = None
@@ -462,7 +449,21 @@ class VoxelGridSceneModel(SceneModel):
         return rgb * (field * weights).sum(1, keepdim=True).exp()
 
     def total_variation(self) -> Tensor:
-        return torch.stack([grid.total_variation() for grid in self.grids]).mean()
+        """The grids' mean total variation, each weighed by its configured voxel's length
+        over its own, squared: per unit of the field's gradient, the same at every size the
+        fit grows through (1 at the configured size)."""
+        return torch.stack(
+            [g.total_variation() * (g.configured_voxel_m / g.voxel_m) ** 2 for g in self.grids]
+        ).mean()
+
+    def fit_stage(self, epoch: int, fresh: bool) -> bool:
+        """Before epoch ``grow_at_epoch`` the grids hold ``grow_from`` × ``num_voxels``
+        voxels, from it ``num_voxels``, grown with the field kept (a fresh fit starts from
+        the initial fog): the coarse grid clears the empty space and places the surfaces,
+        the fine one adds the detail."""
+        coarse = epoch < self.grow_at_epoch and self.grow_from < 1
+        voxels = max(8, round(self.grow_from * self.num_voxels)) if coarse else self.num_voxels
+        return any([grid.resize(voxels, keep=not fresh) for grid in self.grids])
 
     def render(
         self,
@@ -475,12 +476,12 @@ class VoxelGridSceneModel(SceneModel):
     ) -> SceneRendering:
         """Images of poses [B, 7] in scenes [B] (see :meth:`SceneModel.render`); cameras not
         ordered by scene are rendered in scene order, so that each scene's rays are one run."""
-        order, _ = _scene_order(scenes, len(self.grids))
+        order, _ = scene_order(scenes, len(self.grids))
         if order is not None:
             ordered = self.render(
                 poses[order], scenes[order], intrinsics[order], width, height, surface_share
             )
-            return SceneRendering(*(_in_order_of(order, part) for part in ordered))
+            return SceneRendering(*(in_order_of(order, part) for part in ordered))
         origins, directions = camera_rays(poses, intrinsics, width, height)
         pixels = origins.shape[1]
         rgb, depth, opacity = self.render_rays(
