@@ -58,7 +58,6 @@ class VoxelGrid(nn.Module):
         self.register_buffer("hi", bounds_t[1].clone())
         self.contract = contract
         self.extent = (bounds_t[1] - bounds_t[0]).tolist()
-        self.num_voxels = num_voxels
         # softplus(shift) · (one voxel) = -log(1 - init_alpha): a faint initial fog
         self.density_shift = math.log(math.expm1(-math.log1p(-init_alpha)))
         self.background = nn.Parameter(torch.zeros(3))
@@ -333,8 +332,8 @@ class VoxelGridSceneModel(SceneModel):
     @classmethod
     def check_config(cls, cfg: DictConfig, key: str) -> None:
         """num_voxels >= 8, samples_per_ray >= 1, grow_from in (0, 1] and grow_at_epoch below
-        the fit's epochs, appearance_field 0 or >= 2, contract true,
-        false or auto, margin_m auto, one number >= 0 or three, auto_scale's numbers >= 0."""
+        the fit's epochs, appearance_field 0 or >= 2, contract true, false or auto, margin_m
+        auto, one number >= 0 or three, auto_scale's numbers >= 0."""
         integer(cfg, f"{key}.num_voxels", 8)
         integer(cfg, f"{key}.samples_per_ray", 1)
         grow_from = setting(cfg, f"{key}.grow_from")
