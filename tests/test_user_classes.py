@@ -135,6 +135,7 @@ def test_a_users_backbone_and_scene_model_train(
         "scene_model.model._target_=user_models.GreySceneModel",
         *(f"~scene_model.model.{key}" for key in ("margin_m", "num_voxels", "samples_per_ray")),
         *(f"~scene_model.model.{key}" for key in ("appearance_field", "contract", "near_m")),
+        *(f"~scene_model.model.{key}" for key in ("grow_from", "grow_at_epoch")),
         "~scene_model.model.auto_scale",
         "+scene_model.model.grey=0.0",
         "scene_model.max_epochs=1",
