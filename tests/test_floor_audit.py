@@ -76,6 +76,9 @@ def test_picture_puts_query_renderer_and_model_side_by_side(
     assert abs(tiles[:, :, 3] - tiles[:, :, 4]).max() <= 1
     assert abs(tiles[:, :, 1] - tiles[:, :, 2]).mean() > 2  # the blurred model differs
     assert abs(tiles[:, :, 4] - tiles[:, :, 5]).mean() > 10
+    for wrong in (tmp_path / "picture.jpg", tmp_path / "missing" / "picture.png"):
+        with pytest.raises(SystemExit):
+            floor.main(["unused", "--explain", "2", "--picture", str(wrong)])
 
 
 def test_blurred_oracle_needs_the_true_scenes(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -109,6 +109,15 @@ class WithOracleDepth(torch.nn.Module):
         return colours._replace(depth=geometry.depth, opacity=geometry.opacity)
 
 
+def compared(rgb: torch.Tensor, settings: dict) -> torch.Tensor:
+    """Images [B, 3, H, W] -> the grey images [B, H, W] band-passed as ``settings`` compare
+    at the finest level (blur, high-pass, local contrast)."""
+    return band_pass(
+        grey(rgb), settings["blur_sigma_px"], settings["highpass_sigma_px"],
+        settings.get("contrast_sigma_px", 0.0),
+    )  # fmt: skip
+
+
 def explained(
     model: Any, oracle: OracleSceneModel, queries: dict[str, torch.Tensor], settings: dict
 ) -> dict[str, float]:
@@ -126,18 +135,15 @@ def explained(
         ours, truth = model.render(*args), oracle.render(*args)
         surface = model.render(*args, surface_share=settings.get("surface_share", 0.0)).depth
     ratio = (surface.clamp_min(1e-6) / truth.depth.clamp_min(1e-6)).log().abs()
-
-    def filtered(rgb: torch.Tensor) -> torch.Tensor:
-        return band_pass(
-            grey(rgb), settings["blur_sigma_px"], settings["highpass_sigma_px"],
-            settings.get("contrast_sigma_px", 0.0),
-        ).flatten(1)  # fmt: skip
-
-    query = filtered(queries["image"])
+    query = compared(queries["image"], settings).flatten(1)
     ones = torch.ones_like(query)
+
+    def score(rgb: torch.Tensor) -> float:
+        return float(zncc(query, compared(rgb, settings).flatten(1), ones).mean())
+
     return {
-        "zncc_model": float(zncc(query, filtered(ours.rgb), ones).mean()),
-        "zncc_oracle": float(zncc(query, filtered(truth.rgb), ones).mean()),
+        "zncc_model": score(ours.rgb),
+        "zncc_oracle": score(truth.rgb),
         "opacity_model": float(ours.opacity.mean()),
         "depth_minus_oracle_median_m": float((ours.depth - truth.depth).median()),
         "surface_log_ratio_median": float(ratio.median()),
@@ -161,10 +167,7 @@ def picture(
         images = (queries["image"], oracle.render(*args).rgb, model.render(*args).rgb)
 
     def filtered(rgb: torch.Tensor) -> torch.Tensor:
-        g = band_pass(
-            grey(rgb), settings["blur_sigma_px"], settings["highpass_sigma_px"],
-            settings.get("contrast_sigma_px", 0.0),
-        ).reshape(len(rgb), 1, height, width)  # fmt: skip
+        g = compared(rgb, settings).reshape(len(rgb), 1, height, width)
         g = (g - g.mean((2, 3), keepdim=True)) / g.std((2, 3), keepdim=True).clamp_min(1e-6)
         return ((g.clamp(-3, 3) + 3) / 6).expand(-1, 3, -1, -1)
 
@@ -287,6 +290,8 @@ def main(argv: list[str]) -> int:
         parser.error(f"--window must be odd, got {args.window}")
     if (args.explain_only or args.picture) and not args.explain:
         parser.error("--explain-only and --picture need --explain N")
+    if args.picture and (args.picture.suffix.lower() != ".png" or not args.picture.parent.is_dir()):
+        parser.error(f"--picture {args.picture}: a .png file in an existing folder")
     if args.oracle is not None and args.oracle_depth:
         parser.error("--oracle already renders the benchmark's depth; drop --oracle-depth")
     if args.oracle is not None and args.oracle < 0:

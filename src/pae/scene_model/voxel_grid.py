@@ -82,10 +82,10 @@ class VoxelGrid(nn.Module):
     def _reshape(self, shape: tuple[int, int, int], keep: bool) -> None:
         """:meth:`resize` to ``shape`` (nx, ny, nz)."""
         voxel_m = voxel_length_m(self.extent, shape, self.contract)
-        cells = torch.zeros(1, 4, shape[2], shape[1], shape[0])
+        size = (shape[2], shape[1], shape[0])  # (nz, ny, nx)
+        cells = torch.zeros(1, 4, *size)
         if keep:
             with torch.no_grad():
-                size = cells.shape[2:]
                 raw = F.interpolate(self.grid, size, mode="trilinear", align_corners=True)
                 light = F.softplus(raw[:, :1] + self.density_shift) * voxel_m / self.voxel_m
                 light = light.clamp_min(1e-12)  # softplus's inverse below stays finite
