@@ -1,0 +1,70 @@
+"""experiments/render_compare_real_starts/gate_val.py: the gate families fitted on val."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+import torch
+
+FOLDER = Path(__file__).resolve().parents[1] / "experiments/render_compare_real_starts"
+
+
+def _gate_val() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("gate_val", FOLDER / "gate_val.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _record(blocks: int = 4) -> dict:
+    """A 1-m scene whose val queries come in three kinds, eight (a ladder's length) each per
+    block: near starts refined a little closer with little gain, starts refined far away into
+    a wrong pose with a larger gain, far starts brought home with the largest gain."""
+    kinds = {  # start m, refined m, moved m, gain
+        "near": (0.03, 0.01, 0.02, 0.02),
+        "wrong": (0.05, 0.5, 0.5, 0.1),
+        "home": (0.3, 0.01, 0.3, 0.5),
+    }
+    rows = [kinds[name] for _ in range(blocks) for name in kinds for _ in range(8)]
+    start, refined, moved, gain = torch.tensor(rows).T
+    return {
+        "gain": gain,
+        "score": torch.full_like(gain, 0.5),
+        "moved_m": moved,
+        "start_m": start,
+        "refined_m": refined,
+        "rung": torch.arange(len(rows)) % 8,
+        "size_m": 1.0,
+    }
+
+
+def test_evidence_per_distance_keeps_near_refinements_that_a_margin_cannot() -> None:
+    gate_val = _gate_val()
+    record = _record()
+    every = torch.arange(len(record["gain"]))
+    near = torch.arange(len(every)) % 24 < 8
+    values = {}
+    for family in ("A", "B", "C"):
+        gate = gate_val.fitted(family, record, every)
+        kept = gate_val.accepted(family, record, every, gate)
+        values[family] = gate_val.objective(record, every, kept)
+        if family == "C":
+            assert kept[near].all() and not kept[(every % 24 >= 8) & (every % 24 < 16)].any()
+        else:  # one margin on the gain: the near refinements go with the wrong ones
+            assert not kept[near].any()
+    assert values["C"] < values["A"] - 0.1
+    assert values["B"] == pytest.approx(values["A"])  # equal scores: nothing vouches alone
+
+
+def test_cross_validation_scores_each_family_on_the_half_it_was_not_fitted_on() -> None:
+    gate_val = _gate_val()
+    families = gate_val.cross_validated(_record())
+    assert set(families) == {"A", "B", "C"}
+    for row in families.values():
+        assert row["cross_validated"] == pytest.approx(sum(row["held_out"]) / 2)
+        assert len(row["rungs"]) == 8
+    assert families["C"]["cross_validated"] < families["A"]["cross_validated"]
