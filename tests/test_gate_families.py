@@ -68,3 +68,24 @@ def test_cross_validation_scores_each_family_on_the_half_it_was_not_fitted_on() 
         assert row["cross_validated"] == pytest.approx(sum(row["held_out"]) / 2)
         assert len(row["rungs"]) == 8
     assert families["C"]["cross_validated"] < families["A"]["cross_validated"]
+
+
+def test_compensated_starts_keep_the_point_ahead_on_the_optical_axis() -> None:
+    from pae.core.geometry import quaternion_to_matrix
+    from pae.core.pose_sampling import perturb_poses
+
+    gate_val = _gate_val()
+    truth = perturb_poses(torch.zeros(64, 7) + torch.tensor([0.0] * 3 + [1.0, 0, 0, 0]), 1.0, 90.0)
+    size = 2.0
+    starts = gate_val.compensated_starts(truth, size, torch.Generator().manual_seed(0))
+
+    def forward(poses: torch.Tensor) -> torch.Tensor:
+        return quaternion_to_matrix(poses[:, 3:].double())[:, :, 2]
+
+    point = truth[:, :3].double() + gate_val.LOOK_AT_SHARE * size * forward(truth)
+    towards = point - starts[:, :3].double()
+    towards = towards / towards.norm(dim=-1, keepdim=True)
+    assert torch.allclose(forward(starts), towards, atol=1e-5)
+    moved = (starts[:, :3] - truth[:, :3]).norm(dim=-1)
+    rung_scale = torch.tensor(gate_val.LADDER)[torch.arange(64) % 8] * size
+    assert (moved <= 2 * rung_scale + 1e-6).all() and (moved > 0).all()

@@ -7,10 +7,13 @@ refinement kept; each query's score gain, refined score, distance moved and posi
 go to ``RUN/gate_val.pt`` (made once, read back after). Then each gate family is fitted by
 the calibration's objective (``log_ratio``) in a two-fold cross-validation over alternating
 blocks of ``len(LADDER)`` queries, and its held-out objective printed and written to
-``RUN/gate_val.json``. Only validation labels are read.
+``RUN/gate_val.json``. ``--mixed``: also a ladder of compensated starts
+(:func:`compensated_starts`, ``RUN/gate_val_compensated.pt``) and what today's gate fitted
+on both ladders changes against it fitted on the random ladder alone, on each kind's
+held-out queries (:func:`mixed_against_random`). Only validation labels are read.
 
     python experiments/render_compare_real_starts/gate_val.py outputs/rsh_grow/fire \\
-        outputs/rsh_grow/pumpkin
+        outputs/rsh_grow/pumpkin --mixed
 """
 
 from __future__ import annotations
@@ -28,7 +31,8 @@ from pae.apps import localization as loc
 from pae.apps.match_inputs import run_train_images
 from pae.core.atomic import atomic_write
 from pae.core.checkpoints import load_scene_model, load_teacher
-from pae.core.geometry import pose_errors
+from pae.core.geometry import pose_errors, quaternion_to_matrix
+from pae.core.pose_sampling import perturb
 from pae.render_compare import ACCEPT_ALL, Queries, refine
 from pae.render_compare.calibration import (
     KEEP_ALL,
@@ -41,15 +45,46 @@ from pae.render_compare.calibration import (
 )
 from pae.render_compare.correspondences import MatchQueries
 
+LOOK_AT_SHARE = 0.5
+"""A compensated start keeps on its optical axis the point this share of the scene's size
+ahead of the true camera."""
 MOVE_UNIT_SHARE = 0.01
 """Family C's unit distance: this share of the scene's size asks the margin m itself."""
 NEVER = float("inf")
 
 
-def refined_on_val(folder: Path) -> dict[str, torch.Tensor | float]:
-    """The run's val queries refined from the ladder starts under its any-start calibration,
-    every refinement kept: per query [N] the score gain, refined score, distance moved (m),
-    start and refined position errors (m) and rung; the scene's size (m)."""
+def compensated_starts(
+    truth: torch.Tensor, size_m: float, generator: torch.Generator
+) -> torch.Tensor:
+    """Starts [N, 7] that leave the view nearly as it was, as an APR that regresses the pose
+    from what the image shows errs: query i's camera moved by a distance uniform in [0, 2 x
+    ``LADDER[i % K]`` x ``size_m``] (m) in a random direction, then turned (the least turn)
+    so that the point ``LOOK_AT_SHARE`` x ``size_m`` ahead of the true camera stays on its
+    optical axis."""
+    count = len(truth)
+    scale = torch.tensor(LADDER, dtype=torch.float64)[torch.arange(count) % len(LADDER)]
+    direction = torch.randn(count, 3, generator=generator, dtype=torch.float64)
+    direction = direction / direction.norm(dim=-1, keepdim=True)
+    moved = direction * (2 * scale * size_m * torch.rand(count, generator=generator))[:, None]
+    poses = truth.double()
+    rotation = quaternion_to_matrix(poses[:, 3:])
+    ahead = torch.tensor([0.0, 0.0, LOOK_AT_SHARE * size_m], dtype=torch.float64)
+    axis_to = ahead - torch.einsum("nji,nj->ni", rotation, moved)  # in the camera's frame
+    axis_to = axis_to / axis_to.norm(dim=-1, keepdim=True)
+    cross = torch.stack(
+        [-axis_to[:, 1], axis_to[:, 0], torch.zeros(count, dtype=torch.float64)], -1
+    )
+    sine = cross.norm(dim=-1, keepdim=True)
+    turn = cross / sine.clamp_min(1e-12) * torch.atan2(sine, axis_to[:, 2:])
+    return perturb(poses, torch.cat([moved, turn], -1)).to(truth)
+
+
+def refined_on_val(folder: Path, kind: str) -> dict[str, torch.Tensor | float]:
+    """The run's val queries refined from the ladder starts (``kind``: ``random``, as the
+    calibration draws them, or ``compensated``, :func:`compensated_starts`) under its
+    any-start calibration, every refinement kept: per query [N] the score gain, refined
+    score, distance moved (m), start and refined position errors (m) and rung; the scene's
+    size (m)."""
     run = loc.read_run(folder)
     settings, _ = loc.render_compare_settings(run)
     model = load_scene_model(loc.scene_model_path(run), "scene_model_ckpt").model.eval()
@@ -69,7 +104,9 @@ def refined_on_val(folder: Path) -> dict[str, torch.Tensor | float]:
         images, intrinsics = data.images_at("val", width)
         matching = MatchQueries(images.float() / 255, intrinsics, views)
     truth = val["pose"]
-    starts = ladder_starts(truth, size, torch.Generator().manual_seed(AnyStartOptions().seed))
+    generator = torch.Generator().manual_seed(AnyStartOptions().seed)
+    draw = compensated_starts if kind == "compensated" else ladder_starts
+    starts = draw(truth, size, generator)
     every = dataclasses.replace(calibration, accept_margin=ACCEPT_ALL, accept_score=ACCEPT_ALL)
     queries = Queries(val["image"], val["intrinsics"], val["scene"], matching=matching)
     begin = time.perf_counter()
@@ -167,22 +204,68 @@ def cross_validated(record: dict) -> dict[str, dict]:
     return out
 
 
+def joined(first: dict, second: dict) -> dict:
+    """Two records of the same val queries as one of twice the queries."""
+    return {
+        key: torch.cat([value, second[key]]) if isinstance(value, torch.Tensor) else value
+        for key, value in first.items()
+    }
+
+
+def mixed_against_random(random: dict, compensated: dict) -> dict[str, float]:
+    """Today's family fitted on the random ladder alone and on both ladders together, each
+    fold's fit scored on the other fold: how much the mixed gate changes the held-out
+    objective of the random starts (``random_change``) and of the compensated ones
+    (``compensated_change``), the mean over the two folds (negative: lower, better)."""
+    count = len(random["gain"])
+    block = (torch.arange(count) // len(LADDER)) % 2
+    folds = [torch.nonzero(block == k).flatten() for k in (0, 1)]
+    both = joined(random, compensated)
+    changes = {"random_change": 0.0, "compensated_change": 0.0}
+    for k in (0, 1):
+        fit, held = folds[k], folds[1 - k]
+        alone = fitted("A", random, fit)
+        mixed = fitted("A", both, torch.cat([fit, fit + count]))
+        for name, record in (("random_change", random), ("compensated_change", compensated)):
+            value = {
+                gate: objective(record, held, accepted("A", record, held, gate))
+                for gate in (alone, mixed)
+            }
+            changes[name] += (value[mixed] - value[alone]) / 2
+    return changes
+
+
+def stored_record(folder: Path, kind: str) -> dict:
+    """The val record of ``kind`` starts, made once and read back after."""
+    stored = folder / ("gate_val.pt" if kind == "random" else f"gate_val_{kind}.pt")
+    if stored.is_file():
+        return torch.load(stored, weights_only=True)
+    record = refined_on_val(folder, kind)
+    with atomic_write(stored, "wb") as handle:
+        torch.save(record, handle)
+    return record
+
+
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", type=Path, nargs="+")
+    parser.add_argument(
+        "--mixed",
+        action="store_true",
+        help="also the compensated ladder (compensated_starts) and the gate fitted on both "
+        "ladders against the gate fitted on the random one (mixed_against_random)",
+    )
     args = parser.parse_args(argv)
     for folder in args.runs:
-        stored = folder / "gate_val.pt"
-        if stored.is_file():
-            record = torch.load(stored, weights_only=True)
-        else:
-            record = refined_on_val(folder)
-            with atomic_write(stored, "wb") as handle:
-                torch.save(record, handle)
+        record = stored_record(folder, "random")
         families = cross_validated(record)
+        if args.mixed:
+            families["mixed"] = mixed_against_random(record, stored_record(folder, "compensated"))
+            print(f"{folder.name} mixed ladder: {families['mixed']}")
         with atomic_write(folder / "gate_val.json") as handle:
             json.dump(families, handle, indent=1)
-        for family, row in families.items():
+        for family in ("A", "B", "C"):
+            row = families[family]
             rungs = " ".join(
                 f"{100 * r['pos_median_m']:.1f}/{r['accepted']:.2f}" for r in row["rungs"]
             )
