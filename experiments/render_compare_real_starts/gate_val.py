@@ -7,7 +7,8 @@ refinement kept; each query's score gain, refined score, distance moved and posi
 go to ``RUN/gate_val.pt`` (made once, read back after). Then each gate family is fitted by
 the calibration's objective (``log_ratio``) in a two-fold cross-validation over alternating
 blocks of ``len(LADDER)`` queries, and its held-out objective printed and written to
-``RUN/gate_val.json``. ``--mixed``: also a ladder of compensated starts
+``RUN/gate_val.json``. ``--audit-test APR``: an audit that reads the test labels
+(:func:`audit_test`). ``--mixed``: also a ladder of compensated starts
 (:func:`compensated_starts`, ``RUN/gate_val_compensated.pt``) and what today's gate fitted
 on both ladders changes against it fitted on the random ladder alone, on each kind's
 held-out queries (:func:`mixed_against_random`). Only validation labels are read.
@@ -24,6 +25,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 
@@ -33,7 +35,8 @@ from pae.core.atomic import atomic_write
 from pae.core.checkpoints import load_scene_model, load_teacher
 from pae.core.geometry import pose_errors, quaternion_to_matrix
 from pae.core.pose_sampling import perturb
-from pae.render_compare import ACCEPT_ALL, Queries, refine
+from pae.data.labels import read_labels
+from pae.render_compare import ACCEPT_ALL, Calibration, Queries, refine
 from pae.render_compare.calibration import (
     KEEP_ALL,
     LADDER,
@@ -43,7 +46,7 @@ from pae.render_compare.calibration import (
     ladder_starts,
     scene_size,
 )
-from pae.render_compare.correspondences import MatchQueries
+from pae.render_compare.correspondences import MatchQueries, TrainImages
 
 LOOK_AT_SHARE = 0.5
 """A compensated start keeps on its optical axis the point this share of the scene's size
@@ -79,12 +82,21 @@ def compensated_starts(
     return perturb(poses, torch.cat([moved, turn], -1)).to(truth)
 
 
-def refined_on_val(folder: Path, kind: str) -> dict[str, torch.Tensor | float]:
-    """The run's val queries refined from the ladder starts (``kind``: ``random``, as the
-    calibration draws them, or ``compensated``, :func:`compensated_starts`) under its
-    any-start calibration, every refinement kept: per query [N] the score gain, refined
-    score, distance moved (m), start and refined position errors (m) and rung; the scene's
-    size (m)."""
+class Loaded(NamedTuple):
+    """A run's refiner settings, scene model, any-start calibration, train views (None:
+    none read), data (set up) and scene size (m)."""
+
+    settings: dict
+    model: torch.nn.Module
+    calibration: Calibration
+    train: TrainImages | None
+    data: object
+    size_m: float
+
+
+def loaded(folder: Path) -> Loaded:
+    """The run in ``folder`` as its any-start refinement reads it (the calibration from
+    ``RUN/render_compare_any_start.json``)."""
     run = loc.read_run(folder)
     settings, _ = loc.render_compare_settings(run)
     model = load_scene_model(loc.scene_model_path(run), "scene_model_ckpt").model.eval()
@@ -94,33 +106,99 @@ def refined_on_val(folder: Path, kind: str) -> dict[str, torch.Tensor | float]:
     calibration, train = loc.any_start_calibration(run, model, settings, None, device, teacher)
     data = loc.data_module(run, cache_images=False)
     data.setup()
-    val = loc.split_queries(data, "val", loc.compare_width(settings))
+    if calibration.match.active and train is None:
+        train = run_train_images((run.folder, run.config), data, calibration.match.width, teacher)
     positions, _ = data.train_poses()
-    size = scene_size(positions[:, :3].double())
+    return Loaded(settings, model, calibration, train, data, scene_size(positions[:, :3].double()))
+
+
+def split_queries(run: Loaded, split: str) -> dict[str, torch.Tensor]:
+    """The run's ``split`` as its refiner compares it (:func:`loc.split_queries`)."""
+    return loc.split_queries(run.data, split, loc.compare_width(run.settings))
+
+
+def every_kept(
+    run: Loaded, split: str, queries: dict, rows: torch.Tensor, starts: torch.Tensor
+) -> dict:
+    """The ``split``'s ``queries`` (:func:`split_queries`) ``rows`` refined from starts
+    [R, 7] under the run's calibration with every refinement kept: per query [R] the score
+    gain, refined score, start's score, distance moved (m), start and refined position
+    errors (m)."""
     matching = None
-    if calibration.match.active:
-        width = calibration.match.width
-        views = train or run_train_images((run.folder, run.config), data, width, teacher)
-        images, intrinsics = data.images_at("val", width)
-        matching = MatchQueries(images.float() / 255, intrinsics, views)
-    truth = val["pose"]
-    generator = torch.Generator().manual_seed(AnyStartOptions().seed)
-    draw = compensated_starts if kind == "compensated" else ladder_starts
-    starts = draw(truth, size, generator)
-    every = dataclasses.replace(calibration, accept_margin=ACCEPT_ALL, accept_score=ACCEPT_ALL)
-    queries = Queries(val["image"], val["intrinsics"], val["scene"], matching=matching)
+    if run.calibration.match.active:
+        images, intrinsics = run.data.images_at(split, run.calibration.match.width)
+        matching = MatchQueries(images[rows].float() / 255, intrinsics[rows], run.train)
+    every = dataclasses.replace(run.calibration, accept_margin=ACCEPT_ALL, accept_score=ACCEPT_ALL)
+    chosen = Queries(
+        queries["image"][rows],
+        queries["intrinsics"][rows],
+        queries["scene"][rows],
+        matching=matching,
+    )
     begin = time.perf_counter()
-    result = refine(model, queries, starts, every, settings=settings).result
-    print(f"{folder.name}: {len(truth)} val queries refined in {time.perf_counter() - begin:.0f} s")
+    result = refine(run.model, chosen, starts, every, settings=run.settings).result
+    print(f"{len(rows)} {split} queries refined in {time.perf_counter() - begin:.0f} s")
+    truth = queries["pose"][rows]
     return {
         "gain": result.score - result.initial_score,
         "score": result.score,
+        "initial": result.initial_score,
         "moved_m": pose_errors(result.poses.float(), starts.float())[0],
         "start_m": pose_errors(starts.float(), truth.float())[0],
         "refined_m": pose_errors(result.poses.float(), truth.float())[0],
-        "rung": torch.arange(len(truth)) % len(LADDER),
-        "size_m": size,
     }
+
+
+def refined_on_val(folder: Path, kind: str) -> dict[str, torch.Tensor | float]:
+    """The run's val queries refined from the ladder starts (``kind``: ``random``, as the
+    calibration draws them, or ``compensated``, :func:`compensated_starts`), every
+    refinement kept (:func:`every_kept`), with each query's rung and the scene's size (m)."""
+    run = loaded(folder)
+    queries = split_queries(run, "val")
+    truth = queries["pose"]
+    generator = torch.Generator().manual_seed(AnyStartOptions().seed)
+    draw = compensated_starts if kind == "compensated" else ladder_starts
+    starts = draw(truth, run.size_m, generator)
+    record = every_kept(run, "val", queries, torch.arange(len(truth)), starts)
+    return record | {"rung": torch.arange(len(truth)) % len(LADDER), "size_m": run.size_m}
+
+
+def audit_test(folder: Path, apr: str) -> dict[str, float]:
+    """An audit (it reads the test labels): the test images of ``run.py``'s rows
+    (``RUN/test_every*.csv``) refined from ``RUN/starts_<apr>.csv`` with every refinement
+    kept (``RUN/gate_test_audit_<apr>.pt``), and what the run's gate does with them."""
+    stored = folder / f"gate_test_audit_{apr}.pt"
+    run = loaded(folder)
+    if stored.is_file():
+        record = torch.load(stored, weights_only=True)
+    else:
+        starts = read_labels(folder / f"starts_{apr}.csv")
+        names = list(run.data.tables["test"].img_path)
+        rows = torch.tensor([names.index(name) for name in starts.img_path])
+        poses = torch.as_tensor(starts.poses).float()
+        record = every_kept(run, "test", split_queries(run, "test"), rows, poses)
+        with atomic_write(stored, "wb") as handle:
+            torch.save(record, handle)
+    margin, floor = run.calibration.accept_margin, run.calibration.accept_score
+    passes_margin, passes_floor = record["gain"] > margin, record["score"] > floor
+    kept = passes_margin & passes_floor
+    gated = torch.where(kept, record["refined_m"], record["start_m"])
+    turned = {"margin": ~passes_margin, "floor_alone": passes_margin & ~passes_floor}
+    figures = {
+        "accepted": float(kept.float().mean()),
+        "gated_pos_median_m": float(gated.median()),
+        "every_kept_pos_median_m": float(record["refined_m"].median()),
+        "start_pos_median_m": float(record["start_m"].median()),
+    }
+    for name, rows in turned.items():
+        figures[f"turned_by_{name}"] = float(rows.float().mean())
+        figures[f"turned_by_{name}_start_median_m"] = float(record["start_m"][rows].median())
+        figures[f"turned_by_{name}_refined_median_m"] = float(record["refined_m"][rows].median())
+        nearer = record["refined_m"][rows] < record["start_m"][rows]
+        figures[f"turned_by_{name}_nearer"] = float(nearer.float().mean())
+    with atomic_write(folder / f"gate_test_audit_{apr}.json") as handle:
+        json.dump(figures, handle, indent=1)
+    return figures
 
 
 def quantiles(values: torch.Tensor, base: list[float]) -> torch.Tensor:
@@ -255,8 +333,17 @@ def main(argv: list[str]) -> int:
         help="also the compensated ladder (compensated_starts) and the gate fitted on both "
         "ladders against the gate fitted on the random one (mixed_against_random)",
     )
+    parser.add_argument(
+        "--audit-test",
+        metavar="APR",
+        help="an audit that reads the test labels: the run's test rows refined from "
+        "RUN/starts_<APR>.csv with every refinement kept, and what the gate does with them",
+    )
     args = parser.parse_args(argv)
     for folder in args.runs:
+        if args.audit_test:
+            print(f"{folder.name} {args.audit_test} (audit): {audit_test(folder, args.audit_test)}")
+            continue
         record = stored_record(folder, "random")
         families = cross_validated(record)
         if args.mixed:
