@@ -11,7 +11,8 @@ blocks of ``len(LADDER)`` queries, and its held-out objective printed and writte
 (:func:`audit_test`). ``--mixed``: also a ladder of compensated starts
 (:func:`compensated_starts`, ``RUN/gate_val_compensated.pt``) and what today's gate fitted
 on both ladders changes against it fitted on the random ladder alone, on each kind's
-held-out queries (:func:`mixed_against_random`). Only validation labels are read.
+held-out queries (:func:`mixed_against_random`). Without ``--audit-test`` only validation
+labels are read.
 
     python experiments/render_compare_real_starts/gate_val.py outputs/rsh_grow/fire \\
         outputs/rsh_grow/pumpkin --mixed
