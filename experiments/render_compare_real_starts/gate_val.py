@@ -288,6 +288,7 @@ def joined(first: dict, second: dict) -> dict:
     return {
         key: torch.cat([value, second[key]]) if isinstance(value, torch.Tensor) else value
         for key, value in first.items()
+        if key in second
     }
 
 
