@@ -89,3 +89,17 @@ def test_compensated_starts_keep_the_point_ahead_on_the_optical_axis() -> None:
     moved = (starts[:, :3] - truth[:, :3]).norm(dim=-1)
     rung_scale = torch.tensor(gate_val.LADDER)[torch.arange(64) % 8] * size
     assert (moved <= 2 * rung_scale + 1e-6).all() and (moved > 0).all()
+
+
+def test_a_mixed_ladder_of_the_same_starts_changes_nothing_and_of_other_starts_does() -> None:
+    gate_val = _gate_val()
+    record = _record()
+    same = gate_val.mixed_against_random(record, record)
+    assert same == {"random_change": 0.0, "compensated_change": 0.0}
+    near_only = dict(record)
+    near_only["gain"] = torch.full_like(record["gain"], 0.02)
+    near_only["start_m"], near_only["refined_m"] = (
+        torch.full_like(record["gain"], v) for v in (0.03, 0.01)
+    )
+    other = gate_val.mixed_against_random(record, near_only)
+    assert other["compensated_change"] < 0  # the mixed gate keeps the near refinements
