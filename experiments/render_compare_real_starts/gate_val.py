@@ -165,9 +165,9 @@ def refined_on_val(folder: Path, kind: str) -> dict[str, torch.Tensor | float]:
 
 
 def audit_test(folder: Path, apr: str) -> dict[str, float]:
-    """An audit (it reads the test labels): the test images of ``run.py``'s rows
-    (``RUN/test_every*.csv``) refined from ``RUN/starts_<apr>.csv`` with every refinement
-    kept (``RUN/gate_test_audit_<apr>.pt``), and what the run's gate does with them."""
+    """An audit (it reads the test labels): the test images ``run.py`` refined from
+    ``RUN/starts_<apr>.csv``, from those starts with every refinement kept
+    (``RUN/gate_test_audit_<apr>.pt``), and what the run's gate does with them."""
     stored = folder / f"gate_test_audit_{apr}.pt"
     run = loaded(folder)
     if stored.is_file():
@@ -193,6 +193,8 @@ def audit_test(folder: Path, apr: str) -> dict[str, float]:
     }
     for name, rows in turned.items():
         figures[f"turned_by_{name}"] = float(rows.float().mean())
+        if not rows.any():  # no medians of none
+            continue
         figures[f"turned_by_{name}_start_median_m"] = float(record["start_m"][rows].median())
         figures[f"turned_by_{name}_refined_median_m"] = float(record["refined_m"][rows].median())
         nearer = record["refined_m"][rows] < record["start_m"][rows]
