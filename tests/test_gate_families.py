@@ -103,3 +103,39 @@ def test_a_mixed_ladder_of_the_same_starts_changes_nothing_and_of_other_starts_d
     )
     other = gate_val.mixed_against_random(record, near_only)
     assert other["compensated_change"] < 0  # the mixed gate keeps the near refinements
+
+
+def test_todays_family_is_the_calibrations_own_gate() -> None:
+    from pae.render_compare.calibration import choose_gate
+
+    gate_val = _gate_val()
+    generator = torch.Generator().manual_seed(0)
+    count = 400
+    start = 0.01 + torch.rand(count, generator=generator)
+    record = {
+        "gain": torch.randn(count, generator=generator) * 0.2,
+        "score": torch.rand(count, generator=generator),
+        "start_m": start,
+        "refined_m": start * torch.rand(count, generator=generator) * 2,
+        "moved_m": torch.rand(count, generator=generator),
+        "size_m": 1.0,
+    }
+    every = torch.arange(count)
+    margin, floor, alone = gate_val.fitted("A", record, every)
+    expected = choose_gate(
+        record["gain"], record["score"], record["refined_m"], record["start_m"],
+        objective="log_ratio",
+    )  # fmt: skip
+    assert (margin, floor) == pytest.approx(expected) and alone == gate_val.NEVER
+
+
+def test_by_distance_bins_the_starts() -> None:
+    gate_val = _gate_val()
+    record = _record()
+    rows = gate_val.by_distance(record)
+    assert [r["queries"] for r in rows] == [32, 32, 0]  # near 3 cm; wrong 5 cm; home 30 cm
+    assert rows[0]["refined_median_m"] == pytest.approx(0.01) and rows[0]["nearer"] == 1.0
+    assert rows[1]["nearer"] == 0.0
+    assert rows[0]["start_score_median"] == pytest.approx(0.48)
+    assert rows[2] == {"start_m": [0.07, 0.12], "queries": 0}
+    assert "7-12 cm" not in gate_val.distances_line("empty bin", rows)

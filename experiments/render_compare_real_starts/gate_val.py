@@ -55,6 +55,8 @@ ahead of the true camera."""
 MOVE_UNIT_SHARE = 0.01
 """Family C's unit distance: this share of the scene's size asks the margin m itself."""
 NEVER = float("inf")
+DISTANCE_BINS_M = ((0.02, 0.04), (0.04, 0.07), (0.07, 0.12))
+"""The start distances (m) at which :func:`by_distance` compares kinds of starts."""
 
 
 def compensated_starts(
@@ -97,7 +99,8 @@ class Loaded(NamedTuple):
 
 def loaded(folder: Path) -> Loaded:
     """The run in ``folder`` as its any-start refinement reads it (the calibration from
-    ``RUN/render_compare_any_start.json``)."""
+    ``RUN/render_compare_any_start.json``; chosen on val and written there first, as
+    ``pae-localize`` does, where none was kept for the run's settings)."""
     run = loc.read_run(folder)
     settings, _ = loc.render_compare_settings(run)
     model = load_scene_model(loc.scene_model_path(run), "scene_model_ckpt").model.eval()
@@ -173,9 +176,13 @@ def audit_test(folder: Path, apr: str) -> dict[str, float]:
     if stored.is_file():
         record = torch.load(stored, weights_only=True)
     else:
-        starts = read_labels(folder / f"starts_{apr}.csv")
-        names = list(run.data.tables["test"].img_path)
-        rows = torch.tensor([names.index(name) for name in starts.img_path])
+        path = folder / f"starts_{apr}.csv"
+        starts = read_labels(path)
+        row_of = {name: row for row, name in enumerate(run.data.tables["test"].img_path)}
+        missing = [name for name in starts.img_path if name not in row_of]
+        if missing:
+            raise SystemExit(f"{path}: {missing[0]!r} is not a test image of the run")
+        rows = torch.tensor([row_of[name] for name in starts.img_path])
         poses = torch.as_tensor(starts.poses).float()
         record = every_kept(run, "test", split_queries(run, "test"), rows, poses)
         with atomic_write(stored, "wb") as handle:
@@ -199,9 +206,44 @@ def audit_test(folder: Path, apr: str) -> dict[str, float]:
         figures[f"turned_by_{name}_refined_median_m"] = float(record["refined_m"][rows].median())
         nearer = record["refined_m"][rows] < record["start_m"][rows]
         figures[f"turned_by_{name}_nearer"] = float(nearer.float().mean())
+    figures["by_distance"] = by_distance(record)
     with atomic_write(folder / f"gate_test_audit_{apr}.json") as handle:
         json.dump(figures, handle, indent=1)
     return figures
+
+
+def by_distance(record: dict) -> list[dict[str, float]]:
+    """Per bin of ``DISTANCE_BINS_M`` (the start's distance from the truth): how many
+    queries, the medians of the start's score, the score gain and the refined pose's
+    distance (m), and the share refined nearer than the start."""
+    start_score = record["score"] - record["gain"]
+    rows = []
+    for low, high in DISTANCE_BINS_M:
+        inside = (record["start_m"] > low) & (record["start_m"] < high)
+        if not inside.any():  # no medians of none
+            rows.append({"start_m": [low, high], "queries": 0})
+            continue
+        refined, start = record["refined_m"][inside], record["start_m"][inside]
+        rows.append({
+            "start_m": [low, high],
+            "queries": int(inside.sum()),
+            "start_score_median": float(start_score[inside].median()),
+            "gain_median": float(record["gain"][inside].median()),
+            "refined_median_m": float(refined.median()),
+            "nearer": float((refined < start).float().mean()),
+        })  # fmt: skip
+    return rows
+
+
+def distances_line(name: str, rows: list[dict[str, float]]) -> str:
+    """:func:`by_distance`'s rows as one printed line."""
+    return f"{name} by start distance: " + "; ".join(
+        f"{100 * r['start_m'][0]:.0f}-{100 * r['start_m'][1]:.0f} cm: start score "
+        f"{r['start_score_median']:.3f} gain {r['gain_median']:.3f} refined "
+        f"{100 * r['refined_median_m']:.1f} cm, nearer {r['nearer']:.2f}"
+        for r in rows
+        if r["queries"]
+    )
 
 
 def quantiles(values: torch.Tensor, base: list[float]) -> torch.Tensor:
@@ -344,16 +386,29 @@ def main(argv: list[str]) -> int:
         "RUN/starts_<APR>.csv with every refinement kept, and what the gate does with them",
     )
     args = parser.parse_args(argv)
+    if args.audit_test and args.mixed:
+        parser.error("--audit-test and --mixed are separate runs: give one")
     for folder in args.runs:
         if args.audit_test:
-            print(f"{folder.name} {args.audit_test} (audit): {audit_test(folder, args.audit_test)}")
+            figures = audit_test(folder, args.audit_test)
+            rows = figures.pop("by_distance")
+            print(f"{folder.name} {args.audit_test} (audit): {figures}")
+            print(distances_line(f"{folder.name} test, {args.audit_test}'s starts", rows))
             continue
+        out = folder / "gate_val.json"
+        families = json.loads(out.read_text()) if out.is_file() else {}  # earlier --mixed kept
         record = stored_record(folder, "random")
-        families = cross_validated(record)
+        families |= cross_validated(record)
+        families["by_distance"] = by_distance(record)
+        print(distances_line(f"{folder.name} val, random ladder", families["by_distance"]))
         if args.mixed:
-            families["mixed"] = mixed_against_random(record, stored_record(folder, "compensated"))
+            compensated = stored_record(folder, "compensated")
+            families["mixed"] = mixed_against_random(record, compensated)
+            families["compensated_by_distance"] = by_distance(compensated)
+            rows = families["compensated_by_distance"]
+            print(distances_line(f"{folder.name} val, compensated ladder", rows))
             print(f"{folder.name} mixed ladder: {families['mixed']}")
-        with atomic_write(folder / "gate_val.json") as handle:
+        with atomic_write(out) as handle:
             json.dump(families, handle, indent=1)
         for family in ("A", "B", "C"):
             row = families[family]
