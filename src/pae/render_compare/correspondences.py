@@ -60,7 +60,10 @@ __all__ = [
 ]
 
 STILL_M, STILL_DEG = 0.005, 0.1
-"""The render -> match -> solve loop stops once no query's pose moves more than this."""
+"""The render -> match -> solve loop stops for a query once its pose moves no more than this."""
+MATCH_CHUNK = 64
+"""Queries matched at once: bounds the renderings and the descriptor distances (a query's
+1,000 × 1,000 SIFT distances are 4 MB) whatever the number of queries."""
 
 
 class Correspondences(NamedTuple):
@@ -229,14 +232,40 @@ def correspond(
     intrinsics [B, 4] (px of those images) from correspondences with the scene model's
     renderings at starts [B, 7] (camera-to-world) in scenes [B] and with ``views`` (the
     train views, :func:`train_views`; needed where ``settings.views`` or ``near_views``).
-    Queries without ``min_inliers`` inliers keep their starts (``found`` False)."""
+    Queries without ``min_inliers`` inliers keep their starts (``found`` False). The queries
+    go ``MATCH_CHUNK`` at a time (the renderings and descriptor distances stay that size);
+    each is matched alone, so the chunking changes no result."""
     if settings.uses_views and views is None:
         raise ValueError(
             "render_compare.match.views and near_views need the train views (train_views())"
         )
     starts = torch.cat([starts[:, :3], normalize_quaternion(starts[:, 3:])], -1).float()
-    intrinsics = intrinsics.float()
-    images = images.float()
+    parts = [
+        _correspond_chunk(
+            scene_model, images[rows].float(), intrinsics[rows].float(), starts[rows],
+            scenes[rows], settings, views, describe,
+        )  # fmt: skip
+        for rows in torch.arange(len(starts)).split(MATCH_CHUNK)
+    ]
+    if not parts:
+        empty = torch.zeros(0, dtype=torch.long)
+        return Correspondences(starts, empty.bool(), empty, empty)
+    return Correspondences(*(torch.cat(column) for column in zip(*parts, strict=True)))
+
+
+def _correspond_chunk(
+    scene_model: SceneModel,
+    images: Tensor,
+    intrinsics: Tensor,
+    starts: Tensor,
+    scenes: Tensor,
+    settings: MatchSettings,
+    views: TrainViews | None,
+    describe: Describer | None,
+) -> Correspondences:
+    """:func:`correspond` for one chunk of queries (float images and intrinsics, unit
+    quaternions). Each round renders and solves again only the queries whose pose moved in
+    the round before."""
     size = (images.shape[-1], images.shape[-2])
     query = detect(images, settings)
     fixed = None
@@ -245,24 +274,30 @@ def correspond(
         descriptors = (describe or thumbnail_descriptors)(images)
         rows = _retrieve(views, descriptors, starts, scenes, settings)
         fixed = _view_matches(query, views, rows, settings)
-    poses, found = starts, torch.zeros(len(starts), dtype=torch.bool)
-    inliers = matches = torch.zeros(len(starts), dtype=torch.long)
+    poses, found = starts.clone(), torch.zeros(len(starts), dtype=torch.bool)
+    inliers, matches = (torch.zeros(len(starts), dtype=torch.long) for _ in range(2))
+    active = torch.arange(len(starts))
     rounds = max(1, settings.iterations) if settings.render_width else 1
     for _ in range(rounds):
-        parts = [] if fixed is None else [fixed]
+        parts = [] if fixed is None else [_Pooled(*(t[active] for t in fixed))]
         if settings.render_width:
+            shown = Keypoints(*(t[active] for t in query))
             parts.append(
-                _render_matches(scene_model, query, poses, scenes, intrinsics, size, settings)
+                _render_matches(
+                    scene_model, shown, poses[active], scenes[active], intrinsics[active],
+                    size, settings,
+                )  # fmt: skip
             )
         pooled = _Pooled(*(torch.cat(column, 1) for column in zip(*parts, strict=True)))
-        solved, counts = _solve(pooled, intrinsics, starts, settings)
+        solved, counts = _solve(pooled, intrinsics[active], starts[active], settings)
         now = counts >= settings.min_inliers
-        better = now & (counts >= inliers)
-        moved = _moved(solved, poses) & better
-        poses = torch.where(better[:, None], solved, poses)
-        inliers = torch.where(better, counts, inliers)
-        matches = torch.where(better, pooled.valid.sum(1), matches)
-        found |= now
-        if not settings.render_width or not bool(moved.any()):
+        better = now & (counts >= inliers[active])
+        moved = _moved(solved, poses[active]) & better
+        poses[active] = torch.where(better[:, None], solved, poses[active])
+        inliers[active] = torch.where(better, counts, inliers[active])
+        matches[active] = torch.where(better, pooled.valid.sum(1), matches[active])
+        found[active] |= now
+        active = active[moved]
+        if not settings.render_width or not len(active):
             break
     return Correspondences(poses, found, inliers, matches)
