@@ -240,13 +240,10 @@ def correspond(
             "render_compare.match.views and near_views need the train views (train_views())"
         )
     starts = torch.cat([starts[:, :3], normalize_quaternion(starts[:, 3:])], -1).float()
-    parts = [
-        _correspond_chunk(
-            scene_model, images[rows].float(), intrinsics[rows].float(), starts[rows],
-            scenes[rows], settings, views, describe,
-        )  # fmt: skip
-        for rows in torch.arange(len(starts)).split(MATCH_CHUNK)
-    ]
+    parts = []
+    for rows in torch.arange(len(starts)).split(MATCH_CHUNK):
+        part = images[rows].float(), intrinsics[rows].float(), starts[rows], scenes[rows]
+        parts.append(_correspond_chunk(scene_model, *part, settings, views, describe))
     if not parts:
         empty = torch.zeros(0, dtype=torch.long)
         return Correspondences(starts, empty.bool(), empty, empty)
@@ -282,12 +279,8 @@ def _correspond_chunk(
         parts = [] if fixed is None else [_Pooled(*(t[active] for t in fixed))]
         if settings.render_width:
             shown = Keypoints(*(t[active] for t in query))
-            parts.append(
-                _render_matches(
-                    scene_model, shown, poses[active], scenes[active], intrinsics[active],
-                    size, settings,
-                )  # fmt: skip
-            )
+            where = poses[active], scenes[active], intrinsics[active]
+            parts.append(_render_matches(scene_model, shown, *where, size, settings))
         pooled = _Pooled(*(torch.cat(column, 1) for column in zip(*parts, strict=True)))
         solved, counts = _solve(pooled, intrinsics[active], starts[active], settings)
         now = counts >= settings.min_inliers
