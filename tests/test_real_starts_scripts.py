@@ -196,3 +196,31 @@ def test_seeds_says_a_difference_beyond_the_larger_spread(
     near = folders("near", [0.07, 0.075])
     _script("seeds").main(["ShopFacade", "--without", *without, "--with", *near])
     assert capsys.readouterr().out.splitlines()[2].endswith("| +0.25 | no |")
+
+
+def test_a_finished_localize_pass_is_read_back_not_run_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A pass whose poses and summary are in the run, from the same starts file and images,
+    is read back; a summary from other starts (or other images) runs pae-localize again."""
+    import json
+    import shutil
+
+    from pae.data.labels import read_labels
+
+    run = _script("run")
+    run_dir, source = _scene_run(tmp_path, every=1)
+    starts = run_dir / "starts_DFNet.csv"
+    shutil.copy(source, starts)
+    shutil.copy(source, run_dir / "render_compare_DFNet.csv")
+    summary = {"init": str(starts), "images": 4, "ms_per_query": 7.0}
+    (run_dir / "render_compare_DFNet.json").write_text(json.dumps(summary))
+    commands = []
+    monkeypatch.setattr(run.subprocess, "run", lambda command, **_: commands.append(command))
+    found = run.localize(run_dir, source, starts, "render_compare_DFNet", [])
+    assert commands == [] and found["ms_per_query"] == 7.0
+    assert len(found["poses"].poses) == len(read_labels(source).poses)
+    summary["init"] = str(run_dir / "other_starts.csv")
+    (run_dir / "render_compare_DFNet.json").write_text(json.dumps(summary))
+    run.localize(run_dir, source, starts, "render_compare_DFNet", [])
+    assert len(commands) == 1 and "--init" in commands[0]

@@ -12,7 +12,9 @@ estimate against the file's ground truth, taken in the camera frame
 (``dt = R_gt^T (t_apr - t_gt)``, ``dR = R_gt^T R_apr``) and applied to the label file's pose of
 the same image; run.py writes those starts as a label file, runs the two commands and scores
 what pae-localize wrote. Finished scenes (``OUT/<scene>/real_starts_<APR>.json``) are skipped;
-``--recordings`` on a scene refined per image only adds its recordings' figures.
+``--recordings`` on a scene refined per image only adds its recordings' figures; a
+pae-localize pass whose poses and summary are already in the run (``RUN/<mode>_<APR>.csv``
+and ``.json``, from the same starts file and images) is read back, not run again.
 ``--every K`` refines every K-th test image only (the rows of the label file in its order,
 the same images for the start, NeFeS50 and the audit; each recording keeps its order), for
 the scenes whose thousands of test images a table on two cores cannot afford otherwise.
@@ -131,6 +133,11 @@ def localize(run: Path, test: Path, starts: Path, tag: str, sequences: list[str]
     and its summary (``RUN/<tag>.json``), both read back."""
     root = yaml_root(run)
     out, summary = run / f"{tag}.csv", run / f"{tag}.json"
+    if out.is_file() and summary.is_file():  # both written atomically: a finished pass
+        done = json.loads(summary.read_text())
+        if done.get("init") == str(starts) and done.get("images") == len(read_labels(test)):
+            print(f"{tag}: read back from {summary}", flush=True)
+            return {"poses": read_labels(out), **done}
     command = [sys.executable, "-m", "pae.localize", str(run), str(test), "--root", root]
     command += ["--init", str(starts), "--refine", "render_compare", "--out", str(out)]
     command += ["--summary", str(summary), *sequences]
