@@ -344,7 +344,8 @@ def test_contention_measures_both_works_in_this_process() -> None:
 
 def test_bench_real_starts_measures_the_experiment_s_scene_model_in_a_fresh_process() -> None:
     """The refiner against conf/experiment/real_starts.yaml's scene model: its time per query
-    here, and a child process's peak memory and time per query."""
+    here, and a child process's peak memory and time per query; the correspondence stage's
+    peak memory in chunks and all at once, each in a child, and their ratio."""
     from omegaconf import OmegaConf
 
     from pae import CONFIG_DIR
@@ -354,13 +355,17 @@ def test_bench_real_starts_measures_the_experiment_s_scene_model_in_a_fresh_proc
     grid = real_starts_grid()
     assert grid.samples_per_ray == model.samples_per_ray
     assert 0.9 * model.num_voxels <= grid.grids[0].grid[0, 0].numel() <= 1.1 * model.num_voxels
-    figures = bench_real_starts(queries=4, held=6)
+    figures = bench_real_starts(queries=4, held=6, matched=3)
     prefix = "bench/render_compare_real_starts"
+    stage = ("stage_peak_rss_mb", "stage_whole_peak_rss_mb", "stage_peak_rss_ratio")
+    stage += ("stage_ms_per_query", "stage_whole_ms_per_query")
     assert set(figures) == {
-        f"{prefix}/{k}" for k in ("ms_per_query", "peak_rss_mb", "child_ms_per_query")
+        f"{prefix}/{k}" for k in ("ms_per_query", "peak_rss_mb", "child_ms_per_query", *stage)
     }
     assert all(value > 0 for value in figures.values())
     assert 200 < figures[f"{prefix}/peak_rss_mb"] < 4000
+    ratio = figures[f"{prefix}/stage_peak_rss_mb"] / figures[f"{prefix}/stage_whole_peak_rss_mb"]
+    assert figures[f"{prefix}/stage_peak_rss_ratio"] == pytest.approx(ratio)
 
 
 def test_bench_export_times_both_engines_on_the_same_images() -> None:

@@ -114,21 +114,16 @@ def test_correspondences_solve_the_pose_far_beyond_a_photometric_basin() -> None
     torch.testing.assert_close(found.poses[~found.found], starts[~found.found])
 
 
-def test_correspondences_do_not_depend_on_how_the_queries_are_chunked(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
+def test_correspondences_do_not_depend_on_how_the_queries_are_chunked() -> None:
     """Two render-match-solve rounds over queries whose poses move by different amounts:
     matched two at a time, the poses, inliers and matches are those matched all at once."""
-    from pae.render_compare import correspondences
-
     model, images, intrinsics, truth = _frames(96, slice(0, 60, 12))
     offsets = torch.tensor([0.3, -0.25, 0.2, 0.15, -0.15, 0.1]) * torch.linspace(0, 1, 5)[:, None]
     starts = perturb(truth, offsets)
     scenes = torch.zeros(len(truth), dtype=torch.long)
     settings = MatchSettings(width=96, render_width=96, min_inliers=10, iterations=2)
     whole = correspond(model, images, intrinsics, starts, scenes, settings)
-    monkeypatch.setattr(correspondences, "MATCH_CHUNK", 2)
-    chunked = correspond(model, images, intrinsics, starts, scenes, settings)
+    chunked = correspond(model, images, intrinsics, starts, scenes, settings, chunk=2)
     assert whole.found.sum() >= 3
     for a, b in zip(whole, chunked, strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-6)

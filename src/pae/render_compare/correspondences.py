@@ -227,21 +227,22 @@ def correspond(
     settings: MatchSettings,
     views: TrainViews | None = None,
     describe: Describer | None = None,
+    chunk: int = MATCH_CHUNK,
 ) -> Correspondences:
     """Poses of query images [B, 3, H, W] (RGB in [0, 1], at the match width) with
     intrinsics [B, 4] (px of those images) from correspondences with the scene model's
     renderings at starts [B, 7] (camera-to-world) in scenes [B] and with ``views`` (the
     train views, :func:`train_views`; needed where ``settings.views`` or ``near_views``).
     Queries without ``min_inliers`` inliers keep their starts (``found`` False). The queries
-    go ``MATCH_CHUNK`` at a time (the renderings and descriptor distances stay that size);
-    each is matched alone, so the chunking changes no result."""
+    go ``chunk`` at a time (the renderings and descriptor distances stay that size); each is
+    matched alone, so the chunking changes no result."""
     if settings.uses_views and views is None:
         raise ValueError(
             "render_compare.match.views and near_views need the train views (train_views())"
         )
     starts = torch.cat([starts[:, :3], normalize_quaternion(starts[:, 3:])], -1).float()
     parts = []
-    for rows in torch.arange(len(starts)).split(MATCH_CHUNK):
+    for rows in torch.arange(len(starts)).split(chunk):
         part = images[rows].float(), intrinsics[rows].float(), starts[rows], scenes[rows]
         parts.append(_correspond_chunk(scene_model, *part, settings, views, describe))
     if not parts:
