@@ -418,3 +418,18 @@ def test_a_recorded_stage_reads_back_and_a_setting_it_predates_takes_its_default
 )  # fmt: skip
 def test_a_stage_is_described_in_a_table_s_words(settings: dict, said: str) -> None:
     assert MatchSettings(**settings).described() == said
+
+
+def test_correspondences_read_uint8_images_as_their_float_in_unit_range() -> None:
+    """Queries held as uint8 (as pae-localize and the callback hold them) give the poses of
+    the same images as float in [0, 1]."""
+    model, images, intrinsics, truth = _frames(96, slice(0, 36, 12))
+    starts = perturb(truth, torch.tensor([0.2, -0.15, 0.1, 0.1, -0.1, 0.05]).expand(3, 6))
+    scenes = torch.zeros(3, dtype=torch.long)
+    settings = MatchSettings(width=96, render_width=96, min_inliers=10, iterations=1)
+    stored = (images * 255).round().to(torch.uint8)
+    as_bytes = correspond(model, stored, intrinsics, starts, scenes, settings)
+    as_floats = correspond(model, stored.float() / 255, intrinsics, starts, scenes, settings)
+    assert as_bytes.found.any()
+    for a, b in zip(as_bytes, as_floats, strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)

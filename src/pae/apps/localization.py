@@ -354,7 +354,7 @@ def any_start_calibration(
     def val_matching() -> MatchQueries:
         read.append(run_train_images((run.folder, run.config), data, width, teacher))
         images, intrinsics = data.images_at("val", width)
-        return MatchQueries(images.float() / 255, intrinsics, read[0])
+        return MatchQueries(images, intrinsics, read[0])
 
     stages = (matches, val_matching if width else None)
     filters = configured_list(run.config, "filters_from_val")

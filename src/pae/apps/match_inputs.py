@@ -81,7 +81,7 @@ def match_queries(
         data.setup()
         train = run_train_images(run, data, match.width, teacher)
     vectors = intrinsics(size, table.focal, shorter).expand(len(table), 4)
-    return MatchQueries(dataset.images.float() / 255, vectors, train)
+    return MatchQueries(dataset.images, vectors, train)
 
 
 MatchReader = Callable[[MatchSettings, TrainImages | None], MatchQueries | None]

@@ -230,7 +230,7 @@ class MatchInputs:
             self.loaded[split] = data.images_at(split, self.width)
         images, intrinsics = self.loaded[split]
         at = rows.cpu()
-        return MatchQueries(images[at].float() / 255, intrinsics[at], self.train)
+        return MatchQueries(images[at], intrinsics[at], self.train)
 
 
 HONEST = "render_compare"

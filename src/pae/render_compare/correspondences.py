@@ -39,6 +39,7 @@ from pae.render_compare.train_views import (
     nearest_cameras,
     thumbnail_descriptors,
     train_views,
+    unit_rgb,
 )
 from pae.scene_model.base import SceneModel
 
@@ -229,7 +230,7 @@ def correspond(
     describe: Describer | None = None,
     chunk: int = MATCH_CHUNK,
 ) -> Correspondences:
-    """Poses of query images [B, 3, H, W] (RGB in [0, 1], at the match width) with
+    """Poses of query images [B, 3, H, W] (RGB, uint8 or float in [0, 1], at the match width) with
     intrinsics [B, 4] (px of those images) from correspondences with the scene model's
     renderings at starts [B, 7] (camera-to-world) in scenes [B] and with ``views`` (the
     train views, :func:`train_views`; needed where ``settings.views`` or ``near_views``).
@@ -243,7 +244,7 @@ def correspond(
     starts = torch.cat([starts[:, :3], normalize_quaternion(starts[:, 3:])], -1).float()
     parts = []
     for rows in torch.arange(len(starts)).split(chunk):
-        part = images[rows].float(), intrinsics[rows].float(), starts[rows], scenes[rows]
+        part = unit_rgb(images[rows]), intrinsics[rows].float(), starts[rows], scenes[rows]
         parts.append(_correspond_chunk(scene_model, *part, settings, views, describe))
     if not parts:
         empty = torch.zeros(0, dtype=torch.long)

@@ -185,13 +185,17 @@ class TrainImages:
         descriptors are nearest those of images [B, 3, H, W] (RGB in [0, 1]; k: at most
         ``count``, fewer where the scenes have fewer views), most similar first."""
         describe = self.describe or thumbnail_descriptors
-        similarity = describe(images.float()) @ self.descriptors.T
+        similarity = describe(unit_rgb(images)) @ self.descriptors.T
         similarity = similarity.masked_fill(scenes[:, None] != self.scenes[None], -math.inf)
         return similarity.topk(min(count, similarity.shape[1]), 1).indices
 
     def _float(self, rows: Tensor) -> Tensor:
-        images = self.images[rows]
-        return images.float() / 255 if images.dtype == torch.uint8 else images.float()
+        return unit_rgb(self.images[rows])
+
+
+def unit_rgb(images: Tensor) -> Tensor:
+    """Images as uint8 (0-255) or float in [0, 1] -> float32 in [0, 1]."""
+    return images.float() / 255 if images.dtype == torch.uint8 else images.float()
 
 
 def _joined(parts: Sequence[TrainViews]) -> TrainViews:
@@ -224,8 +228,9 @@ def _joined(parts: Sequence[TrainViews]) -> TrainViews:
 
 class MatchQueries(NamedTuple):
     """What the correspondence stage reads of the queries beyond the refiner's: their images
-    [B, 3, H, W] (RGB in [0, 1]) at the match width with intrinsics [B, 4] (px of those
-    images), and the train views to retrieve (None: the rendering at the start only)."""
+    [B, 3, H, W] (RGB, uint8 or float in [0, 1]; held as uint8, a quarter of the memory) at
+    the match width with intrinsics [B, 4] (px of those images), and the train views to
+    retrieve (None: the rendering at the start only)."""
 
     images: Tensor
     intrinsics: Tensor
