@@ -61,7 +61,7 @@ __all__ = [
 ]
 
 STILL_M, STILL_DEG = 0.005, 0.1
-"""The render -> match -> solve loop stops for a query once its pose moves no more than this."""
+"""The render -> match -> solve loop stops once no query's pose moves more than this."""
 MATCH_CHUNK = 64
 """Queries matched at once: bounds the renderings and the descriptor distances (a query's
 1,000 × 1,000 SIFT distances are 4 MB) whatever the number of queries."""
@@ -230,69 +230,71 @@ def correspond(
     describe: Describer | None = None,
     chunk: int = MATCH_CHUNK,
 ) -> Correspondences:
-    """Poses of query images [B, 3, H, W] (RGB, uint8 or float in [0, 1], at the match width) with
-    intrinsics [B, 4] (px of those images) from correspondences with the scene model's
-    renderings at starts [B, 7] (camera-to-world) in scenes [B] and with ``views`` (the
-    train views, :func:`train_views`; needed where ``settings.views`` or ``near_views``).
-    Queries without ``min_inliers`` inliers keep their starts (``found`` False). The queries
-    go ``chunk`` at a time (the renderings and descriptor distances stay that size); each is
-    matched alone, so the chunking changes no result."""
+    """Poses of query images [B, 3, H, W] (RGB, uint8 or float in [0, 1], at the match
+    width) with intrinsics [B, 4] (px of those images) from correspondences with the scene
+    model's renderings at starts [B, 7] (camera-to-world) in scenes [B] and with ``views``
+    (the train views, :func:`train_views`; needed where ``settings.views`` or
+    ``near_views``). Queries without ``min_inliers`` inliers keep their starts (``found``
+    False). Each round renders, matches and solves ``chunk`` queries at a time (the
+    renderings and descriptor distances stay that size), and another round follows while any
+    query's pose moved: the chunking changes no result."""
     if settings.uses_views and views is None:
         raise ValueError(
             "render_compare.match.views and near_views need the train views (train_views())"
         )
     starts = torch.cat([starts[:, :3], normalize_quaternion(starts[:, 3:])], -1).float()
-    parts = []
-    for rows in torch.arange(len(starts)).split(chunk):
-        part = unit_rgb(images[rows]), intrinsics[rows].float(), starts[rows], scenes[rows]
-        parts.append(_correspond_chunk(scene_model, *part, settings, views, describe))
-    if not parts:
-        empty = torch.zeros(0, dtype=torch.long)
-        return Correspondences(starts, empty.bool(), empty, empty)
-    return Correspondences(*(torch.cat(column) for column in zip(*parts, strict=True)))
+    intrinsics = intrinsics.float()
+    size = (images.shape[-1], images.shape[-2])
+    chunks = [
+        _keypoints(rows, unit_rgb(images[rows]), starts, scenes, settings, views, describe)
+        for rows in torch.arange(len(starts)).split(chunk)
+    ]
+    poses, found = starts.clone(), torch.zeros(len(starts), dtype=torch.bool)
+    inliers, matches = (torch.zeros(len(starts), dtype=torch.long) for _ in range(2))
+    rounds = max(1, settings.iterations) if settings.render_width else 1
+    for _ in range(rounds):
+        moved = False
+        for rows, query, fixed in chunks:
+            parts = [] if fixed is None else [fixed]
+            if settings.render_width:
+                where = poses[rows], scenes[rows], intrinsics[rows]
+                parts.append(_render_matches(scene_model, query, *where, size, settings))
+            pooled = _Pooled(*(torch.cat(column, 1) for column in zip(*parts, strict=True)))
+            solved, counts = _solve(pooled, intrinsics[rows], starts[rows], settings)
+            now = counts >= settings.min_inliers
+            better = now & (counts >= inliers[rows])
+            moved |= bool((_moved(solved, poses[rows]) & better).any())
+            poses[rows] = torch.where(better[:, None], solved, poses[rows])
+            inliers[rows] = torch.where(better, counts, inliers[rows])
+            matches[rows] = torch.where(better, pooled.valid.sum(1), matches[rows])
+            found[rows] |= now
+        if not settings.render_width or not moved:
+            break
+    return Correspondences(poses, found, inliers, matches)
 
 
-def _correspond_chunk(
-    scene_model: SceneModel,
+class _Chunk(NamedTuple):
+    rows: Tensor  # [C] the chunk's queries
+    query: Keypoints  # their keypoints
+    fixed: _Pooled | None  # their matches with the train views (kept in every round)
+
+
+def _keypoints(
+    rows: Tensor,
     images: Tensor,
-    intrinsics: Tensor,
     starts: Tensor,
     scenes: Tensor,
     settings: MatchSettings,
     views: TrainViews | None,
     describe: Describer | None,
-) -> Correspondences:
-    """:func:`correspond` for one chunk of queries (float images and intrinsics, unit
-    quaternions). Each round renders and solves again only the queries whose pose moved in
-    the round before."""
-    size = (images.shape[-1], images.shape[-2])
+) -> _Chunk:
+    """The keypoints of one chunk's query images [C, 3, H, W] (float in [0, 1]), rows [C] of
+    ``starts`` and ``scenes``, and their matches with the train views where the settings
+    retrieve any."""
     query = detect(images, settings)
-    fixed = None
-    if settings.uses_views:
-        assert views is not None
-        descriptors = (describe or thumbnail_descriptors)(images)
-        rows = _retrieve(views, descriptors, starts, scenes, settings)
-        fixed = _view_matches(query, views, rows, settings)
-    poses, found = starts.clone(), torch.zeros(len(starts), dtype=torch.bool)
-    inliers, matches = (torch.zeros(len(starts), dtype=torch.long) for _ in range(2))
-    active = torch.arange(len(starts))
-    rounds = max(1, settings.iterations) if settings.render_width else 1
-    for _ in range(rounds):
-        parts = [] if fixed is None else [_Pooled(*(t[active] for t in fixed))]
-        if settings.render_width:
-            shown = Keypoints(*(t[active] for t in query))
-            where = poses[active], scenes[active], intrinsics[active]
-            parts.append(_render_matches(scene_model, shown, *where, size, settings))
-        pooled = _Pooled(*(torch.cat(column, 1) for column in zip(*parts, strict=True)))
-        solved, counts = _solve(pooled, intrinsics[active], starts[active], settings)
-        now = counts >= settings.min_inliers
-        better = now & (counts >= inliers[active])
-        moved = _moved(solved, poses[active]) & better
-        poses[active] = torch.where(better[:, None], solved, poses[active])
-        inliers[active] = torch.where(better, counts, inliers[active])
-        matches[active] = torch.where(better, pooled.valid.sum(1), matches[active])
-        found[active] |= now
-        active = active[moved]
-        if not settings.render_width or not len(active):
-            break
-    return Correspondences(poses, found, inliers, matches)
+    if not settings.uses_views:
+        return _Chunk(rows, query, None)
+    assert views is not None
+    descriptors = (describe or thumbnail_descriptors)(images)
+    chosen = _retrieve(views, descriptors, starts[rows], scenes[rows], settings)
+    return _Chunk(rows, query, _view_matches(query, views, chosen, settings))

@@ -61,8 +61,7 @@ class MatchSettings:
     depth_width: int = 64
     """The train views' depth rendering (px) that lifts their keypoints."""
     iterations: int = 2
-    """Render -> match -> solve rounds, each query's until its pose stops moving (the train
-    views' matches are kept in each)."""
+    """Render -> match -> solve rounds (the train views' matches are kept in each)."""
     reprojection_px: float = 1.5
     """The solver's inlier threshold, px at ``width``."""
     min_inliers: int = 15
