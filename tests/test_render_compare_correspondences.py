@@ -125,6 +125,8 @@ def test_correspondences_do_not_depend_on_how_the_queries_are_chunked() -> None:
     whole = correspond(model, images, intrinsics, starts, scenes, settings)
     chunked = correspond(model, images, intrinsics, starts, scenes, settings, chunk=2)
     assert whole.found.sum() >= 3
+    with pytest.raises(ValueError, match="chunk must be >= 1 query, not 0"):
+        correspond(model, images, intrinsics, starts, scenes, settings, chunk=0)
     for a, b in zip(whole, chunked, strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
 

@@ -78,7 +78,7 @@ def refine_queries(n: int) -> float:
     return time.perf_counter() - begin
 
 
-def match_queries(n: int, chunk: int) -> float:
+def stage_seconds(n: int, chunk: int) -> float:
     """The correspondence stage for ``n`` queries of :func:`bench_queries` at ``STAGE_PX``
     against :func:`real_starts_grid`, ``chunk`` queries at a time -> seconds."""
     model = real_starts_grid()
@@ -135,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.match_chunk is None:
         seconds = refine_queries(args.queries)
     else:
-        seconds = match_queries(args.queries, args.match_chunk)
+        seconds = stage_seconds(args.queries, args.match_chunk)
     args.out.write_text(json.dumps({"seconds": seconds}))
     return 0
 

@@ -242,6 +242,8 @@ def correspond(
         raise ValueError(
             "render_compare.match.views and near_views need the train views (train_views())"
         )
+    if chunk < 1:
+        raise ValueError(f"correspond: chunk must be >= 1 query, not {chunk}")
     starts = torch.cat([starts[:, :3], normalize_quaternion(starts[:, 3:])], -1).float()
     intrinsics = intrinsics.float()
     size = (images.shape[-1], images.shape[-2])
