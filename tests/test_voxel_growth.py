@@ -3,13 +3,17 @@ its total variation weighed per unit of gradient, and loaded at whatever size it
 
 from __future__ import annotations
 
+import functools
 import math
+from types import SimpleNamespace
 
 import pytest
 import torch
 from omegaconf import OmegaConf
 
 from pae.core.errors import ConfigError
+from pae.core.schedules import exponential_decay
+from pae.lit.scene_model import SceneModelModule
 from pae.scene_model.voxel_grid import VoxelGrid, VoxelGridSceneModel
 
 BOUNDS = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
@@ -148,3 +152,33 @@ def test_growth_settings_out_of_range_name_their_key(settings: dict, message: st
     with pytest.raises(ConfigError, match=message) as error:
         VoxelGridSceneModel.check_config(cfg, "scene_model.model")
     assert "scene_model.model.grow" in str(error.value)
+
+
+def test_exponential_decay_ends_every_rate_at_its_ratio() -> None:
+    grids = [torch.nn.Parameter(torch.zeros(3)), torch.nn.Parameter(torch.zeros(2))]
+    optimizer = torch.optim.Adam([{"params": grids[:1]}, {"params": grids[1:], "lr": 0.01}], lr=0.1)
+    scheduler = exponential_decay(optimizer, total_steps=50, final_ratio=0.1)
+    rates = [[group["lr"] for group in optimizer.param_groups]]
+    for _ in range(50):
+        optimizer.step()
+        scheduler.step()
+        rates.append([group["lr"] for group in optimizer.param_groups])
+    assert rates[-1] == pytest.approx([0.01, 0.001])
+    assert rates[25] == pytest.approx([0.1 * 0.1**0.5, 0.01 * 0.1**0.5])  # the same factor each step
+    for bad in ({"final_ratio": 0.0}, {"final_ratio": 1.5}, {"total_steps": 0}):
+        with pytest.raises(ValueError, match="exponential_decay"):
+            exponential_decay(optimizer, **({"total_steps": 10} | bad))
+
+
+def test_an_optimiser_built_when_the_grid_grows_schedules_the_steps_left() -> None:
+    """The scene fit's optimiser is built again when the grid grows: its schedule spans the
+    rest of the fit, so the rate decays over each stage rather than stopping mid-way."""
+    module = SceneModelModule(
+        _model(), None, optimizer=functools.partial(torch.optim.Adam, lr=0.1),
+        scene_names=["a", "b"], configs={},
+        scheduler=functools.partial(exponential_decay, final_ratio=0.1),
+    )  # fmt: skip
+    for done, left in ((0, 100), (40, 60)):
+        module._trainer = SimpleNamespace(estimated_stepping_batches=100, global_step=done)
+        scheduler = module.configure_optimizers()["lr_scheduler"]["scheduler"]
+        assert scheduler.gamma == pytest.approx(0.1 ** (1 / left))

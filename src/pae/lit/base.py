@@ -104,12 +104,15 @@ class PaeModule(EvaluationModule):
         if trainer._logger_connector.should_update_logs or trainer.fast_dev_run:
             self.log_dict(figures, prog_bar=prog_bar)
 
+    def scheduled_steps(self) -> int:
+        """The optimiser steps a schedule built now spans: the run's."""
+        return int(self.trainer.estimated_stepping_batches)
+
     def configure_optimizers(self) -> Any:
         optimizer = self.optimizer_factory(params=list(self.trainable_parameters()))
         if self.scheduler_factory is None:
             return optimizer
-        total_steps = int(self.trainer.estimated_stepping_batches)
-        scheduler = self.scheduler_factory(optimizer=optimizer, total_steps=total_steps)
+        scheduler = self.scheduler_factory(optimizer=optimizer, total_steps=self.scheduled_steps())
         return {
             "optimizer": optimizer,
             "lr_scheduler": {"scheduler": scheduler, "interval": "step"},

@@ -99,6 +99,11 @@ class SceneModelModule(PaeModule):
         if self.scene_model.fit_stage(self.current_epoch, fresh=self.global_step == 0):
             self.trainer.strategy.setup_optimizers(self.trainer)
 
+    def scheduled_steps(self) -> int:
+        """The steps left: an optimiser built again when the grid grows schedules the rest of
+        the fit (the learning rate starts over at each stage)."""
+        return max(1, super().scheduled_steps() - self.global_step)
+
     def on_train_end(self) -> None:
         """Release the ray store's images (:meth:`RayBatches.release`): the evaluation after
         the fit does not read them (333 MB at 7-Scenes size)."""
