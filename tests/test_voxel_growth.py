@@ -164,7 +164,8 @@ def test_exponential_decay_ends_every_rate_at_its_ratio() -> None:
         scheduler.step()
         rates.append([group["lr"] for group in optimizer.param_groups])
     assert rates[-1] == pytest.approx([0.01, 0.001])
-    assert rates[25] == pytest.approx([0.1 * 0.1**0.5, 0.01 * 0.1**0.5])  # the same factor each step
+    # the same factor each step: half way, the square root of the ratio
+    assert rates[25] == pytest.approx([0.1 * 0.1**0.5, 0.01 * 0.1**0.5])
     for bad in ({"final_ratio": 0.0}, {"final_ratio": 1.5}, {"total_steps": 0}):
         with pytest.raises(ValueError, match="exponential_decay"):
             exponential_decay(optimizer, **({"total_steps": 10} | bad))
