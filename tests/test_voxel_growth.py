@@ -173,7 +173,7 @@ def test_exponential_decay_ends_every_rate_at_its_ratio() -> None:
 
 def test_an_optimiser_built_when_the_grid_grows_schedules_the_steps_left() -> None:
     """The scene fit's optimiser is built again when the grid grows: its schedule spans the
-    rest of the fit, so the rate decays over each stage rather than stopping mid-way."""
+    rest of the fit, so the grown grid's rate decays to its end rather than from mid-way."""
     module = SceneModelModule(
         _model(), None, optimizer=functools.partial(torch.optim.Adam, lr=0.1),
         scene_names=["a", "b"], configs={},

@@ -101,7 +101,7 @@ class SceneModelModule(PaeModule):
 
     def scheduled_steps(self) -> int:
         """The steps left: an optimiser built again when the grid grows schedules the rest of
-        the fit (the learning rate starts over at each stage)."""
+        the fit (the learning rate starts over when the grid grows)."""
         return max(1, super().scheduled_steps() - self.global_step)
 
     def on_train_end(self) -> None:
