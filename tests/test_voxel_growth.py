@@ -14,6 +14,7 @@ from omegaconf import OmegaConf
 from pae.core.errors import ConfigError
 from pae.core.schedules import exponential_decay
 from pae.lit.scene_model import SceneModelModule
+from pae.runs.trainer import optimisation
 from pae.scene_model.voxel_grid import VoxelGrid, VoxelGridSceneModel
 
 BOUNDS = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
@@ -183,3 +184,27 @@ def test_an_optimiser_built_when_the_grid_grows_schedules_the_steps_left() -> No
         module._trainer = SimpleNamespace(estimated_stepping_batches=100, global_step=done)
         scheduler = module.configure_optimizers()["lr_scheduler"]["scheduler"]
         assert scheduler.gamma == pytest.approx(0.1 ** (1 / left))
+
+
+@pytest.mark.parametrize(
+    ("scheduler", "message"),
+    [
+        ({"final_ratio": 0.0}, "final_ratio must lie in"),
+        ({"final_ratio": 0.1, "typo": 1}, "typo"),
+    ],
+)
+def test_a_bad_schedule_is_a_config_error_naming_its_key(scheduler: dict, message: str) -> None:
+    """Built once on a stand-in optimiser when the step's factories are made, before any data."""
+    group = OmegaConf.create(
+        {"scene_model": {
+            "optimizer": {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 0.1},
+            "scheduler": {
+                "_target_": "pae.core.schedules.exponential_decay", "_partial_": True, **scheduler
+            },
+        }}
+    )  # fmt: skip
+    with pytest.raises(ConfigError, match=f"scene_model.scheduler: .*{message}"):
+        optimisation(group.scene_model)
+    group.scene_model.scheduler = {"_target_": "pae.core.schedules.exponential_decay",
+                                   "_partial_": True}  # fmt: skip
+    assert optimisation(group.scene_model)["scheduler"] is not None

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import lightning as L
+import torch
 from hydra.utils import instantiate
 from lightning.pytorch.callbacks import LearningRateMonitor
 from lightning.pytorch.loggers import Logger
@@ -189,12 +190,20 @@ def fit_and_test(
 
 
 def optimisation(group: DictConfig) -> dict[str, Any]:
-    """A trained group's optimizer and scheduler factories (scheduler=null: a constant rate)."""
+    """A trained group's optimizer and scheduler factories (scheduler=null: a constant rate);
+    the scheduler is built once on a stand-in optimiser, so a bad setting of it is a one-line
+    ConfigError naming the key before any data is read."""
     scheduler = group.get("scheduler")
-    return {
-        "optimizer": instantiate(group.optimizer),
-        "scheduler": instantiate(scheduler) if scheduler else None,
-    }
+    optimizer = instantiate(group.optimizer)
+    if not scheduler:
+        return {"optimizer": optimizer, "scheduler": None}
+    factory = instantiate(scheduler)
+    key = f"{group._get_full_key(None) or 'the group'}.scheduler"
+    try:
+        factory(optimizer=optimizer(params=[torch.nn.Parameter(torch.zeros(1))]), total_steps=1)
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"{key}: {err}") from err
+    return {"optimizer": optimizer, "scheduler": factory}
 
 
 def render_compare_callback(cfg: DictConfig) -> L.Callback:
