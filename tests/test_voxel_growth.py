@@ -208,3 +208,15 @@ def test_a_bad_schedule_is_a_config_error_naming_its_key(scheduler: dict, messag
     group.scene_model.scheduler = {"_target_": "pae.core.schedules.exponential_decay",
                                    "_partial_": True}  # fmt: skip
     assert optimisation(group.scene_model)["scheduler"] is not None
+
+
+def test_a_bad_optimiser_setting_is_a_config_error_naming_the_optimiser() -> None:
+    """A typo in the optimiser's settings names the optimiser, not the scheduler after it."""
+    group = OmegaConf.create(
+        {"scene_model": {
+            "optimizer": {"_target_": "torch.optim.Adam", "_partial_": True, "lrr": 0.1},
+            "scheduler": {"_target_": "pae.core.schedules.exponential_decay", "_partial_": True},
+        }}
+    )  # fmt: skip
+    with pytest.raises(ConfigError, match=r"scene_model\.optimizer: .*lrr"):
+        optimisation(group.scene_model)

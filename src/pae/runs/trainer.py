@@ -191,18 +191,22 @@ def fit_and_test(
 
 def optimisation(group: DictConfig) -> dict[str, Any]:
     """A trained group's optimizer and scheduler factories (scheduler=null: a constant rate);
-    the scheduler is built once on a stand-in optimiser, so a bad setting of it is a one-line
-    ConfigError naming the key before any data is read."""
+    both are built once on a stand-in parameter, so a bad setting of either is a one-line
+    ConfigError naming its key before any data is read."""
     scheduler = group.get("scheduler")
     optimizer = instantiate(group.optimizer)
+    group_key = group._get_full_key(None) or "the group"
+    try:
+        stand_in = optimizer(params=[torch.nn.Parameter(torch.zeros(1))])
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"{group_key}.optimizer: {err}") from err
     if not scheduler:
         return {"optimizer": optimizer, "scheduler": None}
     factory = instantiate(scheduler)
-    key = f"{group._get_full_key(None) or 'the group'}.scheduler"
     try:
-        factory(optimizer=optimizer(params=[torch.nn.Parameter(torch.zeros(1))]), total_steps=1)
+        factory(optimizer=stand_in, total_steps=1)
     except (TypeError, ValueError) as err:
-        raise ConfigError(f"{key}: {err}") from err
+        raise ConfigError(f"{group_key}.scheduler: {err}") from err
     return {"optimizer": optimizer, "scheduler": factory}
 
 
